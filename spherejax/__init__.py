@@ -1,0 +1,70 @@
+"""spherejax: lighting deviation correction for integrating-sphere multispectral imaging.
+
+Implements Zou, Shen, Li, Zhu, Xin, "Lighting Deviation Correction for Integrating-Sphere
+Multispectral Imaging Systems", Sensors 19(16), 3501 (2019), doi:10.3390/s19163501, in JAX.
+
+Conventions (all modules): channels last with any leading dimensions; raw and corrected cubes
+(..., 16) at the band centres 400..700 nm step 20, reflectance (..., 31) at 400..700 nm step 10,
+XYZ and Lab (..., 3); float32 by default, float64 when the caller passes float64. Kernels are pure
+and can be jitted, vmapped and differentiated; bad pixel values give NaN, never an exception;
+bad shapes and names raise ValueError.
+"""
+
+from .colorimetry import (
+    delta_e_2000 as delta_e_2000,
+    reflectance_to_lab as reflectance_to_lab,
+    reflectance_to_xyz as reflectance_to_xyz,
+    tristimulus_weights as tristimulus_weights,
+    white_point_xyz as white_point_xyz,
+    xyz_to_lab as xyz_to_lab,
+)
+from .flatfield import flat_field as flat_field, stage1 as stage1, white_patch_ratio as white_patch_ratio
+from .grid import BAND_CENTRES_NM as BAND_CENTRES_NM, WAVELENGTHS_NM as WAVELENGTHS_NM
+from .pipeline import (
+    QUALITY_NONFINITE as QUALITY_NONFINITE,
+    QUALITY_PATCH_UNUSABLE as QUALITY_PATCH_UNUSABLE,
+    QUALITY_SATURATED as QUALITY_SATURATED,
+    QUALITY_WHITE_NOT_ABOVE_DARK as QUALITY_WHITE_NOT_ABOVE_DARK,
+    Calibration as Calibration,
+    CorrectionResult as CorrectionResult,
+    correct as correct,
+    delta_e_map as delta_e_map,
+)
+from .polynomial import fit_stage2 as fit_stage2, identity_coeffs as identity_coeffs, stage2 as stage2
+from .wiener_estimation import (
+    fit_wiener as fit_wiener,
+    select_wiener_noise_variance as select_wiener_noise_variance,
+    wiener as wiener,
+    wiener_from_sensitivity as wiener_from_sensitivity,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BAND_CENTRES_NM",
+    "WAVELENGTHS_NM",
+    "QUALITY_NONFINITE",
+    "QUALITY_PATCH_UNUSABLE",
+    "QUALITY_SATURATED",
+    "QUALITY_WHITE_NOT_ABOVE_DARK",
+    "Calibration",
+    "CorrectionResult",
+    "correct",
+    "delta_e_2000",
+    "delta_e_map",
+    "fit_stage2",
+    "fit_wiener",
+    "flat_field",
+    "identity_coeffs",
+    "reflectance_to_lab",
+    "reflectance_to_xyz",
+    "select_wiener_noise_variance",
+    "stage1",
+    "stage2",
+    "tristimulus_weights",
+    "white_patch_ratio",
+    "white_point_xyz",
+    "wiener",
+    "wiener_from_sensitivity",
+    "xyz_to_lab",
+]

@@ -1,0 +1,77 @@
+"""Trace-time argument checks shared by the kernels.
+
+Every check raises ValueError naming the argument, what it got and what was expected, so that a
+wrong shape fails before any computation (and at trace time under jit) instead of broadcasting
+into a silently wrong answer. Value checks never live here: per-pixel paths do not raise on data.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def as_array(name: str, x) -> jax.Array:
+    """`jnp.asarray(x)`, turning a conversion failure into a ValueError naming `name`."""
+    try:
+        return jnp.asarray(x)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name}: expected an array, got {type(x).__name__} ({error})") from None
+
+
+def float_dtype(*arrays) -> jnp.dtype:
+    """The floating dtype a computation on `arrays` runs in.
+
+    float32 unless a floating input is float64 (integer camera counts, e.g. uint16, do not vote):
+    DESIGN.md, "float32 by default, float64 when the caller passes float64".
+    """
+    floats = [a.dtype for a in arrays if jnp.issubdtype(a.dtype, jnp.floating)]
+    if any(d == jnp.float64 for d in floats):
+        return jnp.dtype(jnp.float64)
+    return jnp.dtype(jnp.float32)
+
+
+def require_last_axis(name: str, x, size: int, what: str) -> None:
+    """Raise unless `x` has at least one axis and its last axis has `size` entries."""
+    if x.ndim == 0 or x.shape[-1] != size:
+        raise ValueError(f"{name}: expected shape (..., {size}) ({what}), got {tuple(x.shape)}")
+
+
+def require_shape(name: str, x, shape: tuple[int, ...], what: str) -> None:
+    """Raise unless `x.shape == shape`."""
+    if tuple(x.shape) != tuple(shape):
+        raise ValueError(f"{name}: expected shape {tuple(shape)} ({what}), got {tuple(x.shape)}")
+
+
+def require_broadcastable(name: str, x, target_name: str, target_shape: tuple[int, ...]) -> None:
+    """Raise unless `x` broadcasts to `target_shape` without enlarging it."""
+    try:
+        out = np.broadcast_shapes(tuple(x.shape), tuple(target_shape))
+    except ValueError:
+        out = None
+    if out != tuple(target_shape):
+        raise ValueError(
+            f"{name}: shape {tuple(x.shape)} does not broadcast to {target_name}'s shape "
+            f"{tuple(target_shape)}"
+        )
+
+
+def require_bool_mask(name: str, mask, shape: tuple[int, ...]) -> None:
+    """Raise unless `mask` is a boolean array of `shape`."""
+    if mask.dtype != jnp.bool_:
+        raise ValueError(f"{name}: expected a boolean mask, got dtype {mask.dtype}")
+    require_shape(name, mask, shape, "one entry per image pixel")
+
+
+def require_nonempty_mask(name: str, mask) -> None:
+    """Raise if a concrete boolean mask selects no pixel; tracers (under jit) pass unchecked."""
+    if isinstance(mask, jax.core.Tracer):
+        return
+    if not bool(np.any(np.asarray(mask))):
+        raise ValueError(f"{name}: the mask selects no pixel; expected at least one True entry")
+
+
+def is_concrete(x) -> bool:
+    """True when `x` holds values now (not a tracer inside jit, grad or vmap)."""
+    return not isinstance(x, jax.core.Tracer)

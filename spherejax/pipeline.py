@@ -1,0 +1,254 @@
+"""The whole per-pixel path of an image in one jitted call.
+
+    raw (H, W, B) uint16 or float
+      -> quality mask (saturated, non-finite, white <= dark)
+      -> v = flat field (Eq. 10)            with the calibration's dark frame and white standard
+      -> p = white-patch ratio (Eq. 14-15)  over the calibration's patch mask, usable pixels only
+      -> v_check = p v (Stage I, Eq. 16-17)
+      -> v_tilde = Stage II (Eq. 23)
+      -> reflectance = W v_tilde (Wiener, 16 -> 31)
+      -> Lab under the calibration's illuminant (ASTM E308 XYZ, perfect-diffuser white)
+
+Bad pixels never raise: they become NaN in every output and carry bits in `quality`. Shapes and
+configuration are checked before tracing and raise ValueError naming the argument.
+
+For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so XYZ is computed
+from v_tilde directly; that equals reflectance @ weights up to rounding (tested).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from . import _checks, colorimetry
+from .colorimetry import delta_e_2000, xyz_to_lab
+from .flatfield import flat_field_unchecked, patch_ratio_weighted, white_signal_usable
+from .grid import N_WAVELENGTHS
+from .polynomial import stage2_unchecked
+
+_HIGHEST = jax.lax.Precision.HIGHEST
+
+#: Bits of `CorrectionResult.quality` (uint8); 0 = good pixel.
+QUALITY_SATURATED = 1  #: raw at or above the saturation level in some band
+QUALITY_NONFINITE = 2  #: raw NaN or infinite in some band (float input)
+QUALITY_WHITE_NOT_ABOVE_DARK = 4  #: white <= dark (or not finite) in some band: no flat field
+QUALITY_PATCH_UNUSABLE = 8  #: the white-patch ratio of some band is not finite: whole image bad
+
+
+class Calibration(eqx.Module):
+    """Everything `correct` needs, as a pytree (its arrays are leaves; the names are static).
+
+    Fields:
+      dark: dark frame, (H, W, B), in raw counts.
+      white: white-standard frame, (H, W, B), in raw counts, same exposure as the samples.
+      patch: boolean mask (H, W), True on the reference white patch (Eq. 14-15).
+      coeffs: Stage II coefficients (B, 4), ordered c1..c4 (Eq. 23).
+      wiener: Wiener matrix (31, B) (`wiener.fit_wiener`).
+      illuminant: "D65", "A" or "F2" for Lab.
+      observer: colour-matching functions for Lab (`colorimetry.OBSERVERS`).
+      saturation: raw level at or above which a pixel counts as saturated; None = the full scale
+        of an integer raw dtype (65535 for uint16) and no check for float raw.
+    """
+
+    dark: jax.Array = eqx.field(converter=jnp.asarray)
+    white: jax.Array = eqx.field(converter=jnp.asarray)
+    patch: jax.Array = eqx.field(converter=jnp.asarray)
+    coeffs: jax.Array = eqx.field(converter=jnp.asarray)
+    wiener: jax.Array = eqx.field(converter=jnp.asarray)
+    illuminant: str = eqx.field(static=True, default="D65")
+    observer: str = eqx.field(static=True, default=colorimetry.DEFAULT_OBSERVER)
+    saturation: float | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        # Unknown names raise here, at construction, rather than at the first correction.
+        colorimetry.tristimulus_weights(self.illuminant, observer=self.observer)
+        if self.dark.ndim != 3:
+            raise ValueError(f"dark: expected shape (H, W, B), got {tuple(self.dark.shape)}")
+        height, width, bands = self.dark.shape
+        _checks.require_shape("white", self.white, self.dark.shape, "the dark frame's (H, W, B)")
+        _checks.require_bool_mask("patch", self.patch, (height, width))
+        _checks.require_nonempty_mask("patch", self.patch)
+        _checks.require_shape(
+            "coeffs", self.coeffs, (bands, 4), f"c1..c4 for each of the {bands} bands"
+        )
+        _checks.require_shape(
+            "wiener", self.wiener, (N_WAVELENGTHS, bands), f"31 wavelengths x the {bands} bands"
+        )
+        if self.saturation is not None and not float(self.saturation) > 0:
+            raise ValueError(f"saturation: expected a level > 0 or None, got {self.saturation!r}")
+
+    @property
+    def bands(self) -> int:
+        return int(self.dark.shape[-1])
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return int(self.dark.shape[0]), int(self.dark.shape[1])
+
+
+class CorrectionResult(eqx.Module):
+    """Output of `correct`. NaN wherever `quality` != 0.
+
+    Fields:
+      reflectance: (..., H, W, 31), 400..700 nm step 10.
+      lab: (..., H, W, 3) under the calibration's illuminant.
+      quality: (..., H, W) uint8 bit mask, see the QUALITY_* constants; 0 = good.
+      p: white-patch ratio (..., B) (Eq. 15).
+      v: flat-fielded response (..., H, W, B) (Eq. 10), or None unless intermediates=True.
+      v_stage1: Stage I response p v (Eq. 17), or None.
+      v_stage2: Stage II response (Eq. 23), the input of the Wiener step, or None.
+    """
+
+    reflectance: jax.Array
+    lab: jax.Array
+    quality: jax.Array
+    p: jax.Array
+    v: jax.Array | None = None
+    v_stage1: jax.Array | None = None
+    v_stage2: jax.Array | None = None
+
+    @property
+    def valid(self) -> jax.Array:
+        """Boolean (..., H, W): True where the pixel is good."""
+        return self.quality == 0
+
+    def delta_e_map(self, reference):
+        """ΔE00 of every pixel against `reference` (see `delta_e_map`)."""
+        return delta_e_map(self.lab, reference)
+
+
+def delta_e_map(lab, reference):
+    """CIEDE2000 map of a Lab image against a reference Lab image or one Lab colour.
+
+    Args:
+      lab: (..., H, W, 3), e.g. `correct(...).lab`.
+      reference: (3,) for one colour, or a Lab image of the same shape as `lab`.
+
+    Returns:
+      ΔE00, shape (..., H, W); NaN where either input is NaN.
+    """
+    lab = _checks.as_array("lab", lab)
+    reference = _checks.as_array("reference", reference)
+    _checks.require_last_axis("lab", lab, 3, "L*, a*, b*")
+    _checks.require_last_axis("reference", reference, 3, "one Lab colour or a Lab image")
+    if reference.ndim != 1:
+        _checks.require_shape("reference", reference, lab.shape, "one Lab colour (3,) or lab's shape")
+    return delta_e_2000(lab, reference)
+
+
+def _compute_dtype(raw, calibration: Calibration):
+    return _checks.float_dtype(
+        raw, calibration.dark, calibration.white, calibration.coeffs, calibration.wiener
+    )
+
+
+def _saturation_level(raw, calibration: Calibration):
+    if calibration.saturation is not None:
+        return float(calibration.saturation)
+    if jnp.issubdtype(raw.dtype, jnp.integer):
+        return float(jnp.iinfo(raw.dtype).max)
+    return None
+
+
+@eqx.filter_jit
+def _correct(raw, calibration: Calibration, intermediates: bool):
+    dtype = _compute_dtype(raw, calibration)
+    raw_f = raw.astype(dtype)
+    dark = calibration.dark.astype(dtype)
+    white = calibration.white.astype(dtype)
+    coeffs = calibration.coeffs.astype(dtype)
+    W = calibration.wiener.astype(dtype)
+
+    # Per-pixel quality, any band bad -> the pixel is bad (reflectance mixes all bands).
+    saturation = _saturation_level(raw, calibration)
+    nonfinite = jnp.any(~jnp.isfinite(raw_f), axis=-1)
+    if saturation is None:
+        saturated = jnp.zeros(raw.shape[:-1], dtype=bool)
+    else:
+        # +inf is reported as non-finite, not as saturated: the bits say what went wrong.
+        saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= saturation), axis=-1)
+    no_flat_field = jnp.broadcast_to(jnp.any(~white_signal_usable(dark, white), axis=-1), raw.shape[:-1])
+    pixel_bad = saturated | nonfinite | no_flat_field
+
+    # Eq. 14-15 over the usable patch pixels only: one saturated pixel in the patch must not
+    # shift p for the whole image.
+    patch_weights = jnp.where(pixel_bad, 0.0, calibration.patch.astype(dtype))[..., None]
+    p = patch_ratio_weighted(raw_f, dark, white, patch_weights)  # (..., B)
+    patch_unusable = jnp.any(~jnp.isfinite(p), axis=-1)  # (...,)
+
+    quality = (
+        saturated.astype(jnp.uint8) * QUALITY_SATURATED
+        | nonfinite.astype(jnp.uint8) * QUALITY_NONFINITE
+        | no_flat_field.astype(jnp.uint8) * QUALITY_WHITE_NOT_ABOVE_DARK
+        | (jnp.broadcast_to(patch_unusable[..., None, None], raw.shape[:-1]).astype(jnp.uint8) * QUALITY_PATCH_UNUSABLE)
+    )
+    good = (quality == 0)[..., None]
+
+    p_pixel = p[..., None, None, :]
+    v = flat_field_unchecked(raw_f, dark, white)
+    # Safe-where: bad pixels continue as 0 and are set to NaN at the end. A NaN carried into
+    # Stage II or a matmul makes d(output)/d(coeffs, W) NaN even where the cotangent is 0.
+    v_safe = jnp.where(good, v, 0.0)
+    v_stage2_safe = stage2_unchecked(v_safe, p_pixel, coeffs)
+
+    reflectance = jnp.matmul(v_stage2_safe, W.T, precision=_HIGHEST)
+    # Lab from v_tilde through the folded (B, 3) matrix W^T @ weights: no second pass over the
+    # 31-channel cube.
+    weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
+    weights = jnp.asarray(weights, dtype)
+    xyz = jnp.matmul(v_stage2_safe, jnp.matmul(W.T, weights, precision=_HIGHEST), precision=_HIGHEST)
+    lab = xyz_to_lab(xyz, jnp.sum(weights, axis=0))
+    reflectance = jnp.where(good, reflectance, jnp.nan)
+    lab = jnp.where(good, lab, jnp.nan)
+
+    if intermediates:
+        v_out = jnp.where(good, v, jnp.nan)
+        v_stage2_out = jnp.where(good, v_stage2_safe, jnp.nan)
+        return CorrectionResult(reflectance, lab, quality, p, v_out, v_out * p_pixel, v_stage2_out)
+    return CorrectionResult(reflectance, lab, quality, p)
+
+
+def correct(raw, calibration: Calibration, *, intermediates: bool = False) -> CorrectionResult:
+    """Correct camera frames into reflectance and CIELAB (flat field -> Stage I -> Stage II ->
+    Wiener -> Lab), jitted.
+
+    Args:
+      raw: sample frames, (H, W, B) or (..., H, W, B), uint16 counts or float, same exposure as
+        the calibration's white standard.
+      calibration: a `Calibration` with matching (H, W, B).
+      intermediates: also return v, v_stage1 and v_stage2 (costs three more (H, W, B) cubes).
+
+    Returns:
+      `CorrectionResult`: reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W),
+      p (..., B) and, if asked, the intermediates. float32 unless the calibration is float64.
+    """
+    if not isinstance(calibration, Calibration):
+        raise ValueError(
+            f"calibration: expected a spherejax.Calibration, got {type(calibration).__name__}"
+        )
+    raw = _checks.as_array("raw", raw)
+    if raw.ndim < 3:
+        raise ValueError(f"raw: expected shape (H, W, B) or (..., H, W, B), got {tuple(raw.shape)}")
+    expected = (*calibration.image_shape, calibration.bands)
+    if tuple(raw.shape[-3:]) != expected:
+        raise ValueError(
+            f"raw: expected frames of shape {expected} (the calibration's H, W, B), got "
+            f"{tuple(raw.shape)}"
+        )
+    if not (jnp.issubdtype(raw.dtype, jnp.integer) or jnp.issubdtype(raw.dtype, jnp.floating)):
+        raise ValueError(f"raw: expected integer counts or floats, got dtype {raw.dtype}")
+    return _correct(raw, calibration, bool(intermediates))
+
+
+__all__ = [
+    "QUALITY_SATURATED",
+    "QUALITY_NONFINITE",
+    "QUALITY_WHITE_NOT_ABOVE_DARK",
+    "QUALITY_PATCH_UNUSABLE",
+    "Calibration",
+    "CorrectionResult",
+    "correct",
+    "delta_e_map",
+]

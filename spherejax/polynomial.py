@@ -1,0 +1,129 @@
+"""Correction Stage II of Zou et al. (2019): the per-band polynomial in v_s and p_s.
+
+Stage I assumes Lambertian reflection; real samples are not Lambertian, stray light couples bright
+and dark regions, and so a residual background effect remains. Section 4 models it per band with
+
+    v_tilde = c1 p v + c2 v + c3 p + c4                                   (Eq. 18 / Eq. 23)
+
+where v is the flat-fielded response (Eq. 10) and p the white-patch ratio (Eq. 15). Coefficients
+are ordered (c1, c2, c3, c4) on the last axis of a (B, 4) array. Identity coefficients
+(c1, c2, c3, c4) = (1, 0, 0, 0) reduce Stage II to Stage I (v_tilde = p v).
+
+`fit_stage2` with loss "l2" is the least-squares problem of Eq. 19-22, solved per band.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from . import _checks
+
+#: Stage II coefficients that make Stage II equal Stage I, per band: c1 = 1, c2 = c3 = c4 = 0.
+IDENTITY_COEFFS = (1.0, 0.0, 0.0, 0.0)
+
+#: Accepted values of `fit_stage2`'s `loss`.
+LOSSES = ("l2",)
+
+#: The polynomial has four coefficients, so a band needs at least this many usable samples.
+MIN_SAMPLES = 4
+
+
+def identity_coeffs(bands: int = 16, dtype=jnp.float32):
+    """Stage II coefficients that leave Stage I untouched: c1 = 1, c2 = c3 = c4 = 0.
+
+    Returns shape (bands, 4) in `dtype`; `stage2(v, p, identity_coeffs())` equals `stage1(v, p)`.
+    """
+    return jnp.tile(jnp.asarray(IDENTITY_COEFFS, dtype=dtype), (bands, 1))
+
+
+def stage2_unchecked(v, p, coeffs):
+    """Eq. 23 on validated float arrays of one dtype; see `stage2`."""
+    c_1, c_2, c_3, c_4 = coeffs[:, 0], coeffs[:, 1], coeffs[:, 2], coeffs[:, 3]
+    return (c_1 * p + c_2) * v + c_3 * p + c_4
+
+
+def stage2(v, p, coeffs):
+    """Stage II corrected response v_tilde = (c1 p + c2) v + c3 p + c4 (Eq. 23).
+
+    Args:
+      v: flat-fielded response v_s (Eq. 10), shape (..., B).
+      p: white-patch ratio p_s (Eq. 15), shape (B,) or broadcastable to `v`.
+      coeffs: shape (B, 4), ordered c1, c2, c3, c4 (the paper's Table 2, transposed).
+
+    Returns:
+      v_tilde, shape of `v`.
+    """
+    v = _checks.as_array("v", v)
+    p = _checks.as_array("p", p)
+    coeffs = _checks.as_array("coeffs", coeffs)
+    if v.ndim == 0:
+        raise ValueError("v: expected shape (..., B) with B bands, got a scalar")
+    bands = v.shape[-1]
+    _checks.require_last_axis("p", p, bands, f"one ratio per band of v, B = {bands}")
+    _checks.require_broadcastable("p", p, "v", v.shape)
+    _checks.require_shape("coeffs", coeffs, (bands, 4), f"c1..c4 for each of the {bands} bands")
+    dtype = _checks.float_dtype(v, p, coeffs)
+    return stage2_unchecked(v.astype(dtype), p.astype(dtype), coeffs.astype(dtype))
+
+
+def _design_matrix(v, p):
+    """M = (p ⊙ v, v, p, 1) of Eq. 20 for one band; v, p shape (n,) -> (n, 4)."""
+    return jnp.stack([p * v, v, p, jnp.ones_like(v)], axis=-1)
+
+
+def _fit_band_l2(v, p, target):
+    """Closed-form fit of one band (Eq. 21-22) using only the finite samples.
+
+    Eq. 22 writes the normal equations (MᵀM)⁻¹Mᵀv_tilde; they square the condition number, and
+    the columns p⊙v and v are nearly collinear because p stays close to 1, so the same minimiser
+    is computed with an SVD-based least-squares solve instead. Non-finite samples get weight 0 (a
+    zero row leaves the minimiser unchanged); a band with fewer than 4 usable samples is NaN.
+    """
+    usable = jnp.isfinite(v) & jnp.isfinite(p) & jnp.isfinite(target)
+    v = jnp.where(usable, v, 0.0)
+    p = jnp.where(usable, p, 0.0)
+    target = jnp.where(usable, target, 0.0)
+    rows = jnp.where(usable[:, None], _design_matrix(v, p), 0.0)
+    coeffs, _, rank, _ = jnp.linalg.lstsq(rows, target)
+    enough = (jnp.sum(usable) >= MIN_SAMPLES) & (rank == 4)
+    return jnp.where(enough, coeffs, jnp.nan)
+
+
+def fit_stage2(v, p, target, loss: str = "l2"):
+    """Fit the Stage II coefficients of every band (Eq. 19-22).
+
+    The training set of Section 4: small patches i on backgrounds j give v^{ij} (Eq. 10) and
+    p^{ij} (Eq. 15); the target is the Stage I response of the same patch on the reference
+    background, p^{i,jref} v^{i,jref}, repeated for every j (Eq. 19).
+
+    Args:
+      v: normalised responses, shape (n, B), n = n_p * n_b samples (35 x 35 px averages).
+      p: white-patch ratios, shape (n, B).
+      target: target responses v_tilde, shape (n, B).
+      loss: "l2", the closed form of Eq. 22.
+
+    Returns:
+      coeffs, shape (B, 4), ordered c1..c4. A band with fewer than 4 finite samples, or whose
+      samples do not determine the four coefficients (rank < 4), is NaN.
+    """
+    if not isinstance(loss, str) or loss not in LOSSES:
+        raise ValueError(f"loss: unknown loss {loss!r}; expected one of {list(LOSSES)}")
+    v = _checks.as_array("v", v)
+    p = _checks.as_array("p", p)
+    target = _checks.as_array("target", target)
+    if v.ndim != 2:
+        raise ValueError(f"v: expected shape (n, B) (samples, bands), got {tuple(v.shape)}")
+    _checks.require_shape("p", p, v.shape, "one white-patch ratio per sample and band, like v")
+    _checks.require_shape("target", target, v.shape, "one target per sample and band, like v")
+    if v.shape[0] < MIN_SAMPLES:
+        raise ValueError(
+            f"v: {v.shape[0]} samples cannot determine the 4 coefficients c1..c4; expected at "
+            f"least {MIN_SAMPLES} rows"
+        )
+    dtype = _checks.float_dtype(v, p, target)
+    fit = jax.vmap(_fit_band_l2, in_axes=(1, 1, 1))
+    return fit(v.astype(dtype), p.astype(dtype), target.astype(dtype))
+
+
+__all__ = ["IDENTITY_COEFFS", "LOSSES", "identity_coeffs", "stage2", "fit_stage2"]

@@ -1,0 +1,82 @@
+"""Measured reflectance spectra shipped with colour-science, on spherejax's 31-sample grid.
+
+The simulator, the tests and the benchmarks draw targets, patches and backgrounds from here, so
+no reflectance is invented. Sets (colour-science 0.4.x):
+
+- ColorChecker: "ColorChecker N Ohta", "BabelColor Average", "ISO 17321-1" (24 patches each), and
+  "PMC" (30 patches), from `colour.SDS_COLOURCHECKERS` (aliases dropped);
+- TCS: the CIE 13.3-1995 (14) and CIE 2024 (15) test colour samples (`colour.quality.SDS_TCS`);
+- VS: the 15 NIST CQS 7.4 and 9.0 test samples (`colour.quality.SDS_VS`);
+- CES: the 99 colour evaluation samples of IES TM-30-18 / CIE 224:2017;
+- RAW to ACES: the 190 training patches of AMPAS rawtoaces.
+
+Only spectra that cover 400-700 nm are kept; values at 400, 410, ..., 700 nm are taken with
+colour-science's own interpolation (exact at measured wavelengths).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+
+import numpy as np
+
+from .grid import WAVELENGTHS_NM
+
+# colour-science registers some datasets twice, under a long and a short name.
+_COLOURCHECKER_ALIASES = {"babel_average", "cc_ohta"}
+
+
+def _sample(sd) -> np.ndarray | None:
+    """Reflectance of one colour-science SpectralDistribution at WAVELENGTHS_NM, or None."""
+    if sd.shape.start > WAVELENGTHS_NM[0] or sd.shape.end < WAVELENGTHS_NM[-1]:
+        return None
+    return np.asarray(sd[WAVELENGTHS_NM.astype(float)], dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=None)
+def _load() -> dict[str, np.ndarray]:
+    import colour
+    from colour.characterisation import read_training_data_rawtoaces_v1
+    from colour.quality import SDS_TCS, SDS_VS
+    from colour.quality.cfi2017 import load_TCS_CIE2017
+
+    sets: dict[str, list[np.ndarray]] = {}
+
+    def add(name, sds):
+        for sd in sds:
+            values = _sample(sd)
+            if values is not None:
+                sets.setdefault(name, []).append(values)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # colour-science's interpolation / alignment notices
+        for name, checker in colour.SDS_COLOURCHECKERS.items():
+            if name not in _COLOURCHECKER_ALIASES:
+                add(f"ColorChecker: {name}", checker.values())
+        for name, samples in SDS_TCS.items():
+            add(f"TCS: {name}", samples.values())
+        for name, samples in SDS_VS.items():
+            add(f"VS: {name}", samples.values())
+        ces = load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))
+        add("CES (TM-30)", colour.colorimetry.sds_and_msds_to_sds(ces))
+        add("RAW to ACES training", colour.colorimetry.sds_and_msds_to_sds(read_training_data_rawtoaces_v1()))
+    out = {}
+    for name, rows in sets.items():
+        array = np.stack(rows)
+        array.setflags(write=False)
+        out[name] = array
+    return out
+
+
+def reflectance_sets() -> dict[str, np.ndarray]:
+    """Every shipped reflectance set, name -> read-only float64 array (n, 31), 400..700 nm."""
+    return dict(_load())
+
+
+def all_reflectances() -> np.ndarray:
+    """All shipped reflectances stacked, float64 (N, 31), in the order of `reflectance_sets`."""
+    return np.concatenate(list(_load().values()))
+
+
+__all__ = ["reflectance_sets", "all_reflectances"]

@@ -1,0 +1,80 @@
+"""Named reference problems shared by the tests."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared"
+SHARMA_CSV = SHARED / "data" / "sharma2005_ciede2000.csv"
+
+#: Zou et al. (2019), Table 2: Stage II coefficients c1..c4 (rows) for bands 1..16 (columns).
+TABLE_2 = np.array(
+    [
+        [0.8966, 0.8787, 0.9083, 0.9168, 0.9240, 0.9438, 0.9155, 0.9293,
+         0.9445, 0.9123, 0.9155, 0.9249, 0.9118, 0.9309, 0.9276, 0.9452],
+        [0.1158, 0.1337, 0.1000, 0.0901, 0.0824, 0.0613, 0.0934, 0.0792,
+         0.0608, 0.0979, 0.0931, 0.0837, 0.0972, 0.0751, 0.0778, 0.0562],
+        [0.2062, 0.2034, 0.2169, 0.1507, 0.1354, 0.0837, 0.1243, 0.0849,
+         0.0782, 0.1105, 0.1059, 0.0793, 0.1000, 0.0803, 0.0951, 0.1040],
+        [-0.2229, -0.2193, -0.2329, -0.1617, -0.1468, -0.0913, -0.1374, -0.0943,
+         -0.0868, -0.1228, -0.1172, -0.0878, -0.1097, -0.0868, -0.1009, -0.1085],
+    ]
+).T  # (16, 4), ordered c1, c2, c3, c4 as spherejax.stage2 expects
+
+
+def sharma_pairs():
+    """Sharma, Wu, Dalal (2005) Table 1: (pair numbers (34,), lab1 (34, 3), lab2 (34, 3), dE00 (34,))."""
+    data = np.loadtxt(SHARMA_CSV, delimiter=",", skiprows=1)
+    return data[:, 0].astype(int), data[:, 1:4], data[:, 4:7], data[:, 7]
+
+
+def gaussian_sensitivity(fwhm_nm: float = 10.0) -> np.ndarray:
+    """Sensitivity M (16, 31) of 16 Gaussian filters (400..700 nm step 20) under a smooth
+    xenon-like lamp and a silicon-like quantum efficiency, on 400..700 nm step 10, with each
+    band normalised so that reflectance 1 gives response 1 (the flat-fielded scale)."""
+    wavelengths = np.arange(400, 701, 10, dtype=np.float64)
+    centres = np.arange(400, 701, 20, dtype=np.float64)
+    sigma = fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    filters = np.exp(-0.5 * ((wavelengths[None] - centres[:, None]) / sigma) ** 2)
+    lamp = 0.8 + 0.4 * (wavelengths - 400.0) / 300.0  # gently rising, xenon-like in the visible
+    quantum_efficiency = 0.35 + 0.5 * np.exp(-0.5 * ((wavelengths - 560.0) / 120.0) ** 2)
+    M = filters * lamp * quantum_efficiency
+    return M / M.sum(axis=1, keepdims=True)
+
+
+def lambertian_sphere_frames(
+    rho_sample: np.ndarray,
+    rho_standard: float | np.ndarray,
+    rho_patch: np.ndarray,
+    patch: np.ndarray,
+    beta: np.ndarray,
+    lamp_change: np.ndarray,
+    *,
+    rho_wall: np.ndarray,
+    alpha_ww: float,
+    alpha_wsp: float,
+    alpha_spw: float,
+    gamma_phi0: np.ndarray,
+    dark: np.ndarray,
+):
+    """Camera frames of a Lambertian multi-bounce sphere, Zou et al. (2019) Eqs. 7-9, 12, 13.
+
+    Shapes: rho_sample (H, W, B) is the sample on the holder (outside the white patch);
+    rho_patch (B,) the reference white patch placed at `patch` (H, W) in both frames; beta (H, W)
+    the spatial non-uniformity; lamp_change (B,) = (Phi_0 + dPhi_0) / Phi_0 during the sample
+    frame; rho_wall (B,); gamma_phi0 (B,) = gamma * Phi_0; dark (H, W, B).
+
+    Returns (white_frame, sample_frame), each (H, W, B), dark current included.
+    """
+    rho_standard = np.broadcast_to(np.asarray(rho_standard, dtype=np.float64), rho_sample.shape)
+    holder_standard = np.where(patch[..., None], rho_patch, rho_standard)
+    holder_sample = np.where(patch[..., None], rho_patch, rho_sample)
+    # Eq. 9: k depends on the area-weighted mean reflectance of everything on the holder.
+    k_r = alpha_ww + alpha_wsp * alpha_spw * holder_standard.mean(axis=(0, 1))
+    k_s = alpha_ww + alpha_wsp * alpha_spw * holder_sample.mean(axis=(0, 1))
+    b = beta[..., None]
+    u_r = holder_standard * b * gamma_phi0 / (1.0 - k_r * rho_wall)  # Eq. 7 and 12
+    u_s = holder_sample * b * gamma_phi0 * lamp_change / (1.0 - k_s * rho_wall)  # Eq. 8 and 13
+    return u_r + dark, u_s + dark

@@ -1,0 +1,141 @@
+"""Stage II: the polynomial of Eq. 23 and its closed-form fit (Eq. 19-22)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import spherejax as sj
+
+from .helpers import TABLE_2
+
+B = 16
+
+
+def training_set(n_patches=9, n_backgrounds=10, seed=0):
+    """(v, p) like the paper's training data: 9 grey patches x 10 backgrounds, (90, 16) each."""
+    rng = np.random.default_rng(seed)
+    grey = np.linspace(0.05, 0.9, n_patches)[:, None, None]
+    p = rng.uniform(0.95, 1.25, (1, n_backgrounds, B))  # darker backgrounds -> larger p
+    v = grey / p * rng.uniform(0.97, 1.03, (n_patches, n_backgrounds, B))
+    p = np.broadcast_to(p, v.shape)
+    return v.reshape(-1, B), p.reshape(-1, B)
+
+
+class TestStage2:
+    def test_identity_coefficients_are_stage1(self, dtype, maybe_jit):
+        v, p = training_set()
+        out = maybe_jit(sj.stage2)(v.astype(dtype), p.astype(dtype), sj.identity_coeffs(B, dtype))
+        assert out.dtype == dtype
+        np.testing.assert_allclose(np.asarray(out), np.asarray(sj.stage1(v, p)), rtol=1e-6)
+
+    def test_equation_23_with_table_2(self):
+        v, p = training_set()
+        c1, c2, c3, c4 = TABLE_2.T
+        expected = (c1 * p + c2) * v + c3 * p + c4
+        np.testing.assert_allclose(np.asarray(sj.stage2(v, p, TABLE_2)), expected, rtol=1e-14)
+
+    def test_p_per_image_broadcasts_over_pixels(self):
+        v = np.random.default_rng(1).uniform(0.1, 0.9, (2, 4, 5, B))
+        p = np.array([1.1, 0.95])[:, None, None, None] * np.ones((2, 1, 1, B))
+        out = np.asarray(sj.stage2(v, p, TABLE_2))
+        np.testing.assert_allclose(out[1, 2, 3], np.asarray(sj.stage2(v[1, 2, 3], p[1, 0, 0], TABLE_2)))
+
+    def test_gradient_with_respect_to_coefficients(self):
+        v, p = training_set()
+        grad = jax.grad(lambda c: jnp.sum(sj.stage2(v, p, c) ** 2))(jnp.asarray(TABLE_2))
+        # d/dc of sum((Mc)^2) = 2 M^T M c per band: check band 0 by hand.
+        M = np.column_stack([p[:, 0] * v[:, 0], v[:, 0], p[:, 0], np.ones(len(v))])
+        np.testing.assert_allclose(np.asarray(grad)[0], 2 * M.T @ M @ TABLE_2[0], rtol=1e-12)
+
+
+class TestFitStage2:
+    def test_recovers_table_2_from_exact_data(self, maybe_jit):
+        """Zou et al. Table 2 coefficients come back to 1e-6 from noise-free data (float64)."""
+        v, p = training_set()
+        target = np.asarray(sj.stage2(v, p, TABLE_2))
+        fitted = np.asarray(maybe_jit(sj.fit_stage2)(v, p, target))
+        assert fitted.shape == (B, 4)
+        np.testing.assert_allclose(fitted, TABLE_2, rtol=0, atol=1e-6)
+
+    def test_float32(self):
+        v, p = training_set()
+        target = np.asarray(sj.stage2(v, p, TABLE_2))
+        fitted = sj.fit_stage2(v.astype(np.float32), p.astype(np.float32), target.astype(np.float32))
+        assert fitted.dtype == np.float32
+        # The p⊙v and v columns are nearly collinear (p ~ 1), so float32 loses about three digits.
+        np.testing.assert_allclose(np.asarray(fitted), TABLE_2, atol=2e-3)
+        prediction = np.asarray(sj.stage2(v, p, np.asarray(fitted, np.float64)))
+        np.testing.assert_allclose(prediction, target, atol=2e-5)
+
+    def test_matches_per_band_numpy_least_squares_on_noisy_data(self):
+        v, p = training_set(seed=3)
+        rng = np.random.default_rng(3)
+        target = np.asarray(sj.stage2(v, p, TABLE_2)) + rng.normal(0, 0.003, v.shape)
+        fitted = np.asarray(sj.fit_stage2(v, p, target))
+        for band in range(B):
+            M = np.column_stack([p[:, band] * v[:, band], v[:, band], p[:, band], np.ones(len(v))])
+            expected = np.linalg.lstsq(M, target[:, band], rcond=None)[0]
+            np.testing.assert_allclose(fitted[band], expected, rtol=1e-9, atol=1e-12)
+
+    def test_non_finite_samples_are_dropped(self):
+        v, p = training_set()
+        target = np.asarray(sj.stage2(v, p, TABLE_2))
+        v_bad, target_bad = v.copy(), target.copy()
+        v_bad[3, 2] = np.nan
+        target_bad[10, 2] = np.inf
+        fitted = np.asarray(sj.fit_stage2(v_bad, p, target_bad))
+        np.testing.assert_allclose(fitted, TABLE_2, atol=1e-6)
+
+    def test_band_without_enough_samples_is_nan_others_fine(self):
+        v, p = training_set()
+        target = np.asarray(sj.stage2(v, p, TABLE_2))
+        v = v.copy()
+        v[3:, 7] = np.nan  # 3 usable samples left in band 7
+        fitted = np.asarray(sj.fit_stage2(v, p, target))
+        assert np.isnan(fitted[7]).all()
+        np.testing.assert_allclose(np.delete(fitted, 7, axis=0), np.delete(TABLE_2, 7, axis=0), atol=1e-6)
+
+    def test_rank_deficient_band_is_nan(self):
+        v, p = training_set()
+        p = p.copy()
+        p[:, 4] = 1.1  # a constant p makes the columns (pv, v) and (p, 1) collinear
+        target = np.asarray(sj.stage2(v, p, TABLE_2))
+        fitted = np.asarray(sj.fit_stage2(v, p, target))
+        assert np.isnan(fitted[4]).all() and np.isfinite(np.delete(fitted, 4, axis=0)).all()
+
+
+class TestBadInput:
+    def test_unknown_loss(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match=r"loss: unknown loss 'l3'; expected one of \['l2'\]"):
+            sj.fit_stage2(v, p, v, loss="l3")
+
+    def test_target_shape(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match=r"target: expected shape \(90, 16\).*got \(90, 15\)"):
+            sj.fit_stage2(v, p, v[:, :15])
+
+    def test_p_shape(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match=r"p: expected shape \(90, 16\).*got \(89, 16\)"):
+            sj.fit_stage2(v, p[:89], v)
+
+    def test_v_rank(self):
+        with pytest.raises(ValueError, match=r"v: expected shape \(n, B\).*got \(90,\)"):
+            sj.fit_stage2(np.ones(90), np.ones(90), np.ones(90))
+
+    def test_too_few_samples(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match="v: 3 samples cannot determine the 4 coefficients"):
+            sj.fit_stage2(v[:3], p[:3], v[:3])
+
+    def test_coeffs_shape(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match=r"coeffs: expected shape \(16, 4\).*got \(4, 16\)"):
+            sj.stage2(v, p, TABLE_2.T)
+
+    def test_p_band_count(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match=r"p: expected shape \(\.\.\., 16\).*got \(90, 8\)"):
+            sj.stage2(v, p[:, :8], TABLE_2)
