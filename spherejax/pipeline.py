@@ -21,6 +21,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _checks, colorimetry
 from .colorimetry import delta_e_2000, xyz_to_lab
@@ -152,37 +153,69 @@ def _saturation_level(raw, calibration: Calibration):
     return None
 
 
+def _pixel_flags(raw, raw_f, dark, white, saturation):
+    """Per-pixel (saturated, non-finite, no flat field) flags, each (..., H, W) bool.
+
+    A pixel is flagged if any band is: reflectance mixes all bands. +inf counts as non-finite,
+    not as saturated, so the bits say what went wrong.
+    """
+    pixel_shape = jnp.broadcast_shapes(raw.shape, dark.shape)[:-1]
+    if jnp.issubdtype(raw.dtype, jnp.integer):
+        nonfinite = jnp.zeros(pixel_shape, dtype=bool)  # counts are always finite: skip a pass
+    else:
+        nonfinite = jnp.any(~jnp.isfinite(raw_f), axis=-1)
+    if saturation is None:
+        saturated = jnp.zeros(pixel_shape, dtype=bool)
+    else:
+        saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= saturation), axis=-1)
+    no_flat_field = jnp.broadcast_to(jnp.any(~white_signal_usable(dark, white), axis=-1), pixel_shape)
+    return saturated, nonfinite, no_flat_field
+
+
+def _patch_box(patch) -> tuple[int, int, int, int] | None:
+    """(row0, row1, col0, col1) bounding the patch mask, or None if the mask is traced.
+
+    The white-patch ratio needs only the patch's pixels (0.1 % of the image in the paper's
+    layout): slicing to this box keeps the ratio from making three passes over the whole cube.
+    """
+    if not _checks.is_concrete(patch):
+        return None
+    mask = np.asarray(patch)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
 @eqx.filter_jit
-def _correct(raw, calibration: Calibration, intermediates: bool):
+def _correct(raw, calibration: Calibration, patch_box, intermediates: bool):
     dtype = _compute_dtype(raw, calibration)
     raw_f = raw.astype(dtype)
     dark = calibration.dark.astype(dtype)
     white = calibration.white.astype(dtype)
     coeffs = calibration.coeffs.astype(dtype)
     W = calibration.wiener.astype(dtype)
-
-    # Per-pixel quality, any band bad -> the pixel is bad (reflectance mixes all bands).
     saturation = _saturation_level(raw, calibration)
-    nonfinite = jnp.any(~jnp.isfinite(raw_f), axis=-1)
-    if saturation is None:
-        saturated = jnp.zeros(raw.shape[:-1], dtype=bool)
-    else:
-        # +inf is reported as non-finite, not as saturated: the bits say what went wrong.
-        saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= saturation), axis=-1)
-    no_flat_field = jnp.broadcast_to(jnp.any(~white_signal_usable(dark, white), axis=-1), raw.shape[:-1])
-    pixel_bad = saturated | nonfinite | no_flat_field
+
+    saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation)
 
     # Eq. 14-15 over the usable patch pixels only: one saturated pixel in the patch must not
-    # shift p for the whole image.
-    patch_weights = jnp.where(pixel_bad, 0.0, calibration.patch.astype(dtype))[..., None]
-    p = patch_ratio_weighted(raw_f, dark, white, patch_weights)  # (..., B)
+    # shift p for the whole image. Only the patch's bounding box is read.
+    r0, r1, c0, c1 = patch_box if patch_box is not None else (0, raw.shape[-3], 0, raw.shape[-2])
+    raw_box, dark_box, white_box = (x[..., r0:r1, c0:c1, :] for x in (raw, dark, white))
+    raw_box_f = raw_box.astype(dtype)
+    box_flags = _pixel_flags(raw_box, raw_box_f, dark_box, white_box, saturation)
+    box_bad = box_flags[0] | box_flags[1] | box_flags[2]
+    patch_weights = jnp.where(box_bad, 0.0, calibration.patch[r0:r1, c0:c1].astype(dtype))
+    p = patch_ratio_weighted(raw_box_f, dark_box, white_box, patch_weights[..., None])  # (..., B)
     patch_unusable = jnp.any(~jnp.isfinite(p), axis=-1)  # (...,)
 
     quality = (
         saturated.astype(jnp.uint8) * QUALITY_SATURATED
         | nonfinite.astype(jnp.uint8) * QUALITY_NONFINITE
         | no_flat_field.astype(jnp.uint8) * QUALITY_WHITE_NOT_ABOVE_DARK
-        | (jnp.broadcast_to(patch_unusable[..., None, None], raw.shape[:-1]).astype(jnp.uint8) * QUALITY_PATCH_UNUSABLE)
+        | jnp.broadcast_to(patch_unusable[..., None, None], saturated.shape).astype(jnp.uint8)
+        * QUALITY_PATCH_UNUSABLE
     )
     good = (quality == 0)[..., None]
 
@@ -193,11 +226,12 @@ def _correct(raw, calibration: Calibration, intermediates: bool):
     v_safe = jnp.where(good, v, 0.0)
     v_stage2_safe = stage2_unchecked(v_safe, p_pixel, coeffs)
 
-    reflectance = jnp.matmul(v_stage2_safe, W.T, precision=_HIGHEST)
-    # Lab from v_tilde through the folded (B, 3) matrix W^T @ weights: no second pass over the
-    # 31-channel cube.
+    # Lab from v_tilde through the folded (B, 3) matrix W^T @ weights: XYZ never goes through the
+    # 31-channel cube. (One (B, 34) matmul sliced into the two outputs measured twice as slow:
+    # the slices are copies.)
     weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
     weights = jnp.asarray(weights, dtype)
+    reflectance = jnp.matmul(v_stage2_safe, W.T, precision=_HIGHEST)
     xyz = jnp.matmul(v_stage2_safe, jnp.matmul(W.T, weights, precision=_HIGHEST), precision=_HIGHEST)
     lab = xyz_to_lab(xyz, jnp.sum(weights, axis=0))
     reflectance = jnp.where(good, reflectance, jnp.nan)
@@ -239,7 +273,7 @@ def correct(raw, calibration: Calibration, *, intermediates: bool = False) -> Co
         )
     if not (jnp.issubdtype(raw.dtype, jnp.integer) or jnp.issubdtype(raw.dtype, jnp.floating)):
         raise ValueError(f"raw: expected integer counts or floats, got dtype {raw.dtype}")
-    return _correct(raw, calibration, bool(intermediates))
+    return _correct(raw, calibration, _patch_box(calibration.patch), bool(intermediates))
 
 
 __all__ = [

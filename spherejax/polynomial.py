@@ -16,11 +16,29 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _checks
 
 #: Stage II coefficients that make Stage II equal Stage I, per band: c1 = 1, c2 = c3 = c4 = 0.
 IDENTITY_COEFFS = (1.0, 0.0, 0.0, 0.0)
+
+#: Zou et al. (2019), Table 2: the coefficients fitted on the authors' instrument, (16, 4) ordered
+#: c1..c4 for bands 1..16 (400..700 nm step 20). The paper prints one row per coefficient; here
+#: they are columns, as `stage2` expects. A reference value, not a calibration for another system.
+PAPER_TABLE_2 = np.array(
+    [
+        [0.8966, 0.8787, 0.9083, 0.9168, 0.9240, 0.9438, 0.9155, 0.9293,
+         0.9445, 0.9123, 0.9155, 0.9249, 0.9118, 0.9309, 0.9276, 0.9452],
+        [0.1158, 0.1337, 0.1000, 0.0901, 0.0824, 0.0613, 0.0934, 0.0792,
+         0.0608, 0.0979, 0.0931, 0.0837, 0.0972, 0.0751, 0.0778, 0.0562],
+        [0.2062, 0.2034, 0.2169, 0.1507, 0.1354, 0.0837, 0.1243, 0.0849,
+         0.0782, 0.1105, 0.1059, 0.0793, 0.1000, 0.0803, 0.0951, 0.1040],
+        [-0.2229, -0.2193, -0.2329, -0.1617, -0.1468, -0.0913, -0.1374, -0.0943,
+         -0.0868, -0.1228, -0.1172, -0.0878, -0.1097, -0.0868, -0.1009, -0.1085],
+    ]
+).T
+PAPER_TABLE_2.setflags(write=False)
 
 #: Accepted values of `fit_stage2`'s `loss`.
 LOSSES = ("l2",)
@@ -126,4 +144,4 @@ def fit_stage2(v, p, target, loss: str = "l2"):
     return fit(v.astype(dtype), p.astype(dtype), target.astype(dtype))
 
 
-__all__ = ["IDENTITY_COEFFS", "LOSSES", "identity_coeffs", "stage2", "fit_stage2"]
+__all__ = ["IDENTITY_COEFFS", "LOSSES", "PAPER_TABLE_2", "identity_coeffs", "stage2", "fit_stage2"]

@@ -6,22 +6,13 @@ import pathlib
 
 import numpy as np
 
+from spherejax.polynomial import PAPER_TABLE_2
+
 SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared"
 SHARMA_CSV = SHARED / "data" / "sharma2005_ciede2000.csv"
 
-#: Zou et al. (2019), Table 2: Stage II coefficients c1..c4 (rows) for bands 1..16 (columns).
-TABLE_2 = np.array(
-    [
-        [0.8966, 0.8787, 0.9083, 0.9168, 0.9240, 0.9438, 0.9155, 0.9293,
-         0.9445, 0.9123, 0.9155, 0.9249, 0.9118, 0.9309, 0.9276, 0.9452],
-        [0.1158, 0.1337, 0.1000, 0.0901, 0.0824, 0.0613, 0.0934, 0.0792,
-         0.0608, 0.0979, 0.0931, 0.0837, 0.0972, 0.0751, 0.0778, 0.0562],
-        [0.2062, 0.2034, 0.2169, 0.1507, 0.1354, 0.0837, 0.1243, 0.0849,
-         0.0782, 0.1105, 0.1059, 0.0793, 0.1000, 0.0803, 0.0951, 0.1040],
-        [-0.2229, -0.2193, -0.2329, -0.1617, -0.1468, -0.0913, -0.1374, -0.0943,
-         -0.0868, -0.1228, -0.1172, -0.0878, -0.1097, -0.0868, -0.1009, -0.1085],
-    ]
-).T  # (16, 4), ordered c1, c2, c3, c4 as spherejax.stage2 expects
+#: Zou et al. (2019), Table 2, (16, 4) ordered c1..c4.
+TABLE_2 = np.asarray(PAPER_TABLE_2)
 
 
 def sharma_pairs():

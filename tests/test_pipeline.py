@@ -133,6 +133,14 @@ class TestCorrect:
         sj.correct(np.stack([scene["raw"]] * 3), calibration)  # a new shape: a new program
         assert len(COMPILATIONS) > before  # the counter does see compilations
 
+    def test_calibration_traced_under_jit(self, scene):
+        """With the calibration itself a jit argument the patch is a tracer: the ratio is then
+        taken over the whole image instead of the patch's bounding box, with the same result."""
+        traced = jax.jit(lambda raw, calibration: sj.correct(raw, calibration))(scene["raw"], scene["calibration"])
+        direct = sj.correct(scene["raw"], scene["calibration"])
+        np.testing.assert_allclose(np.asarray(traced.p), np.asarray(direct.p), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(traced.lab), np.asarray(direct.lab), atol=1e-10)
+
     def test_intermediates_off_by_default(self, scene):
         result = sj.correct(scene["raw"], scene["calibration"])
         assert result.v is None and result.v_stage1 is None and result.v_stage2 is None
