@@ -20,6 +20,24 @@ def as_array(name: str, x) -> jax.Array:
         raise ValueError(f"{name}: expected an array, got {type(x).__name__} ({error})") from None
 
 
+def band_array(name: str, x) -> jax.Array:
+    """`as_array`, then raise unless `x` has a band axis (..., B)."""
+    x = as_array(name, x)
+    if x.ndim == 0:
+        raise ValueError(f"{name}: expected shape (..., B) with B bands, got a scalar")
+    return x
+
+
+def response_and_ratio(v, p) -> tuple[jax.Array, jax.Array]:
+    """Validate a response cube v (..., B) and its white-patch ratio p (broadcastable, (..., B))."""
+    v = band_array("v", v)
+    p = as_array("p", p)
+    bands = v.shape[-1]
+    require_last_axis("p", p, bands, f"one ratio per band of v, B = {bands}")
+    require_broadcastable("p", p, "v", v.shape)
+    return v, p
+
+
 def float_dtype(*arrays) -> jnp.dtype:
     """The floating dtype a computation on `arrays` runs in.
 

@@ -28,11 +28,9 @@ from . import _checks
 
 def _check_frames(raw, dark, white):
     """Validate and convert the (raw, dark, white) triple; returns float arrays of one dtype."""
-    raw = _checks.as_array("raw", raw)
+    raw = _checks.band_array("raw", raw)
     dark = _checks.as_array("dark", dark)
     white = _checks.as_array("white", white)
-    if raw.ndim == 0:
-        raise ValueError("raw: expected shape (..., B) with B bands, got a scalar")
     bands = raw.shape[-1]
     _checks.require_last_axis("dark", dark, bands, f"the same {bands} bands as raw")
     _checks.require_last_axis("white", white, bands, f"the same {bands} bands as raw")
@@ -134,12 +132,7 @@ def stage1(v, p):
       v_check, shape of `v`: rho_s / rho_r on a Lambertian sphere, whatever the background and
       the lamp.
     """
-    v = _checks.as_array("v", v)
-    p = _checks.as_array("p", p)
-    if v.ndim == 0:
-        raise ValueError("v: expected shape (..., B) with B bands, got a scalar")
-    _checks.require_last_axis("p", p, v.shape[-1], f"one ratio per band of v, B = {v.shape[-1]}")
-    _checks.require_broadcastable("p", p, "v", v.shape)
+    v, p = _checks.response_and_ratio(v, p)
     dtype = _checks.float_dtype(v, p)
     return v.astype(dtype) * p.astype(dtype)
 

@@ -72,14 +72,9 @@ def stage2(v, p, coeffs):
     Returns:
       v_tilde, shape of `v`.
     """
-    v = _checks.as_array("v", v)
-    p = _checks.as_array("p", p)
+    v, p = _checks.response_and_ratio(v, p)
     coeffs = _checks.as_array("coeffs", coeffs)
-    if v.ndim == 0:
-        raise ValueError("v: expected shape (..., B) with B bands, got a scalar")
     bands = v.shape[-1]
-    _checks.require_last_axis("p", p, bands, f"one ratio per band of v, B = {bands}")
-    _checks.require_broadcastable("p", p, "v", v.shape)
     _checks.require_shape("coeffs", coeffs, (bands, 4), f"c1..c4 for each of the {bands} bands")
     dtype = _checks.float_dtype(v, p, coeffs)
     return stage2_unchecked(v.astype(dtype), p.astype(dtype), coeffs.astype(dtype))

@@ -207,10 +207,8 @@ def wiener(v, W):
     Returns:
       reflectance, shape (..., 31), 400..700 nm step 10.
     """
-    v = _checks.as_array("v", v)
+    v = _checks.band_array("v", v)
     W = _checks.as_array("W", W)
-    if v.ndim == 0:
-        raise ValueError("v: expected shape (..., B) with B bands, got a scalar")
     _checks.require_shape("W", W, (N_WAVELENGTHS, v.shape[-1]), "31 wavelengths x the bands of v")
     dtype = _checks.float_dtype(v, W)
     return jnp.matmul(v.astype(dtype), W.astype(dtype).T, precision=_HIGHEST)

@@ -230,6 +230,14 @@ class TestBadInput:
         with pytest.raises(ValueError, match=r"raw: expected shape \(\.\.\., H, W, B\), got \(16,\)"):
             sj.white_patch_ratio(np.ones(B), np.zeros(B), np.ones(B), np.ones((1,), bool))
 
+    def test_scalar_frames(self):
+        with pytest.raises(ValueError, match=r"raw: expected shape \(\.\.\., B\) with B bands, got a scalar"):
+            sj.flat_field(1.0, 0.0, 2.0)
+
+    def test_stage1_scalar_v(self):
+        with pytest.raises(ValueError, match=r"v: expected shape \(\.\.\., B\) with B bands, got a scalar"):
+            sj.stage1(0.5, np.ones(B))
+
     def test_stage1_p_band_count(self):
         with pytest.raises(ValueError, match=r"p: expected shape \(\.\.\., 16\).*got \(15,\)"):
             sj.stage1(np.ones((3, B)), np.ones(15))
