@@ -10,8 +10,8 @@ no reflectance is invented. Sets (colour-science 0.4.x):
 - CES: the 99 colour evaluation samples of IES TM-30-18 / CIE 224:2017;
 - RAW to ACES: the 190 training patches of AMPAS rawtoaces.
 
-Only spectra that cover 400-700 nm are kept; values at 400, 410, ..., 700 nm are taken with
-colour-science's own interpolation (exact at measured wavelengths).
+Only spectra that cover 400-700 nm are kept; values at 400, 410, ..., 700 nm (or another grid)
+are taken with colour-science's own interpolation (exact at measured wavelengths).
 """
 
 from __future__ import annotations
@@ -27,27 +27,37 @@ from .grid import WAVELENGTHS_NM
 _COLOURCHECKER_ALIASES = {"babel_average", "cc_ohta"}
 
 
-def _sample(sd) -> np.ndarray | None:
-    """Reflectance of one colour-science SpectralDistribution at WAVELENGTHS_NM, or None."""
+def _sample(sd, wavelengths: tuple[float, ...]) -> np.ndarray | None:
+    """Reflectance of one colour-science SpectralDistribution at `wavelengths`, or None if it does
+    not cover 400-700 nm. Outside its measured range (e.g. 380-400 nm for the PMC set) the value
+    is colour-science's constant extrapolation."""
     if sd.shape.start > WAVELENGTHS_NM[0] or sd.shape.end < WAVELENGTHS_NM[-1]:
         return None
-    return np.asarray(sd[WAVELENGTHS_NM.astype(float)], dtype=np.float64)
+    grid = np.asarray(wavelengths)
+    inside = (grid >= sd.shape.start) & (grid <= sd.shape.end)
+    values = np.empty(grid.shape, dtype=np.float64)
+    values[inside] = sd[grid[inside]]
+    values[grid < sd.shape.start] = sd.values[0]
+    values[grid > sd.shape.end] = sd.values[-1]
+    return values
 
 
 @functools.lru_cache(maxsize=None)
-def _load() -> dict[str, np.ndarray]:
+def _load(wavelengths: tuple[float, ...]) -> dict[str, np.ndarray]:
     import colour
     from colour.characterisation import read_training_data_rawtoaces_v1
     from colour.quality import SDS_TCS, SDS_VS
     from colour.quality.cfi2017 import load_TCS_CIE2017
 
     sets: dict[str, list[np.ndarray]] = {}
+    labels: dict[str, list[str]] = {}
 
     def add(name, sds):
         for sd in sds:
-            values = _sample(sd)
+            values = _sample(sd, wavelengths)
             if values is not None:
                 sets.setdefault(name, []).append(values)
+                labels.setdefault(name, []).append(str(sd.name))
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # colour-science's interpolation / alignment notices
@@ -66,17 +76,39 @@ def _load() -> dict[str, np.ndarray]:
         array = np.stack(rows)
         array.setflags(write=False)
         out[name] = array
+    _LABELS[wavelengths] = {name: tuple(names) for name, names in labels.items()}
     return out
 
 
-def reflectance_sets() -> dict[str, np.ndarray]:
-    """Every shipped reflectance set, name -> read-only float64 array (n, 31), 400..700 nm."""
-    return dict(_load())
+_LABELS: dict[tuple[float, ...], dict[str, tuple[str, ...]]] = {}
 
 
-def all_reflectances() -> np.ndarray:
-    """All shipped reflectances stacked, float64 (N, 31), in the order of `reflectance_sets`."""
-    return np.concatenate(list(_load().values()))
+def _grid(wavelengths) -> tuple[float, ...]:
+    grid = WAVELENGTHS_NM if wavelengths is None else np.asarray(wavelengths, dtype=np.float64)
+    return tuple(float(w) for w in grid)
 
 
-__all__ = ["reflectance_sets", "all_reflectances"]
+def reflectance_sets(wavelengths=None) -> dict[str, np.ndarray]:
+    """Every shipped reflectance set, name -> read-only float64 array (n, L).
+
+    Args:
+      wavelengths: sampling grid in nm, shape (L,); default `grid.WAVELENGTHS_NM` (31 samples).
+        A finer grid (e.g. 380..720 nm step 2 for the simulator) uses colour-science's
+        interpolation inside each measured range and constant extrapolation outside it.
+    """
+    return dict(_load(_grid(wavelengths)))
+
+
+def reflectance_names(wavelengths=None) -> dict[str, tuple[str, ...]]:
+    """The patch names of `reflectance_sets(wavelengths)`, in the same order."""
+    grid = _grid(wavelengths)
+    _load(grid)
+    return dict(_LABELS[grid])
+
+
+def all_reflectances(wavelengths=None) -> np.ndarray:
+    """All shipped reflectances stacked, float64 (N, L), in the order of `reflectance_sets`."""
+    return np.concatenate(list(_load(_grid(wavelengths)).values()))
+
+
+__all__ = ["reflectance_sets", "reflectance_names", "all_reflectances"]

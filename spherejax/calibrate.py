@@ -1,0 +1,202 @@
+"""Calibration from a session: Stage II coefficients (Section 4) and the Wiener matrix.
+
+Reads a session's captures through `spherejax.io.Session` and measures every annotated region
+with the same per-pixel path `correct` runs, so that calibration and correction can never
+disagree about v, p or bad pixels:
+
+1. v (Eq. 10) and p (Eq. 14-15) of every training capture, averaged over each region
+   (35 x 35 px in the paper); bad pixels are left out of the averages.
+2. Section 4's reference-background scheme: for patch i on background j the target is the
+   Stage I response of the same patch on the reference background, p^{i,jref} v^{i,jref}
+   (Eq. 19). The paper does not say which background it chose; by default this takes the
+   background of median brightness (holder-mean Stage I response), so that on average the
+   correction is as small as possible, and it is an option.
+3. Stage II fitted by `fit_stage2` (the closed form of Eq. 22 by default).
+4. The Wiener matrix from the target captures: their Stage II responses against their known
+   reflectances (`fit_wiener`, noise variance by leave-one-out cross-validation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .pipeline import Calibration, correct
+from .polynomial import fit_stage2, identity_coeffs, stage2
+from .wiener_estimation import select_wiener_noise_variance, fit_wiener
+from .grid import N_WAVELENGTHS
+
+
+@dataclasses.dataclass
+class RegionMeasurement:
+    """One annotated region of one capture, averaged: v (B,), p (B,), the holder mean of v (B,)
+    and, after Stage II, v_stage2 (B,). `reflectance` is the known one (31,) if annotated."""
+
+    frame_id: str
+    set: str | None
+    background: str | None
+    patch: str
+    v: np.ndarray
+    p: np.ndarray
+    holder_v: np.ndarray
+    reflectance: np.ndarray | None
+
+
+def base_calibration(session) -> Calibration:
+    """A Calibration with the session's dark, white standard and patch mask, identity Stage II
+    and a zero Wiener matrix: enough to measure v and p with `correct`."""
+    bands = len(session.band_centres_nm)
+    return Calibration(
+        dark=np.asarray(session.dark(), np.float32),
+        white=np.asarray(session.white(), np.float32),
+        patch=session.white_patch_mask(),
+        coeffs=identity_coeffs(bands),
+        wiener=np.zeros((N_WAVELENGTHS, bands), np.float32),
+        saturation=float(session.saturation),
+    )
+
+
+def _region_mean(cube: np.ndarray, region) -> np.ndarray:
+    """nan-mean of an (H, W, C) array over a region's rectangle -> (C,); NaN if nothing usable."""
+    r0, r1, c0, c1 = region.region
+    block = cube[r0:r1, c0:c1].reshape(-1, cube.shape[-1])
+    usable = np.all(np.isfinite(block), axis=-1)
+    if not usable.any():
+        return np.full(cube.shape[-1], np.nan)
+    return block[usable].mean(axis=0)
+
+
+def measure_frames(session, frames, calibration: Calibration) -> list[RegionMeasurement]:
+    """Region averages of v and p for `frames` (FrameInfo) of `session`."""
+    holder = session.holder_mask()
+    measurements = []
+    for frame in frames:
+        result = correct(session.read(frame), calibration, intermediates=True)
+        v = np.asarray(result.v, np.float64)
+        p = np.asarray(result.p, np.float64)
+        holder_v = np.nanmean(v[holder], axis=0)
+        for region in frame.regions:
+            measurements.append(RegionMeasurement(
+                frame.id, frame.set, frame.background, region.patch,
+                _region_mean(v, region), p, holder_v, region.reflectance,
+            ))
+    return measurements
+
+
+def reference_background(measurements: list[RegionMeasurement]) -> str:
+    """The background of median brightness: the median over backgrounds of the mean holder
+    Stage I response p * holder_v over bands and captures."""
+    brightness: dict[str, list[float]] = {}
+    for m in measurements:
+        brightness.setdefault(m.background, []).append(float(np.mean(m.p * m.holder_v)))
+    ordered = sorted(brightness, key=lambda name: np.mean(brightness[name]))
+    return ordered[len(ordered) // 2]
+
+
+def stage2_training_data(measurements: list[RegionMeasurement], reference: str):
+    """(v, p, target), each (n, B): Eq. 19 with the reference background `reference`.
+
+    Samples of patches never measured on the reference background are left out.
+    """
+    backgrounds = {m.background for m in measurements}
+    if reference not in backgrounds:
+        raise ValueError(
+            f"reference background {reference!r} is not among the training backgrounds "
+            f"{sorted(backgrounds)}"
+        )
+    on_reference: dict[str, list[np.ndarray]] = {}
+    for m in measurements:
+        if m.background == reference:
+            on_reference.setdefault(m.patch, []).append(m.p * m.v)
+    rows = [m for m in measurements if m.patch in on_reference]
+    v = np.stack([m.v for m in rows])
+    p = np.stack([m.p for m in rows])
+    target = np.stack([np.mean(on_reference[m.patch], axis=0) for m in rows])
+    return v, p, target
+
+
+@dataclasses.dataclass
+class CalibrationReport:
+    """What `calibrate_session` did, for the calibration file's metadata and the log."""
+
+    reference_background: str
+    training_samples: int
+    training_patches: int
+    training_backgrounds: int
+    targets: int
+    wiener_noise_variance: float
+    stage2_rms_residual: list[float]
+    nonfinite_bands: list[int]
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def calibrate_session(session, *, reference: str | None = None, loss: str = "l2", illuminant: str = "D65"):
+    """Fit Stage II and the Wiener matrix from a session's training and target captures.
+
+    Args:
+      session: a `spherejax.io.Session` with training samples (role "sample", set "training",
+        regions naming their patch) and target captures (role "target", regions with known
+        reflectance).
+      reference: the reference background of Section 4; None picks `reference_background`.
+      loss: passed to `fit_stage2`.
+      illuminant: stored in the Calibration for Lab.
+
+    Returns:
+      (Calibration, CalibrationReport).
+    """
+    base = base_calibration(session)
+    training = session.frames_with(role="sample", set="training")
+    if not training:
+        raise ValueError(f"{session.path}: no training captures (role 'sample', set 'training') to fit Stage II")
+    targets = session.frames_with(role="target")
+    if not targets:
+        raise ValueError(f"{session.path}: no target captures (role 'target') to fit the Wiener matrix")
+
+    measurements = measure_frames(session, training, base)
+    reference = reference or reference_background(measurements)
+    v, p, target = stage2_training_data(measurements, reference)
+    coeffs = np.asarray(fit_stage2(v, p, target, loss=loss))
+    bad_bands = [int(b) for b in np.flatnonzero(~np.all(np.isfinite(coeffs), axis=1))]
+    prediction = np.asarray(stage2(v, p, coeffs))
+    residual = np.sqrt(np.nanmean((prediction - target) ** 2, axis=0))
+
+    with_stage2 = dataclasses.replace(base, coeffs=coeffs.astype(np.float32))
+    target_measurements = [m for m in measure_frames(session, targets, with_stage2) if m.reflectance is not None]
+    if len(target_measurements) < 2:
+        raise ValueError(f"{session.path}: the target captures hold {len(target_measurements)} regions with known reflectance; at least 2 are needed")
+    responses = np.asarray(stage2(np.stack([m.v for m in target_measurements]), np.stack([m.p for m in target_measurements]), coeffs))
+    reflectances = np.stack([m.reflectance for m in target_measurements])
+    usable = np.all(np.isfinite(responses), axis=1)
+    noise_variance, _, _ = select_wiener_noise_variance(responses[usable], reflectances[usable])
+    wiener_matrix = np.asarray(fit_wiener(responses[usable], reflectances[usable], noise_variance))
+
+    calibration = Calibration(
+        dark=base.dark, white=base.white, patch=base.patch,
+        coeffs=coeffs.astype(np.float32), wiener=wiener_matrix.astype(np.float32),
+        illuminant=illuminant, saturation=base.saturation,
+    )
+    report = CalibrationReport(
+        reference_background=reference,
+        training_samples=int(v.shape[0]),
+        training_patches=len({m.patch for m in measurements}),
+        training_backgrounds=len({m.background for m in measurements}),
+        targets=int(usable.sum()),
+        wiener_noise_variance=float(noise_variance),
+        stage2_rms_residual=[float(x) for x in residual],
+        nonfinite_bands=bad_bands,
+    )
+    return calibration, report
+
+
+__all__ = [
+    "RegionMeasurement",
+    "CalibrationReport",
+    "base_calibration",
+    "measure_frames",
+    "reference_background",
+    "stage2_training_data",
+    "calibrate_session",
+]

@@ -1,0 +1,234 @@
+"""The `spherejax` command line (DESIGN.md, "The command line").
+
+    spherejax demo [--out DIR] [--seed N]      simulate, calibrate, correct, evaluate
+    spherejax simulate OUT [--seed N]          a synthetic session like the paper's experiment
+    spherejax calibrate SESSION -o CAL         Stage II and Wiener from the training captures
+    spherejax evaluate SESSION [-c CAL] [--out DIR]
+                                               the paper's tables (text, CSV, JSON) and figures
+
+Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
+status 2, and nothing written. Everything is computed before the first byte is written, and
+every file is written to a temporary name and renamed into place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io as _bytes_io
+import os
+import pathlib
+import sys
+import time
+
+EXIT_BAD_INPUT = 2
+
+
+class _Progress:
+    """Step lines with timings on stderr: "[2/4] calibrating ... 3.1 s"."""
+
+    def __init__(self, steps: int, quiet: bool = False):
+        self.steps, self.step, self.quiet = steps, 0, quiet
+
+    def start(self, what: str):
+        self.step += 1
+        self.t0 = time.perf_counter()
+        if not self.quiet:
+            print(f"[{self.step}/{self.steps}] {what} ...", file=sys.stderr, flush=True)
+
+    def done(self, detail: str = ""):
+        if not self.quiet:
+            extra = f" ({detail})" if detail else ""
+            print(f"      done in {time.perf_counter() - self.t0:.1f} s{extra}", file=sys.stderr, flush=True)
+
+
+def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
+    """Write name -> bytes into out_dir, each through a temporary name and os.replace."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name, payload in files.items():
+        target = out_dir / name
+        temporary = out_dir / f".{name}.tmp-{os.getpid()}"
+        try:
+            temporary.write_bytes(payload)
+            os.replace(temporary, target)
+        finally:
+            temporary.unlink(missing_ok=True)
+
+
+def _figure_bytes(figure) -> bytes:
+    import matplotlib.pyplot as plt
+
+    buffer = _bytes_io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    plt.close(figure)
+    return buffer.getvalue()
+
+
+def _evaluation_files(evaluation) -> dict[str, bytes]:
+    """Tables as text, CSV and JSON and Figures 5 and 6 as PNG, all in memory."""
+    from . import evaluate, figures
+
+    files = {"tables.txt": (evaluate.format_tables(evaluation) + "\n").encode()}
+    files.update({f"{name}.csv": text.encode() for name, text in evaluate.tables_csv(evaluation).items()})
+    files["metrics.json"] = evaluate.to_json(evaluation).encode()
+    figure_set = "test" if "test" in evaluation.sets else "training"
+    files["figure5.png"] = _figure_bytes(figures.figure_5(evaluation, figure_set))
+    files["figure6.png"] = _figure_bytes(figures.figure_6(evaluation, figure_set))
+    return files
+
+
+# --------------------------------------------------------------------------------------------
+# Commands
+
+
+def cmd_simulate(args) -> int:
+    from . import simulate
+
+    out = pathlib.Path(args.out)
+    progress = _Progress(1, args.quiet)
+    progress.start(f"simulating a session into {out}")
+    session = simulate.simulate_session(out, seed=args.seed)
+    progress.done(f"{len(session.frames)} captures")
+    return 0
+
+
+def _calibrate(session, args, progress):
+    from . import calibrate
+
+    progress.start(f"calibrating from {session.path}")
+    calibration, report = calibrate.calibrate_session(
+        session, reference=args.reference_background, illuminant=args.illuminant
+    )
+    if report.nonfinite_bands:
+        bands = [int(session.band_centres_nm[b]) for b in report.nonfinite_bands]
+        print(f"spherejax: warning: Stage II could not be fitted for bands {bands} nm", file=sys.stderr)
+    progress.done(
+        f"reference background {report.reference_background}, {report.training_samples} samples, "
+        f"{report.targets} targets"
+    )
+    return calibration, report
+
+
+def _save_calibration(path, calibration, report, session) -> None:
+    from . import io
+
+    io.save_calibration(
+        path, calibration, instrument_id=session.instrument_id,
+        band_centres_nm=[int(b) for b in session.band_centres_nm],
+        metadata={"session": str(session.path), "calibration_report": report.as_dict()},
+    )
+
+
+def cmd_calibrate(args) -> int:
+    from . import io
+
+    session = io.load_session(args.session)
+    progress = _Progress(1, args.quiet)
+    calibration, report = _calibrate(session, args, progress)
+    _save_calibration(args.output, calibration, report, session)
+    return 0
+
+
+def _evaluate(session, calibration, out_dir, progress, quiet):
+    from . import evaluate
+
+    progress.start(f"correcting and evaluating every capture of {session.path}")
+    evaluation = evaluate.evaluate_session(session, calibration)
+    files = _evaluation_files(evaluation)
+    _write_files(pathlib.Path(out_dir), files)
+    progress.done(f"tables and figures in {out_dir}")
+    if not quiet:
+        print(evaluate.format_tables(evaluation))
+    return evaluation
+
+
+def cmd_evaluate(args) -> int:
+    from . import io
+
+    session = io.load_session(args.session)
+    steps = 1 if args.calibration else 2
+    progress = _Progress(steps, args.quiet)
+    if args.calibration:
+        calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
+    else:
+        calibration, _ = _calibrate(session, args, progress)
+    out = args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-evaluation"))
+    _evaluate(session, calibration, out, progress, args.quiet)
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from . import io, simulate
+
+    out = pathlib.Path(args.out)
+    session_dir = out / "session"
+    progress = _Progress(3, args.quiet)
+    progress.start(f"simulating the paper's experiment (seed {args.seed}) into {session_dir}")
+    if (session_dir / "manifest.json").exists():
+        session = io.load_session(session_dir)
+        progress.done("reusing the session already there")
+    else:
+        session = simulate.simulate_session(session_dir, seed=args.seed)
+        progress.done(f"{len(session.frames)} captures")
+    calibration, report = _calibrate(session, args, progress)
+    _save_calibration(out / "calibration.npz", calibration, report, session)
+    _evaluate(session, calibration, out / "evaluation", progress, args.quiet)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="spherejax",
+        description="Lighting deviation correction for integrating-sphere multispectral imaging (Zou et al. 2019).",
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress lines or tables")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def calibration_options(p):
+        p.add_argument("--reference-background", metavar="NAME", default=None,
+                       help="background whose Stage I responses are the Stage II targets (default: median brightness)")
+        p.add_argument("--illuminant", default="D65", choices=["D65", "A", "F2"], help="illuminant for Lab (default D65)")
+
+    demo = commands.add_parser("demo", help="simulate, calibrate, correct and evaluate the default experiment")
+    demo.add_argument("--out", default="spherejax-demo", help="output folder (default ./spherejax-demo)")
+    demo.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    calibration_options(demo)
+    demo.set_defaults(run=cmd_demo)
+
+    simulate = commands.add_parser("simulate", help="write a synthetic session like the paper's experiment")
+    simulate.add_argument("out", metavar="OUT", help="session folder to create (must not exist or be empty)")
+    simulate.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    simulate.set_defaults(run=cmd_simulate)
+
+    calibrate = commands.add_parser("calibrate", help="fit Stage II and the Wiener matrix from a session")
+    calibrate.add_argument("session", metavar="SESSION")
+    calibrate.add_argument("-o", "--output", required=True, metavar="CAL", help="calibration file to write (.npz)")
+    calibration_options(calibrate)
+    calibrate.set_defaults(run=cmd_calibrate)
+
+    evaluate = commands.add_parser("evaluate", help="the paper's tables and figures for a session")
+    evaluate.add_argument("session", metavar="SESSION")
+    evaluate.add_argument("-c", "--calibration", metavar="CAL", help="calibration file (default: calibrate from SESSION)")
+    evaluate.add_argument("--out", metavar="DIR", help="output folder (default SESSION-evaluation beside the session)")
+    calibration_options(evaluate)
+    evaluate.set_defaults(run=cmd_evaluate)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except KeyboardInterrupt:
+        print("spherejax: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as error:
+        message = " ".join(str(error).split())
+        print(f"spherejax: error: {message}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
