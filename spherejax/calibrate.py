@@ -116,6 +116,23 @@ def stage2_training_data(measurements: list[RegionMeasurement], reference: str):
     return v, p, target
 
 
+def check_session(session, reference: str | None = None) -> None:
+    """Raise ValueError naming the manifest unless `session` can be calibrated: training
+    captures with regions, a target capture with known reflectances, and `reference` (if
+    given) among the training backgrounds. Cheap: reads no pixels."""
+    manifest = session.manifest_path
+    training = session.frames_with(role="sample", set="training")
+    if not any(frame.regions for frame in training):
+        raise ValueError(f"{manifest}: no training capture (role 'sample', set 'training') with patch regions to fit Stage II")
+    targets = session.frames_with(role="target")
+    known = sum(1 for frame in targets for region in frame.regions if region.reflectance is not None)
+    if known < 2:
+        raise ValueError(f"{manifest}: the target captures hold {known} regions with known reflectance; the Wiener matrix needs at least 2")
+    backgrounds = sorted({frame.background for frame in training})
+    if reference is not None and reference not in backgrounds:
+        raise ValueError(f"{manifest}: no training background named {reference!r} (expected one of {backgrounds})")
+
+
 @dataclasses.dataclass
 class CalibrationReport:
     """What `calibrate_session` did, for the calibration file's metadata and the log."""
@@ -147,14 +164,10 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
     Returns:
       (Calibration, CalibrationReport).
     """
+    check_session(session, reference)
     base = base_calibration(session)
     training = session.frames_with(role="sample", set="training")
-    if not training:
-        raise ValueError(f"{session.path}: no training captures (role 'sample', set 'training') to fit Stage II")
     targets = session.frames_with(role="target")
-    if not targets:
-        raise ValueError(f"{session.path}: no target captures (role 'target') to fit the Wiener matrix")
-
     measurements = measure_frames(session, training, base)
     reference = reference or reference_background(measurements)
     v, p, target = stage2_training_data(measurements, reference)
@@ -165,8 +178,6 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
 
     with_stage2 = dataclasses.replace(base, coeffs=coeffs.astype(np.float32))
     target_measurements = [m for m in measure_frames(session, targets, with_stage2) if m.reflectance is not None]
-    if len(target_measurements) < 2:
-        raise ValueError(f"{session.path}: the target captures hold {len(target_measurements)} regions with known reflectance; at least 2 are needed")
     responses = np.asarray(stage2(np.stack([m.v for m in target_measurements]), np.stack([m.p for m in target_measurements]), coeffs))
     reflectances = np.stack([m.reflectance for m in target_measurements])
     usable = np.all(np.isfinite(responses), axis=1)
@@ -195,6 +206,7 @@ __all__ = [
     "RegionMeasurement",
     "CalibrationReport",
     "base_calibration",
+    "check_session",
     "measure_frames",
     "reference_background",
     "stage2_training_data",

@@ -81,9 +81,10 @@ def _evaluation_files(evaluation) -> dict[str, bytes]:
 
 
 def cmd_simulate(args) -> int:
-    from . import simulate
+    from . import io, simulate
 
     out = pathlib.Path(args.out)
+    io.check_new_session_folder(out)  # before minutes of simulation, not after
     progress = _Progress(1, args.quiet)
     progress.start(f"simulating a session into {out}")
     session = simulate.simulate_session(out, seed=args.seed)
@@ -94,6 +95,7 @@ def cmd_simulate(args) -> int:
 def _calibrate(session, args, progress):
     from . import calibrate
 
+    calibrate.check_session(session, args.reference_background)  # bad input before any work
     progress.start(f"calibrating from {session.path}")
     calibration, report = calibrate.calibrate_session(
         session, reference=args.reference_background, illuminant=args.illuminant

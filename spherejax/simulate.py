@@ -322,7 +322,7 @@ def _render_rates(material_map, reflectances, couplings, holder_mask, beta, band
     the PSF's rFFT on the padded grid; stray the glare fraction.
     """
     alpha_ww, alpha_wsp, alpha_spw = alphas[0], alphas[1], alphas[2]
-    counts = jnp.zeros(reflectances.shape[0]).at[material_map].add(holder_mask.astype(jnp.float32))
+    counts = jnp.zeros(reflectances.shape[0], reflectances.dtype).at[material_map].add(holder_mask.astype(reflectances.dtype))
     mean_reflectance = counts @ reflectances / jnp.sum(counts)  # ρ̄(λ), area-weighted (Eq. 9)
     k = alpha_ww + alpha_wsp * alpha_spw * mean_reflectance  # Eq. 9
     first = wall  # the first wall bounce's share of the holder irradiance (Eq. 1)
@@ -347,8 +347,8 @@ def _expose(rates, exposure, lamp, key, read_noise, dark_current, gain, bias, sa
     electrons = rates * (exposure * lamp)[:, None, None] + dark_current * exposure[:, None, None]
     key_shot, key_read = jax.random.split(key)
     # Mean of `frames` exposures: shot and read noise both shrink as 1/sqrt(frames).
-    shot = jnp.sqrt(jnp.maximum(electrons, 0.0) / frames) * jax.random.normal(key_shot, electrons.shape)
-    read = read_noise / jnp.sqrt(frames) * jax.random.normal(key_read, electrons.shape)
+    shot = jnp.sqrt(jnp.maximum(electrons, 0.0) / frames) * jax.random.normal(key_shot, electrons.shape, electrons.dtype)
+    read = read_noise / jnp.sqrt(frames) * jax.random.normal(key_read, electrons.shape, electrons.dtype)
     dn = (electrons + noise * (shot + read)) / gain + bias
     return jnp.clip(jnp.round(dn), 0, saturation).astype(jnp.uint16).transpose(1, 2, 0)
 
@@ -406,7 +406,7 @@ class _Renderer:
     def calibrate_exposures(self, white_rates: jax.Array) -> np.ndarray:
         """Exposure per band (s): the protocol's "white standard at ~80 % of full scale"."""
         peak = np.asarray(jnp.max(white_rates, axis=(1, 2)))
-        self.flux_scale = self.instrument.peak_rate_e_per_s / peak.max()
+        self.flux_scale = float(self.instrument.peak_rate_e_per_s / peak.max())
         fill = self.instrument.exposure_fill * self.instrument.full_well_e
         self.exposure = fill / (peak * self.flux_scale)
         return self.exposure
@@ -428,13 +428,10 @@ class _Renderer:
             jnp.asarray(self.exposure, jnp.float32),
             jnp.asarray(lamp, jnp.float32),
             key,
-            inst.read_noise_e,
-            inst.dark_current_e_per_s,
-            inst.gain_e_per_dn,
-            inst.bias_dn,
-            float(inst.saturation_dn),
-            float(frames),
-            1.0 if inst.noise else 0.0,
+            *(np.float32(x) for x in (
+                inst.read_noise_e, inst.dark_current_e_per_s, inst.gain_e_per_dn, inst.bias_dn,
+                inst.saturation_dn, frames, 1.0 if inst.noise else 0.0,
+            )),
         )
         return np.asarray(frame), start
 

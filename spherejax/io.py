@@ -1,0 +1,1341 @@
+"""Files on disk: camera frames, sessions and calibration files (the formats are documented here).
+
+This module, `archive` and `cli` are the only ones that touch the filesystem; the maths modules
+never import them. Every failure raises a `SpherejaxFileError` (a ValueError) whose message is one
+line, "PATH: problem (expected ...)", naming the file, the value found and what was expected. No
+format uses pickle. Every writer is atomic: it writes under a temporary name in the destination's
+folder and renames into place only when complete, so a failure leaves nothing new on disk.
+
+Camera frame
+------------
+One TIFF per capture holding all bands as channels: shape (H, W, C), 16-bit unsigned samples,
+deflate-compressed, a single page, no alpha channel. TIFF keeps no channel names or free attributes,
+so `write_frame` also stores them as JSON in the ImageDescription tag,
+``{"channel_names": ["400nm", ...], "attributes": {"key": "value", ...}}`` (`read_frame_metadata`).
+
+Session (format "spherejax-session", version 1)
+-----------------------------------------------
+A folder with ``manifest.json`` and the frame files (`write_session` writes ``frames/<id>.tif``):
+
+    {
+      "format": "spherejax-session", "format_version": 1,
+      "software_version": "0.1.0",             the spherejax that wrote it
+      "instrument_id": "sim-sphere-1",
+      "created": "2026-11-22T10:00:00+00:00",  ISO 8601
+      "band_centres_nm": [400, 420, ..., 700], B integers, strictly increasing
+      "image_shape": [H, W],
+      "saturation": 16383,                     raw level at or above which a pixel is saturated
+      "white_patch": [r0, r1, c0, c1],         reference white patch, rows r0:r1, columns c0:c1
+      "holder": [r0, r1, c0, c1],              sample holder (the Markov baseline's holder mean)
+      "frames": [frame, ...],
+      "metadata": {...}                        optional, free JSON (e.g. simulator parameters)
+    }
+
+A frame is an object with
+      "id": unique in the session ([A-Za-z0-9._-]+ when written by `write_session`),
+      "role": "dark" | "white" | "sample" | "target" (exactly one dark and one white frame),
+      "file": path relative to the folder, inside it (no absolute paths, "..", or links out),
+      "exposure_s": B exposure times in seconds, one per band, > 0,
+      "timestamp": ISO 8601,
+      "set": "training" | "test", required for samples, optional otherwise,
+      "background": name of the background the sample lies on, required for samples,
+      "regions": [region, ...], samples and targets only (optional, default []),
+      "metadata": {...} optional, free JSON;
+and a region is
+      "name": unique in the frame, "patch": which physical patch it shows (default: the name),
+      "region": [r0, r1, c0, c1], a non-empty rectangle inside the image,
+      "reflectance": 31 known reflectances at 400..700 nm step 10 (required for targets).
+Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
+camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
+
+Calibration file (format "spherejax-calibration", version 1)
+------------------------------------------------------------
+An .npz archive (`numpy.savez`, no pickled objects) holding the arrays of a `Calibration`
+    dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B)
+and "header", a uint8 array of UTF-8 JSON:
+    {"format": "spherejax-calibration", "format_version": 1, "software_version",
+     "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
+     "saturation": number or null, "created": UTC ISO 8601,
+     "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
+     "metadata": {...}, "checksum": "sha256:<64 hex digits>"}
+Read the header with ``bytes(numpy.load(path)["header"]).decode()``. The checksum is SHA-256 over
+the header JSON without the "checksum" field, serialised with sorted keys, separators "," and ":"
+and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
+wiener, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and the array's
+raw bytes in C order. It is computed from the parsed header, so the stored JSON's layout does not
+matter.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import hashlib
+import json
+import math
+import os
+import pathlib
+import re
+import shutil
+import uuid
+import zipfile
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import OpenImageIO as oiio
+
+from .grid import N_WAVELENGTHS
+from .pipeline import Calibration
+
+SESSION_FORMAT = "spherejax-session"
+SESSION_FORMAT_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+CALIBRATION_FORMAT = "spherejax-calibration"
+CALIBRATION_FORMAT_VERSION = 1
+
+ROLES = ("dark", "white", "sample", "target")
+SETS = ("training", "test")
+
+#: Arrays of a calibration file in checksum order, with the description stored in its header.
+CALIBRATION_ARRAYS = {
+    "dark": "dark frame (H, W, B) in raw counts, subtracted in the flat field (Eq. 10)",
+    "white": "white-standard frame (H, W, B) in raw counts at the samples' exposure (Eq. 10)",
+    "patch": "reference white patch mask (H, W), True on the patch (Eq. 14-15)",
+    "coeffs": "Stage II coefficients (B, 4) ordered c1..c4, dimensionless (Eq. 23)",
+    "wiener": "Wiener matrix (31, B): Stage II response -> reflectance at 400..700 nm step 10 "
+    "(Section 2, Wiener estimation)",
+}
+
+_FRAME_EXPECTED = "a single-page 16-bit TIFF of shape (H, W, C)"
+_SAFE_ID = re.compile(r"[A-Za-z0-9._-]+")
+_RESERVED_ATTRIBUTES = ("ImageDescription",)
+_SESSION_KEYS = frozenset(
+    ("format format_version software_version instrument_id created band_centres_nm image_shape "
+     "saturation white_patch holder frames metadata").split()
+)
+_FRAME_KEYS = frozenset(
+    "id role file exposure_s timestamp set background regions metadata".split()
+)
+_REGION_KEYS = frozenset("name patch region reflectance".split())
+_CALIBRATION_KEYS = frozenset(
+    ("format format_version software_version instrument_id band_centres_nm illuminant observer "
+     "saturation created arrays metadata checksum").split()
+)
+
+
+# ----------------------------------------------------------------------------------------- errors
+
+
+def _one_line(text) -> str:
+    # OIIO and numpy errors can span lines; a message must stay one line on stderr.
+    return " ".join(str(text).split())
+
+
+class SpherejaxFileError(ValueError):
+    """A file or folder that cannot be read or written: "PATH: problem (expected ...)"."""
+
+    def __init__(self, path, problem: str, expected: str | None = None):
+        self.path = str(path)
+        self.problem = _one_line(problem)
+        self.expected = _one_line(expected) if expected else None
+        message = f"{self.path}: {self.problem}"
+        if self.expected:
+            message += f" (expected {self.expected})"
+        super().__init__(message)
+
+    def __reduce__(self):
+        # Rebuild from the three parts: dask.distributed ships worker exceptions between processes.
+        return type(self), (self.path, self.problem, self.expected)
+
+
+class SessionError(SpherejaxFileError):
+    """A session folder, its manifest or one of its frame files is missing or invalid."""
+
+
+class CalibrationFileError(SpherejaxFileError):
+    """A calibration file is missing, corrupted, of another format or version, or other bands."""
+
+
+@contextlib.contextmanager
+def _reraise_as(error_type: type[SpherejaxFileError]) -> Iterator[None]:
+    """Turn a SpherejaxFileError raised inside into `error_type`, same path and message."""
+    try:
+        yield
+    except SpherejaxFileError as error:
+        if isinstance(error, error_type):
+            raise
+        raise error_type(error.path, error.problem, error.expected) from None
+
+
+def _show(value) -> str:
+    """A short one-line rendering of a value found in a file, for error messages."""
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+# ------------------------------------------------------------------------------ shared file helpers
+
+
+def _temp_sibling(path: pathlib.Path) -> pathlib.Path:
+    """An unused hidden name beside `path`: same folder, so os.replace / os.rename is atomic.
+
+    Not tempfile.mkstemp / mkdtemp: they create mode 0600 / 0700, which the rename would carry
+    into the final file or session folder; files created here follow the user's umask.
+    """
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
+
+
+def _json_value(path, value, error_type: type[SpherejaxFileError], what: str):
+    """`value` as it reads back from JSON (numpy values, tuples and non-string keys normalised).
+
+    Checksums and round trips compare what is written with what is read, so both start from this.
+    """
+
+    def default(obj):
+        if isinstance(obj, (np.ndarray, np.generic)):
+            return obj.tolist()
+        if isinstance(obj, Region):
+            return obj.to_json()
+        raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
+
+    try:
+        return json.loads(json.dumps(value, default=default, allow_nan=False))
+    except (TypeError, ValueError) as error:
+        raise error_type(path, f"{what} cannot be stored as JSON: {error}", "JSON values") from None
+
+
+def _canonical_json(value) -> bytes:
+    return json.dumps(
+        value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
+    ).encode("utf-8")
+
+
+def _readable_json(value, indent: str = "") -> str:
+    """JSON for people: one field per line, but a list of numbers or strings on one line.
+
+    json.dumps(indent=2) would put each of a target's 31 reflectances on a line of its own.
+    """
+    inner = indent + "  "
+    if isinstance(value, dict) and value:
+        fields = [f"{inner}{json.dumps(k)}: {_readable_json(v, inner)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(fields) + "\n" + indent + "}"
+    if isinstance(value, list) and any(isinstance(v, (dict, list)) for v in value):
+        items = [inner + _readable_json(v, inner) for v in value]
+        return "[\n" + ",\n".join(items) + "\n" + indent + "]"
+    return json.dumps(value, allow_nan=False)
+
+
+def _utc_now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_timestamp(value) -> bool:
+    if not isinstance(value, str):
+        return False
+    try:
+        datetime.datetime.fromisoformat(value)
+    except ValueError:
+        return False
+    return True
+
+
+def _is_rect(value, image_shape: tuple[int, int]) -> bool:
+    if not (isinstance(value, list) and len(value) == 4 and all(_is_int(v) for v in value)):
+        return False
+    r0, r1, c0, c1 = value
+    return 0 <= r0 < r1 <= image_shape[0] and 0 <= c0 < c1 <= image_shape[1]
+
+
+def _rect_expected(image_shape: tuple[int, int]) -> str:
+    height, width = image_shape
+    return (
+        f"[r0, r1, c0, c1] with 0 <= r0 < r1 <= {height} and 0 <= c0 < c1 <= {width}: "
+        f"a non-empty rectangle inside the {height} x {width} image"
+    )
+
+
+def _describe_bands(bands: Sequence[int]) -> str:
+    """Band centres for a message: like 400..700 nm step 20 (16 bands), or the list."""
+    bands = [int(b) for b in bands]
+    steps = {b - a for a, b in zip(bands, bands[1:])}
+    if len(bands) > 2 and len(steps) == 1:
+        return f"{bands[0]}..{bands[-1]} nm step {steps.pop()} ({len(bands)} bands)"
+    return f"{bands} nm"
+
+
+_REQUIRED = object()
+
+
+class _Fields:
+    """One JSON object of a file, read one checked field at a time.
+
+    Every problem raises `error(file, "<where>.<key> is <value found>", expected)`, so each message
+    names the file, the field, the value and what was expected.
+    """
+
+    def __init__(self, obj: Mapping, *, file, error: type[SpherejaxFileError], where: str = ""):
+        self.obj, self.file, self.error, self.where = obj, file, error, where
+
+    def name(self, key: str) -> str:
+        return f"{self.where}.{key}" if self.where else key
+
+    def fail(self, key: str, problem: str, expected: str):
+        raise self.error(self.file, f"{self.name(key)} {problem}", expected)
+
+    def value(self, key: str, expected: str, check: Callable[[Any], bool], default=_REQUIRED):
+        """The value of `key` if `check` accepts it; `default` when absent, unless required."""
+        if key not in self.obj:
+            if default is _REQUIRED:
+                self.fail(key, "is missing", expected)
+            return default
+        value = self.obj[key]
+        if not check(value):
+            self.fail(key, f"is {_show(value)}", expected)
+        return value
+
+    def only(self, allowed: frozenset[str]) -> None:
+        unknown = sorted(set(self.obj) - allowed)
+        if unknown:
+            where = self.where or "the top level"
+            raise self.error(
+                self.file, f"{where} has unknown fields {unknown}", f"only {sorted(allowed)}"
+            )
+
+    def string(self, key: str, *, choices: Sequence[str] | None = None, default=_REQUIRED):
+        if choices is None:
+            expected = "a non-empty string"
+        else:
+            expected = " or ".join(json.dumps(c) for c in choices)
+        return self.value(
+            key,
+            expected,
+            lambda v: isinstance(v, str) and v != "" and (choices is None or v in choices),
+            default,
+        )
+
+    def integer(self, key: str, *, minimum: int) -> int:
+        return self.value(key, f"an integer >= {minimum}", lambda v: _is_int(v) and v >= minimum)
+
+    def number(self, key: str, *, allow_null: bool = False, default=_REQUIRED):
+        expected = "a number > 0" + (" or null" if allow_null else "")
+        return self.value(
+            key,
+            expected,
+            lambda v: (allow_null and v is None) or (_is_number(v) and v > 0),
+            default,
+        )
+
+    def increasing_ints(self, key: str, expected: str) -> list[int]:
+        def check(v):
+            if not (isinstance(v, list) and v and all(_is_int(x) and x > 0 for x in v)):
+                return False
+            return all(a < b for a, b in zip(v, v[1:]))
+
+        return self.value(key, expected, check)
+
+    def numbers(self, key: str, length: int, expected: str, *, positive=False, default=_REQUIRED):
+        def check(v):
+            if not (isinstance(v, list) and len(v) == length and all(_is_number(x) for x in v)):
+                return False
+            return not positive or all(x > 0 for x in v)
+
+        values = self.value(key, expected, check, default)
+        return values if values is None else np.asarray(values, dtype=np.float64)
+
+    def shape(self, key: str, ndim: int, expected: str) -> tuple[int, ...]:
+        def check(v):
+            return isinstance(v, list) and len(v) == ndim and all(_is_int(x) and x > 0 for x in v)
+
+        return tuple(self.value(key, expected, check))
+
+    def rect(self, key: str, image_shape: tuple[int, int]) -> tuple[int, int, int, int]:
+        rect = self.value(key, _rect_expected(image_shape), lambda v: _is_rect(v, image_shape))
+        return tuple(rect)
+
+    def timestamp(self, key: str, default=_REQUIRED) -> str:
+        return self.value(key, "an ISO 8601 date and time", _is_timestamp, default)
+
+    def mapping(self, key: str, expected: str = "a JSON object", default=_REQUIRED) -> dict:
+        return self.value(key, expected, lambda v: isinstance(v, dict), default)
+
+    def child(self, key: str, expected: str) -> _Fields:
+        """The object `key`, as a `_Fields` named after it."""
+        obj = self.mapping(key, expected)
+        return _Fields(obj, file=self.file, error=self.error, where=self.name(key))
+
+    def children(self, key: str, what: str, default=_REQUIRED) -> list[_Fields]:
+        """The objects of the list `key`, each a `_Fields` named "key[i]"."""
+        items = self.value(key, f"a list of {what}", lambda v: isinstance(v, list), default)
+        children = []
+        for index, item in enumerate(items):
+            where = f"{key}[{index}]"
+            if not isinstance(item, dict):
+                self.fail(where, f"is {_show(item)}", f"one of the {what}, an object")
+            children.append(_Fields(item, file=self.file, error=self.error, where=self.name(where)))
+        return children
+
+    def relative_path(self, key: str) -> str:
+        """A path relative to the file's folder, with no "..": it cannot name a file outside."""
+
+        def check(value):
+            if not isinstance(value, str) or value in ("", "."):
+                return False
+            # Both readings: a manifest written on Windows may use "\\" and drive letters.
+            posix, native = pathlib.PurePosixPath(value), pathlib.PurePath(value)
+            escapes = ".." in posix.parts or ".." in native.parts
+            return not (posix.is_absolute() or native.is_absolute() or native.drive or escapes)
+
+        return self.value(key, 'a relative path inside the folder (not absolute, no "..")', check)
+
+
+def _check_format(fields: _Fields, name: str, version: int) -> None:
+    """Refuse a document of another format, or of a newer version than this software reads."""
+    from . import __version__
+
+    found = fields.obj.get("format", _REQUIRED)
+    if found != name:
+        shown = "missing" if found is _REQUIRED else _show(found)
+        problem = f"is not a {name} file: format is {shown}"
+        raise fields.error(fields.file, problem, f'format "{name}"')
+    found_version = fields.integer("format_version", minimum=1)
+    if found_version > version:
+        raise fields.error(
+            fields.file,
+            f"is {name} format version {found_version}, newer than spherejax {__version__} reads",
+            f"format version {version} or older; upgrade spherejax to read it",
+        )
+
+
+# ------------------------------------------------------------------------------------------ frames
+
+
+@contextlib.contextmanager
+def _open_frame(path: pathlib.Path) -> Iterator[oiio.ImageInput]:
+    """An open ImageInput on a checked camera frame (one page, uint16 samples); closed on exit."""
+    if not path.is_file():
+        raise SpherejaxFileError(path, "no such file", _FRAME_EXPECTED)
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        problem = f"is not a readable image: {oiio.geterror()}"
+        raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
+    try:
+        _check_frame_header(path, image)
+        yield image
+    finally:
+        image.close()
+
+
+def _check_frame_header(path: pathlib.Path, image: oiio.ImageInput) -> None:
+    spec = image.spec()
+    if spec.deep or spec.depth != 1:
+        raise SpherejaxFileError(path, "is a deep or volume image", _FRAME_EXPECTED)
+    formats = [str(f) for f in (spec.channelformats or (spec.format,))]
+    bits = spec.get_int_attribute("oiio:BitsPerSample", 16)
+    if any(f != "uint16" for f in formats) or bits != 16:
+        found = ", ".join(sorted(set(formats)))
+        raise SpherejaxFileError(
+            path, f"has {found} samples of {bits} bits", "16-bit unsigned integer samples (uint16)"
+        )
+    # A second page would be silently ignored by a single-image read: refuse it.
+    if image.seek_subimage(1, 0):
+        raise SpherejaxFileError(path, "holds more than one image (page)", _FRAME_EXPECTED)
+    # The failed seek queued "could not seek to subimage 1", which would mask a later read error.
+    image.geterror()
+    image.seek_subimage(0, 0)
+
+
+def _spec_shape(image: oiio.ImageInput) -> tuple[int, int, int]:
+    spec = image.spec()
+    return spec.height, spec.width, spec.nchannels
+
+
+def _require_frame_shape(path, shape: tuple[int, int, int], expected: Sequence[int]) -> None:
+    """Refuse a frame whose (H, W) or channel count differs from `expected` (H, W, C)."""
+    height, width, channels = (int(n) for n in expected)
+    if tuple(shape[:2]) != (height, width):
+        raise SpherejaxFileError(
+            path,
+            f"is {shape[0]} x {shape[1]} pixels (H x W)",
+            f"{height} x {width} pixels",
+        )
+    if shape[2] != channels:
+        raise SpherejaxFileError(
+            path, f"has {shape[2]} channels", f"{channels} channels, one per band"
+        )
+
+
+def frame_spec(path) -> tuple[int, int, int]:
+    """The shape (H, W, C) of a camera frame, from its header only (no pixels are read).
+
+    Raises SpherejaxFileError for a missing file, a file that is not an image, and an image that is
+    not a single page of 16-bit unsigned samples.
+    """
+    path = pathlib.Path(path)
+    with _open_frame(path) as image:
+        return _spec_shape(image)
+
+
+def read_frame(path, *, expected_shape: Sequence[int] | None = None) -> np.ndarray:
+    """Read a camera frame.
+
+    Args:
+      path: a 16-bit TIFF (any single-page uint16 image OpenImageIO reads).
+      expected_shape: (H, W, C) to insist on, or None.
+
+    Returns:
+      (H, W, C) uint16 array.
+
+    Raises:
+      SpherejaxFileError: missing file, not an image or corrupted (with OpenImageIO's message),
+        not 16-bit, more than one page, or a size or channel count other than `expected_shape`.
+    """
+    path = pathlib.Path(path)
+    with _open_frame(path) as image:
+        shape = _spec_shape(image)
+        if expected_shape is not None:
+            _require_frame_shape(path, shape, expected_shape)
+        pixels = image.read_image(oiio.UINT16)
+        if pixels is None:
+            # OIIO does not always say why (a damaged deflate stream gives no message).
+            detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
+            problem = f"is corrupted: {detail}"
+            raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
+    return np.ascontiguousarray(np.asarray(pixels, dtype=np.uint16).reshape(shape))
+
+
+def read_frame_metadata(path) -> dict:
+    """The channel names and attributes `write_frame` stored in a frame (header only).
+
+    Returns:
+      {"channel_names": [C str], "attributes": {str: str}}. For a TIFF written by other software,
+      the channel names OpenImageIO reports and no attributes.
+    """
+    path = pathlib.Path(path)
+    with _open_frame(path) as image:
+        spec = image.spec()
+        description = spec.get_string_attribute("ImageDescription")
+    try:
+        stored = json.loads(description)
+        names, attributes = stored["channel_names"], stored["attributes"]
+    except (ValueError, TypeError, KeyError):
+        return {"channel_names": list(spec.channelnames), "attributes": {}}
+    return {"channel_names": list(names), "attributes": dict(attributes)}
+
+
+def _frame_names_and_attributes(path, channels: int, channel_names, attributes):
+    """Checked channel names (C str) and string attributes for `write_frame`."""
+    if channel_names is None:
+        channel_names = [f"channel{i}" for i in range(channels)]
+    channel_names = list(channel_names)
+    if len(channel_names) != channels or not all(isinstance(n, str) and n for n in channel_names):
+        raise SpherejaxFileError(
+            path, f"channel_names is {_show(channel_names)}", f"{channels} non-empty strings"
+        )
+    attributes = dict(attributes or {})
+    for key, value in attributes.items():
+        if not (isinstance(key, str) and key and isinstance(value, str)):
+            raise SpherejaxFileError(
+                path, f"attribute {_show(key)} is {_show(value)}", "string names and values"
+            )
+        if key in _RESERVED_ATTRIBUTES:
+            raise SpherejaxFileError(
+                path,
+                f"attribute {key!r} is reserved for the channel names and attributes",
+                f"attribute names other than {list(_RESERVED_ATTRIBUTES)}",
+            )
+    return channel_names, attributes
+
+
+def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
+    """Write a camera frame as a multi-channel 16-bit TIFF, atomically.
+
+    Args:
+      path: destination; its folder must exist. Replaces an existing file only when complete.
+      array: (H, W, C) uint16. (H, W) is refused: pass (H, W, 1) for one channel.
+      channel_names: C names such as "400nm"; default "channel0", "channel1", ...
+      attributes: string metadata {name: value}, kept as TIFF tags where TIFF has one and always
+        in the ImageDescription JSON (`read_frame_metadata`).
+
+    Raises:
+      SpherejaxFileError: a wrong array, names or attributes (nothing written), or a failed write
+        (the temporary file is removed).
+    """
+    from . import __version__
+
+    path = pathlib.Path(path)
+    array = np.asarray(array)
+    if array.ndim != 3 or array.dtype != np.uint16 or 0 in array.shape:
+        raise SpherejaxFileError(
+            path,
+            f"cannot hold an array of shape {array.shape} and dtype {array.dtype}",
+            "a non-empty (H, W, C) uint16 array",
+        )
+    height, width, channels = array.shape
+    names, attributes = _frame_names_and_attributes(path, channels, channel_names, attributes)
+    if not path.parent.is_dir():
+        raise SpherejaxFileError(path, "cannot be written: no such folder", "an existing folder")
+
+    spec = oiio.ImageSpec(width, height, channels, oiio.UINT16)
+    spec.channelnames = tuple(names)
+    # Every channel is a band: no channel may be taken for alpha (and premultiplied on reading).
+    spec.alpha_channel = -1
+    spec.attribute("compression", "zip")  # lossless deflate, which every TIFF reader decodes
+    spec.attribute("Software", f"spherejax {__version__}")
+    for key, value in attributes.items():
+        spec.attribute(key, value)
+    description = {"channel_names": names, "attributes": attributes}
+    spec.attribute("ImageDescription", json.dumps(description))
+
+    temp = _temp_sibling(path)
+    try:
+        # The format is named, not guessed from the temporary file's extension.
+        output = oiio.ImageOutput.create("tiff")
+        written = output.open(str(temp), spec)
+        if written:
+            written = output.write_image(np.ascontiguousarray(array))
+            written = output.close() and written
+        if not written:
+            raise SpherejaxFileError(path, f"could not be written: {output.geterror()}")
+        os.replace(temp, path)
+    except OSError as error:
+        raise SpherejaxFileError(path, f"could not be written: {error}") from None
+    finally:
+        temp.unlink(missing_ok=True)
+
+
+# ---------------------------------------------------------------------------------------- sessions
+
+
+def rectangle_mask(rect: Sequence[int], image_shape: Sequence[int]) -> np.ndarray:
+    """Boolean mask (H, W), True on rows r0:r1 and columns c0:c1 of rect = (r0, r1, c0, c1)."""
+    r0, r1, c0, c1 = rect
+    mask = np.zeros(tuple(image_shape), dtype=bool)
+    mask[r0:r1, c0:c1] = True
+    return mask
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    # The dataclasses are frozen; their arrays should not change under them either.
+    array.setflags(write=False)
+    return array
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Region:
+    """A rectangle of a frame showing one patch. Compare regions with `to_json()`.
+
+    Fields:
+      name: unique within its frame.
+      patch: the physical patch shown (the same patch on several backgrounds shares it).
+      region: (r0, r1, c0, c1), rows r0:r1 and columns c0:c1.
+      reflectance: known reflectance (31,) at 400..700 nm step 10, float64, or None.
+    """
+
+    name: str
+    patch: str
+    region: tuple[int, int, int, int]
+    reflectance: np.ndarray | None = None
+
+    def mask(self, image_shape: Sequence[int]) -> np.ndarray:
+        """Boolean (H, W), True inside the rectangle."""
+        return rectangle_mask(self.region, image_shape)
+
+    def mean(self, array) -> np.ndarray:
+        """Average of an (..., H, W, B) array over the rectangle -> (..., B).
+
+        float64 for integer input (raw counts), the input's dtype for float input.
+        """
+        r0, r1, c0, c1 = self.region
+        return np.asarray(array)[..., r0:r1, c0:c1, :].mean(axis=(-3, -2))
+
+    def to_json(self) -> dict:
+        """The region as it appears in a manifest."""
+        out = {"name": self.name, "patch": self.patch, "region": [int(v) for v in self.region]}
+        if self.reflectance is not None:
+            out["reflectance"] = np.asarray(self.reflectance, dtype=np.float64).tolist()
+        return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FrameInfo:
+    """One frame of a session, as listed in its manifest (no pixels). Compare with `to_json()`.
+
+    Fields:
+      id: unique in the session.
+      role: "dark", "white", "sample" or "target".
+      file: path of the frame file relative to the session folder (`Session.frame_path`).
+      exposure_s: exposure times (B,) in seconds, float64.
+      timestamp: ISO 8601.
+      set: "training" or "test" (always set for samples), or None.
+      background: the background a sample lies on (always set for samples), or None.
+      regions: the `Region`s of a sample or target frame.
+      metadata: free JSON.
+    """
+
+    id: str
+    role: str
+    file: str
+    exposure_s: np.ndarray
+    timestamp: str
+    set: str | None = None
+    background: str | None = None
+    regions: tuple[Region, ...] = ()
+    metadata: dict = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """The frame as it appears in a manifest."""
+        out = {
+            "id": self.id,
+            "role": self.role,
+            "file": self.file,
+            "exposure_s": self.exposure_s.tolist(),
+            "timestamp": self.timestamp,
+        }
+        if self.set is not None:
+            out["set"] = self.set
+        if self.background is not None:
+            out["background"] = self.background
+        if self.regions:
+            out["regions"] = [region.to_json() for region in self.regions]
+        if self.metadata:
+            out["metadata"] = self.metadata
+        return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Session:
+    """A loaded session: its manifest, checked, with methods to read its frames.
+
+    Fields:
+      path: the session folder.
+      instrument_id, software_version, created: from the manifest.
+      band_centres_nm: (B,) int64, strictly increasing.
+      image_shape: (H, W).
+      saturation: raw level at or above which a pixel counts as saturated.
+      white_patch, holder: (r0, r1, c0, c1) rectangles.
+      frames: every `FrameInfo`, in manifest order.
+      metadata: free JSON.
+    """
+
+    path: pathlib.Path
+    instrument_id: str
+    band_centres_nm: np.ndarray
+    image_shape: tuple[int, int]
+    saturation: int | float
+    white_patch: tuple[int, int, int, int]
+    holder: tuple[int, int, int, int]
+    frames: tuple[FrameInfo, ...]
+    software_version: str
+    created: str
+    metadata: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def bands(self) -> int:
+        return int(self.band_centres_nm.size)
+
+    @property
+    def manifest_path(self) -> pathlib.Path:
+        return self.path / MANIFEST_NAME
+
+    def frames_with(self, role: str | None = None, set: str | None = None) -> tuple[FrameInfo, ...]:
+        """The frames of a role and/or set, in manifest order (None matches any)."""
+        if role is not None and role not in ROLES:
+            raise ValueError(f"role: expected one of {list(ROLES)}, got {role!r}")
+        if set is not None and set not in SETS:
+            raise ValueError(f"set: expected one of {list(SETS)}, got {set!r}")
+        return tuple(
+            frame
+            for frame in self.frames
+            if (role is None or frame.role == role) and (set is None or frame.set == set)
+        )
+
+    def frame(self, id: str) -> FrameInfo:
+        """The frame with this id."""
+        for frame in self.frames:
+            if frame.id == id:
+                return frame
+        known = [frame.id for frame in self.frames]
+        raise SessionError(self.manifest_path, f"has no frame {id!r}", f"one of {known}")
+
+    def frame_path(self, frame: FrameInfo | str) -> pathlib.Path:
+        """Where a frame's file lies."""
+        frame = self.frame(frame) if isinstance(frame, str) else frame
+        return self.path / frame.file
+
+    def read(self, frame: FrameInfo | str) -> np.ndarray:
+        """The pixels of a frame (or frame id): (H, W, B) uint16, checked against the manifest."""
+        with _reraise_as(SessionError):
+            expected_shape = (*self.image_shape, self.bands)
+            return read_frame(self.frame_path(frame), expected_shape=expected_shape)
+
+    def dark(self) -> np.ndarray:
+        """The dark frame, (H, W, B) uint16."""
+        return self.read(self.frames_with(role="dark")[0])
+
+    def white(self) -> np.ndarray:
+        """The white-standard frame, (H, W, B) uint16."""
+        return self.read(self.frames_with(role="white")[0])
+
+    def white_patch_mask(self) -> np.ndarray:
+        """Boolean (H, W), True on the reference white patch (Eq. 14-15)."""
+        return rectangle_mask(self.white_patch, self.image_shape)
+
+    def holder_mask(self) -> np.ndarray:
+        """Boolean (H, W), True on the sample holder."""
+        return rectangle_mask(self.holder, self.image_shape)
+
+    def to_manifest(self) -> dict:
+        """The manifest this session was loaded from, as written by `write_session`."""
+        return {
+            "format": SESSION_FORMAT,
+            "format_version": SESSION_FORMAT_VERSION,
+            "software_version": self.software_version,
+            "instrument_id": self.instrument_id,
+            "created": self.created,
+            "band_centres_nm": self.band_centres_nm.tolist(),
+            "image_shape": list(self.image_shape),
+            "saturation": self.saturation,
+            "white_patch": list(self.white_patch),
+            "holder": list(self.holder),
+            "frames": [frame.to_json() for frame in self.frames],
+            "metadata": self.metadata,
+        }
+
+
+def _parse_region(fields: _Fields, image_shape, *, reflectance_required: bool) -> Region:
+    fields.only(_REGION_KEYS)
+    name = fields.string("name")
+    reflectance = fields.numbers(
+        "reflectance",
+        N_WAVELENGTHS,
+        f"{N_WAVELENGTHS} finite reflectances at 400..700 nm step 10"
+        + (", required for a target" if reflectance_required else ""),
+        default=_REQUIRED if reflectance_required else None,
+    )
+    return Region(
+        name=name,
+        patch=fields.string("patch", default=name),
+        region=fields.rect("region", image_shape),
+        reflectance=None if reflectance is None else _readonly(reflectance),
+    )
+
+
+def _parse_frame(fields: _Fields, *, bands: int, image_shape) -> FrameInfo:
+    fields.only(_FRAME_KEYS)
+    role = fields.string("role", choices=ROLES)
+    sample = _REQUIRED if role == "sample" else None  # set and background: required for samples
+    exposure_s = fields.numbers(
+        "exposure_s", bands, f"{bands} exposure times in seconds > 0, one per band", positive=True
+    )
+    region_fields = fields.children("regions", "regions", default=[])
+    if region_fields and role in ("dark", "white"):
+        fields.fail("regions", f"lists {len(region_fields)} regions", f"none on a {role} frame")
+    regions = tuple(
+        _parse_region(child, image_shape, reflectance_required=role == "target")
+        for child in region_fields
+    )
+    names = [region.name for region in regions]
+    if len(set(names)) != len(names):
+        fields.fail("regions", f"repeat names: {names}", "unique region names within a frame")
+    return FrameInfo(
+        id=fields.string("id"),
+        role=role,
+        file=fields.relative_path("file"),
+        exposure_s=_readonly(exposure_s),
+        timestamp=fields.timestamp("timestamp"),
+        set=fields.string("set", choices=SETS, default=sample),
+        background=fields.string("background", default=sample),
+        regions=regions,
+        metadata=fields.mapping("metadata", default={}),
+    )
+
+
+def _check_frame_roles(manifest_path, frames: Sequence[FrameInfo]) -> None:
+    ids = [frame.id for frame in frames]
+    repeated = sorted({i for i in ids if ids.count(i) > 1})
+    if repeated:
+        raise SessionError(manifest_path, f"frame ids {repeated} repeat", "unique frame ids")
+    for role in ("dark", "white"):
+        count = sum(frame.role == role for frame in frames)
+        if count != 1:
+            raise SessionError(
+                manifest_path, f"lists {count} {role} frames", f"exactly one with role {role!r}"
+            )
+
+
+def _parse_manifest(doc, *, manifest_path: pathlib.Path, root: pathlib.Path) -> Session:
+    """Check a manifest's content (not its frame files) and build the `Session`."""
+    if not isinstance(doc, dict):
+        raise SessionError(manifest_path, f"holds {_show(doc)}", "a JSON object, the manifest")
+    top = _Fields(doc, file=manifest_path, error=SessionError)
+    _check_format(top, SESSION_FORMAT, SESSION_FORMAT_VERSION)
+    top.only(_SESSION_KEYS)
+    bands = np.asarray(
+        top.increasing_ints("band_centres_nm", "band centres in nm: integers > 0, increasing"),
+        dtype=np.int64,
+    )
+    image_shape = top.shape("image_shape", 2, "[H, W], two integers > 0")
+    frames = tuple(
+        _parse_frame(child, bands=bands.size, image_shape=image_shape)
+        for child in top.children("frames", "frames")
+    )
+    _check_frame_roles(manifest_path, frames)
+    return Session(
+        path=root,
+        instrument_id=top.string("instrument_id"),
+        band_centres_nm=_readonly(bands),
+        image_shape=image_shape,
+        saturation=top.number("saturation"),
+        white_patch=top.rect("white_patch", image_shape),
+        holder=top.rect("holder", image_shape),
+        frames=frames,
+        software_version=top.string("software_version"),
+        created=top.timestamp("created"),
+        metadata=top.mapping("metadata", default={}),
+    )
+
+
+def _read_manifest(manifest_path: pathlib.Path):
+    try:
+        text = manifest_path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise SessionError(manifest_path, f"cannot be read: {error.strerror}") from None
+    except UnicodeDecodeError as error:
+        raise SessionError(manifest_path, f"is not UTF-8 text: {error}", "JSON") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as error:
+        raise SessionError(manifest_path, f"is not valid JSON: {error}", "JSON") from None
+
+
+def _check_frame_file(session: Session, frame: FrameInfo) -> None:
+    """A frame's file lies inside the session (links included) and has the right header."""
+    file = session.frame_path(frame)
+    resolved, root = file.resolve(), session.path.resolve()
+    if not resolved.is_relative_to(root):
+        raise SessionError(
+            file, f"resolves to {resolved}, outside the session folder", "frame files inside it"
+        )
+    if not file.is_file():
+        raise SessionError(
+            file, f"no such file (frame {frame.id!r} in {MANIFEST_NAME})", _FRAME_EXPECTED
+        )
+    with _reraise_as(SessionError):
+        _require_frame_shape(file, frame_spec(file), (*session.image_shape, session.bands))
+
+
+def load_session(path) -> Session:
+    """Load and check a session folder (manifest and every frame header; no pixels are read).
+
+    Raises:
+      SessionError: a missing folder or manifest; a manifest that is not JSON, not a session,
+        of a newer format version, with a missing or mistyped field (named), exposures that do not
+        match the bands, or a bad region; a frame file that is missing, outside the folder, not a
+        16-bit image, or of the wrong size or channel count. The message names the file.
+    """
+    root = pathlib.Path(path)
+    if not root.is_dir():
+        problem = "is not a folder" if root.exists() else "no such folder"
+        raise SessionError(root, problem, f"a session folder holding {MANIFEST_NAME}")
+    manifest_path = root / MANIFEST_NAME
+    if not manifest_path.is_file():
+        raise SessionError(manifest_path, "no such file", "the manifest of a spherejax session")
+    session = _parse_manifest(_read_manifest(manifest_path), manifest_path=manifest_path, root=root)
+    for frame in session.frames:
+        _check_frame_file(session, frame)
+    return session
+
+
+def _frame_entries(manifest_path, frames) -> list[tuple[dict, np.ndarray]]:
+    """(manifest entry with "file", array) per (frame dict, array) given to `write_session`."""
+    entries = []
+    for index, item in enumerate(frames):
+        where = f"frames[{index}]"
+        if not (isinstance(item, Sequence) and len(item) == 2 and isinstance(item[0], Mapping)):
+            problem = f"{where} is a {type(item).__name__}"
+            raise SessionError(manifest_path, problem, "a (frame dict, array) pair")
+        frame, array = item
+        frame_id = frame.get("id")
+        if not (isinstance(frame_id, str) and _SAFE_ID.fullmatch(frame_id)):
+            raise SessionError(
+                manifest_path, f"{where}.id is {_show(frame_id)}", "a name of A-Z a-z 0-9 . _ -"
+            )
+        if "file" in frame:
+            raise SessionError(
+                manifest_path, f"{where} names a file", f"none: it goes to frames/{frame_id}.tif"
+            )
+        entries.append(({**frame, "file": f"frames/{frame_id}.tif"}, np.asarray(array)))
+    return entries
+
+
+def check_new_session_folder(path) -> None:
+    """Raise SessionError unless `path` is absent or an empty folder (where a session may go)."""
+    path = pathlib.Path(path)
+    if path.exists() and not (path.is_dir() and not any(path.iterdir())):
+        raise SessionError(
+            path, "already exists and is not an empty folder", "a new or empty folder"
+        )
+
+
+def write_session(
+    path,
+    *,
+    instrument_id: str,
+    band_centres_nm,
+    image_shape: Sequence[int],
+    saturation: int | float,
+    white_patch: Sequence[int],
+    holder: Sequence[int],
+    frames: Sequence[tuple[Mapping, np.ndarray]],
+    metadata: Mapping | None = None,
+    created: str | None = None,
+) -> Session:
+    """Write a session folder, all or nothing, and load it back.
+
+    Args:
+      path: the session folder; must not exist or be empty. Missing parents are created.
+      instrument_id, band_centres_nm (B,), image_shape (H, W), saturation, white_patch, holder,
+        metadata: the manifest's fields (module docstring).
+      frames: (frame, array) pairs; frame is a dict with the manifest's frame fields except
+        "file" (regions as dicts or `Region`s), its "id" a file name ([A-Za-z0-9._-]+); array is
+        (H, W, B) uint16. Files go to frames/<id>.tif with channel names "<nm>nm".
+      created: ISO 8601 creation time; default now (UTC). Pass one for reproducible output.
+
+    Returns:
+      `load_session(path)`.
+
+    Raises:
+      SessionError: invalid fields or arrays, or an existing non-empty target, before anything
+        is written; a failed write, after which the partly written temporary folder is removed.
+    """
+    from . import __version__
+
+    path = pathlib.Path(path)
+    manifest_path = path / MANIFEST_NAME
+    entries = _frame_entries(manifest_path, frames)
+    manifest = {
+        "format": SESSION_FORMAT,
+        "format_version": SESSION_FORMAT_VERSION,
+        "software_version": __version__,
+        "instrument_id": instrument_id,
+        "created": created if created is not None else _utc_now(),
+        "band_centres_nm": band_centres_nm,
+        "image_shape": image_shape,
+        "saturation": saturation,
+        "white_patch": white_patch,
+        "holder": holder,
+        "frames": [entry for entry, _ in entries],
+        "metadata": {} if metadata is None else metadata,
+    }
+    # Check with the loader's own rules first, so nothing is written for a manifest it would refuse.
+    manifest = _json_value(manifest_path, manifest, SessionError, "the manifest")
+    session = _parse_manifest(manifest, manifest_path=manifest_path, root=path)
+    expected_shape = (*session.image_shape, session.bands)
+    for frame, (_, array) in zip(session.frames, entries):
+        if array.shape != expected_shape or array.dtype != np.uint16:
+            raise SessionError(
+                path / frame.file,
+                f"frame {frame.id!r} is an array of shape {array.shape} and dtype {array.dtype}",
+                f"{expected_shape} uint16, (H, W, B) of the session",
+            )
+    check_new_session_folder(path)
+
+    staging = _temp_sibling(path)
+    channel_names = [f"{nm}nm" for nm in session.band_centres_nm.tolist()]
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        (staging / "frames").mkdir(parents=True)
+        for frame, (_, array) in zip(session.frames, entries):
+            attributes = {"spherejax:frame_id": frame.id, "spherejax:role": frame.role}
+            try:
+                write_frame(
+                    staging / frame.file, array, channel_names=channel_names, attributes=attributes
+                )
+            except SpherejaxFileError as error:
+                # Name the file as it would have been, not the temporary folder (removed below).
+                raise SessionError(path / frame.file, error.problem, error.expected) from None
+        # The manifest last: a folder with a manifest is a complete session.
+        text = _readable_json(session.to_manifest()) + "\n"
+        (staging / MANIFEST_NAME).write_text(text, encoding="utf-8")
+        # POSIX rename replaces an empty folder atomically, and fails on a non-empty one.
+        os.rename(staging, path)
+    except OSError as error:
+        raise SessionError(path, f"could not be written: {error}") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return load_session(path)
+
+
+# -------------------------------------------------------------------------------- calibration file
+
+
+def _checksum(header: Mapping, arrays: Mapping[str, np.ndarray]) -> str:
+    """The header's checksum, sha256:<hex>, over the header without it and the arrays.
+
+    The exact byte sequence is in the module docstring: other software must reproduce it.
+    """
+    digest = hashlib.sha256(_canonical_json({k: v for k, v in header.items() if k != "checksum"}))
+    for name in CALIBRATION_ARRAYS:
+        array = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name} {array.dtype.str} {json.dumps(list(array.shape))}\n".encode("ascii"))
+        digest.update(array.tobytes())
+    return "sha256:" + digest.hexdigest()
+
+
+def _array_entry(name: str, array: np.ndarray) -> dict:
+    """How the header describes one array: shape, dtype (numpy's dtype.str) and meaning."""
+    return {
+        "shape": list(array.shape),
+        "dtype": array.dtype.str,
+        "description": CALIBRATION_ARRAYS[name],
+    }
+
+
+def _check_calibration_header(path, header) -> None:
+    """Check the header's fields, format and version first (a newer file may differ in the rest)."""
+    if not isinstance(header, dict):
+        raise CalibrationFileError(path, f"has a header of {_show(header)}", "a JSON object")
+    fields = _Fields(header, file=path, error=CalibrationFileError, where="header")
+    _check_format(fields, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION)
+    fields.only(_CALIBRATION_KEYS)
+    for key in ("software_version", "instrument_id", "illuminant", "observer"):
+        fields.string(key)
+    fields.increasing_ints("band_centres_nm", "band centres in nm: integers > 0, increasing")
+    fields.number("saturation", allow_null=True)
+    fields.timestamp("created")
+    fields.mapping("metadata")
+    fields.value("checksum", '"sha256:" and 64 hex digits', _is_sha256)
+    described = fields.child("arrays", f"an object describing {list(CALIBRATION_ARRAYS)}")
+    described.only(frozenset(CALIBRATION_ARRAYS))
+    for name in CALIBRATION_ARRAYS:
+        array = described.child(name, "the array's shape, dtype and description")
+        array.only(frozenset({"shape", "dtype", "description"}))
+        array.value("shape", "a list of integers >= 0", _is_shape)
+        array.string("dtype")
+        array.string("description")
+
+
+def _is_sha256(value) -> bool:
+    return isinstance(value, str) and re.fullmatch("sha256:[0-9a-f]{64}", value) is not None
+
+
+def _is_shape(value) -> bool:
+    return isinstance(value, list) and all(_is_int(n) and n >= 0 for n in value)
+
+
+def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) -> None:
+    """Everything but the checksum: header fields, and arrays present and as the header says."""
+    _check_calibration_header(path, header)
+    missing = [name for name in CALIBRATION_ARRAYS if name not in arrays]
+    if missing:
+        raise CalibrationFileError(
+            path, f"has no array {missing}", f"the arrays {list(CALIBRATION_ARRAYS)} and a header"
+        )
+    unexpected = sorted(set(arrays) - set(CALIBRATION_ARRAYS))
+    if unexpected:
+        raise CalibrationFileError(
+            path, f"holds unexpected entries {unexpected}", f"only {list(CALIBRATION_ARRAYS)}"
+        )
+    for name, array in arrays.items():
+        described = header["arrays"][name]
+        found = {"shape": list(array.shape), "dtype": array.dtype.str}
+        if found != {"shape": described["shape"], "dtype": described["dtype"]}:
+            raise CalibrationFileError(
+                path,
+                f"array {name!r} has shape {found['shape']} and dtype {found['dtype']}, "
+                f"the header says {described['shape']} and {described['dtype']}",
+                "the arrays the header describes",
+            )
+    bands = header["band_centres_nm"]
+    if arrays["dark"].shape[-1:] != (len(bands),):
+        raise CalibrationFileError(
+            path,
+            f"header.band_centres_nm lists {len(bands)} bands, the dark frame has shape "
+            f"{arrays['dark'].shape}",
+            "one band centre per band of the arrays",
+        )
+
+
+def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
+    """Every entry of an .npz archive, read without pickle."""
+    # A cut-off archive loses its zip directory, which sits at the end.
+    if not zipfile.is_zipfile(path):
+        raise CalibrationFileError(
+            path,
+            "is not an .npz (zip) archive: truncated, or not a calibration file",
+            "a spherejax calibration file",
+        )
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            entries = {name: archive[name] for name in archive.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise CalibrationFileError(
+            path, f"is corrupted: {error}", "a spherejax calibration file"
+        ) from None
+    # numpy hands back the raw bytes of a zip member that is not a .npy file.
+    foreign = sorted(name for name, entry in entries.items() if not isinstance(entry, np.ndarray))
+    if foreign:
+        raise CalibrationFileError(
+            path, f"holds entries that are not .npy arrays: {foreign}", "an .npz of arrays"
+        )
+    return entries
+
+
+def _decode_header(path, raw: np.ndarray | None) -> dict:
+    expected = 'a "header" entry: a uint8 array of UTF-8 JSON'
+    if raw is None:
+        raise CalibrationFileError(path, "has no header", expected)
+    if raw.dtype != np.uint8 or raw.ndim != 1:
+        problem = f"has a header of dtype {raw.dtype} and shape {raw.shape}"
+        raise CalibrationFileError(path, problem, expected)
+    try:
+        return json.loads(raw.tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        problem = f"has a header that is not UTF-8 JSON: {error}"
+        raise CalibrationFileError(path, problem, expected) from None
+
+
+def save_calibration(
+    path, calibration: Calibration, *, instrument_id: str, band_centres_nm, metadata=None
+) -> dict:
+    """Write a calibration file (module docstring), atomically.
+
+    Args:
+      path: destination (conventionally .npz); its folder must exist. An existing file is
+        replaced only when the new one is complete.
+      calibration: the `Calibration` to store, arrays bit for bit.
+      instrument_id: the instrument it was built for.
+      band_centres_nm: (B,) integer band centres, B = calibration.bands.
+      metadata: free JSON stored in the header (e.g. how the fit was made).
+
+    Returns:
+      The header written, checksum included.
+
+    Raises:
+      CalibrationFileError: not a Calibration, bands that do not match, metadata that is not
+        JSON, or a failed write (the temporary file is removed; an existing file is untouched).
+    """
+    from . import __version__
+
+    path = pathlib.Path(path)
+    if not isinstance(calibration, Calibration):
+        raise CalibrationFileError(
+            path, f"cannot hold a {type(calibration).__name__}", "a spherejax.Calibration"
+        )
+    arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS}
+    header = {
+        "format": CALIBRATION_FORMAT,
+        "format_version": CALIBRATION_FORMAT_VERSION,
+        "software_version": __version__,
+        "instrument_id": instrument_id,
+        "band_centres_nm": band_centres_nm,
+        "illuminant": calibration.illuminant,
+        "observer": calibration.observer,
+        "saturation": calibration.saturation,
+        "created": _utc_now(),
+        "arrays": {name: _array_entry(name, array) for name, array in arrays.items()},
+        "metadata": {} if metadata is None else metadata,
+    }
+    # The checksum is over the header as it will read back from JSON.
+    header = _json_value(path, header, CalibrationFileError, "the header")
+    header["checksum"] = _checksum(header, arrays)
+    _check_calibration_contents(path, header, arrays)  # refuse to write what load would refuse
+
+    encoded = _readable_json(header).encode("utf-8")
+    temp = _temp_sibling(path)
+    try:
+        with open(temp, "xb") as file:
+            np.savez(file, header=np.frombuffer(encoded, dtype=np.uint8), **arrays)
+            file.flush()
+            os.fsync(file.fileno())  # on disk before the rename makes it the calibration
+        os.replace(temp, path)
+    except OSError as error:
+        raise CalibrationFileError(path, f"could not be written: {error}") from None
+    finally:
+        temp.unlink(missing_ok=True)
+    return header
+
+
+def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
+    """Read and verify a calibration file.
+
+    Args:
+      path: a file written by `save_calibration`.
+      band_centres_nm: (B,) the bands of the data it will correct, or None not to check.
+
+    Returns:
+      (calibration, header): the `Calibration` as saved (bit-identical arrays; float64 arrays stay
+      float64 only with jax x64 enabled) and the header dict.
+
+    Raises:
+      CalibrationFileError: missing, not an .npz or truncated, missing arrays or header, another
+        format, a newer format version, a checksum mismatch (tampered or corrupted), arrays that
+        disagree with the header, other band centres than `band_centres_nm`, or contents that are
+        not a valid `Calibration`.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        problem = "is not a file" if path.exists() else "no such file"
+        raise CalibrationFileError(path, problem, "a spherejax calibration file (.npz)")
+    arrays = _read_npz(path)
+    header = _decode_header(path, arrays.pop("header", None))
+    _check_calibration_contents(path, header, arrays)
+    if _checksum(header, arrays) != header["checksum"]:
+        raise CalibrationFileError(
+            path,
+            "does not match its checksum: tampered or corrupted",
+            "the contents the checksum was computed from",
+        )
+    if band_centres_nm is not None:
+        expected = np.asarray(band_centres_nm).tolist()
+        if expected != header["band_centres_nm"]:
+            raise CalibrationFileError(
+                path,
+                f"was built for bands {_describe_bands(header['band_centres_nm'])}, "
+                f"the session has {_describe_bands(expected)}",
+                "a calibration for the session's bands",
+            )
+    try:
+        calibration = Calibration(
+            **arrays,
+            illuminant=header["illuminant"],
+            observer=header["observer"],
+            saturation=header["saturation"],
+        )
+    except ValueError as error:
+        raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
+    return calibration, header
+
+
+__all__ = [
+    "SpherejaxFileError",
+    "SessionError",
+    "CalibrationFileError",
+    "ROLES",
+    "SETS",
+    "Region",
+    "FrameInfo",
+    "Session",
+    "frame_spec",
+    "read_frame",
+    "read_frame_metadata",
+    "write_frame",
+    "rectangle_mask",
+    "load_session",
+    "write_session",
+    "save_calibration",
+    "load_calibration",
+]

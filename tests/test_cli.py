@@ -1,0 +1,237 @@
+"""The `spherejax` command line: simulate, calibrate, evaluate, demo, and every bad input.
+
+Each bad input must give exit status 2, one line on stderr naming the file and the problem, no
+traceback, and nothing new on disk.
+"""
+
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+
+from spherejax import cli, io, simulate
+
+SMALL = simulate.ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=16)
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    """A small simulated session and its calibration file, made once for the module."""
+    root = tmp_path_factory.mktemp("cli")
+    simulate.simulate_session(root / "session", seed=5, design=SMALL)
+    assert cli.main(["-q", "calibrate", str(root / "session"), "-o", str(root / "cal.npz")]) == 0
+    return root
+
+
+def run(argv, capsys):
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def snapshot(folder: pathlib.Path) -> dict:
+    """Every file under `folder` with its size and modification time."""
+    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
+
+
+def assert_refused(status, err, *fragments):
+    assert status == cli.EXIT_BAD_INPUT
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("spherejax: error: ")
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+
+
+class TestCommands:
+    def test_calibrate_writes_a_loadable_file(self, workspace):
+        calibration, header = io.load_calibration(workspace / "cal.npz", band_centres_nm=list(range(400, 701, 20)))
+        assert header["metadata"]["calibration_report"]["training_patches"] == 3
+        assert calibration.wiener.shape == (31, 16)
+
+    def test_evaluate_with_calibration_writes_tables_and_figures(self, workspace, tmp_path, capsys):
+        out = tmp_path / "evaluation"
+        status, stdout, _ = run(["evaluate", str(workspace / "session"), "-c", str(workspace / "cal.npz"), "--out", str(out)], capsys)
+        assert status == 0
+        assert "Table 6. Comparison with the Markov model" in stdout
+        names = {p.name for p in out.iterdir()}
+        assert {"tables.txt", "metrics.json", "figure5.png", "figure6.png"} <= names
+        assert {f"table{k}.csv" for k in (1, 3, 4, 5, 6)} <= names
+        assert (out / "figure5.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert set(metrics["metrics"]) == {"training", "test"}
+        assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+
+    def test_evaluate_without_calibration_calibrates_first(self, workspace, tmp_path, capsys):
+        status, _, err = run(["evaluate", str(workspace / "session"), "--out", str(tmp_path / "e")], capsys)
+        assert status == 0 and "[1/2] calibrating" in err
+
+    def test_simulate_is_reproducible(self, tmp_path, capsys, monkeypatch):
+        monkeypatch.setattr(simulate, "ExperimentDesign", lambda: SMALL)
+        assert run(["-q", "simulate", str(tmp_path / "a"), "--seed", "9"], capsys)[0] == 0
+        assert run(["-q", "simulate", str(tmp_path / "b"), "--seed", "9"], capsys)[0] == 0
+        a, b = io.load_session(tmp_path / "a"), io.load_session(tmp_path / "b")
+        for frame in a.frames:
+            np.testing.assert_array_equal(a.read(frame), b.read(frame.id))
+
+    def test_demo_reuses_its_session(self, workspace, tmp_path, capsys):
+        shutil.copytree(workspace / "session", tmp_path / "demo" / "session")
+        status, stdout, err = run(["demo", "--out", str(tmp_path / "demo")], capsys)
+        assert status == 0
+        assert "reusing the session" in err and "Table 1." in stdout
+        assert (tmp_path / "demo" / "calibration.npz").exists()
+        assert (tmp_path / "demo" / "evaluation" / "table6.csv").exists()
+
+    def test_no_traceback_through_the_real_entry_point(self, tmp_path):
+        result = subprocess.run(
+            [sys.executable, "-m", "spherejax.cli", "calibrate", str(tmp_path / "nowhere"), "-o", str(tmp_path / "c.npz")],
+            capture_output=True, text=True, timeout=120,
+        )
+        assert result.returncode == 2
+        assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+        assert "nowhere" in result.stderr
+        assert not (tmp_path / "c.npz").exists()
+
+
+@pytest.fixture
+def broken(workspace, tmp_path):
+    """A private copy of the session to damage."""
+    target = tmp_path / "session"
+    shutil.copytree(workspace / "session", target)
+    return target
+
+
+def edit_manifest(session: pathlib.Path, change):
+    path = session / "manifest.json"
+    manifest = json.loads(path.read_text())
+    change(manifest)
+    path.write_text(json.dumps(manifest))
+
+
+class TestBadSessions:
+    """calibrate and evaluate on broken sessions: refused, nothing written."""
+
+    def refuse(self, session, capsys, tmp_path, *fragments):
+        before = snapshot(tmp_path)
+        status, _, err = run(["calibrate", str(session), "-o", str(tmp_path / "out.npz")], capsys)
+        assert_refused(status, err, *fragments)
+        status, _, err = run(["evaluate", str(session), "--out", str(tmp_path / "evaluation")], capsys)
+        assert_refused(status, err, *fragments)
+        assert snapshot(tmp_path) == before
+
+    def test_missing_folder(self, tmp_path, capsys):
+        self.refuse(tmp_path / "absent", capsys, tmp_path, "absent")
+
+    def test_no_manifest(self, broken, tmp_path, capsys):
+        (broken / "manifest.json").unlink()
+        self.refuse(broken, capsys, tmp_path, "manifest.json")
+
+    def test_manifest_not_json(self, broken, tmp_path, capsys):
+        (broken / "manifest.json").write_text("{ not json")
+        self.refuse(broken, capsys, tmp_path, "manifest.json", "JSON")
+
+    @pytest.mark.parametrize("field", ["band_centres_nm", "frames", "white_patch", "image_shape"])
+    def test_manifest_lacks_a_field(self, broken, tmp_path, capsys, field):
+        edit_manifest(broken, lambda m: m.pop(field))
+        self.refuse(broken, capsys, tmp_path, "manifest.json", field)
+
+    def test_frame_missing(self, broken, tmp_path, capsys):
+        (broken / "frames" / "train-bg01-g0.tif").unlink()
+        self.refuse(broken, capsys, tmp_path, "train-bg01-g0.tif")
+
+    def test_frame_of_the_wrong_size(self, broken, tmp_path, capsys):
+        frame = io.read_frame(broken / "frames" / "train-bg00-g0.tif")
+        (broken / "frames" / "train-bg00-g0.tif").unlink()
+        io.write_frame(broken / "frames" / "train-bg00-g0.tif", np.ascontiguousarray(frame[:-4]))
+        self.refuse(broken, capsys, tmp_path, "train-bg00-g0.tif")
+
+    def test_frame_with_the_wrong_band_count(self, broken, tmp_path, capsys):
+        frame = io.read_frame(broken / "frames" / "white.tif")
+        (broken / "frames" / "white.tif").unlink()
+        io.write_frame(broken / "frames" / "white.tif", np.ascontiguousarray(frame[..., :15]))
+        self.refuse(broken, capsys, tmp_path, "white.tif")
+
+    def test_frame_not_an_image(self, broken, tmp_path, capsys):
+        (broken / "frames" / "dark.tif").write_bytes(b"this is not a TIFF")
+        self.refuse(broken, capsys, tmp_path, "dark.tif")
+
+    def test_empty_patch_region(self, broken, tmp_path, capsys):
+        edit_manifest(broken, lambda m: m.__setitem__("white_patch", [8, 8, 250, 260]))
+        self.refuse(broken, capsys, tmp_path, "manifest.json", "white_patch")
+
+    def test_patch_region_outside_the_image(self, broken, tmp_path, capsys):
+        edit_manifest(broken, lambda m: m.__setitem__("white_patch", [8, 32, 300, 400]))
+        self.refuse(broken, capsys, tmp_path, "manifest.json", "white_patch")
+
+    def test_sample_region_outside_the_image(self, broken, tmp_path, capsys):
+        def change(manifest):
+            frame = next(f for f in manifest["frames"] if f["role"] == "sample")
+            frame["regions"][0]["region"] = [-5, 30, 0, 35]
+        edit_manifest(broken, change)
+        self.refuse(broken, capsys, tmp_path, "manifest.json", "region")
+
+
+class TestBadCalibrationFiles:
+    def refuse(self, workspace, calibration, capsys, tmp_path, *fragments):
+        out = tmp_path / "evaluation"
+        status, _, err = run(["evaluate", str(workspace / "session"), "-c", str(calibration), "--out", str(out)], capsys)
+        assert_refused(status, err, str(calibration), *fragments)
+        assert not out.exists()
+
+    def test_missing(self, workspace, tmp_path, capsys):
+        self.refuse(workspace, tmp_path / "none.npz", capsys, tmp_path)
+
+    def test_truncated(self, workspace, tmp_path, capsys):
+        data = (workspace / "cal.npz").read_bytes()
+        (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+        self.refuse(workspace, tmp_path / "cut.npz", capsys, tmp_path)
+
+    def test_tampered(self, workspace, tmp_path, capsys):
+        with np.load(workspace / "cal.npz", allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in archive.files}
+        arrays["coeffs"] = arrays["coeffs"].copy()
+        arrays["coeffs"][3, 1] += 0.01
+        np.savez(tmp_path / "tampered.npz", **arrays)
+        self.refuse(workspace, tmp_path / "tampered.npz", capsys, tmp_path, "checksum")
+
+    def test_newer_format_version(self, workspace, tmp_path, capsys):
+        with np.load(workspace / "cal.npz", allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in archive.files}
+        header = json.loads(bytes(arrays["header"]).decode())
+        header["format_version"] = 99
+        arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+        np.savez(tmp_path / "newer.npz", **arrays)
+        self.refuse(workspace, tmp_path / "newer.npz", capsys, tmp_path, "99")
+
+    def test_built_for_other_bands(self, workspace, tmp_path, capsys):
+        calibration, _ = io.load_calibration(workspace / "cal.npz")
+        io.save_calibration(tmp_path / "other.npz", calibration, instrument_id="x",
+                            band_centres_nm=list(range(410, 711, 20)))
+        self.refuse(workspace, tmp_path / "other.npz", capsys, tmp_path, "bands")
+
+    def test_not_a_calibration_file(self, workspace, tmp_path, capsys):
+        (tmp_path / "text.npz").write_text("hello")
+        self.refuse(workspace, tmp_path / "text.npz", capsys, tmp_path)
+
+
+class TestBadOutputs:
+    def test_simulate_into_a_non_empty_folder(self, tmp_path, capsys):
+        (tmp_path / "out").mkdir()
+        (tmp_path / "out" / "keep.txt").write_text("mine")
+        before = snapshot(tmp_path)
+        status, _, err = run(["simulate", str(tmp_path / "out")], capsys)
+        assert_refused(status, err, "out")
+        assert snapshot(tmp_path) == before
+
+    def test_unknown_reference_background(self, workspace, tmp_path, capsys):
+        status, _, err = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "c.npz"),
+                              "--reference-background", "velvet"], capsys)
+        assert_refused(status, err, "velvet")
+        assert not (tmp_path / "c.npz").exists()

@@ -1,0 +1,985 @@
+"""Camera frames, sessions and calibration files: round trips, and every refusal.
+
+Each refusal checks the exception type, that the message is one line starting with the file it
+names, the problem (`match=`), and that nothing new or partial is left on disk.
+"""
+
+import contextlib
+import copy
+import datetime
+import json
+import pathlib
+import re
+import zipfile
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+import spherejax as sj
+from spherejax import io
+from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
+
+H, W = 12, 10
+BANDS = list(range(400, 701, 20))
+B = len(BANDS)
+CREATED = "2026-11-22T10:00:00+00:00"
+
+
+# --------------------------------------------------------------------------------------- helpers
+
+
+@contextlib.contextmanager
+def refused(error_type, path, match, *, says_expected=True):
+    """Expect `error_type` with a one-line message that starts with `path` and matches `match`,
+    and (unless the failure is the system's, like a full disk) says what was expected."""
+    with pytest.raises(error_type, match=match) as info:
+        yield info
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: "), message
+    assert ("(expected " in message) == says_expected, message
+
+
+def listing(folder: pathlib.Path) -> list[str]:
+    """Everything below `folder`, hidden temporary files and folders included."""
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def counts(rng, shape=(H, W, B)) -> np.ndarray:
+    return rng.integers(0, 65536, shape, dtype=np.uint16)
+
+
+def frame_dict(frame_id, role, **fields):
+    return {
+        "id": frame_id,
+        "role": role,
+        "exposure_s": [0.01 + 0.001 * i for i in range(B)],
+        "timestamp": CREATED,
+        **fields,
+    }
+
+
+def reflectance(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(0.02, 0.95, 31)
+
+
+def session_frames(rng):
+    """(frame dict, array) for a dark, a white, two samples and one target frame."""
+    return [
+        (frame_dict("dark", "dark"), counts(rng)),
+        (frame_dict("white", "white", metadata={"lamp_hours": 12.5}), counts(rng)),
+        (
+            frame_dict(
+                "train-bg03-a",
+                "sample",
+                set="training",
+                background="bg03",
+                regions=[{"name": "grey5", "patch": "grey5", "region": [2, 5, 3, 6]}],
+            ),
+            counts(rng),
+        ),
+        (
+            frame_dict(
+                "test-bg07",
+                "sample",
+                set="test",
+                background="bg07",
+                regions=[io.Region("red", "cc-red", (0, 4, 0, 4), reflectance(1))],
+            ),
+            counts(rng),
+        ),
+        (
+            frame_dict(
+                "targets-1",
+                "target",
+                regions=[
+                    {"name": "t001", "region": [0, 3, 0, 3], "reflectance": reflectance(2)},
+                    {"name": "t002", "region": [3, 6, 0, 3], "reflectance": reflectance(3)},
+                ],
+            ),
+            counts(rng),
+        ),
+    ]
+
+
+def session_fields():
+    return dict(
+        instrument_id="sim-sphere-1",
+        band_centres_nm=np.asarray(BANDS),
+        image_shape=(H, W),
+        saturation=16383,
+        white_patch=[0, 2, 8, 10],
+        holder=[2, 12, 0, 10],
+        metadata={"simulator": {"seed": 7, "wall_reflectance": 0.97}},
+        created=CREATED,
+    )
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)
+
+
+@pytest.fixture
+def session_path(tmp_path, rng):
+    """A valid session on disk at tmp_path / "session"."""
+    path = tmp_path / "session"
+    io.write_session(path, frames=session_frames(rng), **session_fields())
+    return path
+
+
+def edit_manifest(session_path, edit):
+    manifest_path = session_path / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    edit(manifest)
+    manifest_path.write_text(json.dumps(manifest))
+    return manifest_path
+
+
+def make_calibration(rng, dtype=np.float32, saturation=16383, illuminant="A"):
+    patch = np.zeros((H, W), dtype=bool)
+    patch[0:2, 8:10] = True
+    return sj.Calibration(
+        dark=rng.uniform(50, 60, (H, W, B)).astype(dtype),
+        white=rng.uniform(9000, 12000, (H, W, B)).astype(dtype),
+        patch=patch,
+        coeffs=rng.normal(size=(B, 4)).astype(dtype),
+        wiener=rng.normal(size=(31, B)).astype(dtype),
+        illuminant=illuminant,
+        saturation=saturation,
+    )
+
+
+@pytest.fixture
+def calibration_path(tmp_path, rng):
+    path = tmp_path / "cal.npz"
+    io.save_calibration(
+        path, make_calibration(rng), instrument_id="sim-sphere-1", band_centres_nm=BANDS
+    )
+    return path
+
+
+def npz_entries(path) -> dict:
+    with np.load(path, allow_pickle=False) as archive:
+        return {name: archive[name] for name in archive.files}
+
+
+def header_of(entries) -> dict:
+    return json.loads(entries["header"].tobytes().decode("utf-8"))
+
+
+def rewrite_npz(path, entries, header=None, *, recompute_checksum=False):
+    """Write `entries` back to `path` with np.savez, the header replaced if given."""
+    entries = dict(entries)
+    if header is not None:
+        if recompute_checksum:
+            arrays = {k: v for k, v in entries.items() if k != "header"}
+            header = {**header, "checksum": io._checksum(header, arrays)}
+        entries["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
+    with open(path, "wb") as file:
+        np.savez(file, **entries)
+
+
+# ---------------------------------------------------------------------------------------- errors
+
+
+def test_errors_are_value_errors_with_one_line_messages():
+    error = CalibrationFileError("a/cal.npz", "is\ncorrupted", "a\nfile")
+    assert isinstance(error, SpherejaxFileError) and isinstance(error, ValueError)
+    assert issubclass(SessionError, SpherejaxFileError)
+    assert str(error) == "a/cal.npz: is corrupted (expected a file)"
+    assert str(SpherejaxFileError("f.tif", "no such file")) == "f.tif: no such file"
+
+
+def test_errors_copy_with_their_message():
+    # dask.distributed ships exceptions between processes by reducing them like copy does.
+    error = SessionError("s/manifest.json", "is not valid JSON", "JSON")
+    clone = copy.deepcopy(error)
+    assert type(clone) is SessionError and str(clone) == str(error)
+    parts = (clone.path, clone.problem, clone.expected)
+    assert parts == (error.path, error.problem, error.expected)
+
+
+# ---------------------------------------------------------------------------------------- frames
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4, 16])
+def test_frame_round_trip(tmp_path, rng, channels):
+    array = counts(rng, (H, W, channels))
+    array[0, 0] = 65535  # full scale survives
+    array[..., min(3, channels - 1)] = 0  # a zero fourth channel is not taken for alpha
+    names = [f"{400 + 20 * i}nm" for i in range(channels)]
+    path = tmp_path / "frame.tif"
+    io.write_frame(path, array, channel_names=names, attributes={"role": "dark", "Artist": "lab"})
+    out = io.read_frame(path, expected_shape=(H, W, channels))
+    assert out.dtype == np.uint16 and out.shape == (H, W, channels)
+    np.testing.assert_array_equal(out, array)
+    assert io.frame_spec(path) == (H, W, channels)
+    assert io.read_frame_metadata(path) == {
+        "channel_names": names,
+        "attributes": {"role": "dark", "Artist": "lab"},
+    }
+    assert listing(tmp_path) == ["frame.tif"]
+
+
+def test_write_frame_replaces_an_existing_file(tmp_path, rng):
+    path = tmp_path / "frame.tif"
+    io.write_frame(path, counts(rng))
+    second = counts(rng, (H, W, 2))
+    io.write_frame(path, second)
+    np.testing.assert_array_equal(io.read_frame(path), second)
+    assert listing(tmp_path) == ["frame.tif"]
+
+
+@pytest.mark.parametrize(
+    "array",
+    [
+        np.zeros((H, W), np.uint16),
+        np.zeros((H, W, B), np.float32),
+        np.zeros((H, W, B), np.int32),
+        np.zeros((0, W, B), np.uint16),
+    ],
+    ids=["2d", "float32", "int32", "empty"],
+)
+def test_write_frame_refuses_arrays(tmp_path, array):
+    path = tmp_path / "frame.tif"
+    with refused(SpherejaxFileError, path, "cannot hold an array of shape"):
+        io.write_frame(path, array)
+    assert listing(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"channel_names": ["400nm"]}, "channel_names is"),
+        ({"attributes": {"exposure": 0.1}}, "attribute \"exposure\" is 0.1"),
+        ({"attributes": {"ImageDescription": "x"}}, "is reserved"),
+    ],
+)
+def test_write_frame_refuses_names_and_attributes(tmp_path, rng, kwargs, match):
+    path = tmp_path / "frame.tif"
+    with refused(SpherejaxFileError, path, match):
+        io.write_frame(path, counts(rng, (H, W, 2)), **kwargs)
+    assert listing(tmp_path) == []
+
+
+def test_write_frame_failure_leaves_the_old_file_and_no_temporary(tmp_path, rng, monkeypatch):
+    path = tmp_path / "frame.tif"
+    old = counts(rng)
+    io.write_frame(path, old)
+
+    def fail(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(io.os, "replace", fail)
+    match = "could not be written: .*No space left"
+    with refused(SpherejaxFileError, path, match, says_expected=False):
+        io.write_frame(path, counts(rng))
+    assert listing(tmp_path) == ["frame.tif"]
+    np.testing.assert_array_equal(io.read_frame(path), old)
+
+
+def test_write_frame_into_a_missing_folder(tmp_path, rng):
+    path = tmp_path / "missing" / "frame.tif"
+    with refused(SpherejaxFileError, path, "cannot be written: no such folder"):
+        io.write_frame(path, counts(rng))
+    assert listing(tmp_path) == []
+
+
+def test_read_frame_missing_file(tmp_path):
+    path = tmp_path / "nope.tif"
+    with refused(SpherejaxFileError, path, "no such file"):
+        io.read_frame(path)
+    with refused(SpherejaxFileError, path, "no such file"):
+        io.frame_spec(path)
+
+
+def test_read_frame_text_file_named_tif(tmp_path):
+    path = tmp_path / "notes.tif"
+    path.write_text("exposure 10 ms, lamp warm\n")
+    with refused(SpherejaxFileError, path, "is not a readable image: .*(TIFF|magic)"):
+        io.read_frame(path)
+
+
+def test_read_frame_truncated_tiff(tmp_path, rng):
+    path = tmp_path / "frame.tif"
+    io.write_frame(path, counts(rng))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with refused(SpherejaxFileError, path, "is corrupted|is not a readable image"):
+        io.read_frame(path)
+
+
+def test_read_frame_corrupt_pixel_data_and_header_only_spec(tmp_path, rng):
+    path = tmp_path / "frame.tif"
+    io.write_frame(path, counts(rng))
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2  # past the header, inside the deflate stream
+    data[middle : middle + 64] = bytes(range(64))
+    path.write_bytes(bytes(data))
+    # The header is intact, and frame_spec reads nothing else.
+    assert io.frame_spec(path) == (H, W, B)
+    with refused(SpherejaxFileError, path, "is corrupted"):
+        io.read_frame(path)
+
+
+def test_read_frame_wrong_size(tmp_path, rng):
+    path = tmp_path / "frame.tif"
+    io.write_frame(path, counts(rng, (H, W + 1, B)))
+    with refused(SpherejaxFileError, path, f"is {H} x {W + 1} pixels .*{H} x {W} pixels"):
+        io.read_frame(path, expected_shape=(H, W, B))
+
+
+def test_read_frame_wrong_channel_count(tmp_path, rng):
+    path = tmp_path / "frame.tif"
+    io.write_frame(path, counts(rng, (H, W, 3)))
+    with refused(SpherejaxFileError, path, f"has 3 channels .*{B} channels"):
+        io.read_frame(path, expected_shape=(H, W, B))
+
+
+def write_with_oiio(path, pages):
+    """Write pages with OpenImageIO directly (formats spherejax itself never writes)."""
+    specs = [oiio.ImageSpec(p.shape[1], p.shape[0], p.shape[2], p.dtype.name) for p in pages]
+    output = oiio.ImageOutput.create(str(path))
+    assert output.open(str(path), specs)
+    for index, (spec, pixels) in enumerate(zip(specs, pages)):
+        if index:
+            assert output.open(str(path), spec, "AppendSubimage")
+        assert output.write_image(pixels)
+    output.close()
+
+
+def test_read_frame_refuses_8_bit(tmp_path):
+    path = tmp_path / "frame.tif"
+    write_with_oiio(path, [np.zeros((H, W, 3), np.uint8)])
+    with refused(SpherejaxFileError, path, "has uint8 samples of 8 bits .*16-bit"):
+        io.read_frame(path)
+
+
+def test_read_frame_refuses_several_pages(tmp_path):
+    path = tmp_path / "frame.tif"
+    write_with_oiio(path, [np.zeros((H, W, 1), np.uint16), np.ones((H, W, 1), np.uint16)])
+    with refused(SpherejaxFileError, path, "more than one image"):
+        io.frame_spec(path)
+
+
+# -------------------------------------------------------------------------------------- sessions
+
+
+def test_session_round_trip(tmp_path, rng):
+    frames = session_frames(rng)
+    path = tmp_path / "session"
+    written = io.write_session(path, frames=frames, **session_fields())
+    loaded = io.load_session(path)
+    assert listing(tmp_path) == sorted(
+        ["session", "session/manifest.json", "session/frames"]
+        + [f"session/frames/{f['id']}.tif" for f, _ in frames]
+    )
+
+    for session in (written, loaded):
+        assert session.path == path
+        assert session.instrument_id == "sim-sphere-1"
+        assert session.software_version == sj.__version__
+        assert session.created == CREATED
+        np.testing.assert_array_equal(session.band_centres_nm, BANDS)
+        assert session.band_centres_nm.dtype == np.int64
+        assert session.image_shape == (H, W) and session.bands == B
+        assert session.saturation == 16383
+        assert session.white_patch == (0, 2, 8, 10) and session.holder == (2, 12, 0, 10)
+        assert session.metadata == {"simulator": {"seed": 7, "wall_reflectance": 0.97}}
+        assert [f.id for f in session.frames] == [f["id"] for f, _ in frames]
+        for (given, array), info in zip(frames, session.frames):
+            assert info.file == f"frames/{given['id']}.tif"
+            np.testing.assert_array_equal(info.exposure_s, given["exposure_s"])
+            out = session.read(info)
+            assert out.dtype == np.uint16
+            np.testing.assert_array_equal(out, array)
+            np.testing.assert_array_equal(session.read(info.id), array)
+        np.testing.assert_array_equal(session.dark(), frames[0][1])
+        np.testing.assert_array_equal(session.white(), frames[1][1])
+    assert loaded.to_manifest() == written.to_manifest()
+    assert loaded.to_manifest() == json.loads((path / "manifest.json").read_text())
+
+    sample = loaded.frame("test-bg07")
+    assert (sample.role, sample.set, sample.background) == ("sample", "test", "bg07")
+    (red,) = sample.regions
+    assert (red.name, red.patch, red.region) == ("red", "cc-red", (0, 4, 0, 4))
+    np.testing.assert_array_equal(red.reflectance, reflectance(1))  # bit for bit through JSON
+    grey = loaded.frame("train-bg03-a").regions[0]
+    assert grey.reflectance is None
+    target = loaded.frame("targets-1")
+    assert [r.patch for r in target.regions] == ["t001", "t002"]  # patch defaults to the name
+    np.testing.assert_array_equal(target.regions[1].reflectance, reflectance(3))
+    assert loaded.frame("white").metadata == {"lamp_hours": 12.5}
+    assert loaded.frame("dark").set is None and loaded.frame("dark").regions == ()
+    assert io.read_frame_metadata(loaded.frame_path("dark"))["channel_names"] == [
+        f"{nm}nm" for nm in BANDS
+    ]
+
+
+def test_session_queries(session_path):
+    session = io.load_session(session_path)
+    assert [f.id for f in session.frames_with(role="sample")] == ["train-bg03-a", "test-bg07"]
+    assert [f.id for f in session.frames_with(set="training")] == ["train-bg03-a"]
+    assert [f.id for f in session.frames_with(role="target")] == ["targets-1"]
+    assert len(session.frames_with()) == 5
+    with pytest.raises(ValueError, match="role: expected one of"):
+        session.frames_with(role="samples")
+    with refused(SessionError, session_path / "manifest.json", "has no frame 'nope'"):
+        session.frame("nope")
+
+    patch = session.white_patch_mask()
+    assert patch.dtype == bool and patch.shape == (H, W) and patch.sum() == 4 and patch[0, 8]
+    holder = session.holder_mask()
+    assert holder.sum() == 10 * W and not holder[1].any()
+
+    region = session.frame("train-bg03-a").regions[0]
+    mask = region.mask((H, W))
+    assert mask.sum() == 9 and mask[2, 3] and not mask[5, 3]
+    cube = session.read("train-bg03-a")
+    mean = region.mean(cube)
+    assert mean.shape == (B,) and mean.dtype == np.float64
+    np.testing.assert_allclose(mean, cube[mask].mean(axis=0))
+    stacked = np.stack([cube, cube]).astype(np.float32)
+    assert region.mean(stacked).shape == (2, B) and region.mean(stacked).dtype == np.float32
+
+
+def test_write_session_into_an_empty_folder(tmp_path, rng):
+    path = tmp_path / "session"
+    path.mkdir()
+    session = io.write_session(path, frames=session_frames(rng), **session_fields())
+    assert len(session.frames) == 5
+    assert [p for p in listing(tmp_path) if "/" not in p] == ["session"]
+
+
+def test_write_session_default_created_is_utc_now(tmp_path, rng):
+    fields = session_fields()
+    del fields["created"]
+    session = io.write_session(tmp_path / "s", frames=session_frames(rng), **fields)
+    created = datetime.datetime.fromisoformat(session.created)
+    assert created.utcoffset() == datetime.timedelta(0)
+
+
+def test_write_session_refuses_a_non_empty_folder(tmp_path, rng):
+    path = tmp_path / "session"
+    path.mkdir()
+    (path / "notes.txt").write_text("keep me")
+    with refused(SessionError, path, "already exists and is not an empty folder"):
+        io.write_session(path, frames=session_frames(rng), **session_fields())
+    assert listing(tmp_path) == ["session", "session/notes.txt"]
+    assert (path / "notes.txt").read_text() == "keep me"
+
+
+def _unsafe_id(frames):
+    frames[2][0]["id"] = "../escape"
+
+
+def _float_array(frames):
+    frames[1] = (frames[1][0], frames[1][1].astype(np.float32))
+
+
+def _wrong_shape(frames):
+    frames[1] = (frames[1][0], frames[1][1][:, :, :3])
+
+
+def _sample_without_set(frames):
+    del frames[2][0]["set"]
+
+
+def _file_given(frames):
+    frames[0][0]["file"] = "dark.tif"
+
+
+def _nan_metadata(frames):
+    frames[0][0]["metadata"] = {"gain": float("nan")}
+
+
+@pytest.mark.parametrize(
+    "spoil, match, file",
+    [
+        (_unsafe_id, r"frames\[2\]\.id is \"\.\./escape\"", "manifest.json"),
+        (_float_array, "frame 'white' is an array of shape .* dtype float32", "frames/white.tif"),
+        (_wrong_shape, r"frame 'white' is an array of shape \(12, 10, 3\)", "frames/white.tif"),
+        (_sample_without_set, r"frames\[2\]\.set is missing", "manifest.json"),
+        (_file_given, r"frames\[0\] names a file", "manifest.json"),
+        (_nan_metadata, "cannot be stored as JSON", "manifest.json"),
+    ],
+)
+def test_write_session_refuses_bad_input_before_writing(tmp_path, rng, spoil, match, file):
+    frames = session_frames(rng)
+    spoil(frames)
+    path = tmp_path / "session"
+    with refused(SessionError, path / file, match):
+        io.write_session(path, frames=frames, **session_fields())
+    assert listing(tmp_path) == []
+
+
+def test_write_session_failure_removes_the_partial_folder(tmp_path, rng, monkeypatch):
+    written = []
+    real_write_frame = io.write_frame
+
+    def write_two_then_fail(path, array, **kwargs):
+        if len(written) == 2:
+            raise SpherejaxFileError(path, "could not be written: No space left on device")
+        written.append(path)
+        real_write_frame(path, array, **kwargs)
+
+    monkeypatch.setattr(io, "write_frame", write_two_then_fail)
+    path = tmp_path / "session"
+    third_frame = path / "frames" / "train-bg03-a.tif"
+    with refused(SessionError, third_frame, "No space left", says_expected=False):
+        io.write_session(path, frames=session_frames(rng), **session_fields())
+    assert len(written) == 2
+    assert listing(tmp_path) == []
+
+
+def test_load_session_missing_folder(tmp_path):
+    path = tmp_path / "nope"
+    with refused(SessionError, path, "no such folder"):
+        io.load_session(path)
+
+
+def test_load_session_missing_manifest(session_path):
+    (session_path / "manifest.json").unlink()
+    with refused(SessionError, session_path / "manifest.json", "no such file"):
+        io.load_session(session_path)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ('{"format": "spherejax-session",\n  "frames": [', "is not valid JSON: .*line 2"),
+        ("[1, 2]", r"holds \[1, 2\] \(expected a JSON object"),
+    ],
+    ids=["not-json", "not-an-object"],
+)
+def test_load_session_manifest_not_json_object(session_path, text, match):
+    manifest_path = session_path / "manifest.json"
+    manifest_path.write_text(text)
+    with refused(SessionError, manifest_path, match):
+        io.load_session(session_path)
+
+
+def _set(*keys, value):
+    """An edit that sets manifest[k0][k1]... = value."""
+
+    def edit(manifest):
+        target = manifest
+        for key in keys[:-1]:
+            target = target[key]
+        target[keys[-1]] = value
+
+    return edit
+
+
+def _delete(*keys):
+    def edit(manifest):
+        target = manifest
+        for key in keys[:-1]:
+            target = target[key]
+        del target[keys[-1]]
+
+    return edit
+
+
+def _replace_document(manifest):
+    manifest.clear()
+    manifest["frames"] = "not a session"
+
+
+MANIFEST_REFUSALS = {
+    "not-a-session": (_replace_document, "is not a spherejax-session file: format is missing"),
+    "other-format": (_set("format", value="spherejax-calibration"), "is not a spherejax-session"),
+    "newer-version": (
+        _set("format_version", value=2),
+        "is spherejax-session format version 2, newer than spherejax 0.1.0 reads "
+        r"\(expected format version 1 or older",
+    ),
+    "version-mistyped": (_set("format_version", value="1"), 'format_version is "1"'),
+    "missing-field": (_delete("saturation"), r"saturation is missing \(expected a number > 0"),
+    "missing-frame-field": (
+        _delete("frames", 2, "background"),
+        r"frames\[2\]\.background is missing",
+    ),
+    "mistyped-field": (
+        _set("image_shape", value="12x10"),
+        r'image_shape is "12x10" \(expected \[H, W\]',
+    ),
+    "bool-for-int": (_set("image_shape", value=[True, 10]), r"image_shape is \[true, 10\]"),
+    "bands-not-increasing": (
+        _set("band_centres_nm", value=[400, 400] + BANDS[2:]),
+        "band_centres_nm is .*increasing",
+    ),
+    "exposures-vs-bands": (
+        _set("frames", 0, "exposure_s", value=[0.01] * (B - 1)),
+        rf"frames\[0\]\.exposure_s is .*\(expected {B} exposure times",
+    ),
+    "negative-exposure": (
+        _set("frames", 1, "exposure_s", value=[-0.01] * B),
+        r"frames\[1\]\.exposure_s is \[-0\.01",
+    ),
+    "unknown-role": (_set("frames", 2, "role", value="smaple"), r'frames\[2\]\.role is "smaple"'),
+    "unknown-set": (
+        _set("frames", 2, "set", value="train"),
+        r'frames\[2\]\.set is "train" .*"training"',
+    ),
+    "bad-timestamp": (
+        _set("frames", 0, "timestamp", value="yesterday"),
+        r'frames\[0\]\.timestamp is "yesterday" \(expected an ISO 8601',
+    ),
+    "escaping-path": (
+        _set("frames", 0, "file", value="../x.tif"),
+        r'frames\[0\]\.file is "\.\./x\.tif" \(expected a relative path inside',
+    ),
+    "inner-escape": (
+        _set("frames", 0, "file", value="frames/../../x.tif"),
+        r"frames\[0\]\.file is",
+    ),
+    "absolute-path": (_set("frames", 0, "file", value="/etc/passwd"), "a relative path inside"),
+    "empty-region": (
+        _set("frames", 2, "regions", 0, "region", value=[2, 2, 3, 6]),
+        r"frames\[2\]\.regions\[0\]\.region is \[2, 2, 3, 6\] \(expected .*non-empty rectangle",
+    ),
+    "region-out-of-image": (
+        _set("frames", 2, "regions", 0, "region", value=[2, H + 1, 3, 6]),
+        rf"region is \[2, {H + 1}, 3, 6\] .*inside the {H} x {W} image",
+    ),
+    "white-patch-outside": (_set("white_patch", value=[0, 2, 8, W + 2]), "white_patch is"),
+    "target-without-reflectance": (
+        _delete("frames", 4, "regions", 1, "reflectance"),
+        r"frames\[4\]\.regions\[1\]\.reflectance is missing .*required for a target",
+    ),
+    "short-reflectance": (
+        _set("frames", 3, "regions", 0, "reflectance", value=[0.5] * 30),
+        r"frames\[3\]\.regions\[0\]\.reflectance is .*\(expected 31 finite",
+    ),
+    "regions-on-dark": (
+        _set("frames", 0, "regions", value=[{"name": "a", "region": [0, 1, 0, 1]}]),
+        "none on a dark frame",
+    ),
+    "repeated-region-names": (
+        _set("frames", 4, "regions", 1, "name", value="t001"),
+        r"frames\[4\]\.regions repeat names",
+    ),
+    "repeated-ids": (
+        _set("frames", 3, "id", value="train-bg03-a"),
+        r"frame ids \['train-bg03-a'\] repeat",
+    ),
+    "two-darks": (_set("frames", 1, "role", value="dark"), "lists 2 dark frames"),
+    "no-white": (_set("frames", 1, "role", value="target"), "lists 0 white frames"),
+    "unknown-field": (
+        _set("frames", 0, "exposure", value=0.01),
+        r"frames\[0\] has unknown fields \['exposure'\]",
+    ),
+    "unknown-top-field": (
+        _set("white_pach", value=[0, 2, 8, 10]),
+        r"the top level has unknown fields \['white_pach'\]",
+    ),
+    "not-an-object": (_set("frames", 1, value="white"), r'frames\[1\] is "white"'),
+}
+
+
+@pytest.mark.parametrize("edit, match", MANIFEST_REFUSALS.values(), ids=MANIFEST_REFUSALS.keys())
+def test_load_session_refuses_manifest(session_path, edit, match):
+    manifest_path = edit_manifest(session_path, edit)
+    with refused(SessionError, manifest_path, match):
+        io.load_session(session_path)
+
+
+def test_load_session_missing_frame_file(session_path):
+    frame_path = session_path / "frames" / "white.tif"
+    frame_path.unlink()
+    with refused(SessionError, frame_path, "no such file .*frame 'white'"):
+        io.load_session(session_path)
+
+
+def test_load_session_refuses_a_link_out_of_the_folder(session_path, rng):
+    outside = session_path.parent / "outside.tif"
+    io.write_frame(outside, counts(rng))
+    frame_path = session_path / "frames" / "white.tif"
+    frame_path.unlink()
+    frame_path.symlink_to(outside)
+    with refused(SessionError, frame_path, "outside the session folder"):
+        io.load_session(session_path)
+
+
+@pytest.mark.parametrize(
+    "shape, match",
+    [((H + 2, W, B), rf"is {H + 2} x {W} pixels"), ((H, W, B - 1), rf"has {B - 1} channels")],
+    ids=["size", "channels"],
+)
+def test_load_session_refuses_a_frame_of_the_wrong_shape(session_path, rng, shape, match):
+    frame_path = session_path / "frames" / "test-bg07.tif"
+    io.write_frame(frame_path, counts(rng, shape))
+    with refused(SessionError, frame_path, match):
+        io.load_session(session_path)
+
+
+def test_load_session_refuses_a_corrupt_frame(session_path):
+    frame_path = session_path / "frames" / "dark.tif"
+    frame_path.write_text("not a tiff")
+    with refused(SessionError, frame_path, "is not a readable image"):
+        io.load_session(session_path)
+
+
+def test_session_read_checks_the_frame_again(session_path, rng):
+    session = io.load_session(session_path)
+    frame_path = session.frame_path("white")
+    io.write_frame(frame_path, counts(rng, (H, W, 3)))  # replaced after loading
+    with refused(SessionError, frame_path, "has 3 channels"):
+        session.white()
+
+
+# ------------------------------------------------------------------------------ calibration files
+
+
+@pytest.mark.parametrize("saturation", [16383, 16000.5, None])
+def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
+    calibration = make_calibration(rng, dtype, saturation)
+    path = tmp_path / "cal.npz"
+    metadata = {"stage2_loss": "huber", "training_frames": ["a", "b"], "sigma2": 1e-4}
+    written = io.save_calibration(
+        path,
+        calibration,
+        instrument_id="sim-sphere-1",
+        band_centres_nm=np.asarray(BANDS),
+        metadata=metadata,
+    )
+    assert listing(tmp_path) == ["cal.npz"]
+
+    loaded, header = io.load_calibration(path, band_centres_nm=BANDS)
+    assert header == written
+    for name in ("dark", "white", "patch", "coeffs", "wiener"):
+        original, out = np.asarray(getattr(calibration, name)), np.asarray(getattr(loaded, name))
+        assert out.dtype == original.dtype and out.shape == original.shape
+        assert out.tobytes() == original.tobytes(), name  # bit for bit
+    assert loaded.illuminant == "A" and loaded.observer == calibration.observer
+    assert loaded.saturation == saturation and type(loaded.saturation) is type(saturation)
+
+    assert header["format"] == "spherejax-calibration" and header["format_version"] == 1
+    assert header["software_version"] == sj.__version__
+    assert header["instrument_id"] == "sim-sphere-1" and header["band_centres_nm"] == BANDS
+    assert (header["illuminant"], header["saturation"]) == ("A", saturation)
+    assert header["metadata"] == metadata
+    created = datetime.datetime.fromisoformat(header["created"])
+    assert created.utcoffset() == datetime.timedelta(0)
+    assert re.fullmatch("sha256:[0-9a-f]{64}", header["checksum"])
+    assert header["arrays"]["dark"]["shape"] == [H, W, B]
+    assert header["arrays"]["patch"]["dtype"] == "|b1"
+    assert header["arrays"]["coeffs"]["dtype"] == np.dtype(dtype).str
+    for name, entry in header["arrays"].items():
+        assert re.search(r"Eq\.|Section", entry["description"]), name
+
+    # Self-describing without spherejax: numpy alone reads the header and the arrays.
+    entries = npz_entries(path)
+    assert sorted(entries) == ["coeffs", "dark", "header", "patch", "white", "wiener"]
+    assert header_of(entries) == header
+
+
+def test_calibration_loads_without_band_check(calibration_path):
+    calibration, _ = io.load_calibration(calibration_path)
+    assert calibration.bands == B
+
+
+def test_save_calibration_replaces_atomically(calibration_path, rng, monkeypatch):
+    before = calibration_path.read_bytes()
+
+    def fail(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(io.os, "replace", fail)
+    match = "could not be written: .*No space left"
+    with refused(CalibrationFileError, calibration_path, match, says_expected=False):
+        io.save_calibration(
+            calibration_path, make_calibration(rng), instrument_id="x", band_centres_nm=BANDS
+        )
+    assert listing(calibration_path.parent) == ["cal.npz"]
+    assert calibration_path.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"calibration": "not one"}, "cannot hold a str .*a spherejax.Calibration"),
+        ({"band_centres_nm": BANDS[:-1]}, f"lists {B - 1} bands, the dark frame has shape"),
+        ({"band_centres_nm": [float(b) for b in BANDS]}, r"header\.band_centres_nm is \[400\.0"),
+        ({"instrument_id": ""}, r'header\.instrument_id is ""'),
+        ({"metadata": {"sigma2": float("nan")}}, "the header cannot be stored as JSON"),
+    ],
+)
+def test_save_calibration_refuses(tmp_path, rng, kwargs, match):
+    path = tmp_path / "cal.npz"
+    arguments = {
+        "calibration": make_calibration(rng),
+        "instrument_id": "sim-sphere-1",
+        "band_centres_nm": BANDS,
+        **kwargs,
+    }
+    with refused(CalibrationFileError, path, match):
+        io.save_calibration(path, arguments.pop("calibration"), **arguments)
+    assert listing(tmp_path) == []
+
+
+def test_load_calibration_missing_file(tmp_path):
+    path = tmp_path / "cal.npz"
+    with refused(CalibrationFileError, path, "no such file"):
+        io.load_calibration(path)
+
+
+@pytest.mark.parametrize(
+    "write",
+    [lambda file: file.write(b"dark=...\n"), lambda file: np.save(file, np.zeros(3))],
+    ids=["text", "npy"],
+)
+def test_load_calibration_not_an_npz(tmp_path, write):
+    path = tmp_path / "cal.npz"
+    with open(path, "wb") as file:
+        write(file)
+    with refused(CalibrationFileError, path, r"is not an \.npz \(zip\) archive"):
+        io.load_calibration(path)
+
+
+def test_load_calibration_truncated(calibration_path):
+    data = calibration_path.read_bytes()
+    calibration_path.write_bytes(data[:-100])
+    with refused(CalibrationFileError, calibration_path, "truncated"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_corrupted_bytes(calibration_path):
+    data = bytearray(calibration_path.read_bytes())
+    middle = len(data) // 3  # inside the stored dark frame: the zip's CRC no longer matches
+    data[middle : middle + 8] = bytes(8)
+    calibration_path.write_bytes(bytes(data))
+    with refused(CalibrationFileError, calibration_path, "is corrupted|tampered or corrupted"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_tampered_array(calibration_path):
+    entries = npz_entries(calibration_path)
+    entries["coeffs"] = entries["coeffs"].copy()
+    entries["coeffs"][3, 1] += 0.5
+    rewrite_npz(calibration_path, entries)  # the old header and checksum
+    match = "does not match its checksum: tampered or corrupted"
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_tampered_header(calibration_path):
+    entries = npz_entries(calibration_path)
+    header = header_of(entries)
+    header["illuminant"] = "D65"
+    rewrite_npz(calibration_path, entries, header)
+    with refused(CalibrationFileError, calibration_path, "tampered or corrupted"):
+        io.load_calibration(calibration_path)
+
+
+@pytest.mark.parametrize("missing", ["wiener", "patch"])
+def test_load_calibration_missing_array(calibration_path, missing):
+    entries = npz_entries(calibration_path)
+    del entries[missing]
+    rewrite_npz(calibration_path, entries)
+    with refused(CalibrationFileError, calibration_path, rf"has no array \['{missing}'\]"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_missing_header(calibration_path):
+    entries = npz_entries(calibration_path)
+    del entries["header"]
+    rewrite_npz(calibration_path, entries)
+    with refused(CalibrationFileError, calibration_path, "has no header"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_header_not_json(calibration_path):
+    entries = npz_entries(calibration_path)
+    entries["header"] = np.frombuffer(b"\xff\xfe{", dtype=np.uint8)
+    rewrite_npz(calibration_path, entries)
+    with refused(CalibrationFileError, calibration_path, "has a header that is not UTF-8 JSON"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_unexpected_entry(calibration_path):
+    entries = npz_entries(calibration_path)
+    entries["extra"] = np.zeros(2)
+    rewrite_npz(calibration_path, entries)
+    with refused(CalibrationFileError, calibration_path, r"holds unexpected entries \['extra'\]"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_zip_member_that_is_not_an_array(calibration_path):
+    with zipfile.ZipFile(calibration_path, "a") as archive:
+        archive.writestr("notes.txt", "written by hand")
+    with refused(CalibrationFileError, calibration_path, r"not \.npy arrays: \['notes\.txt'\]"):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_wrong_format(calibration_path):
+    entries = npz_entries(calibration_path)
+    rewrite_npz(calibration_path, entries, {**header_of(entries), "format": "spherejax-session"})
+    match = 'is not a spherejax-calibration file: format is "spherejax-session"'
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_newer_version(calibration_path):
+    entries = npz_entries(calibration_path)
+    header = {**header_of(entries), "format_version": 3, "new_field": "whatever a newer one adds"}
+    rewrite_npz(calibration_path, entries, header)
+    match = (
+        "is spherejax-calibration format version 3, newer than spherejax 0.1.0 reads "
+        r"\(expected format version 1 or older; upgrade spherejax"
+    )
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_mistyped_header_field(calibration_path):
+    entries = npz_entries(calibration_path)
+    rewrite_npz(calibration_path, entries, {**header_of(entries), "saturation": "high"})
+    match = r'header\.saturation is "high" \(expected a number > 0 or null'
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_array_disagrees_with_header(calibration_path):
+    entries = npz_entries(calibration_path)
+    entries["coeffs"] = entries["coeffs"][:, :3].copy()
+    rewrite_npz(calibration_path, entries)
+    match = rf"array 'coeffs' has shape \[{B}, 3\] .*the header says \[{B}, 4\]"
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+def test_load_calibration_other_bands(calibration_path):
+    other = list(range(410, 711, 20))
+    match = "was built for bands 400..700 nm step 20 \\(16 bands\\), the session has 410..710 nm"
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path, band_centres_nm=other)
+    match = r"the session has 400..680 nm step 20 \(15 bands\)"
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path, band_centres_nm=BANDS[:-1])
+
+
+@pytest.mark.parametrize(
+    "spoil, match",
+    [
+        (
+            lambda entries, header: entries.update(patch=np.zeros((H, W), bool)),
+            "patch: the mask selects no pixel",
+        ),
+        (lambda entries, header: header.update(illuminant="D50"), "unknown illuminant 'D50'"),
+    ],
+    ids=["empty-patch", "unknown-illuminant"],
+)
+def test_load_calibration_invalid_calibration(calibration_path, spoil, match):
+    # A consistent file (checksum recomputed) whose contents Calibration itself refuses.
+    entries = npz_entries(calibration_path)
+    header = header_of(entries)
+    spoil(entries, header)
+    rewrite_npz(calibration_path, entries, header, recompute_checksum=True)
+    # Calibration's own message says what it expected.
+    match = f"does not hold a valid calibration: .*{match}"
+    with refused(CalibrationFileError, calibration_path, match, says_expected=False):
+        io.load_calibration(calibration_path)
