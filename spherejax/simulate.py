@@ -529,8 +529,7 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
 
     # Backgrounds: TM-30 CES spectra, uniform for training and in patterns for test, disjoint.
     ces = library.take("CES (TM-30)")
-    ces_by_brightness = sorted(ces, key=lambda item: float(np.mean(item[1])))
-    training_picks = _spread_by_brightness(ces_by_brightness, design.training_backgrounds)
+    training_picks = _spread_by_brightness(ces, design.training_backgrounds)  # darkest first
     training_names = {n for n, _ in training_picks}
     fluorescent = {n for n, _ in training_picks[-design.fluorescent_training_backgrounds :]} if design.fluorescent_training_backgrounds else set()
     backgrounds = [
