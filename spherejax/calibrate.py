@@ -23,7 +23,7 @@ import dataclasses
 import numpy as np
 
 from .pipeline import Calibration, correct
-from .polynomial import fit_stage2, identity_coeffs, stage2
+from .polynomial import STATUS_NAMES, fit_stage2_detailed, identity_coeffs, stage2
 from .wiener_estimation import select_wiener_noise_variance, fit_wiener
 from .grid import N_WAVELENGTHS
 
@@ -143,8 +143,11 @@ class CalibrationReport:
     training_backgrounds: int
     targets: int
     wiener_noise_variance: float
+    stage2_loss: str
     stage2_rms_residual: list[float]
-    nonfinite_bands: list[int]
+    stage2_status: list[str]
+    stage2_dropped_samples: list[int]
+    unconverged_bands: list[int]
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -158,7 +161,8 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
         regions naming their patch) and target captures (role "target", regions with known
         reflectance).
       reference: the reference background of Section 4; None picks `reference_background`.
-      loss: passed to `fit_stage2`.
+      loss: "l2" (closed form, default), "huber", "cauchy" or "tukey" (`fit_stage2_detailed`);
+        bands whose fit did not converge are listed in the report, not raised.
       illuminant: stored in the Calibration for Lab.
 
     Returns:
@@ -171,8 +175,8 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
     measurements = measure_frames(session, training, base)
     reference = reference or reference_background(measurements)
     v, p, target = stage2_training_data(measurements, reference)
-    coeffs = np.asarray(fit_stage2(v, p, target, loss=loss))
-    bad_bands = [int(b) for b in np.flatnonzero(~np.all(np.isfinite(coeffs), axis=1))]
+    fit = fit_stage2_detailed(v, p, target, loss)
+    coeffs = np.asarray(fit.coeffs)
     prediction = np.asarray(stage2(v, p, coeffs))
     residual = np.sqrt(np.nanmean((prediction - target) ** 2, axis=0))
 
@@ -196,8 +200,11 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
         training_backgrounds=len({m.background for m in measurements}),
         targets=int(usable.sum()),
         wiener_noise_variance=float(noise_variance),
+        stage2_loss=loss,
         stage2_rms_residual=[float(x) for x in residual],
-        nonfinite_bands=bad_bands,
+        stage2_status=[STATUS_NAMES[int(x)] for x in np.asarray(fit.status)],
+        stage2_dropped_samples=[int(x) for x in np.asarray(fit.dropped)],
+        unconverged_bands=sorted(fit.problems()),
     )
     return calibration, report
 

@@ -22,6 +22,9 @@ import time
 
 EXIT_BAD_INPUT = 2
 
+#: Stage II losses (spherejax.polynomial.LOSSES, repeated so --help needs no JAX import).
+LOSSES = ("l2", "huber", "cauchy", "tukey")
+
 
 class _Progress:
     """Step lines with timings on stderr: "[2/4] calibrating ... 3.1 s"."""
@@ -98,11 +101,16 @@ def _calibrate(session, args, progress):
     calibrate.check_session(session, args.reference_background)  # bad input before any work
     progress.start(f"calibrating from {session.path}")
     calibration, report = calibrate.calibrate_session(
-        session, reference=args.reference_background, illuminant=args.illuminant
+        session, reference=args.reference_background, loss=args.loss, illuminant=args.illuminant
     )
-    if report.nonfinite_bands:
-        bands = [int(session.band_centres_nm[b]) for b in report.nonfinite_bands]
-        print(f"spherejax: warning: Stage II could not be fitted for bands {bands} nm", file=sys.stderr)
+    for band in report.unconverged_bands:
+        print(
+            f"spherejax: warning: Stage II band {int(session.band_centres_nm[band])} nm: "
+            f"{report.stage2_status[band]} ({args.loss} fit)", file=sys.stderr,
+        )
+    dropped = sum(report.stage2_dropped_samples)
+    if dropped:
+        print(f"spherejax: warning: {dropped} non-finite Stage II training samples left out", file=sys.stderr)
     progress.done(
         f"reference background {report.reference_background}, {report.training_samples} samples, "
         f"{report.targets} targets"
@@ -192,6 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--reference-background", metavar="NAME", default=None,
                        help="background whose Stage I responses are the Stage II targets (default: median brightness)")
         p.add_argument("--illuminant", default="D65", choices=["D65", "A", "F2"], help="illuminant for Lab (default D65)")
+        p.add_argument("--loss", default="l2", choices=list(LOSSES),
+                       help="Stage II loss: l2 (closed form, Eq. 22; default) or a robust huber, cauchy, tukey")
 
     demo = commands.add_parser("demo", help="simulate, calibrate, correct and evaluate the default experiment")
     demo.add_argument("--out", default="spherejax-demo", help="output folder (default ./spherejax-demo)")

@@ -14,9 +14,11 @@ are ordered (c1, c2, c3, c4) on the last axis of a (B, 4) array. Identity coeffi
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from . import _checks
 
@@ -40,8 +42,6 @@ PAPER_TABLE_2 = np.array(
 ).T
 PAPER_TABLE_2.setflags(write=False)
 
-#: Accepted values of `fit_stage2`'s `loss`.
-LOSSES = ("l2",)
 
 #: The polynomial has four coefficients, so a band needs at least this many usable samples.
 MIN_SAMPLES = 4
@@ -85,40 +85,183 @@ def _design_matrix(v, p):
     return jnp.stack([p * v, v, p, jnp.ones_like(v)], axis=-1)
 
 
-def _fit_band_l2(v, p, target):
-    """Closed-form fit of one band (Eq. 21-22) using only the finite samples.
+# --------------------------------------------------------------------------------------------
+# Robust losses. Residuals are scaled, u = e / s; each loss is defined by its IRLS weight
+# w(u) = psi(u) / u. Tuning constants give 95 % efficiency at the Gaussian (Holland & Welsch
+# 1977; Huber 1981): a robust fit of clean Gaussian data is nearly as precise as least squares.
+
+#: Tuning constant c of each robust loss, in units of the residual scale s.
+ROBUST_TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
+
+#: Accepted values of `fit_stage2`'s `loss`.
+LOSSES = ("l2", *ROBUST_TUNING)
+
+#: Consistency factor of the median absolute deviation for Gaussian residuals: s = 1.4826 MAD.
+MAD_TO_SIGMA = 1.4826
+
+#: Per-band status codes of `Stage2Fit.status`.
+CONVERGED, MAX_STEPS, NONFINITE = 0, 1, 2
+STATUS_NAMES = {CONVERGED: "converged", MAX_STEPS: "max steps reached", NONFINITE: "non-finite"}
+
+
+def _irls_weights(loss: str, u):
+    """w(u) for scaled residuals u (safe where u = 0 and for u beyond Tukey's cut-off)."""
+    c = ROBUST_TUNING[loss]
+    a = jnp.abs(u)
+    if loss == "huber":  # quadratic within c, linear beyond
+        return c / jnp.maximum(a, c)
+    if loss == "cauchy":  # log(1 + (u/c)^2): weights decay as 1 / u^2
+        return 1.0 / (1.0 + (u / c) ** 2)
+    # tukey biweight: redescending, residuals beyond c get weight 0
+    return jnp.where(a < c, (1.0 - (u / c) ** 2) ** 2, 0.0)
+
+
+def _weighted_solve(rows, target, weights):
+    """argmin_c Σ w_i (target_i - rows_i c)² for one band; returns (coeffs (4,), rank).
 
     Eq. 22 writes the normal equations (MᵀM)⁻¹Mᵀv_tilde; they square the condition number, and
     the columns p⊙v and v are nearly collinear because p stays close to 1, so the same minimiser
-    is computed with an SVD-based least-squares solve instead. Non-finite samples get weight 0 (a
-    zero row leaves the minimiser unchanged); a band with fewer than 4 usable samples is NaN.
+    is computed with an SVD-based least-squares solve of the √w-scaled system instead.
+    """
+    root = jnp.sqrt(weights)
+    coeffs, _, rank, _ = jnp.linalg.lstsq(rows * root[:, None], target * root)
+    return coeffs, rank
+
+
+def _robust_scale(residuals, usable, floor):
+    """s = 1.4826 MAD of the usable residuals (jnp.nanmedian ignores the rest), at least floor."""
+    r = jnp.where(usable, residuals, jnp.nan)
+    mad = jnp.nanmedian(jnp.abs(r - jnp.nanmedian(r)))
+    return jnp.maximum(MAD_TO_SIGMA * mad, floor)
+
+
+def _fit_band(v, p, target, scale, loss: str, max_steps: int):
+    """One band: closed form, then (robust losses) IRLS as an optimistix fixed point.
+
+    Returns (coeffs (4,), status, steps, scale used, dropped samples).
     """
     usable = jnp.isfinite(v) & jnp.isfinite(p) & jnp.isfinite(target)
-    v = jnp.where(usable, v, 0.0)
-    p = jnp.where(usable, p, 0.0)
+    dropped = jnp.sum(~usable).astype(jnp.int32)
+    rows = jnp.where(usable[:, None], _design_matrix(jnp.where(usable, v, 0.0), jnp.where(usable, p, 0.0)), 0.0)
     target = jnp.where(usable, target, 0.0)
-    rows = jnp.where(usable[:, None], _design_matrix(v, p), 0.0)
-    coeffs, _, rank, _ = jnp.linalg.lstsq(rows, target)
-    enough = (jnp.sum(usable) >= MIN_SAMPLES) & (rank == 4)
-    return jnp.where(enough, coeffs, jnp.nan)
+    # A zero row leaves the minimiser unchanged: this is how non-finite samples are dropped.
+    l2, rank = _weighted_solve(rows, target, usable.astype(v.dtype))
+    determined = (jnp.sum(usable) >= MIN_SAMPLES) & (rank == 4)
+    eps = jnp.finfo(v.dtype).eps
+    # With exact data the MAD is 0; the floor keeps u finite (and all weights ~1, i.e. l2).
+    count = jnp.maximum(jnp.sum(usable), 1).astype(v.dtype)
+    floor = jnp.sqrt(eps) * (jnp.sqrt(jnp.sum(target**2) / count) + eps)
+    steps = jnp.zeros((), jnp.int32)
+    if loss == "l2":
+        coeffs, status, used_scale = l2, jnp.full((), CONVERGED, jnp.int32), jnp.full((), jnp.nan, v.dtype)
+    else:
+        fixed_scale = jnp.isfinite(scale)
+
+        def scale_for(c):
+            estimated = _robust_scale(target - rows @ c, usable, floor)
+            return jnp.where(fixed_scale, scale, estimated)
+
+        def irls_step(c, loss_name):
+            u = (target - rows @ c) / scale_for(c)
+            weights = jnp.where(usable, _irls_weights(loss_name, u), 0.0)
+            return _weighted_solve(rows, target, weights)[0]
+
+        # Looser in float32, where a 4-coefficient solve resolves ~1e-6 relative at best.
+        tolerance = 1e-10 if v.dtype == jnp.float64 else 1e-5
+        solver = optx.FixedPointIteration(rtol=tolerance, atol=tolerance)
+        # optimistix 0.1.0 keeps its convergence state in JAX's default float, so float32
+        # iterates with x64 switched on break its while_loop; iterate in the default float.
+        work = jnp.asarray(0.0).dtype
+
+        def solve(start, loss_name):
+            step = lambda c, _: irls_step(c.astype(v.dtype), loss_name).astype(work)  # noqa: E731
+            return optx.fixed_point(step, solver, start.astype(work), max_steps=max_steps, throw=False)
+
+        start = l2
+        if loss == "tukey":
+            # Redescending: from the least-squares start an outlier-dragged fit can settle in a
+            # poor local minimum, so Tukey starts from the (convex) Huber fit.
+            start = solve(l2, "huber").value
+        solution = solve(start, loss)
+        coeffs = solution.value.astype(v.dtype)
+        steps = jnp.asarray(solution.stats["num_steps"], jnp.int32)
+        status = jnp.where(solution.result == optx.RESULTS.successful, CONVERGED, MAX_STEPS).astype(jnp.int32)
+        used_scale = scale_for(coeffs)
+    finite = determined & jnp.all(jnp.isfinite(coeffs))
+    status = jnp.where(finite, status, NONFINITE)
+    coeffs = jnp.where(finite, coeffs, jnp.nan)
+    return coeffs, status, steps, used_scale, dropped
 
 
-def fit_stage2(v, p, target, loss: str = "l2"):
-    """Fit the Stage II coefficients of every band (Eq. 19-22).
+class Stage2Fit(eqx.Module):
+    """Result of `fit_stage2_detailed`, one entry per band, in the style of optimistix's
+    `throw=False`: a batch of fits never fails on one bad band; inspect `status` instead.
+
+    Fields:
+      coeffs: (B, 4), c1..c4 (NaN for a band whose status is NONFINITE).
+      status: (B,) int32: CONVERGED (0), MAX_STEPS (1), NONFINITE (2) (`STATUS_NAMES`).
+      steps: (B,) IRLS iterations taken (0 for "l2").
+      scale: (B,) residual scale s used by the robust loss (NaN for "l2").
+      dropped: (B,) number of non-finite samples left out.
+      loss: the loss name.
+    """
+
+    coeffs: jax.Array
+    status: jax.Array
+    steps: jax.Array
+    scale: jax.Array
+    dropped: jax.Array
+    loss: str = eqx.field(static=True)
+
+    @property
+    def converged(self) -> jax.Array:
+        return self.status == CONVERGED
+
+    def problems(self) -> dict[int, str]:
+        """{band index: status name} for every band that did not converge (concrete results)."""
+        status = np.asarray(self.status)
+        return {int(b): STATUS_NAMES[int(status[b])] for b in np.flatnonzero(status != CONVERGED)}
+
+
+@eqx.filter_jit
+def _fit_all_bands(v, p, target, scale, loss: str, max_steps: int):
+    fit = jax.vmap(lambda vb, pb, tb, sb: _fit_band(vb, pb, tb, sb, loss, max_steps), in_axes=(1, 1, 1, 0))
+    coeffs, status, steps, used_scale, dropped = fit(v, p, target, scale)
+    return Stage2Fit(coeffs, status, steps, used_scale, dropped, loss)
+
+
+def fit_stage2_detailed(v, p, target, loss: str = "l2", *, scale=None, max_steps: int = 100) -> Stage2Fit:
+    """Fit the Stage II coefficients of every band and report how each fit went.
 
     The training set of Section 4: small patches i on backgrounds j give v^{ij} (Eq. 10) and
     p^{ij} (Eq. 15); the target is the Stage I response of the same patch on the reference
     background, p^{i,jref} v^{i,jref}, repeated for every j (Eq. 19).
 
+    Losses:
+      "l2": the closed form of Eq. 21-22 (least squares).
+      "huber", "cauchy", "tukey": M-estimators that bound (Huber), shrink (Cauchy) or cut off
+        (Tukey's biweight) the influence of residuals beyond c s, with c = `ROBUST_TUNING`
+        (95 % Gaussian efficiency) and s the residual scale. Solved by iteratively reweighted
+        least squares: each step is the closed form of Eq. 22 with weights w(e/s), iterated to
+        its fixed point by optimistix's FixedPointIteration, from the least-squares solution
+        (Tukey from the Huber solution). IRLS rather than Gauss-Newton / Levenberg-Marquardt on
+        transformed residuals because each step is an exact weighted closed-form solve, it
+        decreases these losses monotonically for a fixed scale (majorise-minimise), needs no
+        step-size control, and treats Tukey's zero-weight residuals exactly, where a
+        Gauss-Newton Jacobian would be singular.
+
     Args:
       v: normalised responses, shape (n, B), n = n_p * n_b samples (35 x 35 px averages).
       p: white-patch ratios, shape (n, B).
       target: target responses v_tilde, shape (n, B).
-      loss: "l2", the closed form of Eq. 22.
+      loss: "l2", "huber", "cauchy" or "tukey".
+      scale: residual scale s (> 0, response units), a number or (B,); None (default)
+        re-estimates it at every IRLS step as 1.4826 x the median absolute deviation of the
+        residuals (a consistent estimate of the Gaussian sigma that outliers cannot inflate).
+      max_steps: IRLS iterations before a band is reported as MAX_STEPS.
 
     Returns:
-      coeffs, shape (B, 4), ordered c1..c4. A band with fewer than 4 finite samples, or whose
-      samples do not determine the four coefficients (rank < 4), is NaN.
+      `Stage2Fit`. Non-finite samples are dropped per band and counted in `dropped`.
     """
     if not isinstance(loss, str) or loss not in LOSSES:
         raise ValueError(f"loss: unknown loss {loss!r}; expected one of {list(LOSSES)}")
@@ -129,14 +272,60 @@ def fit_stage2(v, p, target, loss: str = "l2"):
         raise ValueError(f"v: expected shape (n, B) (samples, bands), got {tuple(v.shape)}")
     _checks.require_shape("p", p, v.shape, "one white-patch ratio per sample and band, like v")
     _checks.require_shape("target", target, v.shape, "one target per sample and band, like v")
-    if v.shape[0] < MIN_SAMPLES:
+    samples, bands = v.shape
+    if samples < MIN_SAMPLES:
         raise ValueError(
-            f"v: {v.shape[0]} samples cannot determine the 4 coefficients c1..c4; expected at "
+            f"v: {samples} samples cannot determine the 4 coefficients c1..c4; expected at "
             f"least {MIN_SAMPLES} rows"
         )
+    if not (isinstance(max_steps, int) and max_steps >= 1):
+        raise ValueError(f"max_steps: expected a positive integer, got {max_steps!r}")
     dtype = _checks.float_dtype(v, p, target)
-    fit = jax.vmap(_fit_band_l2, in_axes=(1, 1, 1))
-    return fit(v.astype(dtype), p.astype(dtype), target.astype(dtype))
+    if scale is None:
+        scale = jnp.full((bands,), jnp.nan, dtype)
+    else:
+        scale = _checks.as_array("scale", scale)
+        if scale.ndim > 1 or (scale.ndim == 1 and scale.shape[0] != bands):
+            raise ValueError(f"scale: expected a number or shape ({bands},) (one per band), got shape {tuple(scale.shape)}")
+        if _checks.is_concrete(scale) and not bool(np.all(np.asarray(scale) > 0)):
+            raise ValueError(f"scale: expected a residual scale > 0, got {np.asarray(scale).tolist()}")
+        scale = jnp.broadcast_to(scale.astype(dtype), (bands,))
+    if all(_checks.is_concrete(x) for x in (v, p, target)):
+        finite = np.isfinite(np.asarray(v)) & np.isfinite(np.asarray(p)) & np.isfinite(np.asarray(target))
+        empty = np.flatnonzero(~finite.any(axis=0))
+        if empty.size:
+            raise ValueError(
+                f"v, p, target: band(s) {empty.tolist()} have no finite sample (all NaN or "
+                f"infinite); expected at least {MIN_SAMPLES} finite rows per band"
+            )
+    return _fit_all_bands(v.astype(dtype), p.astype(dtype), target.astype(dtype), scale, loss, max_steps)
 
 
-__all__ = ["IDENTITY_COEFFS", "LOSSES", "PAPER_TABLE_2", "identity_coeffs", "stage2", "fit_stage2"]
+def fit_stage2(v, p, target, loss: str = "l2", *, scale=None, max_steps: int = 100):
+    """Fit the Stage II coefficients of every band (Eq. 19-22, or a robust loss).
+
+    Args and losses as `fit_stage2_detailed`.
+
+    Returns:
+      coeffs, shape (B, 4), ordered c1..c4. A band with fewer than 4 finite samples, whose
+      samples do not determine the four coefficients (rank < 4), or whose fit is not finite, is
+      NaN; `fit_stage2_detailed` also returns per-band status, scale and dropped-sample counts.
+    """
+    return fit_stage2_detailed(v, p, target, loss, scale=scale, max_steps=max_steps).coeffs
+
+
+__all__ = [
+    "IDENTITY_COEFFS",
+    "LOSSES",
+    "ROBUST_TUNING",
+    "PAPER_TABLE_2",
+    "CONVERGED",
+    "MAX_STEPS",
+    "NONFINITE",
+    "STATUS_NAMES",
+    "Stage2Fit",
+    "identity_coeffs",
+    "stage2",
+    "fit_stage2",
+    "fit_stage2_detailed",
+]

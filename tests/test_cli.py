@@ -56,6 +56,18 @@ class TestCommands:
         assert header["metadata"]["calibration_report"]["training_patches"] == 3
         assert calibration.wiener.shape == (31, 16)
 
+    def test_calibrate_with_a_robust_loss(self, workspace, tmp_path, capsys):
+        status, _, err = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "h.npz"), "--loss", "huber"], capsys)
+        assert status == 0 and "warning" not in err
+        _, header = io.load_calibration(tmp_path / "h.npz")
+        report = header["metadata"]["calibration_report"]
+        assert report["stage2_loss"] == "huber" and set(report["stage2_status"]) == {"converged"}
+
+    def test_cli_losses_are_the_library_losses(self):
+        from spherejax.polynomial import LOSSES
+
+        assert cli.LOSSES == LOSSES
+
     def test_evaluate_with_calibration_writes_tables_and_figures(self, workspace, tmp_path, capsys):
         out = tmp_path / "evaluation"
         status, stdout, _ = run(["evaluate", str(workspace / "session"), "-c", str(workspace / "cal.npz"), "--out", str(out)], capsys)

@@ -40,7 +40,8 @@ def test_calibration(session, calibrated):
     assert report.reference_background in {f.background for f in session.frames_with(role="sample", set="training")}
     assert report.training_patches == 9 and report.training_backgrounds == 5
     assert report.training_samples == 45 and report.targets == 64
-    assert not report.nonfinite_bands
+    assert not report.unconverged_bands and set(report.stage2_status) == {"converged"}
+    assert sum(report.stage2_dropped_samples) == 0
     assert np.isfinite(np.asarray(calibration.coeffs)).all() and calibration.wiener.shape == (31, 16)
     # Stage II is a correction near Stage I: c1 near 1, the rest small (cf. the paper's Table 2).
     coeffs = np.asarray(calibration.coeffs)

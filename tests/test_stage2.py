@@ -7,6 +7,8 @@ import pytest
 
 import spherejax as sj
 
+from spherejax.polynomial import CONVERGED, MAX_STEPS, NONFINITE, fit_stage2_detailed
+
 from .helpers import TABLE_2
 
 B = 16
@@ -105,10 +107,122 @@ class TestFitStage2:
         assert np.isnan(fitted[4]).all() and np.isfinite(np.delete(fitted, 4, axis=0)).all()
 
 
+ROBUST = ["huber", "cauchy", "tukey"]
+
+
+def with_gross_outliers(target, fraction=0.1, seed=0):
+    """`fraction` of the samples get errors of 0.1-0.3 in every band (a patch over a crease,
+    a mislabelled capture): 50-150 times the 0.002 noise."""
+    rng = np.random.default_rng(seed)
+    dirty = target.copy()
+    rows = rng.choice(len(target), int(round(fraction * len(target))), replace=False)
+    dirty[rows] += rng.choice([-1.0, 1.0], (len(rows), B)) * rng.uniform(0.1, 0.3, (len(rows), B))
+    return dirty
+
+
+@pytest.fixture(scope="module")
+def data():
+    """Training-like data from Table 2 with 0.002 noise, and its closed-form ("clean") fit."""
+    v, p = training_set(seed=0)
+    clean = np.asarray(sj.stage2(v, p, TABLE_2)) + np.random.default_rng(1).normal(0, 0.002, v.shape)
+    return v, p, clean, np.asarray(sj.fit_stage2(v, p, clean))
+
+
+class TestRobustFits:
+    @pytest.mark.parametrize("loss", ROBUST)
+    def test_ten_percent_gross_outliers(self, data, loss):
+        """Robust fits land at least 5 times closer to the clean-data fit than the closed form."""
+        v, p, clean, clean_fit = data
+        dirty = with_gross_outliers(clean)
+        l2_error = np.linalg.norm(np.asarray(sj.fit_stage2(v, p, dirty)) - clean_fit)
+        fit = fit_stage2_detailed(v, p, dirty, loss)
+        robust_error = np.linalg.norm(np.asarray(fit.coeffs) - clean_fit)
+        assert robust_error * 5 < l2_error, (robust_error, l2_error)
+        assert np.all(np.asarray(fit.status) == CONVERGED)
+        assert np.all(np.asarray(fit.steps) > 1)
+
+    @pytest.mark.parametrize("loss", ROBUST)
+    def test_clean_data_agrees_with_the_closed_form(self, loss):
+        """On clean data every loss gives the closed form: exactly on model data, and within
+        1e-4 in prediction with the noise of a 35 x 35 px average (1e-4)."""
+        v, p = training_set(seed=2)
+        exact = np.asarray(sj.stage2(v, p, TABLE_2))
+        np.testing.assert_allclose(np.asarray(sj.fit_stage2(v, p, exact, loss)), TABLE_2, atol=1e-4)
+        noisy = exact + np.random.default_rng(3).normal(0, 1e-4, v.shape)
+        robust, l2 = (np.asarray(sj.fit_stage2(v, p, noisy, name)) for name in (loss, "l2"))
+        np.testing.assert_allclose(np.asarray(sj.stage2(v, p, robust)), np.asarray(sj.stage2(v, p, l2)), atol=1e-4)
+
+    @pytest.mark.parametrize("loss", ROBUST)
+    def test_float32_and_jit(self, data, loss, maybe_jit):
+        v, p, clean, clean_fit = data
+        dirty = with_gross_outliers(clean).astype(np.float32)
+        fit = maybe_jit(fit_stage2_detailed, static_argnames=("loss",))(v.astype(np.float32), p.astype(np.float32), dirty, loss=loss)
+        assert fit.coeffs.dtype == np.float32
+        prediction = np.asarray(sj.stage2(v, p, np.asarray(fit.coeffs, np.float64)))
+        np.testing.assert_allclose(prediction, np.asarray(sj.stage2(v, p, clean_fit)), atol=3e-3)
+
+    def test_fixed_scale(self, data):
+        v, p, clean, clean_fit = data
+        fit = fit_stage2_detailed(v, p, with_gross_outliers(clean), "huber", scale=0.002)
+        np.testing.assert_allclose(np.asarray(fit.scale), 0.002)
+        assert np.linalg.norm(np.asarray(fit.coeffs) - clean_fit) < 0.2
+        estimated = fit_stage2_detailed(v, p, with_gross_outliers(clean), "huber")
+        # MAD of the residuals: close to the 0.002 noise, not inflated by the outliers.
+        assert np.all((np.asarray(estimated.scale) > 0.001) & (np.asarray(estimated.scale) < 0.004))
+
+    def test_per_band_status_and_dropped_counts(self, data):
+        v, p, clean, _ = data
+        v = v.copy()
+        v[:88, 3] = np.nan  # band 3: 2 usable samples left
+        v[5, 9] = np.inf  # band 9: one dropped
+        fit = fit_stage2_detailed(v, p, with_gross_outliers(clean), "cauchy")
+        status = np.asarray(fit.status)
+        assert status[3] == NONFINITE and np.isnan(np.asarray(fit.coeffs)[3]).all()
+        assert np.all(np.delete(status, 3) == CONVERGED)
+        dropped = np.asarray(fit.dropped)
+        assert dropped[3] == 88 and dropped[9] == 1 and dropped[0] == 0
+        assert fit.problems() == {3: "non-finite"}
+
+    def test_max_steps_is_reported_not_raised(self, data):
+        v, p, clean, _ = data
+        fit = fit_stage2_detailed(v, p, with_gross_outliers(clean), "tukey", max_steps=2)
+        assert np.all(np.asarray(fit.status) == MAX_STEPS)
+        assert np.isfinite(np.asarray(fit.coeffs)).all()
+
+    def test_l2_detailed(self, data):
+        v, p, clean, clean_fit = data
+        fit = fit_stage2_detailed(v, p, clean)
+        np.testing.assert_array_equal(np.asarray(fit.coeffs), clean_fit)
+        assert np.all(np.asarray(fit.status) == CONVERGED) and np.all(np.asarray(fit.steps) == 0)
+
+
 class TestBadInput:
+    def test_all_nan_band(self):
+        v, p = training_set()
+        v = v.copy()
+        v[:, 6] = np.nan
+        with pytest.raises(ValueError, match=r"v, p, target: band\(s\) \[6\] have no finite sample"):
+            sj.fit_stage2(v, p, v, loss="huber")
+
+    @pytest.mark.parametrize("scale", [0.0, -0.01, [0.01] * 15 + [0.0]])
+    def test_non_positive_scale(self, scale):
+        v, p = training_set()
+        with pytest.raises(ValueError, match="scale: expected a residual scale > 0"):
+            sj.fit_stage2(v, p, v, loss="huber", scale=scale)
+
+    def test_scale_shape(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match=r"scale: expected a number or shape \(16,\)"):
+            sj.fit_stage2(v, p, v, loss="cauchy", scale=np.ones(4))
+
+    def test_max_steps(self):
+        v, p = training_set()
+        with pytest.raises(ValueError, match="max_steps: expected a positive integer, got 0"):
+            sj.fit_stage2(v, p, v, loss="tukey", max_steps=0)
+
     def test_unknown_loss(self):
         v, p = training_set()
-        with pytest.raises(ValueError, match=r"loss: unknown loss 'l3'; expected one of \['l2'\]"):
+        with pytest.raises(ValueError, match=r"loss: unknown loss 'l3'; expected one of \['l2', 'huber', 'cauchy', 'tukey'\]"):
             sj.fit_stage2(v, p, v, loss="l3")
 
     def test_target_shape(self):
