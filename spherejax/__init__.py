@@ -18,6 +18,11 @@ from .colorimetry import (
     white_point_xyz as white_point_xyz,
     xyz_to_lab as xyz_to_lab,
 )
+from .consistency import (
+    pairwise_delta_e as pairwise_delta_e,
+    pairwise_spectral_rms as pairwise_spectral_rms,
+    response_std as response_std,
+)
 from .flatfield import flat_field as flat_field, stage1 as stage1, white_patch_ratio as white_patch_ratio
 from .grid import BAND_CENTRES_NM as BAND_CENTRES_NM, WAVELENGTHS_NM as WAVELENGTHS_NM
 from .pipeline import (
@@ -56,8 +61,11 @@ __all__ = [
     "fit_wiener",
     "flat_field",
     "identity_coeffs",
+    "pairwise_delta_e",
+    "pairwise_spectral_rms",
     "reflectance_to_lab",
     "reflectance_to_xyz",
+    "response_std",
     "select_wiener_noise_variance",
     "stage1",
     "stage2",

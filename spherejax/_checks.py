@@ -90,6 +90,37 @@ def require_nonempty_mask(name: str, mask) -> None:
         raise ValueError(f"{name}: the mask selects no pixel; expected at least one True entry")
 
 
+def require_mask_or_weights(name: str, mask, shape: tuple[int, ...]) -> None:
+    """Raise unless `mask` is a boolean mask or an array of floating weights >= 0, of `shape`,
+    selecting at least one pixel (a nonzero weight).
+
+    Weights make a mask differentiable. Their values are checked only when concrete: under jit,
+    grad or vmap they are tracers and pass unchecked, like every value in the per-pixel path.
+    """
+    if mask.dtype != jnp.bool_ and not jnp.issubdtype(mask.dtype, jnp.floating):
+        # Integer masks are refused rather than read as weights: a 0/255 image is a likely
+        # mistake, and `mask.astype(bool)` says what was meant.
+        raise ValueError(
+            f"{name}: expected a boolean mask, got dtype {mask.dtype} (floating weights >= 0 "
+            f"are accepted too)"
+        )
+    require_shape(name, mask, shape, "one entry per image pixel")
+    if mask.dtype == jnp.bool_:
+        require_nonempty_mask(name, mask)
+        return
+    if isinstance(mask, jax.core.Tracer):
+        return
+    weights = np.asarray(mask)
+    if not np.all(np.isfinite(weights) & (weights >= 0)):
+        bad = weights[~(np.isfinite(weights) & (weights >= 0))]
+        raise ValueError(
+            f"{name}: expected weights that are finite and >= 0, got {bad.size} that are not "
+            f"(first: {bad.flat[0]})"
+        )
+    if not np.any(weights > 0):
+        raise ValueError(f"{name}: the weights select no pixel; expected at least one weight > 0")
+
+
 def is_concrete(x) -> bool:
     """True when `x` holds values now (not a tracer inside jit, grad or vmap)."""
     return not isinstance(x, jax.core.Tracer)

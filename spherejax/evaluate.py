@@ -21,18 +21,22 @@ How every figure is computed (Zou et al. 2019, Section 5, made exact):
   original responses, the Markov model and Stage II.
 - Accuracy (not in the paper): mean ΔE00 (D65) of each stage's reflectance against the patch's
   known reflectance, where the session annotates it (the spectrophotometer's value).
+
+The response standard deviation, spectral rms and ΔE00 figures are computed by
+`spherejax.consistency`, the same differentiable functions a study of their gradients uses.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 
+import jax
 import numpy as np
 
 from .calibrate import RegionMeasurement, measure_frames
 from .colorimetry import delta_e_2000, reflectance_to_lab
+from .consistency import pairwise_delta_e, pairwise_spectral_rms, response_std
 from .markov import fit_markov_kappa, markov_correct
 from .pipeline import Calibration
 from .polynomial import stage2
@@ -111,33 +115,28 @@ def _assemble(measurements, calibration, kappa, white_r) -> StageData:
     return StageData(patches, backgrounds, responses, reflectance, truth)
 
 
-def _pairwise(values: np.ndarray, distance) -> float:
-    """Mean over patches of the mean over background pairs of distance(a, b); values (P, J, C)."""
-    per_patch = []
-    for patch_values in values:
-        measured = [x for x in patch_values if np.all(np.isfinite(x))]
-        pairs = list(itertools.combinations(range(len(measured)), 2))
-        if pairs:
-            a = np.stack([measured[i] for i, _ in pairs])
-            b = np.stack([measured[k] for _, k in pairs])
-            per_patch.append(float(np.mean(distance(a, b))))
-    return float(np.mean(per_patch)) if per_patch else float("nan")
-
-
 def consistency_metrics(data: StageData, stage: str) -> dict:
-    """The figures of Tables 1/3 and 4/5 for one stage of one set (see the module docstring)."""
-    responses = data.responses[stage]
-    reflectance = data.reflectance[stage]
-    std_per_band = np.nanmean(np.nanstd(responses, axis=1), axis=0)
-    metrics = {
-        "response_std_per_band": [float(x) for x in std_per_band],
-        "response_std": float(np.mean(std_per_band)),
-        "spectral_rms": _pairwise(reflectance, lambda a, b: np.sqrt(np.mean((a - b) ** 2, axis=-1))),
-    }
-    for illuminant in ILLUMINANTS:
-        lab = np.asarray(reflectance_to_lab(np.nan_to_num(reflectance), illuminant), np.float64)
-        lab = np.where(np.all(np.isfinite(reflectance), axis=-1, keepdims=True), lab, np.nan)
-        metrics[f"delta_e00_{illuminant}"] = _pairwise(lab, lambda a, b: np.asarray(delta_e_2000(a, b)))
+    """The figures of Tables 1/3 and 4/5 for one stage of one set (see the module docstring).
+
+    Computed by `spherejax.consistency` in float64, whatever JAX's default precision: the tables
+    print four decimals of differences between responses near 1.
+    """
+    responses = np.asarray(data.responses[stage], np.float64)
+    reflectance = np.asarray(data.reflectance[stage], np.float64)
+    # _assemble leaves NaN where a patch was not measured on a background. Responses are judged
+    # per band, so that a band whose Stage II coefficients are not finite is NaN on its own; a
+    # reflectance mixes all bands.
+    measured_bands = np.isfinite(responses)
+    measured = np.all(np.isfinite(reflectance), axis=-1)
+    with jax.enable_x64(True):
+        std_per_band = np.asarray(response_std(responses, measured_bands), np.float64)
+        metrics = {
+            "response_std_per_band": [float(x) for x in std_per_band],
+            "response_std": float(np.mean(std_per_band)),
+            "spectral_rms": float(pairwise_spectral_rms(reflectance, measured)),
+        }
+        for illuminant in ILLUMINANTS:
+            metrics[f"delta_e00_{illuminant}"] = float(pairwise_delta_e(reflectance, measured, illuminant))
     if np.isfinite(data.truth).all():
         lab = np.asarray(reflectance_to_lab(np.nan_to_num(reflectance), "D65"), np.float64)
         lab_truth = np.asarray(reflectance_to_lab(data.truth, "D65"), np.float64)[:, None]
@@ -175,7 +174,8 @@ def evaluate_session(session, calibration: Calibration) -> Evaluation:
 # Tables as text, CSV and JSON (strings; the command line writes them)
 
 
-def _table(header: list[str], rows: list[list[str]]) -> str:
+def format_table(header: list[str], rows: list[list[str]]) -> str:
+    """An aligned text table: first column left-aligned, the others right-aligned."""
     widths = [max(len(str(x)) for x in column) for column in zip(header, *rows)]
     line = lambda cells: "  ".join(str(c).rjust(w) if k else str(c).ljust(w) for k, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
     return "\n".join([line(header), "  ".join("-" * w for w in widths), *[line(r) for r in rows]])
@@ -226,7 +226,7 @@ def tables(evaluation: Evaluation) -> dict[str, tuple[str, list[str], list[list[
 
 def format_tables(evaluation: Evaluation) -> str:
     """All tables as aligned text."""
-    return "\n\n".join(f"{title}\n{_table(header, rows)}" for title, header, rows in tables(evaluation).values())
+    return "\n\n".join(f"{title}\n{format_table(header, rows)}" for title, header, rows in tables(evaluation).values())
 
 
 def tables_csv(evaluation: Evaluation) -> dict[str, str]:
@@ -253,6 +253,7 @@ __all__ = [
     "consistency_metrics",
     "white_reflectance_per_band",
     "tables",
+    "format_table",
     "format_tables",
     "tables_csv",
     "to_json",

@@ -85,13 +85,16 @@ def patch_ratio_weighted(raw, dark, white, weights):
       p_s, shape (..., B): the weighted sum of dark-subtracted white-standard responses over that
       of the sample. Pixels that are not finite or whose white is not above dark get weight 0,
       so a single bad pixel in the patch does not spoil the ratio; NaN if no usable pixel remains
-      or the sample's patch signal is not positive. Differentiable in `weights`.
+      or the sample's patch signal is not positive. Differentiable in `weights`, at weight 0
+      included (d p / d w_x = (u_r(x) - p u_s(x)) / sum_x w_x u_s(x)).
     """
     if weights.ndim == 2:
         weights = weights[..., None]
     white_signal = white - dark
     sample_signal = raw - dark
-    usable = white_signal_usable(dark, white) & jnp.isfinite(sample_signal) & (weights != 0)
+    # Zero weights are not masked out here: their pixels add 0 to both sums anyway, and masking
+    # them would zero the gradient with respect to a weight at 0, which is not 0.
+    usable = white_signal_usable(dark, white) & jnp.isfinite(sample_signal)
     w = jnp.where(usable, weights, 0.0)
     white_sum = jnp.sum(w * jnp.where(usable, white_signal, 0.0), axis=(-3, -2))
     sample_sum = jnp.sum(w * jnp.where(usable, sample_signal, 0.0), axis=(-3, -2))

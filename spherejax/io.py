@@ -1159,6 +1159,14 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
                 f"the header says {described['shape']} and {described['dtype']}",
                 "the arrays the header describes",
             )
+    if arrays["patch"].dtype != np.bool_:
+        # A Calibration may hold floating patch weights (for differentiable studies); the file
+        # format stores the mask only.
+        raise CalibrationFileError(
+            path,
+            f"array 'patch' has dtype {arrays['patch'].dtype.str}: patch weights cannot be stored",
+            "a boolean patch mask (|b1), e.g. weights > 0",
+        )
     bands = header["band_centres_nm"]
     if arrays["dark"].shape[-1:] != (len(bands),):
         raise CalibrationFileError(
@@ -1225,8 +1233,9 @@ def save_calibration(
       The header written, checksum included.
 
     Raises:
-      CalibrationFileError: not a Calibration, bands that do not match, metadata that is not
-        JSON, or a failed write (the temporary file is removed; an existing file is untouched).
+      CalibrationFileError: not a Calibration, a patch of weights rather than a boolean mask,
+        bands that do not match, metadata that is not JSON, or a failed write (the temporary
+        file is removed; an existing file is untouched).
     """
     from . import __version__
 
@@ -1283,8 +1292,8 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
     Raises:
       CalibrationFileError: missing, not an .npz or truncated, missing arrays or header, another
         format, a newer format version, a checksum mismatch (tampered or corrupted), arrays that
-        disagree with the header, other band centres than `band_centres_nm`, or contents that are
-        not a valid `Calibration`.
+        disagree with the header, a patch that is not a boolean mask, other band centres than
+        `band_centres_nm`, or contents that are not a valid `Calibration`.
     """
     path = pathlib.Path(path)
     if not path.is_file():

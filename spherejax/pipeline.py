@@ -3,7 +3,8 @@
     raw (H, W, B) uint16 or float
       -> quality mask (saturated, non-finite, white <= dark)
       -> v = flat field (Eq. 10)            with the calibration's dark frame and white standard
-      -> p = white-patch ratio (Eq. 14-15)  over the calibration's patch mask, usable pixels only
+      -> p = white-patch ratio (Eq. 14-15)  over the calibration's patch mask (or weights), usable
+                                            pixels only
       -> v_check = p v (Stage I, Eq. 16-17)
       -> v_tilde = Stage II (Eq. 23)
       -> reflectance = W v_tilde (Wiener, 16 -> 31)
@@ -44,7 +45,11 @@ class Calibration(eqx.Module):
     Fields:
       dark: dark frame, (H, W, B), in raw counts.
       white: white-standard frame, (H, W, B), in raw counts, same exposure as the samples.
-      patch: boolean mask (H, W), True on the reference white patch (Eq. 14-15).
+      patch: the reference white patch (Eq. 14-15), (H, W): a boolean mask, True on the patch
+        (the normal case, and the only one a calibration file stores), or floating weights >= 0
+        (0 = not in the patch), so that p, and all that follows, can be differentiated with
+        respect to the patch: p is the weighted sum of white-standard signals over the weighted
+        sum of sample signals.
       coeffs: Stage II coefficients (B, 4), ordered c1..c4 (Eq. 23).
       wiener: Wiener matrix (31, B) (`wiener.fit_wiener`).
       illuminant: "D65", "A" or "F2" for Lab.
@@ -69,8 +74,7 @@ class Calibration(eqx.Module):
             raise ValueError(f"dark: expected shape (H, W, B), got {tuple(self.dark.shape)}")
         height, width, bands = self.dark.shape
         _checks.require_shape("white", self.white, self.dark.shape, "the dark frame's (H, W, B)")
-        _checks.require_bool_mask("patch", self.patch, (height, width))
-        _checks.require_nonempty_mask("patch", self.patch)
+        _checks.require_mask_or_weights("patch", self.patch, (height, width))
         _checks.require_shape(
             "coeffs", self.coeffs, (bands, 4), f"c1..c4 for each of the {bands} bands"
         )
@@ -173,14 +177,18 @@ def _pixel_flags(raw, raw_f, dark, white, saturation):
 
 
 def _patch_box(patch) -> tuple[int, int, int, int] | None:
-    """(row0, row1, col0, col1) bounding the patch mask, or None if the mask is traced.
+    """(row0, row1, col0, col1) bounding the patch's nonzero entries (True or weight != 0), or
+    None if the patch is traced.
 
     The white-patch ratio needs only the patch's pixels (0.1 % of the image in the paper's
     layout): slicing to this box keeps the ratio from making three passes over the whole cube.
+    Pixels of weight 0 contribute nothing to the ratio's value, so leaving them out is exact.
+    Differentiating with respect to the weights makes them tracers, so the ratio is then taken
+    over the whole image and a weight of 0 gets its gradient too (which is not 0).
     """
     if not _checks.is_concrete(patch):
         return None
-    mask = np.asarray(patch)
+    mask = np.asarray(patch) != 0
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if rows.size == 0:
         return None

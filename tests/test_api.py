@@ -61,7 +61,7 @@ def test_options_after_arrays_are_keyword_only_or_design_named(name):
     allowed_positional = set(DESIGN_SIGNATURES.get(name, [])) | {
         # Non-DESIGN functions: their positional parameters are arrays or the same illuminant.
         "illuminant", "responses", "reflectances", "noise_variances", "noise_variance",
-        "sensitivity", "lab", "reference", "bands", "dtype",
+        "sensitivity", "lab", "reference", "bands", "dtype", "reflectance", "present",
     }
     for parameter in signature.parameters.values():
         if parameter.kind is parameter.POSITIONAL_OR_KEYWORD:

@@ -821,6 +821,32 @@ def test_save_calibration_refuses(tmp_path, rng, kwargs, match):
     assert listing(tmp_path) == []
 
 
+def test_save_calibration_refuses_patch_weights(tmp_path, rng):
+    """A Calibration may hold floating patch weights (for differentiable studies); the file
+    format stores a boolean mask only."""
+    mask = make_calibration(rng)
+    weighted = sj.Calibration(
+        dark=mask.dark, white=mask.white, patch=np.asarray(mask.patch, np.float32),
+        coeffs=mask.coeffs, wiener=mask.wiener, illuminant=mask.illuminant,
+        saturation=mask.saturation,
+    )
+    path = tmp_path / "cal.npz"
+    with refused(CalibrationFileError, path, "array 'patch' has dtype <f4: patch weights cannot be stored"):
+        io.save_calibration(path, weighted, instrument_id="sim-sphere-1", band_centres_nm=BANDS)
+    assert listing(tmp_path) == []
+
+
+def test_load_calibration_refuses_patch_weights(calibration_path):
+    # A consistent file (header and checksum agree) holding weights instead of a mask.
+    entries = npz_entries(calibration_path)
+    entries["patch"] = entries["patch"].astype(np.float32)
+    header = header_of(entries)
+    header["arrays"]["patch"]["dtype"] = "<f4"
+    rewrite_npz(calibration_path, entries, header, recompute_checksum=True)
+    with refused(CalibrationFileError, calibration_path, r"array 'patch' has dtype <f4.*\(expected a boolean patch mask"):
+        io.load_calibration(calibration_path)
+
+
 def test_load_calibration_missing_file(tmp_path):
     path = tmp_path / "cal.npz"
     with refused(CalibrationFileError, path, "no such file"):

@@ -1,0 +1,65 @@
+"""The differentiable calibration study (`spherejax study`)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from spherejax import calibrate, cli, evaluate, simulate, study
+
+SMALL = simulate.ExperimentDesign(training_backgrounds=4, test_backgrounds=2, targets=36)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    return simulate.simulate_session(tmp_path_factory.mktemp("study") / "session", seed=4, design=SMALL)
+
+
+@pytest.fixture(scope="module")
+def closed_form(session):
+    return calibrate.calibrate_session(session)[0]
+
+
+def test_study_lowers_its_training_objective_from_the_closed_form(session, closed_form):
+    result = study.study_session(session, closed_form, response_weight=0.0, max_steps=300)
+    assert result.objective_end < 0.9 * result.objective_start
+    assert np.isfinite(np.asarray(result.calibration.coeffs)).all()
+    np.testing.assert_array_equal(np.asarray(result.calibration.wiener), np.asarray(closed_form.wiener))
+    # The training patches' colours really are more consistent with their reference colours.
+    before = evaluate.evaluate_session(session, closed_form).metrics["training"]["stage2"]["delta_e00_D65"]
+    after = evaluate.evaluate_session(session, result.calibration).metrics["training"]["stage2"]["delta_e00_D65"]
+    assert after < before
+
+
+def test_study_with_the_wiener_matrix(session, closed_form):
+    result = study.study_session(session, closed_form, fit_wiener=True, max_steps=30)
+    assert result.objective_end < result.objective_start
+    assert not np.array_equal(np.asarray(result.calibration.wiener), np.asarray(closed_form.wiener))
+
+
+def test_comparison_table_and_verdict(session, closed_form):
+    result = study.study_session(session, closed_form, max_steps=20)
+    closed = evaluate.evaluate_session(session, closed_form)
+    studied = evaluate.evaluate_session(session, result.calibration)
+    header, rows = study.comparison(closed, studied)
+    assert header[1:4] == ["Response std. dev.", "Spectral rms", "ΔE00 (D65)"]
+    assert [r[0] for r in rows] == ["Original", "Markov model", "Stage II, closed form (Eq. 22)", "Stage II, study (ΔE00)"]
+    assert float(rows[2][3]) == pytest.approx(closed.metrics["test"]["stage2"]["delta_e00_D65"], abs=5e-5)
+    assert study.verdict(closed, studied).startswith("On the held-out test set the study")
+
+
+def test_command(session, tmp_path, capsys):
+    out = tmp_path / "study"
+    assert cli.main(["study", str(session.path), "--out", str(out), "--max-steps", "20"]) == 0
+    stdout = capsys.readouterr().out
+    assert "Stage II, study (ΔE00)" in stdout and "held-out test set" in stdout
+    payload = json.loads((out / "study.json").read_text())
+    assert payload["response_weight"] == 0.01 and set(payload["study"]) == {"training", "test"}
+    assert (out / "study-calibration.npz").exists() and (out / "study.csv").exists()
+
+
+def test_negative_response_weight(session, tmp_path, capsys):
+    status = cli.main(["study", str(session.path), "--out", str(tmp_path / "s"), "--response-weight", "-1"])
+    err = capsys.readouterr().err
+    assert status == 2 and "--response-weight: expected a value >= 0, got -1" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "s").exists()
