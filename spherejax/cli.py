@@ -8,9 +8,13 @@
     spherejax study SESSION [-c CAL] [--wiener] [--out DIR]
                                                Stage II fitted for ΔE00 consistency, compared with
                                                the closed form on the held-out test captures
+    spherejax correct -c CAL INPUT... -o OUT [--resume] [--illuminant NAME]
+                                               batch-correct cubes, sessions and folders into OUT
+                                               (spherejax.archive)
 
 Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
-status 2, and nothing written. Everything is computed before the first byte is written, and
+status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
+reason, and the run ends with a summary and exit status 1 if any failed. Everything is computed before the first byte is written, and
 every file is written to a temporary name and renamed into place.
 """
 
@@ -215,6 +219,67 @@ def cmd_study(args) -> int:
     return 0
 
 
+class _BatchProgress:
+    """Progress of `correct`: a tqdm bar (files, MP/s) on a terminal, else one log line per input."""
+
+    def __init__(self, quiet: bool):
+        self.quiet, self.bar, self.total, self.index = quiet, None, 0, 0
+        self.megapixels, self.seconds = 0.0, 0.0
+
+    def start(self, specs) -> None:
+        self.total = len(specs)
+        if not self.quiet and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, unit="file", file=sys.stderr, dynamic_ncols=True)
+
+    def result(self, spec, result) -> None:
+        self.index += 1
+        if result is not None:
+            self.megapixels += result.megapixels
+            self.seconds += result.seconds
+        rate = self.megapixels / self.seconds if self.seconds else 0.0
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{rate:.1f} MP/s", refresh=False)
+            self.bar.update(1)
+            if result is not None and result.status == "failed":
+                self.bar.write(f"spherejax: failed {spec.source}: {result.reason}", file=sys.stderr)
+            return
+        if self.quiet:
+            return
+        if result is None:
+            what = "skipped (already done)"
+        elif result.status == "done":
+            what = f"done ({result.megapixels:.2f} MP, {result.seconds:.2f} s)"
+        else:
+            what = f"failed: {result.reason}"
+        print(f"spherejax: [{self.index}/{self.total}] {spec.source}: {what}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def cmd_correct(args) -> int:
+    from . import archive
+
+    progress = _BatchProgress(args.quiet)
+    try:
+        summary = archive.run_batch(
+            args.inputs, args.output, args.calibration, resume=args.resume,
+            illuminant=args.illuminant, on_start=progress.start, on_result=progress.result,
+        )
+    finally:
+        progress.close()
+    if summary.taken_over:
+        print(f"spherejax: took over the lock left by {summary.taken_over} (that run ended without releasing it)",
+              file=sys.stderr)
+    for failure in summary.failed:
+        print(f"spherejax: failed {failure.source}: {failure.reason}", file=sys.stderr)
+    print(summary.line())
+    return 1 if summary.failed else 0
+
+
 def cmd_demo(args) -> int:
     from . import io, simulate
 
@@ -286,6 +351,17 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", metavar="DIR", help="output folder (default SESSION-evaluation beside the session)")
     calibration_options(evaluate)
     evaluate.set_defaults(run=cmd_evaluate)
+
+    correct = commands.add_parser("correct", help="batch-correct cube files, sessions and folders into OUT")
+    correct.add_argument("inputs", nargs="+", metavar="INPUT",
+                         help="cube files (TIFF, EXR), band-file folders, sessions, or folders to search")
+    correct.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (.npz)")
+    correct.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
+    correct.add_argument("--resume", action="store_true",
+                         help="continue the batch in OUT: skip inputs whose outputs are verified, redo the rest")
+    correct.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
+                         help="illuminant for Lab (default: the calibration's)")
+    correct.set_defaults(run=cmd_correct)
     return parser
 
 

@@ -13,6 +13,19 @@ deflate-compressed, a single page, no alpha channel. TIFF keeps no channel names
 so `write_frame` also stores them as JSON in the ImageDescription tag,
 ``{"channel_names": ["400nm", ...], "attributes": {"key": "value", ...}}`` (`read_frame_metadata`).
 
+Cube (an input of `spherejax correct`, `read_cube`)
+---------------------------------------------------
+A camera frame as above; a multi-page 16-bit TIFF with one single-channel page per band; or an
+OpenEXR with one half or float channel per band. Channel names that all read "<nm>nm" must be the
+calibration's bands and put the channels in band order. A folder of single-channel band frames
+is read with `read_band_files`.
+
+Corrected outputs (`write_exr`, `write_png`)
+---------------------------------------------
+float32 zip-compressed OpenEXR with named channels and string attributes, and 8-bit PNG. Neither
+carries a time stamp, so writing the same pixels twice gives the same bytes (`spherejax.archive`
+relies on it to resume a batch into byte-identical outputs).
+
 Session (format "spherejax-session", version 1)
 -----------------------------------------------
 A folder with ``manifest.json`` and the frame files (`write_session` writes ``frames/<id>.tif``):
@@ -599,21 +612,221 @@ def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
     description = {"channel_names": names, "attributes": attributes}
     spec.attribute("ImageDescription", json.dumps(description))
 
+    _write_image_atomic(path, spec, array, "tiff")
+
+
+def _write_image_atomic(path: pathlib.Path, spec, array: np.ndarray, format_name: str) -> str:
+    """Write one image through OpenImageIO under a temporary name beside `path`, fsync it and
+    rename it into place; return the SHA-256 (hex) of the bytes written.
+
+    The temporary name is first created with O_EXCL, so it can never be an existing file or a
+    link to one elsewhere; OpenImageIO then rewrites that fresh, empty file. On any failure the
+    temporary file is removed and an existing `path` is untouched.
+    """
     temp = _temp_sibling(path)
     try:
+        os.close(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
         # The format is named, not guessed from the temporary file's extension.
-        output = oiio.ImageOutput.create("tiff")
+        output = oiio.ImageOutput.create(format_name)
         written = output.open(str(temp), spec)
         if written:
             written = output.write_image(np.ascontiguousarray(array))
             written = output.close() and written
         if not written:
             raise SpherejaxFileError(path, f"could not be written: {output.geterror()}")
+        digest = hashlib.sha256()
+        with open(temp, "rb") as file:
+            for block in iter(lambda: file.read(1 << 20), b""):
+                digest.update(block)
+            os.fsync(file.fileno())  # on disk before the rename makes it the file
         os.replace(temp, path)
     except OSError as error:
         raise SpherejaxFileError(path, f"could not be written: {error}") from None
     finally:
-        temp.unlink(missing_ok=True)
+        # Best effort: the folder itself may be what failed (gone, or a file in its place).
+        with contextlib.suppress(OSError):
+            temp.unlink(missing_ok=True)
+    return digest.hexdigest()
+
+
+# ------------------------------------------------------------------------------- cubes and outputs
+
+_CUBE_EXPECTED = (
+    "a cube: a 16-bit TIFF with one channel or one page per band, or an OpenEXR with one "
+    "float channel per band"
+)
+_BAND_NAME = re.compile(r"(\d+)\s*nm", re.IGNORECASE)
+
+
+def band_centres_from_names(names: Sequence[str]) -> list[int] | None:
+    """Band centres in nm if every name reads "<integer>nm" ("400nm", "420 nm"), else None."""
+    if not names:
+        return None
+    centres = []
+    for name in names:
+        match = _BAND_NAME.fullmatch(str(name).strip())
+        if match is None:
+            return None
+        centres.append(int(match.group(1)))
+    return centres
+
+
+def _channel_names(image: oiio.ImageInput) -> list[str]:
+    """Channel names as written: a TIFF keeps them only in `write_frame`'s ImageDescription JSON."""
+    spec = image.spec()
+    try:
+        stored = json.loads(spec.get_string_attribute("ImageDescription"))["channel_names"]
+        if isinstance(stored, list) and len(stored) == spec.nchannels:
+            return [str(name) for name in stored]
+    except (ValueError, TypeError, KeyError):
+        pass
+    return list(spec.channelnames)
+
+
+def _sample_kind(path, spec) -> str:
+    """"uint16" or "float" (half or float samples), or raise for anything else."""
+    formats = {str(f) for f in (spec.channelformats or (spec.format,))}
+    if formats == {"uint16"} and spec.get_int_attribute("oiio:BitsPerSample", 16) == 16:
+        return "uint16"
+    if formats <= {"half", "float"}:
+        return "float"
+    found = ", ".join(sorted(formats))
+    raise SpherejaxFileError(path, f"has {found} samples", _CUBE_EXPECTED)
+
+
+def _read_pixels(path, image: oiio.ImageInput, kind: str) -> np.ndarray:
+    spec = image.spec()
+    pixels = image.read_image(oiio.UINT16 if kind == "uint16" else oiio.FLOAT)
+    if pixels is None or image.has_error:
+        # OIIO does not always say why (a damaged deflate stream gives no message).
+        detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
+        raise SpherejaxFileError(path, f"is corrupted: {detail}", _CUBE_EXPECTED)
+    dtype = np.uint16 if kind == "uint16" else np.float32
+    return np.asarray(pixels, dtype=dtype).reshape(spec.height, spec.width, spec.nchannels)
+
+
+def read_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> np.ndarray:
+    """Read a camera cube from one file.
+
+    Accepted layouts: a single image with one channel per band (16-bit TIFF, or OpenEXR with half
+    or float channels), or a multi-page 16-bit TIFF with one single-channel page per band. When
+    the channel names all read "<nm>nm" they must be `band_centres_nm` (in any order: OpenEXR
+    stores channels sorted by name; they are put back in band order).
+
+    Args:
+      path: the file.
+      expected_shape: (H, W, B) the cube must have (the calibration's).
+      band_centres_nm: (B,) the calibration's band centres, checked against channel names.
+
+    Returns:
+      (H, W, B) uint16 (TIFF) or float32 (OpenEXR).
+
+    Raises:
+      SpherejaxFileError: missing, not an image, truncated or corrupted, samples of another type,
+        another size, band count or set of bands.
+    """
+    path = pathlib.Path(path)
+    height, width, bands = (int(n) for n in expected_shape)
+    if not path.is_file():
+        raise SpherejaxFileError(path, "no such file", _CUBE_EXPECTED)
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        raise SpherejaxFileError(path, f"is not a readable image: {oiio.geterror()}", _CUBE_EXPECTED)
+    try:
+        pages = 1
+        while image.seek_subimage(pages, 0):
+            pages += 1
+        image.geterror()  # the failed seek queued an error that would mask a later read error
+        image.seek_subimage(0, 0)
+        spec = image.spec()
+        if spec.deep or spec.depth != 1:
+            raise SpherejaxFileError(path, "is a deep or volume image", _CUBE_EXPECTED)
+        if pages == 1:
+            kind = _sample_kind(path, spec)
+            _require_frame_shape(path, _spec_shape(image), (height, width, bands))
+            names = _channel_names(image)
+            cube = _read_pixels(path, image, kind)
+        else:
+            if pages != bands:
+                raise SpherejaxFileError(path, f"has {pages} pages", f"{bands} pages, one per band")
+            planes = []
+            for page in range(pages):
+                image.seek_subimage(page, 0)
+                kind = _sample_kind(path, image.spec())
+                if kind != "uint16":
+                    raise SpherejaxFileError(path, f"page {page} has float samples", _CUBE_EXPECTED)
+                _require_frame_shape(path, _spec_shape(image), (height, width, 1))
+                planes.append(_read_pixels(path, image, kind))
+            names, cube = [], np.concatenate(planes, axis=-1)
+    finally:
+        image.close()
+    centres = band_centres_from_names(names)
+    if centres is not None and band_centres_nm is not None:
+        expected = [int(b) for b in np.asarray(band_centres_nm).tolist()]
+        if sorted(centres) != expected:
+            raise SpherejaxFileError(
+                path,
+                f"has bands {_describe_bands(sorted(centres))}",
+                f"the calibration's bands, {_describe_bands(expected)}",
+            )
+        cube = cube[..., np.argsort(centres, kind="stable")]
+    return np.ascontiguousarray(cube)
+
+
+def read_band_files(paths: Sequence, *, expected_shape: Sequence[int]) -> np.ndarray:
+    """One cube from B single-channel 16-bit frames, one per band, in band order -> (H, W, B)."""
+    height, width, bands = (int(n) for n in expected_shape)
+    if len(paths) != bands:
+        raise SpherejaxFileError(paths[0], f"is one of {len(paths)} band files", f"{bands} files")
+    planes = [read_frame(path, expected_shape=(height, width, 1)) for path in paths]
+    return np.concatenate(planes, axis=-1)
+
+
+def _output_spec(path, array: np.ndarray, channel_names, attributes) -> oiio.ImageSpec:
+    height, width, channels = array.shape
+    names, attributes = _frame_names_and_attributes(path, channels, channel_names, attributes)
+    sample_type = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8}[array.dtype]
+    spec = oiio.ImageSpec(width, height, channels, sample_type)
+    spec.channelnames = tuple(names)
+    spec.alpha_channel = -1  # "a" of Lab or a band is never alpha
+    for key, value in attributes.items():
+        spec.attribute(key, value)
+    return spec
+
+
+def write_exr(path, array, *, channel_names, attributes=None) -> str:
+    """Write a float32 (H, W, C) OpenEXR (zip-compressed, lossless), atomically.
+
+    The header holds the channel names and the string `attributes`, and no date: OpenImageIO
+    would stamp the current time, and a rerun must give the same bytes.
+
+    Returns:
+      The SHA-256 (hex) of the file written.
+    """
+    path = pathlib.Path(path)
+    array = np.asarray(array)
+    if array.ndim != 3 or array.dtype != np.float32:
+        raise SpherejaxFileError(
+            path, f"cannot hold an array of shape {array.shape} and dtype {array.dtype}",
+            "(H, W, C) float32",
+        )
+    spec = _output_spec(path, array, channel_names, attributes)
+    spec.attribute("compression", "zip")
+    spec.attribute("DateTime", "")  # an empty value suppresses OpenImageIO's time stamp
+    return _write_image_atomic(path, spec, array, "openexr")
+
+
+def write_png(path, array, *, channel_names) -> str:
+    """Write a uint8 (H, W, C) PNG (C = 1 grey, 3 RGB), atomically; return its SHA-256 (hex)."""
+    path = pathlib.Path(path)
+    array = np.asarray(array)
+    if array.ndim != 3 or array.dtype != np.uint8 or array.shape[-1] not in (1, 3):
+        raise SpherejaxFileError(
+            path, f"cannot hold an array of shape {array.shape} and dtype {array.dtype}",
+            "(H, W, 1) or (H, W, 3) uint8",
+        )
+    spec = _output_spec(path, array, channel_names, None)
+    return _write_image_atomic(path, spec, array, "png")
 
 
 # ---------------------------------------------------------------------------------------- sessions
@@ -1342,6 +1555,11 @@ __all__ = [
     "read_frame",
     "read_frame_metadata",
     "write_frame",
+    "band_centres_from_names",
+    "read_cube",
+    "read_band_files",
+    "write_exr",
+    "write_png",
     "rectangle_mask",
     "load_session",
     "write_session",

@@ -1,0 +1,741 @@
+"""Batch correction of archives: input discovery, per-file correction, manifest, lock, resume.
+
+`spherejax correct -c CAL INPUT... -o OUT` is `run_batch`; the unit of work is `correct_input`,
+which corrects ONE input into OUT given paths only (no shared state, picklable arguments and
+result), so a process pool or a dask cluster can call it as it is.
+
+Inputs (`discover_inputs`)
+--------------------------
+- A file: a cube (`io.read_cube`): a 16-bit TIFF with one channel or one page per band, or an
+  OpenEXR with one float channel per band.
+- A session folder (holding ``manifest.json``): each of its "sample" and "target" frames is one
+  input. The session's instrument must be the calibration's.
+- Any other folder, searched recursively (sorted; hidden names and OUT itself are left out):
+  sessions as above; ``.tif``/``.tiff``/``.exr`` files as cubes, except band files. A band file
+  is a TIFF whose name ends in the band centre, ``<prefix>400nm.tif`` (``a_400nm.tif``,
+  ``a-400nm.tif``, ``400nm.tif``); the band files of one folder with the same prefix form one
+  input, which must hold exactly one file per calibration band. Other files are ignored.
+
+Output names
+------------
+Names mirror the inputs relative to the deepest folder that holds all of them (the common folder
+of the inputs' parent folders, so an input's own name is kept): ``batch/a.tif`` -> ``OUT/batch/a``,
+a session ``s`` -> ``OUT/s/frames/<id>``, band files ``x/a_400nm.tif``... -> ``OUT/x/a`` (no
+prefix: ``OUT/x``). For each input name N:
+
+    N.reflectance.exr  float32, channels "400nm".."700nm" (31), header attributes
+                       spherejax:calibration_checksum, spherejax:software_version,
+                       spherejax:source (the input relative to that common folder),
+                       spherejax:input_sha256, spherejax:illuminant
+    N.lab.exr          float32, channels "L*", "a*", "b*" under the illuminant, same attributes
+                       (not "L", "a", "b": OpenImageIO takes a channel "a" for alpha)
+    N.quality.png      uint8, one channel: the quality bits (pipeline.QUALITY_*), 0 = good
+    N.preview.png      8-bit sRGB (D65, IEC 61966-2-1 encoding) for browsing, whatever the
+                       illuminant; pixels with no reflectance (quality != 0) are magenta
+
+Bad pixels are NaN in both EXR files. Outputs carry no time stamps: a rerun writes the same bytes.
+An input whose output folder would resolve outside OUT (a link inside OUT), or whose name is
+already taken by another input of the batch, fails.
+
+Safety
+------
+Every output is written under a temporary name beside it (created with O_EXCL) and renamed into
+place when complete. An input that fails has none of its outputs left in OUT. OUT/manifest.jsonl
+gets one JSON line per finished input (`FileResult.to_json`), appended with a single write and
+fsync: the last line of an input wins. Without --resume an OUT holding a manifest is refused.
+With it, an input is skipped when its last line is "done" with the same input and calibration
+checksums and every output is present with the recorded SHA-256; anything else is redone.
+
+OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run and the holder's pid and
+host (for the message that refuses a second run). The kernel drops the flock when a process dies,
+so a crashed or killed run never leaves OUT locked: its lock file is simply taken over. This is
+sturdier than "is that pid alive", which a reused pid fools. Temporary files left by a killed run
+are removed when the next run takes the lock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import functools
+import hashlib
+import json
+import os
+import pathlib
+import re
+import socket
+import time
+from collections.abc import Callable, Iterable, Sequence
+
+import numpy as np
+
+from . import io
+from .grid import WAVELENGTHS_NM
+
+MANIFEST_NAME = "manifest.jsonl"
+LOCK_NAME = ".spherejax.lock"
+OUTPUT_KINDS = ("reflectance.exr", "lab.exr", "quality.png", "preview.png")
+CUBE_SUFFIXES = (".tif", ".tiff", ".exr")
+
+#: Preview colour of pixels without reflectance (sRGB 8-bit): magenta, never a real colour of a
+#: flat-fielded reflectance preview, so bad pixels stand out.
+PREVIEW_BAD_PIXEL = (255, 0, 255)
+
+_BAND_FILE = re.compile(r"(?P<prefix>.*?)[_-]?(?P<nm>\d{3,4})nm", re.IGNORECASE)
+# io._temp_sibling's names: ".<name>.<12 hex>.tmp".
+_TEMP_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.tmp")
+
+
+class BatchError(io.SpherejaxFileError):
+    """The batch cannot start: OUT locked, already holding a batch, or not writable."""
+
+
+# ----------------------------------------------------------------------------------------- inputs
+
+
+@dataclasses.dataclass(frozen=True)
+class InputSpec:
+    """One input of a batch: strings only, so it pickles to any worker.
+
+    Fields:
+      name: output name relative to OUT, POSIX ("batch/a"); outputs are "<name>.<kind>".
+      source: the input as recorded in outputs and the manifest, relative to the common folder.
+      files: absolute paths read: one cube file, or one band file per band in band order.
+      kind: "cube" or "bands".
+      band_centres_nm: for "bands", the centre of each file.
+      instrument_id: a session's instrument, checked against the calibration's; None otherwise.
+      problem: set when discovery already knows the input is bad; it then fails with this reason.
+    """
+
+    name: str
+    source: str
+    files: tuple[str, ...]
+    kind: str = "cube"
+    band_centres_nm: tuple[int, ...] = ()
+    instrument_id: str | None = None
+    problem: str | None = None
+
+
+def _common_folder(paths: Sequence[pathlib.Path]) -> pathlib.Path:
+    return pathlib.Path(os.path.commonpath([str(p.parent) for p in paths]))
+
+
+def _is_hidden(path: pathlib.Path) -> bool:
+    return path.name.startswith(".")
+
+
+def _session_inputs(folder: pathlib.Path, root: pathlib.Path) -> list[InputSpec]:
+    rel = folder.relative_to(root).as_posix()
+    try:
+        session = io.load_session(folder)
+    except io.SpherejaxFileError as error:
+        return [InputSpec(name=rel, source=rel, files=(str(folder),), problem=str(error))]
+    inputs = []
+    for frame in session.frames:
+        if frame.role not in ("sample", "target"):
+            continue
+        file = pathlib.PurePosixPath(rel) / frame.file
+        inputs.append(
+            InputSpec(
+                name=str(file.with_suffix("")),
+                source=str(file),
+                files=(str(session.frame_path(frame)),),
+                instrument_id=session.instrument_id,
+            )
+        )
+    return inputs
+
+
+def _band_groups(files: Iterable[pathlib.Path]) -> tuple[dict[str, list], list[pathlib.Path]]:
+    """Split a folder's files into band-file groups {prefix: [(nm, path)]} and other cubes."""
+    groups: dict[str, list] = {}
+    cubes = []
+    for path in files:
+        match = _BAND_FILE.fullmatch(path.stem)
+        if match and path.suffix.lower() in (".tif", ".tiff"):
+            groups.setdefault(match.group("prefix"), []).append((int(match.group("nm")), path))
+        elif path.suffix.lower() in CUBE_SUFFIXES:
+            cubes.append(path)
+    return groups, cubes
+
+
+def _band_input(folder: pathlib.Path, prefix: str, members: list, root: pathlib.Path) -> InputSpec:
+    members = sorted(members)
+    folder_rel = folder.relative_to(root)
+    name = (folder_rel / prefix).as_posix() if prefix else folder_rel.as_posix()
+    source = (folder_rel / f"{prefix}*nm").as_posix() if prefix else (folder_rel / "*nm").as_posix()
+    centres = [nm for nm, _ in members]
+    problem = None
+    if len(set(centres)) != len(centres):
+        problem = f"{folder / prefix}*nm: two files for one band centre in {centres}"
+    return InputSpec(
+        name=name,
+        source=source,
+        files=tuple(str(path) for _, path in members),
+        kind="bands",
+        band_centres_nm=tuple(centres),
+        problem=problem,
+    )
+
+
+def _search(folder: pathlib.Path, root: pathlib.Path, skip: pathlib.Path) -> list[InputSpec]:
+    if (folder / io.MANIFEST_NAME).is_file():
+        return _session_inputs(folder, root)
+    entries = sorted(p for p in folder.iterdir() if not _is_hidden(p))
+    groups, cubes = _band_groups(p for p in entries if p.is_file())
+    inputs = [_band_input(folder, prefix, members, root) for prefix, members in sorted(groups.items())]
+    for path in cubes:
+        rel = path.relative_to(root)
+        inputs.append(InputSpec(name=rel.with_suffix("").as_posix(), source=rel.as_posix(), files=(str(path),)))
+    for sub in entries:
+        if sub.is_dir() and sub.resolve() != skip:
+            inputs.extend(_search(sub, root, skip))
+    return inputs
+
+
+def discover_inputs(paths: Sequence, out_root) -> list[InputSpec]:
+    """Every input named by `paths` (files, sessions, folders searched recursively), in order.
+
+    A path that does not exist becomes an input that fails with that reason; OUT is never
+    searched (so a rerun does not take its own outputs for inputs).
+    """
+    if not paths:
+        raise ValueError("no INPUT given: name cube files, session folders or folders to search")
+    given = [pathlib.Path(os.path.abspath(p)) for p in paths]
+    root = _common_folder(given)
+    skip = pathlib.Path(out_root).resolve()
+    inputs: list[InputSpec] = []
+    for path in given:
+        rel = path.relative_to(root)
+        if path.is_dir():
+            inputs.extend(_search(path, root, skip))
+        elif path.is_file():
+            inputs.append(InputSpec(name=rel.with_suffix("").as_posix(), source=rel.as_posix(), files=(str(path),)))
+        else:
+            problem = str(io.SpherejaxFileError(path, "no such file or folder", "an input to correct"))
+            inputs.append(InputSpec(name=rel.as_posix(), source=rel.as_posix(), files=(str(path),), problem=problem))
+    return _refuse_repeated_names(inputs)
+
+
+def _refuse_repeated_names(inputs: list[InputSpec]) -> list[InputSpec]:
+    """The second input with an output name already taken fails (a.tif and a.exr both give a)."""
+    owner: dict[str, str] = {}
+    checked = []
+    for spec in inputs:
+        first = owner.setdefault(spec.name, spec.source)
+        if first != spec.source and spec.problem is None:
+            problem = f"{spec.source}: its outputs {spec.name}.* are already those of {first}"
+            spec = dataclasses.replace(spec, problem=problem)
+        checked.append(spec)
+    return checked
+
+
+# ------------------------------------------------------------------------------- one input
+
+
+@dataclasses.dataclass(frozen=True)
+class FileResult:
+    """What became of one input: a manifest line (`to_json`) plus timing for progress.
+
+    status is "done" or "failed" (with a one-line `reason`); outputs maps each output's path
+    relative to OUT to its SHA-256 (hex).
+    """
+
+    name: str
+    source: str
+    status: str
+    input_sha256: str | None = None
+    outputs: dict = dataclasses.field(default_factory=dict)
+    calibration_checksum: str | None = None
+    software_version: str | None = None
+    reason: str | None = None
+    megapixels: float = 0.0
+    seconds: float = 0.0
+
+    def to_json(self) -> dict:
+        record = {
+            "name": self.name,
+            "input": self.source,
+            "input_sha256": self.input_sha256,
+            "outputs": self.outputs,
+            "calibration_checksum": self.calibration_checksum,
+            "software_version": self.software_version,
+            "status": self.status,
+        }
+        if self.reason is not None:
+            record["reason"] = self.reason
+        return record
+
+
+@functools.lru_cache(maxsize=4)
+def _calibration(path: str, stamp: tuple, illuminant: str | None):
+    """The calibration and header, read once per process (per file version and illuminant)."""
+    from .pipeline import Calibration
+
+    calibration, header = io.load_calibration(path)
+    if illuminant is not None and illuminant != calibration.illuminant:
+        fields = {f.name: getattr(calibration, f.name) for f in dataclasses.fields(calibration)}
+        calibration = Calibration(**{**fields, "illuminant": illuminant})
+    return calibration, header
+
+
+def load_calibration(path, illuminant: str | None = None):
+    """(Calibration, header) of a calibration file, cached per process; --illuminant applied."""
+    path = pathlib.Path(path).resolve()
+    try:
+        stat = path.stat()
+        stamp = (stat.st_mtime_ns, stat.st_size)
+    except OSError:
+        stamp = None  # load_calibration names the problem
+    return _calibration(str(path), stamp, illuminant)
+
+
+def input_checksum(spec: InputSpec) -> str:
+    """SHA-256 (hex) over the bytes of the input's files, in order."""
+    digest = hashlib.sha256()
+    for file in spec.files:
+        with open(file, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+def _read_input(spec: InputSpec, calibration, header) -> np.ndarray:
+    bands = header["band_centres_nm"]
+    shape = (*calibration.image_shape, calibration.bands)
+    if spec.instrument_id is not None and spec.instrument_id != header["instrument_id"]:
+        raise io.SpherejaxFileError(
+            spec.files[0],
+            f"was taken on instrument {spec.instrument_id!r}, the calibration was built for "
+            f"{header['instrument_id']!r}",
+            "a calibration of the session's instrument",
+        )
+    if spec.kind == "bands":
+        if list(spec.band_centres_nm) != list(bands):
+            raise io.SpherejaxFileError(
+                spec.source,
+                f"has band files for {list(spec.band_centres_nm)} nm",
+                f"one file per calibration band, {bands} nm",
+            )
+        return io.read_band_files(spec.files, expected_shape=shape)
+    return io.read_cube(spec.files[0], expected_shape=shape, band_centres_nm=bands)
+
+
+def _correct_arrays(raw: np.ndarray, calibration) -> dict[str, np.ndarray]:
+    """Reflectance, Lab and quality of a whole cube, as numpy.
+
+    The one place the maths is called: a strip loop for cubes larger than memory replaces this
+    whole-image call (p from the patch box first, then strips), and the writers stay as they are.
+    """
+    from .pipeline import correct
+
+    result = correct(raw, calibration)
+    return {
+        "reflectance": np.asarray(result.reflectance, dtype=np.float32),
+        "lab": np.asarray(result.lab, dtype=np.float32),
+        "quality": np.asarray(result.quality, dtype=np.uint8),
+    }
+
+
+def srgb_preview(reflectance: np.ndarray) -> np.ndarray:
+    """8-bit sRGB of a reflectance cube (H, W, 31) under D65 -> (H, W, 3) uint8.
+
+    XYZ by ASTM E308 (Y = 1 for the perfect diffuser), the IEC 61966-2-1 matrix and encoding
+    (colour-science), clipped to [0, 1] and rounded. Non-finite pixels become PREVIEW_BAD_PIXEL.
+    """
+    import colour
+
+    from .colorimetry import tristimulus_weights
+
+    refl = reflectance.astype(np.float64)
+    xyz = refl @ (tristimulus_weights("D65") / 100.0)
+    matrix = colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB
+    linear = np.clip(xyz @ np.asarray(matrix).T, 0.0, 1.0)
+    good = np.all(np.isfinite(linear), axis=-1)
+    encoded = np.asarray(colour.models.eotf_inverse_sRGB(np.where(good[..., None], linear, 0.0)))
+    rgb = np.round(encoded * 255.0).astype(np.uint8)
+    rgb[~good] = PREVIEW_BAD_PIXEL
+    return rgb
+
+
+def _output_folder(out_root: pathlib.Path, name: str) -> tuple[pathlib.Path, list[pathlib.Path]]:
+    """The folder of `name`'s outputs, created inside OUT, and the folders that were created.
+
+    Each existing component is resolved before anything is created below it, so a link inside
+    OUT can never make mkdir or a write land outside OUT.
+    """
+    parts = pathlib.PurePosixPath(name).parts
+    if not parts or pathlib.PurePosixPath(name).is_absolute() or ".." in parts:
+        raise io.SpherejaxFileError(out_root / name, "would be written outside OUT", f"a path inside {out_root}")
+    root = out_root.resolve()
+    folder, created = root, []
+    for part in parts[:-1]:
+        folder = folder / part
+        if folder.exists() or folder.is_symlink():
+            if not folder.resolve().is_relative_to(root):
+                raise io.SpherejaxFileError(
+                    out_root / name,
+                    f"would be written outside OUT: {folder} resolves to {folder.resolve()}",
+                    f"outputs inside {root}",
+                )
+            if not folder.is_dir():
+                raise io.SpherejaxFileError(folder, "is not a folder: outputs cannot go there", "a folder")
+        else:
+            try:
+                folder.mkdir()
+            except OSError as error:
+                raise io.SpherejaxFileError(folder, f"cannot be created: {error.strerror}") from None
+            created.append(folder)
+    return folder, created
+
+
+def _remove_outputs(out_root: pathlib.Path, name: str) -> None:
+    """Remove the outputs of `name` an earlier run left, so a failed input has none in OUT
+    (the manifest says it failed). Nothing is touched outside OUT."""
+    root = out_root.resolve()
+    path = root / name
+    if ".." in pathlib.PurePosixPath(name).parts or not path.parent.resolve().is_relative_to(root):
+        return
+    for kind in OUTPUT_KINDS:
+        output = path.parent / f"{path.name}.{kind}"
+        if output.is_file() or output.is_symlink():
+            output.unlink(missing_ok=True)
+
+
+def _write_outputs(folder: pathlib.Path, stem: str, arrays, attributes) -> dict[str, pathlib.Path]:
+    """Write the four outputs, each atomically; on a failure remove those already in place."""
+    paths = {kind: folder / f"{stem}.{kind}" for kind in OUTPUT_KINDS}
+    for path in paths.values():
+        if path.is_symlink() or path.is_dir():
+            raise io.SpherejaxFileError(path, "is a link or a folder", "a file spherejax may replace")
+    writers = {
+        "reflectance.exr": lambda p: io.write_exr(
+            p, arrays["reflectance"], channel_names=[f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()],
+            attributes=attributes,
+        ),
+        "lab.exr": lambda p: io.write_exr(p, arrays["lab"], channel_names=["L*", "a*", "b*"], attributes=attributes),
+        "quality.png": lambda p: io.write_png(p, arrays["quality"][..., None], channel_names=["quality"]),
+        "preview.png": lambda p: io.write_png(p, srgb_preview(arrays["reflectance"]), channel_names=["R", "G", "B"]),
+    }
+    written = {}
+    try:
+        for kind, path in paths.items():
+            written[kind] = writers[kind](path)
+    except BaseException:
+        for kind in written:
+            paths[kind].unlink(missing_ok=True)
+        raise
+    return {kind: (paths[kind], digest) for kind, digest in written.items()}
+
+
+def correct_input(
+    source: InputSpec, out_root, calibration_path, *, illuminant: str | None = None
+) -> FileResult:
+    """Correct one input into OUT and return its `FileResult`; never raises for a bad input.
+
+    Reads the input, checks it against the calibration (instrument, bands, size), corrects it and
+    writes its four outputs (module docstring). On failure nothing of this input is left in OUT
+    (outputs, temporary files and folders it created are removed) and the result says why.
+
+    Args:
+      source: from `discover_inputs`.
+      out_root: OUT, an existing folder.
+      calibration_path: the calibration file (read once per process).
+      illuminant: Lab illuminant ("D65", "A", "F2"); None = the calibration's.
+    """
+    from . import __version__
+
+    out_root = pathlib.Path(out_root)
+    start = time.perf_counter()
+    checksum = calibration_checksum = None
+    created: list[pathlib.Path] = []
+    try:
+        calibration, header = load_calibration(calibration_path, illuminant)
+        calibration_checksum = header["checksum"]
+        if source.problem is not None:
+            raise ValueError(source.problem)
+        checksum = input_checksum(source)
+        raw = _read_input(source, calibration, header)
+        arrays = _correct_arrays(raw, calibration)
+        attributes = {
+            "spherejax:calibration_checksum": calibration_checksum,
+            "spherejax:software_version": __version__,
+            "spherejax:source": source.source,
+            "spherejax:input_sha256": checksum,
+            "spherejax:illuminant": calibration.illuminant,
+        }
+        folder, created = _output_folder(out_root, source.name)
+        written = _write_outputs(folder, pathlib.PurePosixPath(source.name).name, arrays, attributes)
+        outputs = {
+            path.resolve().relative_to(out_root.resolve()).as_posix(): digest
+            for path, digest in written.values()
+        }
+        height, width = raw.shape[:2]
+        return FileResult(
+            name=source.name, source=source.source, status="done", input_sha256=checksum,
+            outputs=outputs, calibration_checksum=calibration_checksum,
+            software_version=__version__, megapixels=height * width / 1e6,
+            seconds=time.perf_counter() - start,
+        )
+    except Exception as error:  # noqa: BLE001 -- the batch boundary: one bad input never stops it
+        if source.problem is None:  # (a repeated name's outputs are the other input's)
+            _remove_outputs(out_root, source.name)
+        for folder in reversed(created):
+            try:
+                folder.rmdir()  # only if still empty: never another input's outputs
+            except OSError:
+                break
+        reason = " ".join(str(error).split()) or type(error).__name__
+        if not isinstance(error, (io.SpherejaxFileError, OSError, ValueError)):
+            reason = f"{type(error).__name__}: {reason}"
+        return FileResult(
+            name=source.name, source=source.source, status="failed", input_sha256=checksum,
+            calibration_checksum=calibration_checksum, software_version=__version__,
+            reason=reason, seconds=time.perf_counter() - start,
+        )
+
+
+# --------------------------------------------------------------------------- manifest and lock
+
+
+def read_manifest(out_root) -> dict[str, dict]:
+    """The last manifest record of each input name. Lines that are not whole JSON objects (a run
+    killed during its last write) are ignored."""
+    path = pathlib.Path(out_root) / MANIFEST_NAME
+    records: dict[str, dict] = {}
+    if not path.is_file():
+        return records
+    for line in path.read_bytes().split(b"\n"):
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(record, dict) and isinstance(record.get("name"), str):
+            records[record["name"]] = record
+    return records
+
+
+class Manifest:
+    """OUT/manifest.jsonl opened for appending: one os.write + fsync per record."""
+
+    def __init__(self, out_root: pathlib.Path):
+        self.path = out_root / MANIFEST_NAME
+        self.fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        # A run killed mid-write may have left a line without its newline: end it, so the next
+        # record starts on a line of its own (the broken line is then skipped on reading).
+        size = os.fstat(self.fd).st_size
+        if size:
+            with open(self.path, "rb") as handle:
+                handle.seek(size - 1)
+                if handle.read(1) != b"\n":
+                    os.write(self.fd, b"\n")
+
+    def append(self, record: dict) -> None:
+        line = json.dumps(record, sort_keys=True, ensure_ascii=False, allow_nan=False) + "\n"
+        os.write(self.fd, line.encode("utf-8"))  # one write on O_APPEND: never interleaved
+        os.fsync(self.fd)
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+class OutputLock:
+    """An exclusive lock on OUT for one run (module docstring): flock on OUT/.spherejax.lock."""
+
+    def __init__(self, out_root: pathlib.Path):
+        self.path = out_root / LOCK_NAME
+        self.fd: int | None = None
+        self.taken_over: str | None = None  # the previous holder, when its lock file was left
+
+    def acquire(self) -> None:
+        while True:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            except OSError as error:
+                raise BatchError(self.path, f"cannot be created: {error.strerror}", "a writable OUT") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _describe_holder(os.read(fd, 4096))
+                os.close(fd)
+                raise BatchError(
+                    self.path, f"is held by {holder}: another spherejax correct is writing to this OUT",
+                    "one run per OUT; wait for it or use another OUT",
+                ) from None
+            # The previous holder may have removed the file between our open and flock: then we
+            # hold a lock on a file nobody else will see. Start again on the file now there.
+            try:
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            left = os.read(fd, 4096)
+            if left:
+                self.taken_over = _describe_holder(left)
+            record = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, record.encode(), 0)
+            self.fd = fd
+            return
+
+    def release(self) -> None:
+        if self.fd is not None:
+            # Unlink while still holding the lock, so nobody locks a file that is about to go.
+            self.path.unlink(missing_ok=True)
+            os.close(self.fd)
+            self.fd = None
+
+
+def _describe_holder(content: bytes) -> str:
+    try:
+        holder = json.loads(content)
+        return f"pid {holder['pid']} on {holder['host']}"
+    except (ValueError, TypeError, KeyError):
+        return "another process"
+
+
+def _remove_temporaries(out_root: pathlib.Path) -> int:
+    """Remove the temporary files a killed run left in OUT (only ours: io's naming)."""
+    removed = 0
+    for dirpath, _, filenames in os.walk(out_root):
+        for filename in filenames:
+            if _TEMP_NAME.fullmatch(filename):
+                os.unlink(os.path.join(dirpath, filename))
+                removed += 1
+    return removed
+
+
+def _sha256_file(path: pathlib.Path) -> str | None:
+    try:
+        with open(path, "rb") as handle:
+            return hashlib.file_digest(handle, "sha256").hexdigest()
+    except OSError:
+        return None
+
+
+def is_done(record: dict | None, spec: InputSpec, out_root: pathlib.Path, calibration_checksum: str) -> bool:
+    """True if `record` says `spec` is done with this calibration, its input is unchanged and
+    every recorded output is there with its checksum."""
+    if not record or record.get("status") != "done" or spec.problem is not None:
+        return False
+    if record.get("calibration_checksum") != calibration_checksum:
+        return False
+    expected = {f"{spec.name}.{kind}" for kind in OUTPUT_KINDS}
+    outputs = record.get("outputs")
+    if not isinstance(outputs, dict) or set(outputs) != expected:
+        return False
+    try:
+        if record.get("input_sha256") != input_checksum(spec):
+            return False
+    except OSError:
+        return False
+    return all(_sha256_file(out_root / name) == digest for name, digest in outputs.items())
+
+
+# ----------------------------------------------------------------------------------- the batch
+
+
+@dataclasses.dataclass
+class BatchSummary:
+    """Counts of a run and every failed input's `FileResult`."""
+
+    corrected: int = 0
+    skipped: int = 0
+    failed: list[FileResult] = dataclasses.field(default_factory=list)
+    taken_over: str | None = None
+
+    def line(self) -> str:
+        return f"{self.corrected} corrected, {self.skipped} skipped (already done), {len(self.failed)} failed"
+
+
+def run_batch(
+    inputs: Sequence,
+    out_root,
+    calibration_path,
+    *,
+    resume: bool = False,
+    illuminant: str | None = None,
+    on_start: Callable[[list[InputSpec]], None] | None = None,
+    on_result: Callable[[InputSpec, FileResult | None], None] | None = None,
+) -> BatchSummary:
+    """Correct every input into OUT, in process (`spherejax correct`).
+
+    Args:
+      inputs: files and folders (module docstring).
+      out_root: OUT; created if missing.
+      calibration_path: the calibration file.
+      resume: continue a batch already in OUT, skipping verified inputs.
+      illuminant: Lab illuminant; None = the calibration's.
+      on_start: called with the inputs found, before the first is corrected.
+      on_result: called per input with its FileResult, or None when it was skipped.
+
+    Raises (before anything is written):
+      CalibrationFileError: a calibration that cannot be read.
+      BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked.
+    """
+    out_root = pathlib.Path(out_root)
+    _, header = load_calibration(calibration_path, illuminant)
+    if out_root.exists() and not out_root.is_dir():
+        raise BatchError(out_root, "is not a folder", "an output folder (OUT)")
+    if not resume and (out_root / MANIFEST_NAME).exists():
+        raise BatchError(
+            out_root, f"already holds a batch ({MANIFEST_NAME})",
+            "--resume to continue it, or a new OUT",
+        )
+    specs = discover_inputs(inputs, out_root)
+    try:
+        out_root.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise BatchError(out_root, f"cannot be created: {error.strerror}", "a writable OUT") from None
+
+    lock = OutputLock(out_root)
+    lock.acquire()
+    summary = BatchSummary(taken_over=lock.taken_over)
+    try:
+        _remove_temporaries(out_root)
+        done = read_manifest(out_root) if resume else {}
+        manifest = Manifest(out_root)
+        try:
+            if on_start is not None:
+                on_start(specs)
+            for spec in specs:
+                if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"]):
+                    summary.skipped += 1
+                    if on_result is not None:
+                        on_result(spec, None)
+                    continue
+                result = correct_input(spec, out_root, calibration_path, illuminant=illuminant)
+                manifest.append(result.to_json())
+                if result.status == "done":
+                    summary.corrected += 1
+                else:
+                    summary.failed.append(result)
+                if on_result is not None:
+                    on_result(spec, result)
+        finally:
+            manifest.close()
+    finally:
+        lock.release()
+    return summary
+
+
+__all__ = [
+    "MANIFEST_NAME",
+    "LOCK_NAME",
+    "OUTPUT_KINDS",
+    "PREVIEW_BAD_PIXEL",
+    "BatchError",
+    "InputSpec",
+    "FileResult",
+    "BatchSummary",
+    "discover_inputs",
+    "correct_input",
+    "load_calibration",
+    "input_checksum",
+    "srgb_preview",
+    "read_manifest",
+    "is_done",
+    "run_batch",
+]

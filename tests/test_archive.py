@@ -1,0 +1,490 @@
+"""Batch correction (`spherejax correct`, spherejax.archive): outputs, names, bad inputs, the lock,
+resume, and kill-and-resume byte identity."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import pathlib
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+import spherejax
+from spherejax import archive, cli, io
+from spherejax.grid import BAND_CENTRES_NM, WAVELENGTHS_NM
+
+H, W, B = 40, 48, 16
+BANDS = [int(b) for b in BAND_CENTRES_NM]
+NAMES = [f"{b}nm" for b in BANDS]
+KINDS = archive.OUTPUT_KINDS
+
+
+def make_calibration(rng, *, instrument_id="sphere-1", bands=BANDS):
+    nb = len(bands)
+    dark = rng.uniform(90, 110, (H, W, nb)).astype(np.float32)
+    white = rng.uniform(9000, 11000, (H, W, nb)).astype(np.float32)
+    patch = np.zeros((H, W), dtype=bool)
+    patch[2:8, 2:8] = True
+    wiener = (rng.uniform(0, 1, (31, nb)) / nb).astype(np.float32)
+    calibration = spherejax.Calibration(
+        dark=dark, white=white, patch=patch, coeffs=np.asarray(spherejax.identity_coeffs(nb)),
+        wiener=wiener, saturation=16383.0,
+    )
+    return calibration, bands, instrument_id
+
+
+def frame(rng, shape=(H, W, B)):
+    raw = rng.integers(2000, 9000, shape).astype(np.uint16)
+    raw[0, 0, 0] = 16383  # one saturated pixel: NaN in the outputs, magenta in the preview
+    return raw
+
+
+@pytest.fixture(scope="module")
+def cal(tmp_path_factory):
+    """A calibration file for 40 x 48 pixel, 16-band frames."""
+    rng = np.random.default_rng(0)
+    path = tmp_path_factory.mktemp("cal") / "cal.npz"
+    calibration, bands, instrument = make_calibration(rng)
+    io.save_calibration(path, calibration, instrument_id=instrument, band_centres_nm=bands)
+    return path
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1)
+
+
+def run(argv, capsys):
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def outputs_of(out: pathlib.Path) -> dict[str, bytes]:
+    """Every output file under OUT (manifest and lock left out) -> bytes."""
+    skip = {archive.MANIFEST_NAME, archive.LOCK_NAME}
+    return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file() and p.name not in skip}
+
+
+def read_exr(path):
+    """(pixels (H, W, C) float32, channel names, attributes) through OpenImageIO."""
+    image = oiio.ImageInput.open(str(path))
+    spec = image.spec()
+    pixels = image.read_image(oiio.FLOAT)
+    attributes = {a.name: a.value for a in spec.extra_attribs}
+    names = list(spec.channelnames)
+    image.close()
+    return pixels, names, attributes
+
+
+def spec_alpha(path):
+    image = oiio.ImageInput.open(str(path))
+    alpha = image.spec().alpha_channel
+    image.close()
+    return alpha
+
+
+def manifest_records(out):
+    return [json.loads(line) for line in (out / archive.MANIFEST_NAME).read_text().splitlines() if line.strip()]
+
+
+# --------------------------------------------------------------------------------------- outputs
+
+
+def test_outputs_channels_metadata_and_values(cal, tmp_path, rng, capsys):
+    raw = frame(rng)
+    (tmp_path / "in" / "batch").mkdir(parents=True)
+    io.write_frame(tmp_path / "in" / "batch" / "a.tif", raw, channel_names=NAMES)
+    out = tmp_path / "out"
+    status, stdout, err = run(["correct", "-c", str(cal), str(tmp_path / "in"), "-o", str(out)], capsys)
+    assert status == 0, err
+    assert stdout.strip() == "1 corrected, 0 skipped (already done), 0 failed"
+    stem = out / "in" / "batch" / "a"
+    assert sorted(outputs_of(out)) == sorted(f"in/batch/a.{k}" for k in KINDS)
+
+    calibration, header = io.load_calibration(cal)
+    expected = spherejax.correct(raw, calibration)
+    refl, names, attributes = read_exr(f"{stem}.reflectance.exr")
+    assert names == [f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()]
+    np.testing.assert_array_equal(refl, np.asarray(expected.reflectance))
+    assert np.isnan(refl[0, 0]).all()
+    assert attributes["spherejax:calibration_checksum"] == header["checksum"]
+    assert attributes["spherejax:software_version"] == spherejax.__version__
+    assert attributes["spherejax:source"] == "in/batch/a.tif"
+    assert attributes["spherejax:illuminant"] == "D65"
+    assert "DateTime" not in attributes
+
+    lab, names, _ = read_exr(f"{stem}.lab.exr")
+    assert names == ["L*", "a*", "b*"] and spec_alpha(f"{stem}.lab.exr") == -1
+    np.testing.assert_array_equal(lab, np.asarray(expected.lab))
+
+    image = oiio.ImageInput.open(f"{stem}.preview.png")
+    spec = image.spec()
+    assert (image.format_name(), spec.nchannels, str(spec.format)) == ("png", 3, "uint8")
+    preview = image.read_image(oiio.UINT8)
+    image.close()
+    assert tuple(preview[0, 0]) == archive.PREVIEW_BAD_PIXEL
+    np.testing.assert_array_equal(preview, archive.srgb_preview(np.asarray(expected.reflectance)))
+
+    image = oiio.ImageInput.open(f"{stem}.quality.png")
+    quality = image.read_image(oiio.UINT8)[..., 0]
+    image.close()
+    np.testing.assert_array_equal(quality, np.asarray(expected.quality))
+    assert quality[0, 0] == spherejax.QUALITY_SATURATED
+
+    (record,) = manifest_records(out)
+    assert record["status"] == "done" and record["input"] == "in/batch/a.tif"
+    assert record["calibration_checksum"] == header["checksum"]
+    assert set(record["outputs"]) == {f"in/batch/a.{k}" for k in KINDS}
+
+
+def test_srgb_preview_of_a_perfect_white_is_white():
+    assert tuple(archive.srgb_preview(np.ones((1, 1, 31), np.float32))[0, 0]) == (255, 255, 255)
+    assert tuple(archive.srgb_preview(np.zeros((1, 1, 31), np.float32))[0, 0]) == (0, 0, 0)
+
+
+def test_illuminant_option_changes_lab_only(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    assert run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "d65")], capsys)[0] == 0
+    assert run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "f2"), "--illuminant", "F2"], capsys)[0] == 0
+    _, _, attributes = read_exr(tmp_path / "f2" / "a.lab.exr")
+    assert attributes["spherejax:illuminant"] == "F2"
+    d65, f2 = outputs_of(tmp_path / "d65"), outputs_of(tmp_path / "f2")
+    assert d65["a.preview.png"] == f2["a.preview.png"] and d65["a.lab.exr"] != f2["a.lab.exr"]
+
+
+def write_layouts(root: pathlib.Path, rng) -> dict[str, np.ndarray]:
+    """One cube in every input layout; returns output name -> raw cube."""
+    cubes = {}
+    root.mkdir(parents=True)
+    cubes["multi"] = frame(rng)
+    io.write_frame(root / "multi.tif", cubes["multi"], channel_names=NAMES)
+    # Multi-page TIFF, one page per band.
+    cubes["pages"] = frame(rng)
+    spec = oiio.ImageSpec(W, H, 1, oiio.UINT16)
+    output = oiio.ImageOutput.create("tiff")
+    output.open(str(root / "pages.tif"), [spec] * B)
+    for band in range(B):
+        if band:
+            output.open(str(root / "pages.tif"), spec, "AppendSubimage")
+        output.write_image(np.ascontiguousarray(cubes["pages"][..., band : band + 1]))
+    output.close()
+    # OpenEXR float cube (channels stored sorted by name, read back in band order).
+    cubes["float"] = frame(rng).astype(np.float32)
+    io.write_exr(root / "float.exr", cubes["float"], channel_names=NAMES)
+    # A folder of band files: two captures, a_ and b_, plus one with no prefix.
+    (root / "bands").mkdir()
+    (root / "bare").mkdir()
+    for prefix in ("a", "b"):
+        cubes[f"bands/{prefix}"] = frame(rng)
+        for band, nm in enumerate(BANDS):
+            io.write_frame(root / "bands" / f"{prefix}_{nm}nm.tif", cubes[f"bands/{prefix}"][..., band : band + 1])
+    cubes["bare"] = frame(rng)
+    for band, nm in enumerate(BANDS):
+        io.write_frame(root / "bare" / f"{nm}nm.tif", cubes["bare"][..., band : band + 1])
+    (root / "bands" / "notes.txt").write_text("ignored: not a cube")
+    return cubes
+
+
+def test_every_input_layout_and_name_mirroring(cal, tmp_path, rng, capsys):
+    cubes = write_layouts(tmp_path / "in" / "data", rng)
+    out = tmp_path / "out"
+    status, stdout, err = run(["correct", "-c", str(cal), str(tmp_path / "in"), "-o", str(out)], capsys)
+    assert status == 0, err
+    assert stdout.strip().startswith(f"{len(cubes)} corrected")
+    calibration, _ = io.load_calibration(cal)
+    for name, raw in cubes.items():
+        refl, _, _ = read_exr(out / "in" / "data" / f"{name}.reflectance.exr")
+        np.testing.assert_array_equal(refl, np.asarray(spherejax.correct(raw, calibration).reflectance), err_msg=name)
+    # Plain log lines (stderr is not a terminal): one per input.
+    assert len([line for line in err.splitlines() if ": done (" in line]) == len(cubes)
+
+
+def test_session_frames_are_inputs(cal, tmp_path, rng, capsys):
+    frames = [
+        ({"id": "dark", "role": "dark", "exposure_s": [1.0] * B, "timestamp": "2026-01-01T00:00:00"}, frame(rng)),
+        ({"id": "white", "role": "white", "exposure_s": [1.0] * B, "timestamp": "2026-01-01T00:00:00"}, frame(rng)),
+        ({"id": "s1", "role": "sample", "exposure_s": [1.0] * B, "timestamp": "2026-01-01T00:00:00",
+          "set": "test", "background": "bg"}, frame(rng)),
+    ]
+    common = dict(band_centres_nm=BANDS, image_shape=[H, W], saturation=16383, white_patch=[2, 8, 2, 8], holder=[10, 30, 10, 40], frames=frames)
+    io.write_session(tmp_path / "sess", instrument_id="sphere-1", **common)
+    io.write_session(tmp_path / "other", instrument_id="sphere-2", **common)
+    out = tmp_path / "out"
+    status, stdout, err = run(["correct", "-c", str(cal), str(tmp_path / "sess"), str(tmp_path / "other"), "-o", str(out)], capsys)
+    assert status == 1
+    assert sorted(outputs_of(out)) == sorted(f"sess/frames/s1.{k}" for k in KINDS)
+    assert "failed other/frames/s1.tif:" in err and "'sphere-2', the calibration was built for 'sphere-1'" in err
+    assert stdout.strip() == "1 corrected, 0 skipped (already done), 1 failed"
+
+
+# ------------------------------------------------------------------------------------ bad inputs
+
+
+def test_bad_inputs_fail_alone(cal, tmp_path, rng, capsys, monkeypatch):
+    inputs = tmp_path / "in"
+    (inputs / "ok").mkdir(parents=True)
+    io.write_frame(inputs / "ok" / "good1.tif", frame(rng))
+    io.write_frame(inputs / "ok" / "good2.tif", frame(rng))
+    (inputs / "bad").mkdir()
+    (inputs / "bad" / "text.tif").write_text("not an image")
+    io.write_frame(inputs / "bad" / "cut.tif", frame(rng))
+    data = (inputs / "bad" / "cut.tif").read_bytes()
+    (inputs / "bad" / "cut.tif").write_bytes(data[: len(data) // 2])
+    io.write_frame(inputs / "bad" / "bands15.tif", frame(rng, (H, W, 15)))
+    io.write_frame(inputs / "bad" / "size.tif", frame(rng, (H, W + 2, B)))
+    other_bands = [b + 5 for b in BANDS]
+    io.write_frame(inputs / "bad" / "otherbands.tif", frame(rng), channel_names=[f"{b}nm" for b in other_bands])
+    for nm in BANDS[:-1]:  # a band folder missing its last band
+        io.write_frame(inputs / "bad" / f"short_{nm}nm.tif", frame(rng, (H, W, 1)))
+    # Outputs of "unwritable" would go into a folder that cannot be created (a file is in the way).
+    (inputs / "unwritable").mkdir()
+    io.write_frame(inputs / "unwritable" / "x.tif", frame(rng))
+    # Outputs of "escape" would go through a link in OUT to a folder outside it.
+    (inputs / "escape").mkdir()
+    io.write_frame(inputs / "escape" / "y.tif", frame(rng))
+    out, outside = tmp_path / "out", tmp_path / "outside"
+    (out / "in").mkdir(parents=True)
+    outside.mkdir()
+    (out / "in" / "unwritable").write_text("a file where a folder must go")
+    (out / "in" / "escape").symlink_to(outside)
+    # A full disk while writing the preview of "full.tif": its EXRs already in place must go.
+    io.write_frame(inputs / "ok" / "full.tif", frame(rng))
+    real_write_png = io.write_png
+
+    def full_disk(path, array, **kwargs):
+        if "full" in pathlib.Path(path).name:
+            raise io.SpherejaxFileError(path, "could not be written: [Errno 28] No space left on device")
+        return real_write_png(path, array, **kwargs)
+
+    monkeypatch.setattr(io, "write_png", full_disk)
+
+    status, stdout, err = run(["correct", "-c", str(cal), str(inputs), str(tmp_path / "missing.tif"), "-o", str(out)], capsys)
+    assert status == 1
+    assert stdout.strip() == "2 corrected, 0 skipped (already done), 10 failed"
+    failures = {line.split(": ", 2)[1].removeprefix("failed "): line for line in err.splitlines() if line.startswith("spherejax: failed ")}
+    expected_reasons = {
+        "in/bad/text.tif": "not a readable image",
+        "in/bad/cut.tif": "corrupted",
+        "in/bad/bands15.tif": "has 15 channels",
+        "in/bad/size.tif": "is 40 x 50 pixels",
+        "in/bad/otherbands.tif": "has bands 405..705 nm step 20",
+        "in/bad/short*nm": "has band files for",
+        "in/unwritable/x.tif": "is not a folder",
+        "in/escape/y.tif": "would be written outside OUT",
+        "in/ok/full.tif": "No space left on device",
+        "missing.tif": "no such file or folder",
+    }
+    assert set(failures) == set(expected_reasons)
+    for source, reason in expected_reasons.items():
+        assert reason in failures[source], failures[source]
+    assert "Traceback" not in err
+    # The failures were logged as they happened and summarised at the end: one line each time.
+    assert sum(line.startswith("spherejax: [") and ": failed: " in line for line in err.splitlines()) == 10
+    # Nothing partial: the good inputs' outputs only, no temporaries, nothing outside OUT.
+    assert sorted(outputs_of(out)) == sorted([f"in/ok/good{i}.{k}" for i in (1, 2) for k in KINDS] + ["in/unwritable"])
+    assert list(outside.iterdir()) == []
+    statuses = {r["input"]: r["status"] for r in manifest_records(out)}
+    assert sorted(s for s, v in statuses.items() if v == "failed") == sorted(expected_reasons)
+    assert all("reason" in r for r in manifest_records(out) if r["status"] == "failed")
+
+
+def test_calibration_for_other_bands_fails_every_file(tmp_path, rng, capsys):
+    calibration, _, _ = make_calibration(rng, bands=BANDS[:8])
+    io.save_calibration(tmp_path / "cal8.npz", calibration, instrument_id="other", band_centres_nm=BANDS[:8])
+    io.write_frame(tmp_path / "a.tif", frame(rng), channel_names=NAMES)
+    status, stdout, err = run(["correct", "-c", str(tmp_path / "cal8.npz"), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")], capsys)
+    assert status == 1 and "has 16 channels (expected 8 channels" in err
+    assert outputs_of(tmp_path / "out") == {}
+
+
+@pytest.mark.parametrize("problem", ["missing", "corrupt"])
+def test_bad_calibration_is_refused_before_writing(tmp_path, rng, capsys, problem):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    cal = tmp_path / "cal.npz"
+    if problem == "corrupt":
+        cal.write_bytes(b"not a calibration")
+    status, stdout, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")], capsys)
+    assert status == cli.EXIT_BAD_INPUT
+    assert len(err.strip().splitlines()) == 1 and err.startswith("spherejax: error: ") and "cal.npz" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_existing_batch_needs_resume(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    argv = ["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")]
+    assert run(argv, capsys)[0] == 0
+    status, _, err = run(argv, capsys)
+    assert status == cli.EXIT_BAD_INPUT and "already holds a batch" in err and "--resume" in err
+
+
+# ------------------------------------------------------------------------------------------ lock
+
+
+def test_second_run_is_refused_while_the_lock_is_held(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = archive.OutputLock(out)
+    holder.acquire()
+    try:
+        status, _, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(out)], capsys)
+    finally:
+        holder.release()
+    assert status == cli.EXIT_BAD_INPUT and len(err.strip().splitlines()) == 1
+    assert archive.LOCK_NAME in err and f"pid {os.getpid()}" in err
+    assert sorted(p.name for p in out.iterdir()) == []  # released, nothing written
+
+
+def test_stale_lock_is_taken_over(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    out = tmp_path / "out"
+    out.mkdir()
+    # What a killed run leaves: its lock file, no longer locked (the kernel dropped the flock).
+    (out / archive.LOCK_NAME).write_text(json.dumps({"pid": 999999, "host": "crashed-host"}))
+    status, _, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(out)], capsys)
+    assert status == 0
+    assert "took over the lock left by pid 999999 on crashed-host" in err
+    assert not (out / archive.LOCK_NAME).exists()
+
+
+def test_lock_is_exclusive_between_open_files(tmp_path):
+    lock = archive.OutputLock(tmp_path)
+    lock.acquire()
+    try:
+        fd = os.open(tmp_path / archive.LOCK_NAME, os.O_RDWR)
+        with pytest.raises(BlockingIOError):
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.close(fd)
+        with pytest.raises(archive.BatchError, match="is held by pid"):
+            archive.OutputLock(tmp_path).acquire()
+    finally:
+        lock.release()
+
+
+# ---------------------------------------------------------------------------------------- resume
+
+
+def test_resume_skips_verified_and_redoes_the_rest(cal, tmp_path, rng, capsys):
+    (tmp_path / "in").mkdir()
+    for name in "abcd":
+        io.write_frame(tmp_path / "in" / f"{name}.tif", frame(rng))
+    out = tmp_path / "out"
+    argv = ["correct", "-c", str(cal), str(tmp_path / "in"), "-o", str(out)]
+    assert run(argv, capsys)[0] == 0
+    reference = outputs_of(out)
+    (out / "in" / "a.lab.exr").write_bytes(b"corrupted")  # a damaged output
+    (out / "in" / "b.preview.png").unlink()  # a missing output
+    io.write_frame(tmp_path / "in" / "c.tif", frame(rng))  # a changed input
+    status, stdout, err = run([*argv, "--resume"], capsys)
+    assert status == 0
+    assert stdout.strip() == "3 corrected, 1 skipped (already done), 0 failed"
+    assert "in/d.tif: skipped (already done)" in err
+    after = outputs_of(out)
+    assert {k: v for k, v in after.items() if not k.startswith("in/c.")} == {
+        k: v for k, v in reference.items() if not k.startswith("in/c.")
+    }
+    assert after["in/c.reflectance.exr"] != reference["in/c.reflectance.exr"]
+    latest = archive.read_manifest(out)
+    for name in "abcd":
+        for output, digest in latest[f"in/{name}"]["outputs"].items():
+            assert archive._sha256_file(out / output) == digest
+
+
+def test_resume_ignores_a_torn_manifest_line_and_stale_temporaries(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    io.write_frame(tmp_path / "b.tif", frame(rng))
+    out = tmp_path / "out"
+    argv = ["correct", "-c", str(cal), str(tmp_path / "a.tif"), str(tmp_path / "b.tif"), "-o", str(out)]
+    assert run(argv, capsys)[0] == 0
+    reference = outputs_of(out)
+    manifest = out / archive.MANIFEST_NAME
+    lines = manifest.read_bytes().splitlines(keepends=True)
+    manifest.write_bytes(lines[0] + lines[1][:40])  # killed halfway through the second record
+    (out / ".b.lab.exr.0123456789ab.tmp").write_bytes(b"half")
+    status, stdout, _ = run([*argv, "--resume"], capsys)
+    assert status == 0 and stdout.strip() == "1 corrected, 1 skipped (already done), 0 failed"
+    assert outputs_of(out) == reference
+    assert set(archive.read_manifest(out)) == {"a", "b"}
+
+
+# ------------------------------------------------------------------------------ kill and resume
+
+
+def _start(argv) -> subprocess.Popen:
+    command = [sys.executable, "-m", "spherejax.cli", "correct", *argv]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    return subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _wait_until(process: subprocess.Popen, condition) -> float:
+    """Poll until `condition()` holds or the process ends; return the time."""
+    while not condition() and process.poll() is None:
+        time.sleep(0.002)
+    return time.perf_counter()
+
+
+def _holds_lock(process: subprocess.Popen, out: pathlib.Path):
+    """True once `process` holds OUT's lock (a killed run's lock file stays behind: check the pid)."""
+
+    def condition():
+        try:
+            return json.loads((out / archive.LOCK_NAME).read_text())["pid"] == process.pid
+        except (OSError, ValueError, KeyError):
+            return False
+
+    return condition
+
+
+def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
+    rng = np.random.default_rng(7)
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    for index in range(12):
+        io.write_frame(inputs / f"cube{index:02d}.tif", frame(rng), channel_names=NAMES)
+    reference, killed = tmp_path / "reference", tmp_path / "killed"
+    process = _start(["-c", str(cal), str(inputs), "-o", str(reference)])
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err.decode()
+
+    # The first run is killed during start-up. The others once they hold the lock and have
+    # finished 1 or 2 more inputs, plus a random 0-15 ms: between or inside an input's writes.
+    delays = random.Random(3)
+    progress = []
+    for attempt in range(5):
+        argv = ["-c", str(cal), str(inputs), "-o", str(killed)]
+        if (killed / archive.MANIFEST_NAME).exists():
+            argv.append("--resume")
+        process = _start(argv)
+        if attempt == 0:
+            time.sleep(0.2)
+        else:
+            _wait_until(process, _holds_lock(process, killed))
+            target = len(archive.read_manifest(killed)) + delays.randint(1, 2)
+            _wait_until(process, lambda: len(archive.read_manifest(killed)) >= target)
+            time.sleep(delays.uniform(0.0, 0.015))
+        process.send_signal(signal.SIGKILL)
+        process.communicate(timeout=60)
+        progress.append(len(archive.read_manifest(killed)))
+    process = _start(["-c", str(cal), str(inputs), "-o", str(killed), "--resume"])
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err.decode()
+
+    # Killed mid-batch at least once: some inputs finished before a kill, not all.
+    assert any(0 < done < 12 for done in progress), progress
+    assert outputs_of(killed) == outputs_of(reference)
+    latest = archive.read_manifest(killed)
+    assert sorted(latest) == [f"in/cube{index:02d}" for index in range(12)]
+    for record in latest.values():
+        assert record["status"] == "done"
+        for output, digest in record["outputs"].items():
+            assert archive._sha256_file(killed / output) == digest
+    assert not (killed / archive.LOCK_NAME).exists()
