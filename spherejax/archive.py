@@ -495,6 +495,14 @@ def correct_input(
         )
 
 
+def failed_result(source: InputSpec, reason: str) -> FileResult:
+    """A FileResult for an input whose correction never reported back (e.g. a lost worker)."""
+    from . import __version__
+
+    return FileResult(name=source.name, source=source.source, status="failed",
+                      software_version=__version__, reason=" ".join(reason.split()))
+
+
 # --------------------------------------------------------------------------- manifest and lock
 
 
@@ -659,6 +667,7 @@ def run_batch(
     illuminant: str | None = None,
     on_start: Callable[[list[InputSpec]], None] | None = None,
     on_result: Callable[[InputSpec, FileResult | None], None] | None = None,
+    executor=None,
 ) -> BatchSummary:
     """Correct every input into OUT, in process (`spherejax correct`).
 
@@ -670,6 +679,9 @@ def run_batch(
       illuminant: Lab illuminant; None = the calibration's.
       on_start: called with the inputs found, before the first is corrected.
       on_result: called per input with its FileResult, or None when it was skipped.
+      executor: None corrects in this process; otherwise an object whose
+        map(specs, out_root, calibration_path, illuminant) yields (spec, FileResult) in any
+        order, e.g. `spherejax.cluster.DaskExecutor`.
 
     Raises (before anything is written):
       CalibrationFileError: a calibration that cannot be read.
@@ -700,13 +712,21 @@ def run_batch(
         try:
             if on_start is not None:
                 on_start(specs)
+            pending = []
             for spec in specs:
                 if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"]):
                     summary.skipped += 1
                     if on_result is not None:
                         on_result(spec, None)
                     continue
-                result = correct_input(spec, out_root, calibration_path, illuminant=illuminant)
+                pending.append(spec)
+            if executor is None:
+                results = ((spec, correct_input(spec, out_root, calibration_path, illuminant=illuminant)) for spec in pending)
+            else:
+                results = executor.map(pending, out_root, calibration_path, illuminant)
+            # The manifest is written here, by the one process that holds the lock, whoever
+            # corrected the input.
+            for spec, result in results:
                 manifest.append(result.to_json())
                 if result.status == "done":
                     summary.corrected += 1
@@ -732,6 +752,7 @@ __all__ = [
     "BatchSummary",
     "discover_inputs",
     "correct_input",
+    "failed_result",
     "load_calibration",
     "input_checksum",
     "srgb_preview",

@@ -21,6 +21,7 @@ every file is written to a temporary name and renamed into place.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io as _bytes_io
 import json
 import os
@@ -263,12 +264,19 @@ class _BatchProgress:
 def cmd_correct(args) -> int:
     from . import archive
 
+    executor = contextlib.nullcontext()
+    if args.workers is not None or args.scheduler is not None:
+        from . import cluster
+
+        executor = cluster.DaskExecutor(workers=args.workers, scheduler=args.scheduler)
     progress = _BatchProgress(args.quiet)
     try:
-        summary = archive.run_batch(
-            args.inputs, args.output, args.calibration, resume=args.resume,
-            illuminant=args.illuminant, on_start=progress.start, on_result=progress.result,
-        )
+        with executor as running:
+            summary = archive.run_batch(
+                args.inputs, args.output, args.calibration, resume=args.resume,
+                illuminant=args.illuminant, on_start=progress.start, on_result=progress.result,
+                executor=running,
+            )
     finally:
         progress.close()
     if summary.taken_over:
@@ -361,6 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help="continue the batch in OUT: skip inputs whose outputs are verified, redo the rest")
     correct.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
                          help="illuminant for Lab (default: the calibration's)")
+    scale = correct.add_mutually_exclusive_group()
+    scale.add_argument("--workers", type=int, metavar="N",
+                       help="start a local dask.distributed cluster of N single-threaded worker processes")
+    scale.add_argument("--scheduler", metavar="ADDRESS", help="use a running dask.distributed scheduler")
     correct.set_defaults(run=cmd_correct)
     return parser
 

@@ -1,0 +1,108 @@
+"""Scale-out of `spherejax correct` on dask.distributed.
+
+The task is one input (`archive.correct_input`): workers read the input and write its outputs on
+the shared file system themselves and return only a small `FileResult`, so no pixel array ever
+passes through the scheduler. The client keeps the lock and the manifest (`archive.run_batch`).
+
+- `--workers N`: a LocalCluster of N single-threaded worker processes on loopback. Each worker is
+  pinned to one core before JAX starts, because XLA sizes its CPU thread pool from the cores a
+  process may use and ignores the usual thread flags (DESIGN.md): one process per core with one
+  XLA thread each, never N processes each spawning threads for all cores.
+- `--scheduler ADDRESS`: a running cluster. Its workers are used as they were started; run them
+  with `--nworkers <cores> --nthreads 1` (or one worker with all cores), never both.
+- Every worker shares a persistent JAX compilation cache, so the first file a worker corrects
+  compiles (or loads) `correct` once and later files reuse it.
+
+dask.distributed starts its worker processes with "spawn" (its default), so JAX is never forked
+after it has started.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pathlib
+from collections.abc import Iterator
+
+from distributed import Client, LocalCluster, WorkerPlugin, as_completed
+
+from . import archive
+
+#: Where workers keep compiled executables unless SPHEREJAX_COMPILATION_CACHE says otherwise.
+DEFAULT_CACHE = pathlib.Path.home() / ".cache" / "spherejax" / "jax-compilation"
+
+
+class JaxWorkerSetup(WorkerPlugin):
+    """Runs in every worker before its first task: optional pinning to one core, and the
+    persistent compilation cache."""
+
+    def __init__(self, cache_dir: str, pin: bool):
+        self.cache_dir = cache_dir
+        self.pin = pin
+
+    def setup(self, worker):
+        if self.pin and hasattr(os, "sched_setaffinity"):
+            cores = sorted(os.sched_getaffinity(0))
+            index = abs(hash(str(worker.name))) if not str(worker.name).isdigit() else int(worker.name)
+            os.sched_setaffinity(0, {cores[index % len(cores)]})
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", self.cache_dir)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def cache_dir() -> str:
+    path = pathlib.Path(os.environ.get("SPHEREJAX_COMPILATION_CACHE", DEFAULT_CACHE))
+    path.mkdir(parents=True, exist_ok=True)
+    return str(path)
+
+
+class DaskExecutor:
+    """Maps `archive.correct_input` over inputs on a dask cluster; a context manager that starts
+    (and stops) a LocalCluster for `workers`, or connects to `scheduler`."""
+
+    def __init__(self, *, workers: int | None = None, scheduler: str | None = None):
+        if (workers is None) == (scheduler is None):
+            raise ValueError("DaskExecutor: give exactly one of workers (a local cluster) or scheduler (an address)")
+        if workers is not None and workers < 1:
+            raise ValueError(f"--workers: expected a positive number of worker processes, got {workers}")
+        self.workers, self.scheduler = workers, scheduler
+        self.cluster = self.client = None
+
+    def __enter__(self):
+        if self.workers is not None:
+            self.cluster = LocalCluster(
+                n_workers=self.workers, threads_per_worker=1, processes=True,
+                host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR,
+            )
+            self.client = Client(self.cluster)
+        else:
+            try:
+                self.client = Client(self.scheduler, timeout="20s")
+            except (OSError, TimeoutError) as error:
+                raise ValueError(f"--scheduler: cannot reach the dask scheduler at {self.scheduler} ({error})") from None
+        self.client.register_plugin(JaxWorkerSetup(cache_dir(), pin=self.workers is not None), name="spherejax-jax")
+        return self
+
+    def __exit__(self, *exc):
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+        return False
+
+    def map(self, specs: list, out_root, calibration_path, illuminant) -> Iterator[tuple[object, object]]:
+        """Yield (spec, FileResult) as workers finish; a worker that dies yields a failure."""
+        futures = {
+            self.client.submit(
+                archive.correct_input, spec, str(out_root), str(calibration_path),
+                illuminant=illuminant, pure=False, key=f"spherejax-correct-{k}",
+            ): spec
+            for k, spec in enumerate(specs)
+        }
+        for future in as_completed(futures):
+            spec = futures[future]
+            try:
+                yield spec, future.result()
+            except Exception as error:  # noqa: BLE001 -- a lost worker fails its input, not the batch
+                yield spec, archive.failed_result(spec, f"worker failed: {' '.join(str(error).split())}")

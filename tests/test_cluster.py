@@ -1,0 +1,51 @@
+"""`spherejax correct --workers N`: a dask LocalCluster on loopback gives the in-process result."""
+
+import numpy as np
+import pytest
+
+from spherejax import archive, cluster, io
+
+from .test_archive import H, NAMES, W, frame, make_calibration, outputs_of, run
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    """Six good cube files and one that is not an image, with their calibration."""
+    root = tmp_path_factory.mktemp("cluster")
+    rng = np.random.default_rng(5)
+    calibration, bands, instrument = make_calibration(rng)
+    io.save_calibration(root / "cal.npz", calibration, instrument_id=instrument, band_centres_nm=bands)
+    inputs = root / "in"
+    inputs.mkdir()
+    for k in range(6):
+        io.write_frame(inputs / f"cube{k}.tif", frame(rng), channel_names=NAMES)
+    (inputs / "broken.tif").write_bytes(b"not a TIFF")
+    return root
+
+
+def test_two_local_workers_match_the_in_process_run(batch, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SPHEREJAX_COMPILATION_CACHE", str(tmp_path / "jax-cache"))
+    status, out, _ = run(["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "serial")], capsys)
+    assert status == 1 and "6 corrected, 0 skipped (already done), 1 failed" in out
+    status, out, err = run(["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "dask"),
+                            "--workers", "2"], capsys)
+    assert status == 1 and "6 corrected, 0 skipped (already done), 1 failed" in out, err
+    assert outputs_of(tmp_path / "dask") == outputs_of(tmp_path / "serial")
+    records = archive.read_manifest(tmp_path / "dask")
+    assert sorted(r["status"] for r in records.values()) == ["done"] * 6 + ["failed"]
+    # Each worker compiled `correct` into the shared persistent cache.
+    assert any((tmp_path / "jax-cache").iterdir())
+
+
+def test_executor_arguments():
+    with pytest.raises(ValueError, match="exactly one of workers"):
+        cluster.DaskExecutor()
+    with pytest.raises(ValueError, match="--workers: expected a positive number of worker processes, got 0"):
+        cluster.DaskExecutor(workers=0)
+
+
+def test_unreachable_scheduler_is_one_line(batch, tmp_path, capsys):
+    status, _, err = run(["correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "o"),
+                          "--scheduler", "tcp://127.0.0.1:9"], capsys)
+    assert status == 2 and len(err.strip().splitlines()) == 1 and "--scheduler" in err
+    assert not (tmp_path / "o").exists()
