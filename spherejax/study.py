@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .calibrate import RegionMeasurement, base_calibration, measure_frames, reference_background
+from .calibrate import RegionMeasurement, base_calibration, measure_frames, reference_background, stage2_training_data
 from .colorimetry import delta_e_2000, reflectance_to_lab
 from .pipeline import Calibration
 from .polynomial import stage2_unchecked
@@ -63,17 +63,11 @@ def _lab_of_responses(responses, W, illuminant):
 
 
 def _training_arrays(measurements: list[RegionMeasurement], reference: str):
-    """v, p (n, B) of the samples and the Stage I response of each sample's patch on the
-    reference background (n, B); samples whose patch never lay on the reference are left out."""
-    on_reference: dict[str, list[np.ndarray]] = {}
-    for m in measurements:
-        if m.background == reference:
-            on_reference.setdefault(m.patch, []).append(m.p * m.v)
-    rows = [m for m in measurements if m.patch in on_reference and np.all(np.isfinite(m.v))]
-    v = np.stack([m.v for m in rows])
-    p = np.stack([m.p for m in rows])
-    anchor = np.stack([np.mean(on_reference[m.patch], axis=0) for m in rows])
-    return v, p, anchor
+    """Eq. 19's v, p and target (the anchor) from `calibrate.stage2_training_data`, keeping only
+    the finite rows: one NaN sample would make the whole ΔE00 objective NaN."""
+    v, p, anchor = stage2_training_data(measurements, reference)
+    finite = np.all(np.isfinite(v) & np.isfinite(p) & np.isfinite(anchor), axis=1)
+    return v[finite], p[finite], anchor[finite]
 
 
 class _Problem(eqx.Module):
