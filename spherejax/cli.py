@@ -183,6 +183,8 @@ def cmd_study(args) -> int:
     session = io.load_session(args.session)
     if args.response_weight < 0:
         raise ValueError(f"--response-weight: expected a value >= 0, got {args.response_weight}")
+    if args.max_steps < 1:
+        raise ValueError(f"--max-steps: expected a positive number of BFGS iterations, got {args.max_steps}")
     progress = _Progress(4 if args.calibration is None else 3, args.quiet)
     if args.calibration:
         calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
