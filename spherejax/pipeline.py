@@ -13,6 +13,12 @@
 Bad pixels never raise: they become NaN in every output and carry bits in `quality`. Shapes and
 configuration are checked before tracing and raise ValueError naming the argument.
 
+Two jitted steps, so that an image too large for memory can be corrected in strips with the same
+compiled code (`spherejax.stripwise`): `patch_ratio` reads only the white patch's bounding box,
+and the per-pixel step takes p as an argument. `correct(raw, calibration)` runs both;
+`correct(strip, calibration_rows, p=p)` runs the second on rows of an image with the whole
+image's p, and gives the same numbers bit for bit as the whole-image call (tested).
+
 For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so XYZ is computed
 from v_tilde directly; that equals reflectance @ weights up to rounding (tested).
 """
@@ -49,7 +55,8 @@ class Calibration(eqx.Module):
         (the normal case, and the only one a calibration file stores), or floating weights >= 0
         (0 = not in the patch), so that p, and all that follows, can be differentiated with
         respect to the patch: p is the weighted sum of white-standard signals over the weighted
-        sum of sample signals.
+        sum of sample signals. None for rows of a calibration (`rows`): `correct` then needs
+        the whole image's p.
       coeffs: Stage II coefficients (B, 4), ordered c1..c4 (Eq. 23).
       wiener: Wiener matrix (31, B) (`wiener.fit_wiener`).
       illuminant: "D65", "A" or "F2" for Lab.
@@ -60,7 +67,7 @@ class Calibration(eqx.Module):
 
     dark: jax.Array = eqx.field(converter=jnp.asarray)
     white: jax.Array = eqx.field(converter=jnp.asarray)
-    patch: jax.Array = eqx.field(converter=jnp.asarray)
+    patch: jax.Array | None = eqx.field(converter=lambda x: None if x is None else jnp.asarray(x))
     coeffs: jax.Array = eqx.field(converter=jnp.asarray)
     wiener: jax.Array = eqx.field(converter=jnp.asarray)
     illuminant: str = eqx.field(static=True, default="D65")
@@ -74,7 +81,8 @@ class Calibration(eqx.Module):
             raise ValueError(f"dark: expected shape (H, W, B), got {tuple(self.dark.shape)}")
         height, width, bands = self.dark.shape
         _checks.require_shape("white", self.white, self.dark.shape, "the dark frame's (H, W, B)")
-        _checks.require_mask_or_weights("patch", self.patch, (height, width))
+        if self.patch is not None:
+            _checks.require_mask_or_weights("patch", self.patch, (height, width))
         _checks.require_shape(
             "coeffs", self.coeffs, (bands, 4), f"c1..c4 for each of the {bands} bands"
         )
@@ -91,6 +99,27 @@ class Calibration(eqx.Module):
     @property
     def image_shape(self) -> tuple[int, int]:
         return int(self.dark.shape[0]), int(self.dark.shape[1])
+
+    @property
+    def patch_box(self) -> tuple[int, int, int, int] | None:
+        """(row0, row1, col0, col1) bounding the patch (`patch_bounding_box`); None without a
+        patch or when the patch is traced."""
+        return None if self.patch is None else patch_bounding_box(self.patch)
+
+    def rows(self, row0: int, row1: int) -> Calibration:
+        """This calibration for image rows row0:row1 only, without the patch (None).
+
+        For correcting an image in strips: `correct(raw[row0:row1], calibration.rows(row0, row1),
+        p=patch_ratio(raw, calibration))` equals rows row0:row1 of `correct(raw, calibration)`.
+        """
+        height = self.image_shape[0]
+        if not 0 <= row0 < row1 <= height:
+            raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
+        return Calibration(
+            dark=self.dark[row0:row1], white=self.white[row0:row1], patch=None,
+            coeffs=self.coeffs, wiener=self.wiener, illuminant=self.illuminant,
+            observer=self.observer, saturation=self.saturation,
+        )
 
 
 class CorrectionResult(eqx.Module):
@@ -176,7 +205,7 @@ def _pixel_flags(raw, raw_f, dark, white, saturation):
     return saturated, nonfinite, no_flat_field
 
 
-def _patch_box(patch) -> tuple[int, int, int, int] | None:
+def patch_bounding_box(patch) -> tuple[int, int, int, int] | None:
     """(row0, row1, col0, col1) bounding the patch's nonzero entries (True or weight != 0), or
     None if the patch is traced.
 
@@ -195,29 +224,36 @@ def _patch_box(patch) -> tuple[int, int, int, int] | None:
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
+def _patch_flags(raw, raw_f, dark, white, saturation):
+    saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation)
+    return saturated | nonfinite | no_flat_field
+
+
 @eqx.filter_jit
-def _correct(raw, calibration: Calibration, patch_box, intermediates: bool):
+def _patch_ratio(raw_box, dark_box, white_box, patch_box, saturation, dtype):
+    """Eq. 14-15 over the usable pixels of the patch's box: p (..., B) in `dtype`."""
+    raw_f = raw_box.astype(dtype)
+    dark, white = dark_box.astype(dtype), white_box.astype(dtype)
+    # One saturated or non-finite pixel in the patch must not shift p for the whole image.
+    bad = _patch_flags(raw_box, raw_f, dark, white, saturation)
+    weights = jnp.where(bad, 0.0, patch_box.astype(dtype))
+    return patch_ratio_weighted(raw_f, dark, white, weights[..., None])
+
+
+@eqx.filter_jit
+def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool):
+    """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B)."""
     dtype = _compute_dtype(raw, calibration)
     raw_f = raw.astype(dtype)
     dark = calibration.dark.astype(dtype)
     white = calibration.white.astype(dtype)
     coeffs = calibration.coeffs.astype(dtype)
     W = calibration.wiener.astype(dtype)
+    p = p.astype(dtype)
     saturation = _saturation_level(raw, calibration)
 
     saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation)
-
-    # Eq. 14-15 over the usable patch pixels only: one saturated pixel in the patch must not
-    # shift p for the whole image. Only the patch's bounding box is read.
-    r0, r1, c0, c1 = patch_box if patch_box is not None else (0, raw.shape[-3], 0, raw.shape[-2])
-    raw_box, dark_box, white_box = (x[..., r0:r1, c0:c1, :] for x in (raw, dark, white))
-    raw_box_f = raw_box.astype(dtype)
-    box_flags = _pixel_flags(raw_box, raw_box_f, dark_box, white_box, saturation)
-    box_bad = box_flags[0] | box_flags[1] | box_flags[2]
-    patch_weights = jnp.where(box_bad, 0.0, calibration.patch[r0:r1, c0:c1].astype(dtype))
-    p = patch_ratio_weighted(raw_box_f, dark_box, white_box, patch_weights[..., None])  # (..., B)
     patch_unusable = jnp.any(~jnp.isfinite(p), axis=-1)  # (...,)
-
     quality = (
         saturated.astype(jnp.uint8) * QUALITY_SATURATED
         | nonfinite.astype(jnp.uint8) * QUALITY_NONFINITE
@@ -252,36 +288,89 @@ def _correct(raw, calibration: Calibration, patch_box, intermediates: bool):
     return CorrectionResult(reflectance, lab, quality, p)
 
 
-def correct(raw, calibration: Calibration, *, intermediates: bool = False) -> CorrectionResult:
+def _check_calibration(calibration) -> None:
+    if not isinstance(calibration, Calibration):
+        raise ValueError(
+            f"calibration: expected a spherejax.Calibration, got {type(calibration).__name__}"
+        )
+
+
+def _check_raw(raw, calibration: Calibration, what: str) -> jax.Array:
+    raw = _checks.as_array("raw", raw)
+    if raw.ndim < 3:
+        raise ValueError(f"raw: expected shape (H, W, B) or (..., H, W, B), got {tuple(raw.shape)}")
+    expected = (*calibration.image_shape, calibration.bands)
+    if tuple(raw.shape[-3:]) != expected:
+        raise ValueError(f"raw: expected frames of shape {expected} ({what}), got {tuple(raw.shape)}")
+    if not (jnp.issubdtype(raw.dtype, jnp.integer) or jnp.issubdtype(raw.dtype, jnp.floating)):
+        raise ValueError(f"raw: expected integer counts or floats, got dtype {raw.dtype}")
+    return raw
+
+
+def patch_ratio(raw, calibration: Calibration) -> jax.Array:
+    """The white-patch ratio p (Eq. 14-15) of whole frames, from the patch's pixels only.
+
+    Pixels of the patch that are saturated, not finite or whose white is not above dark are left
+    out; a band with no usable pixel gives NaN (and `correct` then flags the whole image).
+
+    Args:
+      raw: (H, W, B) or (..., H, W, B), uint16 counts or float, the calibration's size; or only
+        the patch's bounding box of it, (..., r1 - r0, c1 - c0, B), with `calibration` cropped
+        to the same box (what an out-of-core reader passes: `Calibration.patch_box`).
+      calibration: a `Calibration` with a patch.
+
+    Returns:
+      p, (..., B), in the dtype `correct` computes in.
+    """
+    _check_calibration(calibration)
+    if calibration.patch is None:
+        raise ValueError("calibration: has no patch (rows of a calibration): p needs the whole one")
+    raw = _check_raw(raw, calibration, "the calibration's H, W, B")
+    saturation = _saturation_level(raw, calibration)
+    # Only the patch's bounding box is read: the ratio then costs nothing next to the per-pixel
+    # path. Pixels of weight 0 in the box add nothing to it, so the crop is exact.
+    box = calibration.patch_box
+    r0, r1, c0, c1 = box if box is not None else (0, raw.shape[-3], 0, raw.shape[-2])
+    crop = (slice(r0, r1), slice(c0, c1))
+    return _patch_ratio(
+        raw[..., r0:r1, c0:c1, :], calibration.dark[crop], calibration.white[crop],
+        calibration.patch[crop], saturation, _compute_dtype(raw, calibration),
+    )
+
+
+def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = False) -> CorrectionResult:
     """Correct camera frames into reflectance and CIELAB (flat field -> Stage I -> Stage II ->
     Wiener -> Lab), jitted.
 
     Args:
       raw: sample frames, (H, W, B) or (..., H, W, B), uint16 counts or float, same exposure as
         the calibration's white standard.
-      calibration: a `Calibration` with matching (H, W, B).
+      calibration: a `Calibration` with matching (H, W, B); rows of one (`Calibration.rows`)
+        when `raw` holds those rows of an image.
+      p: the white-patch ratio (B,) or (..., B) of the whole image(s) (`patch_ratio`); None =
+        computed here from `raw`, which then must be whole frames.
       intermediates: also return v, v_stage1 and v_stage2 (costs three more (H, W, B) cubes).
 
     Returns:
       `CorrectionResult`: reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W),
       p (..., B) and, if asked, the intermediates. float32 unless the calibration is float64.
     """
-    if not isinstance(calibration, Calibration):
-        raise ValueError(
-            f"calibration: expected a spherejax.Calibration, got {type(calibration).__name__}"
-        )
-    raw = _checks.as_array("raw", raw)
-    if raw.ndim < 3:
-        raise ValueError(f"raw: expected shape (H, W, B) or (..., H, W, B), got {tuple(raw.shape)}")
-    expected = (*calibration.image_shape, calibration.bands)
-    if tuple(raw.shape[-3:]) != expected:
-        raise ValueError(
-            f"raw: expected frames of shape {expected} (the calibration's H, W, B), got "
-            f"{tuple(raw.shape)}"
-        )
-    if not (jnp.issubdtype(raw.dtype, jnp.integer) or jnp.issubdtype(raw.dtype, jnp.floating)):
-        raise ValueError(f"raw: expected integer counts or floats, got dtype {raw.dtype}")
-    return _correct(raw, calibration, _patch_box(calibration.patch), bool(intermediates))
+    _check_calibration(calibration)
+    what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
+    raw = _check_raw(raw, calibration, what)
+    if p is None:
+        if calibration.patch is None:
+            raise ValueError(
+                "p: expected the whole image's white-patch ratio with rows of a calibration "
+                "(patch_ratio of the whole image), got None"
+            )
+        p = patch_ratio(raw, calibration)
+    else:
+        p = _checks.as_array("p", p)
+        bands = calibration.bands
+        _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
+        _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
+    return _correct_pixels(raw, calibration, p, bool(intermediates))
 
 
 __all__ = [
@@ -292,5 +381,7 @@ __all__ = [
     "Calibration",
     "CorrectionResult",
     "correct",
+    "patch_ratio",
+    "patch_bounding_box",
     "delta_e_map",
 ]

@@ -18,7 +18,7 @@ import pytest
 
 import spherejax as sj
 from spherejax import spectra
-from spherejax.pipeline import _patch_box
+from spherejax.pipeline import patch_bounding_box
 
 from .helpers import gaussian_sensitivity, lambertian_sphere_frames
 
@@ -395,7 +395,7 @@ class TestPatchWeights:
         direct = sj.correct(scene["raw"], calibration)
         traced = jax.jit(lambda c: sj.correct(scene["raw"], c))(calibration)
         np.testing.assert_allclose(np.asarray(direct.p), np.asarray(traced.p), rtol=1e-12)
-        assert _patch_box(calibration.patch) == (1, 5, 1, 5)
+        assert patch_bounding_box(calibration.patch) == (1, 5, 1, 5)
 
     @pytest.mark.parametrize(
         "patch, match",
