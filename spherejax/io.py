@@ -435,9 +435,8 @@ def _check_format(fields: _Fields, name: str, version: int) -> None:
 # ------------------------------------------------------------------------------------------ frames
 
 
-@contextlib.contextmanager
-def _open_frame(path: pathlib.Path) -> Iterator[oiio.ImageInput]:
-    """An open ImageInput on a checked camera frame (one page, uint16 samples); closed on exit."""
+def _open_checked_frame(path: pathlib.Path) -> oiio.ImageInput:
+    """An open ImageInput on a checked camera frame (one page, uint16 samples); the caller closes it."""
     if not path.is_file():
         raise SpherejaxFileError(path, "no such file", _FRAME_EXPECTED)
     image = oiio.ImageInput.open(str(path))
@@ -446,6 +445,17 @@ def _open_frame(path: pathlib.Path) -> Iterator[oiio.ImageInput]:
         raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
     try:
         _check_frame_header(path, image)
+    except BaseException:
+        image.close()
+        raise
+    return image
+
+
+@contextlib.contextmanager
+def _open_frame(path: pathlib.Path) -> Iterator[oiio.ImageInput]:
+    """`_open_checked_frame`, closed on exit."""
+    image = _open_checked_frame(path)
+    try:
         yield image
     finally:
         image.close()
@@ -615,38 +625,94 @@ def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
     _write_image_atomic(path, spec, array, "tiff")
 
 
-def _write_image_atomic(path: pathlib.Path, spec, array: np.ndarray, format_name: str) -> str:
-    """Write one image through OpenImageIO under a temporary name beside `path`, fsync it and
-    rename it into place; return the SHA-256 (hex) of the bytes written.
+class AtomicImageWriter:
+    """One image written through OpenImageIO in row strips under a temporary name beside `path`,
+    made the file by `commit` (fsync, then rename) only once every row is written.
 
     The temporary name is first created with O_EXCL, so it can never be an existing file or a
-    link to one elsewhere; OpenImageIO then rewrites that fresh, empty file. On any failure the
-    temporary file is removed and an existing `path` is untouched.
+    link to one elsewhere; OpenImageIO then rewrites that fresh, empty file. Leaving the `with`
+    block without `commit` (an error, a strip never written) removes the temporary file, and an
+    existing `path` is untouched. Rows must be written in order, top to bottom; the bytes do not
+    depend on how the rows are split into strips (tested).
     """
-    temp = _temp_sibling(path)
-    try:
-        os.close(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+
+    def __init__(self, path, spec: oiio.ImageSpec, format_name: str):
+        self.path = pathlib.Path(path)
+        self.height = spec.height
+        self._next_row = 0
+        self._temp = _temp_sibling(self.path)
+        self._output = None
+        try:
+            os.close(os.open(self._temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except OSError as error:
+            raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
         # The format is named, not guessed from the temporary file's extension.
         output = oiio.ImageOutput.create(format_name)
-        written = output.open(str(temp), spec)
-        if written:
-            written = output.write_image(np.ascontiguousarray(array))
-            written = output.close() and written
-        if not written:
-            raise SpherejaxFileError(path, f"could not be written: {output.geterror()}")
-        digest = hashlib.sha256()
-        with open(temp, "rb") as file:
-            for block in iter(lambda: file.read(1 << 20), b""):
-                digest.update(block)
-            os.fsync(file.fileno())  # on disk before the rename makes it the file
-        os.replace(temp, path)
-    except OSError as error:
-        raise SpherejaxFileError(path, f"could not be written: {error}") from None
-    finally:
+        if output is None or not output.open(str(self._temp), spec):
+            detail = output.geterror() if output is not None else oiio.geterror()
+            self.abort()
+            raise SpherejaxFileError(self.path, f"could not be written: {detail}")
+        self._output = output
+
+    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
+        """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows of the image."""
+        if self._output is None:
+            raise SpherejaxFileError(self.path, "is no longer open for writing")
+        if row0 != self._next_row:
+            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+        row1 = row0 + len(pixels)
+        if not self._output.write_scanlines(row0, row1, 0, np.ascontiguousarray(pixels)):
+            detail = self._output.geterror()
+            self.abort()
+            raise SpherejaxFileError(self.path, f"could not be written: {detail}")
+        self._next_row = row1
+
+    def commit(self) -> str:
+        """Finish the file, fsync it, rename it into place; return its SHA-256 (hex)."""
+        if self._output is None:
+            raise SpherejaxFileError(self.path, "is no longer open for writing")
+        if self._next_row != self.height:
+            self.abort()
+            raise SpherejaxFileError(
+                self.path, f"has {self._next_row} of its {self.height} rows", "every row written"
+            )
+        output, self._output = self._output, None
+        try:
+            if not output.close():
+                raise SpherejaxFileError(self.path, f"could not be written: {output.geterror()}")
+            digest = hashlib.sha256()
+            with open(self._temp, "rb") as file:
+                for block in iter(lambda: file.read(1 << 20), b""):
+                    digest.update(block)
+                os.fsync(file.fileno())  # on disk before the rename makes it the file
+            os.replace(self._temp, self.path)
+        except OSError as error:
+            raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
+        finally:
+            self.abort()
+        return digest.hexdigest()
+
+    def abort(self) -> None:
+        """Drop what was written: the temporary file goes, `path` is untouched."""
+        output, self._output = self._output, None
+        if output is not None:
+            output.close()
         # Best effort: the folder itself may be what failed (gone, or a file in its place).
         with contextlib.suppress(OSError):
-            temp.unlink(missing_ok=True)
-    return digest.hexdigest()
+            self._temp.unlink(missing_ok=True)
+
+    def __enter__(self) -> AtomicImageWriter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.abort()
+
+
+def _write_image_atomic(path: pathlib.Path, spec, array: np.ndarray, format_name: str) -> str:
+    """Write a whole image with `AtomicImageWriter`; return the SHA-256 (hex) of its bytes."""
+    with AtomicImageWriter(path, spec, format_name) as writer:
+        writer.write_rows(0, array)
+        return writer.commit()
 
 
 # ------------------------------------------------------------------------------- cubes and outputs
@@ -694,36 +760,108 @@ def _sample_kind(path, spec) -> str:
     raise SpherejaxFileError(path, f"has {found} samples", _CUBE_EXPECTED)
 
 
-def _read_pixels(path, image: oiio.ImageInput, kind: str) -> np.ndarray:
-    spec = image.spec()
-    pixels = image.read_image(oiio.UINT16 if kind == "uint16" else oiio.FLOAT)
-    if pixels is None or image.has_error:
-        # OIIO does not always say why (a damaged deflate stream gives no message).
-        detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
-        raise SpherejaxFileError(path, f"is corrupted: {detail}", _CUBE_EXPECTED)
-    dtype = np.uint16 if kind == "uint16" else np.float32
-    return np.asarray(pixels, dtype=dtype).reshape(spec.height, spec.width, spec.nchannels)
+@dataclasses.dataclass(frozen=True)
+class _Plane:
+    """Channels 0:channels of one subimage of one open file: a part of a cube's bands."""
+
+    image: oiio.ImageInput
+    path: pathlib.Path
+    subimage: int
+    channels: int
+    expected: str  # what the file should be, for the message when its pixels cannot be decoded
 
 
-def read_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> np.ndarray:
-    """Read a camera cube from one file.
+class CubeReader:
+    """A camera cube opened for reading in row strips, so that no more than a strip of it is in
+    memory (`open_cube`, `open_band_files`; a context manager closing its files).
+
+    Attributes:
+      shape: (H, W, B). dtype: uint16 (TIFF) or float32 (OpenEXR).
+    """
+
+    def __init__(self, planes: Sequence[_Plane], shape, dtype, band_order=None):
+        self._planes = list(planes)
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        self._band_order = band_order  # channel index of each band, or None = as stored
+
+    def read_rows(self, row0: int, row1: int) -> np.ndarray:
+        """Rows row0:row1 of the cube, (row1 - row0, W, B), bands in band order.
+
+        Raises SpherejaxFileError when the pixels of those rows cannot be decoded (truncated or
+        damaged file): a strip reader learns that a file is damaged only when it gets there.
+        """
+        height, width, _ = self.shape
+        if not 0 <= row0 < row1 <= height:
+            raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
+        parts = [self._read_plane(plane, row0, row1) for plane in self._planes]
+        cube = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
+        if self._band_order is not None:
+            cube = cube[..., self._band_order]
+        return np.ascontiguousarray(cube)
+
+    def read(self) -> np.ndarray:
+        """The whole cube, (H, W, B)."""
+        return self.read_rows(0, self.shape[0])
+
+    def _read_plane(self, plane: _Plane, row0: int, row1: int) -> np.ndarray:
+        image, sample_type = plane.image, oiio.UINT16 if self.dtype == np.uint16 else oiio.FLOAT
+        image.seek_subimage(plane.subimage, 0)
+        spec = image.spec()
+        # Rows count from the data window's origin (an OpenEXR's may not be at 0).
+        first, width = spec.y + row0, spec.width
+        if spec.tile_width:
+            # Tiled files are read in whole tiles (OpenEXR refuses scanline reads of them): the
+            # tile rows covering the strip, then the strip is cut out of them.
+            tile = spec.tile_height
+            begin = spec.y + (row0 // tile) * tile
+            end = min(spec.y + -(-row1 // tile) * tile, spec.y + spec.height)
+            pixels = image.read_tiles(
+                plane.subimage, 0, spec.x, spec.x + width, begin, end, spec.z, spec.z + 1,
+                0, plane.channels, sample_type,
+            )
+            skip = first - begin
+        else:
+            pixels = image.read_scanlines(
+                plane.subimage, 0, first, spec.y + row1, spec.z, 0, plane.channels, sample_type
+            )
+            skip = 0
+        if pixels is None or image.has_error:
+            # OIIO does not always say why (a damaged deflate stream gives no message).
+            detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
+            raise SpherejaxFileError(plane.path, f"is corrupted: {detail}", plane.expected)
+        rows = np.asarray(pixels, dtype=self.dtype).reshape(-1, width, plane.channels)
+        return rows[skip : skip + row1 - row0]
+
+    def close(self) -> None:
+        for image in {id(plane.image): plane.image for plane in self._planes}.values():
+            image.close()
+        self._planes = []
+
+    def __enter__(self) -> CubeReader:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
+def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> CubeReader:
+    """Open a camera cube stored in one file, checking its header; pixels are read by
+    `CubeReader.read_rows`.
 
     Accepted layouts: a single image with one channel per band (16-bit TIFF, or OpenEXR with half
-    or float channels), or a multi-page 16-bit TIFF with one single-channel page per band. When
-    the channel names all read "<nm>nm" they must be `band_centres_nm` (in any order: OpenEXR
-    stores channels sorted by name; they are put back in band order).
+    or float channels, scanline or tiled), or a multi-page 16-bit TIFF with one single-channel
+    page per band. When the channel names all read "<nm>nm" they must be `band_centres_nm` (in
+    any order: OpenEXR stores channels sorted by name; they are put back in band order).
 
     Args:
       path: the file.
       expected_shape: (H, W, B) the cube must have (the calibration's).
       band_centres_nm: (B,) the calibration's band centres, checked against channel names.
 
-    Returns:
-      (H, W, B) uint16 (TIFF) or float32 (OpenEXR).
-
     Raises:
-      SpherejaxFileError: missing, not an image, truncated or corrupted, samples of another type,
-        another size, band count or set of bands.
+      SpherejaxFileError: missing, not an image, samples of another type, another size, band count
+        or set of bands. (Damaged pixel data is found by `read_rows`.)
     """
     path = pathlib.Path(path)
     height, width, bands = (int(n) for n in expected_shape)
@@ -745,47 +883,72 @@ def read_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> n
             kind = _sample_kind(path, spec)
             _require_frame_shape(path, _spec_shape(image), (height, width, bands))
             names = _channel_names(image)
-            cube = _read_pixels(path, image, kind)
+            planes = [_Plane(image, path, 0, bands, _CUBE_EXPECTED)]
         else:
             if pages != bands:
                 raise SpherejaxFileError(path, f"has {pages} pages", f"{bands} pages, one per band")
-            planes = []
             for page in range(pages):
                 image.seek_subimage(page, 0)
                 kind = _sample_kind(path, image.spec())
                 if kind != "uint16":
                     raise SpherejaxFileError(path, f"page {page} has float samples", _CUBE_EXPECTED)
                 _require_frame_shape(path, _spec_shape(image), (height, width, 1))
-                planes.append(_read_pixels(path, image, kind))
-            names, cube = [], np.concatenate(planes, axis=-1)
-    finally:
+            names = []
+            planes = [_Plane(image, path, page, 1, _CUBE_EXPECTED) for page in range(pages)]
+        order = None
+        centres = band_centres_from_names(names)
+        if centres is not None and band_centres_nm is not None:
+            expected = [int(b) for b in np.asarray(band_centres_nm).tolist()]
+            if sorted(centres) != expected:
+                raise SpherejaxFileError(
+                    path,
+                    f"has bands {_describe_bands(sorted(centres))}",
+                    f"the calibration's bands, {_describe_bands(expected)}",
+                )
+            order = np.argsort(centres, kind="stable")
+            order = None if np.array_equal(order, np.arange(bands)) else order
+    except BaseException:
         image.close()
-    centres = band_centres_from_names(names)
-    if centres is not None and band_centres_nm is not None:
-        expected = [int(b) for b in np.asarray(band_centres_nm).tolist()]
-        if sorted(centres) != expected:
-            raise SpherejaxFileError(
-                path,
-                f"has bands {_describe_bands(sorted(centres))}",
-                f"the calibration's bands, {_describe_bands(expected)}",
-            )
-        cube = cube[..., np.argsort(centres, kind="stable")]
-    return np.ascontiguousarray(cube)
+        raise
+    return CubeReader(planes, (height, width, bands), np.uint16 if kind == "uint16" else np.float32, order)
+
+
+def open_band_files(paths: Sequence, *, expected_shape: Sequence[int]) -> CubeReader:
+    """Open one cube made of B single-channel 16-bit frames, one per band, in band order."""
+    height, width, bands = (int(n) for n in expected_shape)
+    if len(paths) != bands:
+        raise SpherejaxFileError(paths[0], f"is one of {len(paths)} band files", f"{bands} files")
+    planes = []
+    try:
+        for path in paths:
+            path = pathlib.Path(path)
+            image = _open_checked_frame(path)
+            planes.append(_Plane(image, path, 0, 1, _FRAME_EXPECTED))
+            _require_frame_shape(path, _spec_shape(image), (height, width, 1))
+    except BaseException:
+        for plane in planes:
+            plane.image.close()
+        raise
+    return CubeReader(planes, (height, width, bands), np.uint16)
+
+
+def read_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> np.ndarray:
+    """The whole cube of `open_cube` (same arguments and checks), (H, W, B) uint16 (TIFF) or
+    float32 (OpenEXR); damaged pixel data raises SpherejaxFileError too."""
+    with open_cube(path, expected_shape=expected_shape, band_centres_nm=band_centres_nm) as cube:
+        return cube.read()
 
 
 def read_band_files(paths: Sequence, *, expected_shape: Sequence[int]) -> np.ndarray:
     """One cube from B single-channel 16-bit frames, one per band, in band order -> (H, W, B)."""
-    height, width, bands = (int(n) for n in expected_shape)
-    if len(paths) != bands:
-        raise SpherejaxFileError(paths[0], f"is one of {len(paths)} band files", f"{bands} files")
-    planes = [read_frame(path, expected_shape=(height, width, 1)) for path in paths]
-    return np.concatenate(planes, axis=-1)
+    with open_band_files(paths, expected_shape=expected_shape) as cube:
+        return cube.read()
 
 
-def _output_spec(path, array: np.ndarray, channel_names, attributes) -> oiio.ImageSpec:
-    height, width, channels = array.shape
+def _output_spec(path, shape, dtype, channel_names, attributes) -> oiio.ImageSpec:
+    height, width, channels = shape
     names, attributes = _frame_names_and_attributes(path, channels, channel_names, attributes)
-    sample_type = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8}[array.dtype]
+    sample_type = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8}[np.dtype(dtype)]
     spec = oiio.ImageSpec(width, height, channels, sample_type)
     spec.channelnames = tuple(names)
     spec.alpha_channel = -1  # "a" of Lab or a band is never alpha
@@ -794,39 +957,57 @@ def _output_spec(path, array: np.ndarray, channel_names, attributes) -> oiio.Ima
     return spec
 
 
-def write_exr(path, array, *, channel_names, attributes=None) -> str:
-    """Write a float32 (H, W, C) OpenEXR (zip-compressed, lossless), atomically.
+def _require_image_shape(path, shape, what: str, channels=None) -> tuple[int, int, int]:
+    shape = tuple(int(n) for n in shape)
+    if len(shape) != 3 or 0 in shape or (channels is not None and shape[-1] not in channels):
+        raise SpherejaxFileError(path, f"cannot hold an image of shape {shape}", what)
+    return shape
 
-    The header holds the channel names and the string `attributes`, and no date: OpenImageIO
-    would stamp the current time, and a rerun must give the same bytes.
 
-    Returns:
-      The SHA-256 (hex) of the file written.
-    """
+def open_exr(path, shape, *, channel_names, attributes=None) -> AtomicImageWriter:
+    """An `AtomicImageWriter` for a float32 (H, W, C) OpenEXR (zip-compressed, lossless) with
+    named channels and string `attributes` in its header, and no date: OpenImageIO would stamp
+    the current time, and a rerun must give the same bytes."""
     path = pathlib.Path(path)
-    array = np.asarray(array)
-    if array.ndim != 3 or array.dtype != np.float32:
-        raise SpherejaxFileError(
-            path, f"cannot hold an array of shape {array.shape} and dtype {array.dtype}",
-            "(H, W, C) float32",
-        )
-    spec = _output_spec(path, array, channel_names, attributes)
+    shape = _require_image_shape(path, shape, "(H, W, C) float32")
+    spec = _output_spec(path, shape, np.float32, channel_names, attributes)
     spec.attribute("compression", "zip")
     spec.attribute("DateTime", "")  # an empty value suppresses OpenImageIO's time stamp
-    return _write_image_atomic(path, spec, array, "openexr")
+    return AtomicImageWriter(path, spec, "openexr")
+
+
+def open_png(path, shape, *, channel_names) -> AtomicImageWriter:
+    """An `AtomicImageWriter` for a uint8 (H, W, C) PNG, C = 1 (grey) or 3 (RGB)."""
+    path = pathlib.Path(path)
+    shape = _require_image_shape(path, shape, "(H, W, 1) or (H, W, 3) uint8", channels=(1, 3))
+    return AtomicImageWriter(path, _output_spec(path, shape, np.uint8, channel_names, None), "png")
+
+
+def _write_whole(open_writer, path, array, dtype, what: str, **kwargs) -> str:
+    path = pathlib.Path(path)
+    array = np.asarray(array)
+    if array.ndim != 3 or array.dtype != dtype:
+        raise SpherejaxFileError(
+            path, f"cannot hold an array of shape {array.shape} and dtype {array.dtype}", what
+        )
+    with open_writer(path, array.shape, **kwargs) as writer:
+        writer.write_rows(0, array)
+        return writer.commit()
+
+
+def write_exr(path, array, *, channel_names, attributes=None) -> str:
+    """Write a float32 (H, W, C) OpenEXR (`open_exr`), atomically; return its SHA-256 (hex)."""
+    return _write_whole(
+        open_exr, path, array, np.float32, "(H, W, C) float32",
+        channel_names=channel_names, attributes=attributes,
+    )
 
 
 def write_png(path, array, *, channel_names) -> str:
     """Write a uint8 (H, W, C) PNG (C = 1 grey, 3 RGB), atomically; return its SHA-256 (hex)."""
-    path = pathlib.Path(path)
-    array = np.asarray(array)
-    if array.ndim != 3 or array.dtype != np.uint8 or array.shape[-1] not in (1, 3):
-        raise SpherejaxFileError(
-            path, f"cannot hold an array of shape {array.shape} and dtype {array.dtype}",
-            "(H, W, 1) or (H, W, 3) uint8",
-        )
-    spec = _output_spec(path, array, channel_names, None)
-    return _write_image_atomic(path, spec, array, "png")
+    return _write_whole(
+        open_png, path, array, np.uint8, "(H, W, 1) or (H, W, 3) uint8", channel_names=channel_names
+    )
 
 
 # ---------------------------------------------------------------------------------------- sessions
@@ -1295,16 +1476,22 @@ def write_session(
 # -------------------------------------------------------------------------------- calibration file
 
 
-def _checksum(header: Mapping, arrays: Mapping[str, np.ndarray]) -> str:
-    """The header's checksum, sha256:<hex>, over the header without it and the arrays.
+def _checksum(header: Mapping, arrays: Mapping) -> str:
+    """The header's checksum, sha256:<hex>, over the header without it and the arrays (numpy
+    arrays or `_StoredArray`s, hashed block by block so that a calibration larger than memory
+    is never read whole).
 
     The exact byte sequence is in the module docstring: other software must reproduce it.
     """
     digest = hashlib.sha256(_canonical_json({k: v for k, v in header.items() if k != "checksum"}))
     for name in CALIBRATION_ARRAYS:
-        array = np.ascontiguousarray(arrays[name])
+        array = arrays[name]
         digest.update(f"{name} {array.dtype.str} {json.dumps(list(array.shape))}\n".encode("ascii"))
-        digest.update(array.tobytes())
+        if isinstance(array, _StoredArray):
+            for block in array.blocks():
+                digest.update(block)
+        else:
+            digest.update(np.ascontiguousarray(array).tobytes())
     return "sha256:" + digest.hexdigest()
 
 
@@ -1390,8 +1577,70 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
         )
 
 
-def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
-    """Every entry of an .npz archive, read without pickle."""
+#: Arrays up to this size are read into memory when a calibration file is opened; larger ones
+#: (the dark frame and white standard of a big sensor) are read by rows when needed.
+IN_MEMORY_BYTES = 256 << 20
+_READ_BLOCK = 16 << 20
+
+
+class _StoredArray:
+    """An array stored uncompressed in an .npz (np.savez), read from the open file by offset.
+
+    Attributes: shape, dtype (as the .npy header says); reads go through the file descriptor
+    taken when the calibration was opened, so a file replaced meanwhile is never mixed in.
+    """
+
+    def __init__(self, path: pathlib.Path, fd: int, offset: int, shape, dtype):
+        self.path, self._fd, self.offset = path, fd, offset
+        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        self.row_bytes = math.prod(self.shape[1:]) * self.dtype.itemsize
+        self.nbytes = (self.shape[0] if self.shape else 1) * self.row_bytes
+
+    def _read_into(self, buffer: np.ndarray, offset: int) -> None:
+        view = memoryview(buffer).cast("B")
+        done = 0
+        while done < len(view):
+            got = os.preadv(self._fd, [view[done:]], offset + done)
+            if got <= 0:
+                raise CalibrationFileError(
+                    self.path, "is truncated: an array ends before its data", "a whole calibration file"
+                )
+            done += got
+
+    def read_rows(self, row0: int, row1: int) -> np.ndarray:
+        """Rows row0:row1 of the first axis, as a new array."""
+        out = np.empty((row1 - row0, *self.shape[1:]), dtype=self.dtype)
+        self._read_into(out, self.offset + row0 * self.row_bytes)
+        return out
+
+    def read(self) -> np.ndarray:
+        if not self.shape:
+            out = np.empty((), dtype=self.dtype)
+            self._read_into(out.reshape(1), self.offset)
+            return out
+        return self.read_rows(0, self.shape[0])
+
+    def blocks(self) -> Iterator[memoryview]:
+        buffer = np.empty(min(self.nbytes, _READ_BLOCK), dtype=np.uint8)
+        for start in range(0, self.nbytes, _READ_BLOCK):
+            block = buffer[: min(_READ_BLOCK, self.nbytes - start)]
+            self._read_into(block, self.offset + start)
+            yield memoryview(block)
+
+
+def _member_data_offset(fd: int, info: zipfile.ZipInfo) -> int:
+    """Where a member's data starts: after its local header, whose name and extra field lengths
+    may differ from the central directory's (zip64 members carry an extra field)."""
+    local = os.pread(fd, 30, info.header_offset)
+    if len(local) != 30 or local[:4] != b"PK\x03\x04":
+        raise zipfile.BadZipFile(f"member {info.filename!r} has no local header")
+    name_length, extra_length = int.from_bytes(local[26:28], "little"), int.from_bytes(local[28:30], "little")
+    return info.header_offset + 30 + name_length + extra_length
+
+
+def _index_npz(path: pathlib.Path, fd: int) -> dict:
+    """Every entry of an .npz archive: uncompressed .npy members as `_StoredArray`s (read later,
+    by offset), compressed ones read now; never pickle."""
     # A cut-off archive loses its zip directory, which sits at the end.
     if not zipfile.is_zipfile(path):
         raise CalibrationFileError(
@@ -1399,18 +1648,37 @@ def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
             "is not an .npz (zip) archive: truncated, or not a calibration file",
             "a spherejax calibration file",
         )
+    entries, foreign = {}, []
     try:
-        with np.load(path, allow_pickle=False) as archive:
-            entries = {name: archive[name] for name in archive.files}
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                if not info.filename.endswith(".npy"):
+                    foreign.append(info.filename)
+                    continue
+                name = info.filename[: -len(".npy")]
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                    if read_header is None:
+                        raise ValueError(f"member {info.filename!r} has .npy version {version}")
+                    shape, fortran_order, dtype = read_header(member)
+                    if dtype.hasobject:
+                        raise ValueError(f"member {info.filename!r} holds Python objects")
+                    header_length = member.tell()
+                if info.compress_type == zipfile.ZIP_STORED and not fortran_order:
+                    offset = _member_data_offset(fd, info) + header_length
+                    stored = _StoredArray(path, fd, offset, shape, dtype)
+                    if header_length + stored.nbytes != info.file_size:
+                        raise ValueError(f"member {info.filename!r} does not hold the array its header describes")
+                    entries[name] = stored
+                else:
+                    with archive.open(info) as member:
+                        entries[name] = np.lib.format.read_array(member, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise CalibrationFileError(
-            path, f"is corrupted: {error}", "a spherejax calibration file"
-        ) from None
-    # numpy hands back the raw bytes of a zip member that is not a .npy file.
-    foreign = sorted(name for name, entry in entries.items() if not isinstance(entry, np.ndarray))
+        raise CalibrationFileError(path, f"is corrupted: {error}", "a spherejax calibration file") from None
     if foreign:
         raise CalibrationFileError(
-            path, f"holds entries that are not .npy arrays: {foreign}", "an .npz of arrays"
+            path, f"holds entries that are not .npy arrays: {sorted(foreign)}", "an .npz of arrays"
         )
     return entries
 
@@ -1491,8 +1759,160 @@ def save_calibration(
     return header
 
 
+class CalibrationFile:
+    """A calibration file, open and verified (header, checksum, contents), whose arrays are read
+    when needed: a dark frame and white standard larger than `IN_MEMORY_BYTES` stay on disk and
+    are read by rows (`rows`), so a calibration larger than memory can correct by strips.
+
+    Use `open_calibration`; close with `close` or a `with` block (smaller files hold no open
+    file once opened).
+
+    Attributes:
+      path: the file. header: its header dict (checksum included).
+      image_shape: (H, W). bands: B. patch_box: (row0, row1, col0, col1) bounding the patch.
+    """
+
+    def __init__(self, path: pathlib.Path, fd: int | None, header: dict, arrays: dict):
+        self.path, self.header = path, header
+        self._fd, self._arrays = None, arrays  # the fd is owned once the checks below pass
+        self._calibration_fields = {
+            "illuminant": header["illuminant"],
+            "observer": header["observer"],
+            "saturation": header["saturation"],
+        }
+        with _reraise_invalid(path):
+            dark, white, patch = (arrays[name].shape for name in ("dark", "white", "patch"))
+            if len(dark) != 3:
+                raise ValueError(f"dark: expected shape (H, W, B), got {dark}")
+            if white != dark:
+                raise ValueError(f"white: expected shape {dark} (the dark frame's (H, W, B)), got {white}")
+            if patch != dark[:2]:
+                raise ValueError(f"patch: expected shape {dark[:2]} (one entry per image pixel), got {patch}")
+            self.image_shape, self.bands = dark[:2], dark[2]
+            from .pipeline import patch_bounding_box
+
+            self.patch_box = patch_bounding_box(self._value("patch"))
+            if self.patch_box is None:
+                raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
+            self._patch_calibration = self._crop(*self.patch_box)
+        self._fd = fd
+
+    def _value(self, name: str) -> np.ndarray:
+        array = self._arrays[name]
+        return array.read() if isinstance(array, _StoredArray) else array
+
+    def _rows(self, name: str, row0: int, row1: int) -> np.ndarray:
+        array = self._arrays[name]
+        return array.read_rows(row0, row1) if isinstance(array, _StoredArray) else array[row0:row1]
+
+    def _crop(self, row0: int, row1: int, col0: int, col1: int) -> Calibration:
+        crop = lambda name: np.ascontiguousarray(self._rows(name, row0, row1)[:, col0:col1])  # noqa: E731
+        return Calibration(
+            dark=crop("dark"), white=crop("white"), patch=crop("patch"),
+            coeffs=self._value("coeffs"), wiener=self._value("wiener"), **self._calibration_fields,
+        )
+
+    @property
+    def patch_calibration(self) -> Calibration:
+        """The calibration cropped to `patch_box`: `pipeline.patch_ratio(raw[r0:r1, c0:c1],
+        patch_calibration)` is the white-patch ratio of the whole image."""
+        return self._patch_calibration
+
+    def rows(self, row0: int, row1: int) -> Calibration:
+        """The calibration of image rows row0:row1 without the patch (`Calibration.rows`), read
+        from disk for a large file."""
+        height = self.image_shape[0]
+        if not 0 <= row0 < row1 <= height:
+            raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
+        return Calibration(
+            dark=self._rows("dark", row0, row1), white=self._rows("white", row0, row1), patch=None,
+            coeffs=self._value("coeffs"), wiener=self._value("wiener"), **self._calibration_fields,
+        )
+
+    def calibration(self) -> Calibration:
+        """The whole `Calibration` in memory."""
+        return Calibration(
+            **{name: self._value(name) for name in CALIBRATION_ARRAYS}, **self._calibration_fields
+        )
+
+    def close(self) -> None:
+        fd, self._fd = getattr(self, "_fd", None), None
+        if fd is not None:
+            os.close(fd)
+
+    def __del__(self):
+        self.close()
+
+    def __enter__(self) -> CalibrationFile:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
+@contextlib.contextmanager
+def _reraise_invalid(path) -> Iterator[None]:
+    try:
+        yield
+    except ValueError as error:
+        if isinstance(error, SpherejaxFileError):
+            raise
+        raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
+
+
+def open_calibration(path, *, band_centres_nm=None) -> CalibrationFile:
+    """Open and verify a calibration file (`CalibrationFile`), reading into memory only the
+    arrays up to `IN_MEMORY_BYTES`; the checksum is verified block by block.
+
+    Args and Raises: as `load_calibration`.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        problem = "is not a file" if path.exists() else "no such file"
+        raise CalibrationFileError(path, problem, "a spherejax calibration file (.npz)")
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError as error:
+        raise CalibrationFileError(path, f"cannot be read: {error.strerror}") from None
+    try:
+        arrays = _index_npz(path, fd)
+        header_entry = arrays.pop("header", None)
+        if isinstance(header_entry, _StoredArray):
+            if header_entry.nbytes > IN_MEMORY_BYTES:
+                raise CalibrationFileError(path, f"has a header of {header_entry.nbytes} bytes", "a JSON header")
+            header_entry = header_entry.read()
+        header = _decode_header(path, header_entry)
+        _check_calibration_contents(path, header, arrays)
+        if _checksum(header, arrays) != header["checksum"]:
+            raise CalibrationFileError(
+                path,
+                "does not match its checksum: tampered or corrupted",
+                "the contents the checksum was computed from",
+            )
+        if band_centres_nm is not None:
+            expected = np.asarray(band_centres_nm).tolist()
+            if expected != header["band_centres_nm"]:
+                raise CalibrationFileError(
+                    path,
+                    f"was built for bands {_describe_bands(header['band_centres_nm'])}, "
+                    f"the session has {_describe_bands(expected)}",
+                    "a calibration for the session's bands",
+                )
+        for name, array in arrays.items():
+            if isinstance(array, _StoredArray) and array.nbytes <= IN_MEMORY_BYTES:
+                arrays[name] = array.read()
+        if not any(isinstance(array, _StoredArray) for array in arrays.values()):
+            os.close(fd)  # everything is in memory: hold no open file
+            fd = None
+        return CalibrationFile(path, fd, header, arrays)
+    except BaseException:
+        if fd is not None:
+            os.close(fd)
+        raise
+
+
 def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
-    """Read and verify a calibration file.
+    """Read and verify a calibration file, whole (`open_calibration` reads large ones by rows).
 
     Args:
       path: a file written by `save_calibration`.
@@ -1508,38 +1928,9 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
         disagree with the header, a patch that is not a boolean mask, other band centres than
         `band_centres_nm`, or contents that are not a valid `Calibration`.
     """
-    path = pathlib.Path(path)
-    if not path.is_file():
-        problem = "is not a file" if path.exists() else "no such file"
-        raise CalibrationFileError(path, problem, "a spherejax calibration file (.npz)")
-    arrays = _read_npz(path)
-    header = _decode_header(path, arrays.pop("header", None))
-    _check_calibration_contents(path, header, arrays)
-    if _checksum(header, arrays) != header["checksum"]:
-        raise CalibrationFileError(
-            path,
-            "does not match its checksum: tampered or corrupted",
-            "the contents the checksum was computed from",
-        )
-    if band_centres_nm is not None:
-        expected = np.asarray(band_centres_nm).tolist()
-        if expected != header["band_centres_nm"]:
-            raise CalibrationFileError(
-                path,
-                f"was built for bands {_describe_bands(header['band_centres_nm'])}, "
-                f"the session has {_describe_bands(expected)}",
-                "a calibration for the session's bands",
-            )
-    try:
-        calibration = Calibration(
-            **arrays,
-            illuminant=header["illuminant"],
-            observer=header["observer"],
-            saturation=header["saturation"],
-        )
-    except ValueError as error:
-        raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
-    return calibration, header
+    with open_calibration(path, band_centres_nm=band_centres_nm) as opened:
+        with _reraise_invalid(opened.path):
+            return opened.calibration(), opened.header
 
 
 __all__ = [
@@ -1556,13 +1947,21 @@ __all__ = [
     "read_frame_metadata",
     "write_frame",
     "band_centres_from_names",
+    "CubeReader",
+    "open_cube",
+    "open_band_files",
     "read_cube",
     "read_band_files",
+    "AtomicImageWriter",
+    "open_exr",
+    "open_png",
     "write_exr",
     "write_png",
     "rectangle_mask",
     "load_session",
     "write_session",
     "save_calibration",
+    "CalibrationFile",
+    "open_calibration",
     "load_calibration",
 ]
