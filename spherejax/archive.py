@@ -55,6 +55,7 @@ are removed when the next run takes the lock.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import functools
@@ -268,25 +269,19 @@ class FileResult:
 
 
 @functools.lru_cache(maxsize=4)
-def _calibration(path: str, stamp: tuple, illuminant: str | None):
-    """The calibration and header, read once per process (per file version and illuminant)."""
-    from .pipeline import Calibration
-
-    calibration, header = io.load_calibration(path)
-    if illuminant is not None and illuminant != calibration.illuminant:
-        fields = {f.name: getattr(calibration, f.name) for f in dataclasses.fields(calibration)}
-        calibration = Calibration(**{**fields, "illuminant": illuminant})
-    return calibration, header
+def _calibration(path: str, stamp: tuple, illuminant: str | None) -> io.CalibrationFile:
+    """The open calibration file, verified once per process (per file version and illuminant)."""
+    return io.open_calibration(path, illuminant=illuminant)
 
 
-def load_calibration(path, illuminant: str | None = None):
-    """(Calibration, header) of a calibration file, cached per process; --illuminant applied."""
+def load_calibration(path, illuminant: str | None = None) -> io.CalibrationFile:
+    """The open `io.CalibrationFile` of a calibration, cached per process; --illuminant applied."""
     path = pathlib.Path(path).resolve()
     try:
         stat = path.stat()
         stamp = (stat.st_mtime_ns, stat.st_size)
     except OSError:
-        stamp = None  # load_calibration names the problem
+        stamp = None  # open_calibration names the problem
     return _calibration(str(path), stamp, illuminant)
 
 
@@ -300,7 +295,9 @@ def input_checksum(spec: InputSpec) -> str:
     return digest.hexdigest()
 
 
-def _read_input(spec: InputSpec, calibration, header) -> np.ndarray:
+def _open_input(spec: InputSpec, calibration: io.CalibrationFile) -> io.CubeReader:
+    """The input opened for reading by strips, after checking it against the calibration."""
+    header = calibration.header
     bands = header["band_centres_nm"]
     shape = (*calibration.image_shape, calibration.bands)
     if spec.instrument_id is not None and spec.instrument_id != header["instrument_id"]:
@@ -317,24 +314,8 @@ def _read_input(spec: InputSpec, calibration, header) -> np.ndarray:
                 f"has band files for {list(spec.band_centres_nm)} nm",
                 f"one file per calibration band, {bands} nm",
             )
-        return io.read_band_files(spec.files, expected_shape=shape)
-    return io.read_cube(spec.files[0], expected_shape=shape, band_centres_nm=bands)
-
-
-def _correct_arrays(raw: np.ndarray, calibration) -> dict[str, np.ndarray]:
-    """Reflectance, Lab and quality of a whole cube, as numpy.
-
-    The one place the maths is called: a strip loop for cubes larger than memory replaces this
-    whole-image call (p from the patch box first, then strips), and the writers stay as they are.
-    """
-    from .pipeline import correct
-
-    result = correct(raw, calibration)
-    return {
-        "reflectance": np.asarray(result.reflectance, dtype=np.float32),
-        "lab": np.asarray(result.lab, dtype=np.float32),
-        "quality": np.asarray(result.quality, dtype=np.uint8),
-    }
+        return io.open_band_files(spec.files, expected_shape=shape)
+    return io.open_cube(spec.files[0], expected_shape=shape, band_centres_nm=bands)
 
 
 def srgb_preview(reflectance: np.ndarray) -> np.ndarray:
@@ -402,46 +383,68 @@ def _remove_outputs(out_root: pathlib.Path, name: str) -> None:
             output.unlink(missing_ok=True)
 
 
-def _write_outputs(folder: pathlib.Path, stem: str, arrays, attributes) -> dict[str, pathlib.Path]:
-    """Write the four outputs, each atomically; on a failure remove those already in place."""
+def _correct_into(
+    cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
+    attributes: dict, rows_per_strip: int | None,
+) -> dict[str, tuple[pathlib.Path, str]]:
+    """Correct `cube` strip by strip (`stripwise.correct_strips`) into its four outputs, each
+    written under a temporary name and renamed into place once complete; on a failure the
+    temporary files go and the outputs already renamed are removed."""
+    from .stripwise import correct_strips
+
     paths = {kind: folder / f"{stem}.{kind}" for kind in OUTPUT_KINDS}
     for path in paths.values():
         if path.is_symlink() or path.is_dir():
             raise io.SpherejaxFileError(path, "is a link or a folder", "a file spherejax may replace")
-    writers = {
-        "reflectance.exr": lambda p: io.write_exr(
-            p, arrays["reflectance"], channel_names=[f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()],
-            attributes=attributes,
-        ),
-        "lab.exr": lambda p: io.write_exr(p, arrays["lab"], channel_names=["L*", "a*", "b*"], attributes=attributes),
-        "quality.png": lambda p: io.write_png(p, arrays["quality"][..., None], channel_names=["quality"]),
-        "preview.png": lambda p: io.write_png(p, srgb_preview(arrays["reflectance"]), channel_names=["R", "G", "B"]),
+    height, width, _ = cube.shape
+    bands = [f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()]
+    openers = {
+        "reflectance.exr": lambda path: io.open_exr(path, (height, width, len(bands)), channel_names=bands, attributes=attributes),
+        "lab.exr": lambda path: io.open_exr(path, (height, width, 3), channel_names=["L*", "a*", "b*"], attributes=attributes),
+        "quality.png": lambda path: io.open_png(path, (height, width, 1), channel_names=["quality"]),
+        "preview.png": lambda path: io.open_png(path, (height, width, 3), channel_names=["R", "G", "B"]),
     }
-    written = {}
-    try:
-        for kind, path in paths.items():
-            written[kind] = writers[kind](path)
-    except BaseException:
-        for kind in written:
-            paths[kind].unlink(missing_ok=True)
-        raise
-    return {kind: (paths[kind], digest) for kind, digest in written.items()}
+    committed: dict[str, tuple[pathlib.Path, str]] = {}
+    with contextlib.ExitStack() as stack:
+        writers: dict[str, io.AtomicImageWriter] = {}
+        for row0, arrays in correct_strips(cube, calibration, rows_per_strip=rows_per_strip):
+            if not writers:
+                # Opened once the first strip is corrected: an input that fails before (in its
+                # header, or its patch rows) leaves no file to abandon (libpng complains on
+                # stderr about a PNG closed without rows).
+                for kind, open_writer in openers.items():
+                    writers[kind] = stack.enter_context(open_writer(paths[kind]))
+            writers["reflectance.exr"].write_rows(row0, arrays["reflectance"])
+            writers["lab.exr"].write_rows(row0, arrays["lab"])
+            writers["quality.png"].write_rows(row0, arrays["quality"][..., None])
+            writers["preview.png"].write_rows(row0, srgb_preview(arrays["reflectance"]))
+        try:
+            for kind, writer in writers.items():
+                committed[kind] = (paths[kind], writer.commit())
+        except BaseException:
+            for path, _ in committed.values():
+                path.unlink(missing_ok=True)
+            raise
+    return committed
 
 
 def correct_input(
-    source: InputSpec, out_root, calibration_path, *, illuminant: str | None = None
+    source: InputSpec, out_root, calibration_path, *, illuminant: str | None = None,
+    rows_per_strip: int | None = None,
 ) -> FileResult:
     """Correct one input into OUT and return its `FileResult`; never raises for a bad input.
 
-    Reads the input, checks it against the calibration (instrument, bands, size), corrects it and
-    writes its four outputs (module docstring). On failure nothing of this input is left in OUT
+    Checks the input against the calibration (instrument, bands, size), then reads, corrects and
+    writes it strip by strip (`stripwise`), so memory stays bounded whatever the image's size,
+    into its four outputs (module docstring). On failure nothing of this input is left in OUT
     (outputs, temporary files and folders it created are removed) and the result says why.
 
     Args:
       source: from `discover_inputs`.
       out_root: OUT, an existing folder.
-      calibration_path: the calibration file (read once per process).
+      calibration_path: the calibration file (verified once per process).
       illuminant: Lab illuminant ("D65", "A", "F2"); None = the calibration's.
+      rows_per_strip: strip height; None = `stripwise.strip_height` (the whole image when small).
     """
     from . import __version__
 
@@ -450,27 +453,27 @@ def correct_input(
     checksum = calibration_checksum = None
     created: list[pathlib.Path] = []
     try:
-        calibration, header = load_calibration(calibration_path, illuminant)
-        calibration_checksum = header["checksum"]
+        calibration = load_calibration(calibration_path, illuminant)
+        calibration_checksum = calibration.header["checksum"]
         if source.problem is not None:
             raise ValueError(source.problem)
         checksum = input_checksum(source)
-        raw = _read_input(source, calibration, header)
-        arrays = _correct_arrays(raw, calibration)
-        attributes = {
-            "spherejax:calibration_checksum": calibration_checksum,
-            "spherejax:software_version": __version__,
-            "spherejax:source": source.source,
-            "spherejax:input_sha256": checksum,
-            "spherejax:illuminant": calibration.illuminant,
-        }
-        folder, created = _output_folder(out_root, source.name)
-        written = _write_outputs(folder, pathlib.PurePosixPath(source.name).name, arrays, attributes)
+        with _open_input(source, calibration) as cube:
+            attributes = {
+                "spherejax:calibration_checksum": calibration_checksum,
+                "spherejax:software_version": __version__,
+                "spherejax:source": source.source,
+                "spherejax:input_sha256": checksum,
+                "spherejax:illuminant": calibration.patch_calibration.illuminant,
+            }
+            folder, created = _output_folder(out_root, source.name)
+            stem = pathlib.PurePosixPath(source.name).name
+            written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip)
         outputs = {
             path.resolve().relative_to(out_root.resolve()).as_posix(): digest
             for path, digest in written.values()
         }
-        height, width = raw.shape[:2]
+        height, width = calibration.image_shape
         return FileResult(
             name=source.name, source=source.source, status="done", input_sha256=checksum,
             outputs=outputs, calibration_checksum=calibration_checksum,
@@ -688,7 +691,7 @@ def run_batch(
       BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked.
     """
     out_root = pathlib.Path(out_root)
-    _, header = load_calibration(calibration_path, illuminant)
+    header = load_calibration(calibration_path, illuminant).header
     if out_root.exists() and not out_root.is_dir():
         raise BatchError(out_root, "is not a folder", "an output folder (OUT)")
     if not resume and (out_root / MANIFEST_NAME).exists():

@@ -1772,11 +1772,13 @@ class CalibrationFile:
       image_shape: (H, W). bands: B. patch_box: (row0, row1, col0, col1) bounding the patch.
     """
 
-    def __init__(self, path: pathlib.Path, fd: int | None, header: dict, arrays: dict):
+    def __init__(
+        self, path: pathlib.Path, fd: int | None, header: dict, arrays: dict, illuminant: str | None = None
+    ):
         self.path, self.header = path, header
         self._fd, self._arrays = None, arrays  # the fd is owned once the checks below pass
         self._calibration_fields = {
-            "illuminant": header["illuminant"],
+            "illuminant": header["illuminant"] if illuminant is None else illuminant,
             "observer": header["observer"],
             "saturation": header["saturation"],
         }
@@ -1860,11 +1862,13 @@ def _reraise_invalid(path) -> Iterator[None]:
         raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
 
 
-def open_calibration(path, *, band_centres_nm=None) -> CalibrationFile:
+def open_calibration(path, *, band_centres_nm=None, illuminant: str | None = None) -> CalibrationFile:
     """Open and verify a calibration file (`CalibrationFile`), reading into memory only the
     arrays up to `IN_MEMORY_BYTES`; the checksum is verified block by block.
 
-    Args and Raises: as `load_calibration`.
+    Args: as `load_calibration`, and illuminant: the Lab illuminant of the calibrations it
+      gives, instead of the one the file names (None = the file's).
+    Raises: as `load_calibration`.
     """
     path = pathlib.Path(path)
     if not path.is_file():
@@ -1904,7 +1908,7 @@ def open_calibration(path, *, band_centres_nm=None) -> CalibrationFile:
         if not any(isinstance(array, _StoredArray) for array in arrays.values()):
             os.close(fd)  # everything is in memory: hold no open file
             fd = None
-        return CalibrationFile(path, fd, header, arrays)
+        return CalibrationFile(path, fd, header, arrays, illuminant)
     except BaseException:
         if fd is not None:
             os.close(fd)

@@ -256,16 +256,18 @@ def test_bad_inputs_fail_alone(cal, tmp_path, rng, capsys, monkeypatch):
     outside.mkdir()
     (out / "in" / "unwritable").write_text("a file where a folder must go")
     (out / "in" / "escape").symlink_to(outside)
-    # A full disk while writing the preview of "full.tif": its EXRs already in place must go.
+    # A full disk when the preview of "full.tif" is renamed into place: its outputs already in
+    # place must go.
     io.write_frame(inputs / "ok" / "full.tif", frame(rng))
-    real_write_png = io.write_png
+    real_commit = io.AtomicImageWriter.commit
 
-    def full_disk(path, array, **kwargs):
-        if "full" in pathlib.Path(path).name:
-            raise io.SpherejaxFileError(path, "could not be written: [Errno 28] No space left on device")
-        return real_write_png(path, array, **kwargs)
+    def full_disk(writer):
+        if writer.path.name == "full.preview.png":
+            writer.abort()
+            raise io.SpherejaxFileError(writer.path, "could not be written: [Errno 28] No space left on device")
+        return real_commit(writer)
 
-    monkeypatch.setattr(io, "write_png", full_disk)
+    monkeypatch.setattr(io.AtomicImageWriter, "commit", full_disk)
 
     status, stdout, err = run(["correct", "-c", str(cal), str(inputs), str(tmp_path / "missing.tif"), "-o", str(out)], capsys)
     assert status == 1

@@ -1,0 +1,114 @@
+"""Correct one image in row strips, so that memory stays bounded whatever the image's size.
+
+    p   = white-patch ratio (Eq. 14-15) from the patch's bounding box only (rows r0:r1 of the
+          input, the calibration cropped to the box: `io.CalibrationFile.patch_calibration`)
+    for each strip of rows:
+          raw rows (`io.CubeReader.read_rows`), dark and white rows (`io.CalibrationFile.rows`)
+          -> `pipeline.correct(rows, calibration_rows, p=p)` -> reflectance, Lab, quality rows
+
+Both steps are the jitted functions `correct(raw, calibration)` runs on a whole image, on the
+same values, so a strip result is bit for bit the whole-image result (tested at several strip
+heights). Every strip has the same height (the last is padded with rows that are discarded), so
+an image compiles once. Memory: about `BYTES_PER_PIXEL` bytes per pixel of a strip, plus the
+calibration's patch mask (H x W bytes) and what the process holds anyway.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from . import io
+from .pipeline import Calibration, correct, patch_ratio
+
+#: Working memory per pixel of a strip, measured at 16 bands (raw, dark and white on both the
+#: numpy and the XLA side, the flat field, the outputs and their float64 preview): a bound for
+#: choosing strip heights, not an exact figure.
+BYTES_PER_PIXEL = 1500
+#: Default memory for one strip's working set.
+STRIP_BYTES = 256 << 20
+#: Strip heights are multiples of this when larger: OpenEXR compresses 16 scanlines per chunk
+#: and TIFF strips are commonly 8, 16 or 32 rows, so reads and writes stay chunk-aligned.
+ROW_QUANTUM = 16
+
+
+def strip_height(height: int, width: int, bands: int, strip_bytes: int = STRIP_BYTES) -> int:
+    """Rows per strip so that a strip's working set stays near `strip_bytes`; at least 1, at most
+    `height`."""
+    per_row = max(1, width * BYTES_PER_PIXEL * max(bands, 16) // 16)
+    rows = max(1, strip_bytes // per_row)
+    if rows > ROW_QUANTUM:
+        rows -= rows % ROW_QUANTUM
+    return int(min(rows, height))
+
+
+def _padded(rows: np.ndarray, height: int) -> np.ndarray:
+    """`rows` (n, W, C) padded with zero rows to (height, W, C)."""
+    if len(rows) == height:
+        return rows
+    pad = np.zeros((height - len(rows), *rows.shape[1:]), dtype=rows.dtype)
+    return np.concatenate([rows, pad])
+
+
+def _rows_of(calibration: io.CalibrationFile, row0: int, row1: int, height: int) -> Calibration:
+    """The calibration of rows row0:row1, padded to `height` rows with dark = white = 0 (pixels
+    flagged white <= dark: the padding computes nothing that could fail and is discarded)."""
+    rows = calibration.rows(row0, row1)
+    if row1 - row0 == height:
+        return rows
+    return Calibration(
+        dark=_padded(np.asarray(rows.dark), height), white=_padded(np.asarray(rows.white), height),
+        patch=None, coeffs=rows.coeffs, wiener=rows.wiener, illuminant=rows.illuminant,
+        observer=rows.observer, saturation=rows.saturation,
+    )
+
+
+def image_patch_ratio(cube: io.CubeReader, calibration: io.CalibrationFile):
+    """The white-patch ratio p (B,) of a whole image, reading only the patch's rows."""
+    r0, r1, c0, c1 = calibration.patch_box
+    box = cube.read_rows(r0, r1)[:, c0:c1]
+    return patch_ratio(box, calibration.patch_calibration)
+
+
+def correct_strips(
+    cube: io.CubeReader, calibration: io.CalibrationFile, *, rows_per_strip: int | None = None
+) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    """Correct an image strip by strip.
+
+    Args:
+      cube: the input, (H, W, B) (the calibration's shape).
+      calibration: the open calibration file.
+      rows_per_strip: strip height; None = `strip_height` of the image.
+
+    Yields:
+      (row0, arrays) per strip in order, arrays = {"reflectance": (n, W, 31) float32,
+      "lab": (n, W, 3) float32, "quality": (n, W) uint8} for rows row0:row0 + n.
+
+    Raises:
+      ValueError: a cube whose shape is not the calibration's; SpherejaxFileError from reading.
+    """
+    height, width, bands = cube.shape
+    if (height, width) != tuple(calibration.image_shape) or bands != calibration.bands:
+        raise ValueError(
+            f"cube: expected shape {(*calibration.image_shape, calibration.bands)} (the "
+            f"calibration's H, W, B), got {cube.shape}"
+        )
+    step = rows_per_strip or strip_height(height, width, bands)
+    if step < 1:
+        raise ValueError(f"rows_per_strip: expected at least 1, got {step}")
+    step = min(step, height)
+    p = image_patch_ratio(cube, calibration)
+    for row0 in range(0, height, step):
+        row1 = min(row0 + step, height)
+        raw = _padded(cube.read_rows(row0, row1), step)
+        result = correct(raw, _rows_of(calibration, row0, row1, step), p=p)
+        rows = row1 - row0
+        yield row0, {
+            "reflectance": np.asarray(result.reflectance[:rows], dtype=np.float32),
+            "lab": np.asarray(result.lab[:rows], dtype=np.float32),
+            "quality": np.asarray(result.quality[:rows], dtype=np.uint8),
+        }
+
+
+__all__ = ["BYTES_PER_PIXEL", "STRIP_BYTES", "strip_height", "image_patch_ratio", "correct_strips"]
