@@ -1581,6 +1581,7 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
 #: (the dark frame and white standard of a big sensor) are read by rows when needed.
 IN_MEMORY_BYTES = 256 << 20
 _READ_BLOCK = 16 << 20
+_MAX_HEADER_BYTES = 16 << 20  # a header is a few kB of JSON: refuse to read gigabytes as one
 
 
 class _StoredArray:
@@ -1882,8 +1883,10 @@ def open_calibration(path, *, band_centres_nm=None, illuminant: str | None = Non
         arrays = _index_npz(path, fd)
         header_entry = arrays.pop("header", None)
         if isinstance(header_entry, _StoredArray):
-            if header_entry.nbytes > IN_MEMORY_BYTES:
-                raise CalibrationFileError(path, f"has a header of {header_entry.nbytes} bytes", "a JSON header")
+            if header_entry.nbytes > _MAX_HEADER_BYTES:
+                raise CalibrationFileError(
+                    path, f"has a header of {header_entry.nbytes} bytes", f"a JSON header of at most {_MAX_HEADER_BYTES}"
+                )
             header_entry = header_entry.read()
         header = _decode_header(path, header_entry)
         _check_calibration_contents(path, header, arrays)
