@@ -34,6 +34,15 @@ prefix: ``OUT/x``). For each input name N:
                        illuminant; pixels with no reflectance (quality != 0) are magenta
 
 Bad pixels are NaN in both EXR files. Outputs carry no time stamps: a rerun writes the same bytes.
+
+Out of core
+-----------
+An input is never read whole: its white-patch ratio is computed from the patch's rows first, then
+it is read, corrected and written in strips of rows (`spherejax.stripwise`), and a calibration
+whose dark frame and white standard are large stays on disk, read by rows
+(`io.CalibrationFile`). Peak memory is then bounded by the strip size, whatever the image size,
+and the outputs are byte-identical to correcting the whole image at once (tested). The unit of
+distribution stays the file: one file's outputs are written by one process, in row order.
 An input whose output folder would resolve outside OUT (a link inside OUT), or whose name is
 already taken by another input of the batch, fails.
 
