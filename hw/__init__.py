@@ -1,7 +1,17 @@
-"""hw: control of the integrating-sphere multispectral instrument (filter wheels, shutter, lamp,
-camera) over pyserial, and emulated devices that follow the vendors' protocols.
+"""hw: control of the integrating-sphere multispectral instrument over pyserial, and emulated
+devices that follow the vendors' protocols (../shared/INSTRUMENT.md).
 
-See ../shared/INSTRUMENT.md for the devices and protocols. This package never imports spherejax's
-maths except to render frames for the simulated camera. The drivers arrive with the hw/ issue;
-until then the package holds nothing but this description.
+    errors        HardwareError and its kinds: DeviceTimeout, ProtocolError, DeviceError, PortError
+    serialline    the echo / value line / "> " prompt protocol both Thorlabs devices speak
+    filterwheel   Thorlabs FW102C / FW212C filter wheel
+    shutter       Thorlabs SC10 shutter controller
+    filterbank    stacked wheels as one band selector (band -> wheel and slot from the profile)
+    camera        the camera interface; simcamera (renders frames from spherejax's simulator),
+                  pvcam (PyVCAM, imported lazily)
+    lamp          the xenon lamp as a manual device: lamp hours and warm-up in a state file
+    profile       the instrument profile (TOML)
+    emulators     FW102C / FW212C and SC10 state machines served on pseudo-terminals
+    acquire       the acquisition protocol (`spherejax acquire`), resumable, into a session
+
+This package uses spherejax only to render frames for the simulated camera and to write sessions.
 """

@@ -11,6 +11,8 @@
     spherejax correct -c CAL INPUT... -o OUT [--resume] [--illuminant NAME]
                                                batch-correct cubes, sessions and folders into OUT
                                                (spherejax.archive)
+    spherejax acquire --profile FILE -o SESSION [--yes] [--emulate] [--resume]
+                                               drive the instrument (hw.acquire) into a session
 
 Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
 status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
@@ -290,6 +292,52 @@ def cmd_correct(args) -> int:
     return 1 if summary.failed else 0
 
 
+def cmd_acquire(args) -> int:
+    # hw/ is the instrument package beside spherejax (DESIGN.md, top level); imported here so the
+    # other commands never load serial drivers.
+    from hw import acquire
+
+    bar = None
+    if not args.quiet and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(unit="image", file=sys.stderr, dynamic_ncols=True, desc="band images")
+
+    def progress(done: int, total: int) -> None:
+        if bar is not None:
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+        elif not args.quiet and (done == total or done % 16 == 0):
+            print(f"spherejax: {done}/{total} band images", file=sys.stderr, flush=True)
+
+    def log(line: str) -> None:
+        if args.quiet:
+            return
+        if bar is not None:
+            bar.write(f"spherejax: {line}", file=sys.stderr)
+        else:
+            print(f"spherejax: {line}", file=sys.stderr, flush=True)
+
+    settings = acquire.Settings(log=log, progress=progress)
+    try:
+        session = acquire.acquire(
+            args.profile, args.output, emulate=args.emulate, resume=args.resume,
+            operator=acquire.Operator(yes=args.yes), settings=settings,
+        )
+    except acquire.AcquisitionStopped as error:
+        print(f"spherejax: {error}", file=sys.stderr)
+        return 1
+    except acquire.AcquisitionError as error:
+        print(f"spherejax: error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    finally:
+        if bar is not None:
+            bar.close()
+    print(f"session written to {session}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from . import io, simulate
 
@@ -376,6 +424,16 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start a local dask.distributed cluster of N single-threaded worker processes")
     scale.add_argument("--scheduler", metavar="ADDRESS", help="use a running dask.distributed scheduler")
     correct.set_defaults(run=cmd_correct)
+
+    acquire = commands.add_parser("acquire", help="drive the instrument (hw/) through the acquisition protocol into a session")
+    acquire.add_argument("--profile", required=True, metavar="FILE", help="instrument profile (TOML)")
+    acquire.add_argument("-o", "--output", required=True, metavar="SESSION", help="session folder to write")
+    acquire.add_argument("--yes", action="store_true", help="answer every operator prompt as done (scripts, tests)")
+    acquire.add_argument("--emulate", action="store_true",
+                         help="emulated wheels and shutter on pseudo-terminals and the simulated camera: no hardware")
+    acquire.add_argument("--resume", action="store_true",
+                         help="complete an interrupted acquisition without retaking what it captured")
+    acquire.set_defaults(run=cmd_acquire)
     return parser
 
 

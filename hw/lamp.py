@@ -1,0 +1,259 @@
+"""The xenon lamp, a manual device: switch-on time, warm-up and lamp hours kept in a state file.
+
+The 150 W xenon lamp's power supply has no public serial protocol (INSTRUMENT.md), so the operator
+switches it by hand and the software records it: `switch_on` when the arc strikes, `switch_off`
+when it goes out. From those records `Lamp` answers how long the lamp has been warming up and how
+many hours it has burned (xenon arcs age with hours and ignitions; both are logged with every
+frame). `record_warmup` keeps the result of the protocol's warm-up drift check.
+
+The state is a small JSON file beside the instrument profile:
+
+    {"format": "hw.lamp/1", "hours": 812.25, "on_since": "2026-01-01T09:00:00+00:00",
+     "ignitions": 341, "warmups": [{"at": "...", "drift_percent": 0.31, "minutes": 3.0,
+     "warmed_up_s": 1260.0}]}
+
+`hours` counts completed runs; a run in progress is added from `on_since`. The file is the one
+source of truth: every call reads it, every change rewrites it atomically (temporary file, fsync,
+`os.replace`), so a crash leaves either the old state or the new one. A missing file is a new
+lamp (0 h, off). A hand-written file needs only "hours" (to carry over an old lamp's hours).
+
+Times are timezone-aware datetimes (stored as ISO 8601 in UTC); `now` arguments and the
+`clock` callable make them injectable for tests.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import os
+import pathlib
+import tempfile
+from typing import Callable
+
+FORMAT = "hw.lamp/1"
+
+#: Warm-up checks kept in the state file (the session manifests keep each session's own).
+MAX_WARMUPS = 50
+
+_KEYS = ("format", "hours", "on_since", "ignitions", "warmups")
+
+
+class LampStateError(ValueError):
+    """The lamp state file is malformed; the one-line message names the file, the value and what
+    was expected."""
+
+
+class LampError(RuntimeError):
+    """A lamp record out of order (switching on a lamp recorded as on, or off one recorded off)."""
+
+
+def _utc_now() -> datetime.datetime:
+    return datetime.datetime.now(datetime.timezone.utc)
+
+
+class Lamp:
+    """The lamp's records in `state_file`.
+
+    Args:
+      state_file: path of the JSON state (its folder must exist).
+      clock: () -> timezone-aware datetime, the time when a method's `now` is None.
+    """
+
+    def __init__(self, state_file: os.PathLike | str, *, clock: Callable[[], datetime.datetime] | None = None):
+        self.state_file = pathlib.Path(state_file)
+        self._clock = clock or _utc_now
+
+    def __repr__(self) -> str:
+        return f"Lamp({str(self.state_file)!r})"
+
+    # --- time ----------------------------------------------------------------------------------
+
+    def _now(self, now: datetime.datetime | None) -> datetime.datetime:
+        value = self._clock() if now is None else now
+        if not isinstance(value, datetime.datetime) or value.tzinfo is None or value.utcoffset() is None:
+            raise ValueError(f"lamp {self.state_file}: time {value!r} is not a timezone-aware datetime")
+        return value.astimezone(datetime.timezone.utc)
+
+    # --- state file ----------------------------------------------------------------------------
+
+    def _bad(self, key: str, value, expected: str) -> LampStateError:
+        return LampStateError(f"{self.state_file}: lamp state {key}={value!r}, expected {expected}")
+
+    def _time(self, key: str, value) -> datetime.datetime:
+        expected = "an ISO 8601 time with a UTC offset"
+        if not isinstance(value, str):
+            raise self._bad(key, value, expected)
+        try:
+            parsed = datetime.datetime.fromisoformat(value)
+        except ValueError:
+            raise self._bad(key, value, expected) from None
+        if parsed.tzinfo is None:
+            raise self._bad(key, value, expected)
+        return parsed.astimezone(datetime.timezone.utc)
+
+    def _number(self, key: str, value, expected: str, *, positive: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise self._bad(key, value, expected)
+        if value < 0 or (positive and value == 0):
+            raise self._bad(key, value, expected)
+        return float(value)
+
+    def _read(self) -> dict:
+        """The validated state: hours (float), on_since (datetime | None), ignitions (int),
+        warmups (list of dicts)."""
+        try:
+            text = self.state_file.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return {"hours": 0.0, "on_since": None, "ignitions": 0, "warmups": []}
+        except UnicodeDecodeError as error:
+            raise LampStateError(f"{self.state_file}: lamp state is not UTF-8 text (byte {error.start}); expected a JSON object with \"hours\"") from None
+        try:
+            raw = json.loads(text)
+        except ValueError as error:
+            detail = f"{error.msg} at line {error.lineno} column {error.colno}" if isinstance(error, json.JSONDecodeError) else str(error)
+            raise LampStateError(f"{self.state_file}: lamp state is not JSON ({detail}); expected an object with \"hours\"") from None
+        if not isinstance(raw, dict):
+            raise LampStateError(f"{self.state_file}: lamp state is a JSON {type(raw).__name__}, expected an object with \"hours\"")
+        unknown = sorted(set(raw) - set(_KEYS))
+        if unknown:
+            raise self._bad(unknown[0], raw[unknown[0]], f"only the keys {', '.join(_KEYS)}")
+        if "format" in raw and raw["format"] != FORMAT:
+            raise self._bad("format", raw["format"], repr(FORMAT))
+        if "hours" not in raw:
+            raise LampStateError(f"{self.state_file}: lamp state has no \"hours\", expected the lamp's hours (a number >= 0)")
+        hours = self._number("hours", raw["hours"], "a finite number of hours >= 0")
+        on_since = raw.get("on_since")
+        if on_since is not None:
+            on_since = self._time("on_since", on_since)
+        ignitions = raw.get("ignitions", 0)
+        if isinstance(ignitions, bool) or not isinstance(ignitions, int) or ignitions < 0:
+            raise self._bad("ignitions", ignitions, "an integer >= 0")
+        warmups = raw.get("warmups", [])
+        if not isinstance(warmups, list):
+            raise self._bad("warmups", warmups, "a list of warm-up checks")
+        for k, entry in enumerate(warmups):
+            if not isinstance(entry, dict) or set(entry) != {"at", "drift_percent", "minutes", "warmed_up_s"}:
+                raise self._bad(f"warmups[{k}]", entry, "an object with at, drift_percent, minutes, warmed_up_s")
+            self._time(f"warmups[{k}].at", entry["at"])
+            drift = entry["drift_percent"]
+            if isinstance(drift, bool) or not isinstance(drift, (int, float)) or not math.isfinite(drift):
+                raise self._bad(f"warmups[{k}].drift_percent", drift, "a finite number")
+            self._number(f"warmups[{k}].minutes", entry["minutes"], "a finite number of minutes > 0", positive=True)
+            self._number(f"warmups[{k}].warmed_up_s", entry["warmed_up_s"], "a finite number of seconds >= 0")
+        return {"hours": hours, "on_since": on_since, "ignitions": ignitions, "warmups": warmups}
+
+    def _write(self, state: dict) -> None:
+        """Replace the state file atomically: a reader (or a crash) sees the old file or the new."""
+        record = {
+            "format": FORMAT,
+            "hours": state["hours"],
+            "on_since": None if state["on_since"] is None else state["on_since"].isoformat(),
+            "ignitions": state["ignitions"],
+            "warmups": state["warmups"][-MAX_WARMUPS:],
+        }
+        text = json.dumps(record, indent=2) + "\n"
+        folder = self.state_file.parent
+        fd, temporary = tempfile.mkstemp(dir=folder, prefix=f".{self.state_file.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                handle.write(text)
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.replace(temporary, self.state_file)
+        except BaseException:
+            try:
+                os.unlink(temporary)
+            except FileNotFoundError:
+                pass
+            raise
+        if os.name == "posix":
+            # The rename itself is durable only once the folder's entry is on disk.
+            directory = os.open(folder, os.O_RDONLY)
+            try:
+                os.fsync(directory)
+            finally:
+                os.close(directory)
+
+    # --- records -------------------------------------------------------------------------------
+
+    @property
+    def is_on(self) -> bool:
+        """Whether the lamp is recorded as burning."""
+        return self._read()["on_since"] is not None
+
+    @property
+    def on_since(self) -> datetime.datetime | None:
+        """When the running lamp was switched on (UTC), None when off."""
+        return self._read()["on_since"]
+
+    @property
+    def ignitions(self) -> int:
+        """How many times the lamp has been switched on (xenon electrodes wear per ignition)."""
+        return self._read()["ignitions"]
+
+    @property
+    def warmups(self) -> list[dict]:
+        """Recorded warm-up checks, oldest first: {"at", "drift_percent", "minutes", "warmed_up_s"}."""
+        return list(self._read()["warmups"])
+
+    def switch_on(self, now: datetime.datetime | None = None) -> None:
+        """Record that the operator switched the lamp on at `now`. Raises LampError if it is
+        recorded as on already (switch it off first, at the time it actually went out)."""
+        state = self._read()
+        if state["on_since"] is not None:
+            raise LampError(f"{self.state_file}: the lamp is recorded as on since {state['on_since'].isoformat()}; switch_off first")
+        state["on_since"] = self._now(now)
+        state["ignitions"] += 1
+        self._write(state)
+
+    def switch_off(self, now: datetime.datetime | None = None) -> float:
+        """Record that the lamp went out at `now`; returns that run's hours, added to the total.
+        Raises LampError if it is recorded as off."""
+        state = self._read()
+        if state["on_since"] is None:
+            raise LampError(f"{self.state_file}: the lamp is recorded as off; switch_on first")
+        run_h = self._run_s(state, self._now(now)) / 3600.0
+        state["hours"] += run_h
+        state["on_since"] = None
+        self._write(state)
+        return run_h
+
+    @staticmethod
+    def _run_s(state: dict, now: datetime.datetime) -> float:
+        # A wall clock stepped backwards (NTP) must not make hours run backwards.
+        return max((now - state["on_since"]).total_seconds(), 0.0) if state["on_since"] is not None else 0.0
+
+    def warmed_up_s(self, now: datetime.datetime | None = None) -> float:
+        """Seconds since switch-on at `now`; 0 when the lamp is off."""
+        return self._run_s(self._read(), self._now(now))
+
+    def hours(self, now: datetime.datetime | None = None) -> float:
+        """Lamp hours at `now`: completed runs plus the run in progress."""
+        state = self._read()
+        return state["hours"] + self._run_s(state, self._now(now)) / 3600.0
+
+    def record_warmup(self, drift_percent: float, minutes: float, now: datetime.datetime | None = None) -> dict:
+        """Log a passed warm-up check: the white standard drifted `drift_percent` % over the last
+        `minutes` minutes. Returns the entry stored (with the warm-up time at `now`). Raises
+        LampError if the lamp is recorded as off, ValueError for a non-finite drift or minutes <= 0."""
+        if isinstance(drift_percent, bool) or not math.isfinite(float(drift_percent)):
+            raise ValueError(f"lamp {self.state_file}: warm-up drift {drift_percent!r} % is not a finite number")
+        if isinstance(minutes, bool) or not math.isfinite(float(minutes)) or float(minutes) <= 0:
+            raise ValueError(f"lamp {self.state_file}: warm-up window {minutes!r} min is not a finite number > 0")
+        state = self._read()
+        if state["on_since"] is None:
+            raise LampError(f"{self.state_file}: a warm-up check with the lamp recorded as off; switch_on first")
+        at = self._now(now)
+        entry = {
+            "at": at.isoformat(),
+            "drift_percent": float(drift_percent),
+            "minutes": float(minutes),
+            "warmed_up_s": self._run_s(state, at),
+        }
+        state["warmups"] = [*state["warmups"], entry]
+        self._write(state)
+        return dict(entry)
+
+
+__all__ = ["FORMAT", "Lamp", "LampError", "LampStateError", "MAX_WARMUPS"]
