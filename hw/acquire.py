@@ -197,17 +197,17 @@ def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lam
     emulated = _emulate(profile, stack) if emulate else None
     wheel_ports = {name: (emulated["wheels"][name].path if emulated else cfg.port) for name, cfg in profile.wheels.items()}
     shutter_port = emulated["shutter"].path if emulated else profile.shutter.port
-    try:
-        wheels = {}
-        for name, config in profile.wheels.items():
-            wheels[name] = stack.enter_context(FilterWheel(wheel_ports[name], model=config.model))
-        bank = FilterBank(profile, wheels)
+    wheels = {}
+    for name, config in profile.wheels.items():
+        with _naming(f"wheel {name!r} ([wheels.{name}])"):
+            wheels[name] = stack.enter_context(
+                FilterWheel(wheel_ports[name], model=config.model, move_timeout_s=config.move_timeout_s)
+            )
+    bank = FilterBank(profile, wheels)
+    with _naming("filter wheels"):
         bank.check()
+    with _naming("shutter ([shutter])"):
         shutter = stack.enter_context(Shutter(shutter_port))
-    except WheelCountMismatch as error:
-        raise AcquisitionError(str(error)) from None
-    except HardwareError as error:
-        raise AcquisitionError(f"device check failed: {error}") from None
 
     if profile.camera.backend == "sim":
         from .simcamera import SimulatedCamera
@@ -234,6 +234,17 @@ def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lam
             raise AcquisitionError(f"camera: {error}") from None
     stack.callback(camera.close)
     return Instrument(profile, bank, shutter, camera, Lamp(lamp_state_file), emulated)
+
+
+@contextlib.contextmanager
+def _naming(device: str) -> Iterator[None]:
+    """A failed device check as one AcquisitionError naming the device and its profile key."""
+    try:
+        yield
+    except WheelCountMismatch as error:
+        raise AcquisitionError(str(error)) from None
+    except HardwareError as error:
+        raise AcquisitionError(f"{device} failed its check: {error}") from None
 
 
 def _band_index(profile: Profile, band: int | None) -> int | None:
@@ -323,14 +334,19 @@ def _captures(profile: Profile, camera: Camera) -> list[Capture]:
     camera without one, every capture of the simulated experiment)."""
     captures = [Capture("dark", "dark"), Capture("white", "white", scene="white")]
     if profile.samples:
-        scenes = camera.scenes() if hasattr(camera, "scenes") else None
+        # The simulated camera knows where each of its scenes' patches lie: their regions go into
+        # the session, so it can be calibrated like a simulated one.
+        known = {f["id"]: f for f in camera.scene_frames()} if hasattr(camera, "scene_frames") else None
         for plan in profile.samples:
-            if scenes is not None and plan.id not in scenes:
+            if known is not None and plan.id not in known:
                 raise AcquisitionError(
                     f"{profile.path}: samples id {plan.id!r} is not a scene of the simulated camera "
-                    f"(expected one of {scenes[:5]}...)"
+                    f"(expected one of {', '.join(list(known)[:4])}, ...)"
                 )
-            captures.append(Capture(plan.id, "sample", {"set": plan.set, "background": plan.background}, scene=plan.id))
+            fields = {"set": plan.set, "background": plan.background}
+            if known is not None and known[plan.id].get("regions"):
+                fields["regions"] = known[plan.id]["regions"]
+            captures.append(Capture(plan.id, "sample", fields, scene=plan.id))
     elif hasattr(camera, "scene_frames"):
         for frame_fields in camera.scene_frames():
             fields = {k: v for k, v in frame_fields.items() if k not in ("id", "role")}

@@ -53,6 +53,9 @@ class FilterBank:
         moves, since the front-panel buttons can move a wheel behind the software's back.
         """
         target = self.profile.positions_for(band_nm)
+        # Where the wheels are now, not where they were left: a front-panel press since the last
+        # select would otherwise leave a wheel unmoved (and the read-back below refuse the band).
+        self.positions = {name: wheel.position() for name, wheel in self.wheels.items()}
         # Open slots first: the filter of the previous band leaves the path before the next enters.
         order = sorted(target, key=lambda name: target[name] != self.profile.wheels[name].open_slot)
         for name in order:

@@ -9,6 +9,7 @@ belongs in a profile, never in code):
     port = "/dev/ttyUSB0"     # any pyserial URL
     model = "FW212C"          # FW102C (6 slots) or FW212C (12 slots)
     open_slot = 12            # the empty slot the wheel rests on when another wheel's filter is used
+    move_timeout_s = 20.0     # optional: how long a move may take (up to ~7 s in slow mode)
     [wheels.b]
     port = "/dev/ttyUSB1"
     model = "FW212C"
@@ -83,6 +84,7 @@ class WheelConfig:
     port: str
     model: str
     open_slot: int
+    move_timeout_s: float = 20.0
 
     @property
     def positions(self) -> int:
@@ -190,7 +192,9 @@ class _Table:
                 raise ProfileError(self.path, self.key(name), "is missing", expected)
             return default
         value = self.data[name]
-        ok = isinstance(value, kind) and not (kind in (int, float) and isinstance(value, bool))
+        # A TOML boolean is a Python int: refuse it wherever a number is expected (kind may be a
+        # tuple such as (int, float), which `kind in (int, float)` would not catch).
+        ok = isinstance(value, kind) and not (isinstance(value, bool) and kind is not bool)
         if ok and isinstance(value, float):
             ok = math.isfinite(value)
         if not ok or (check is not None and not check(value)):
@@ -226,12 +230,16 @@ def _wheels(root: _Table) -> dict[str, WheelConfig]:
     wheels = {}
     for name in table.data:
         wheel = table.table(name)
-        wheel.only({"port", "model", "open_slot"})
+        wheel.only({"port", "model", "open_slot", "move_timeout_s"})
         port = wheel.get("port", str, "a serial port path or pyserial URL", check=bool)
         model = wheel.get("model", str, f"one of {sorted(WHEEL_POSITIONS)}", check=lambda m: m in WHEEL_POSITIONS)
         count = WHEEL_POSITIONS[model]
         open_slot = wheel.get("open_slot", int, f"a slot 1..{count} of the {model}", check=lambda s: 1 <= s <= count)
-        wheels[name] = WheelConfig(name, port, model, open_slot)
+        move_timeout_s = float(wheel.get(
+            "move_timeout_s", (int, float), "seconds > 0 (a slow-mode move takes up to about 7 s)",
+            default=20.0, check=lambda v: v > 0,
+        ))
+        wheels[name] = WheelConfig(name, port, model, open_slot, move_timeout_s)
     return wheels
 
 

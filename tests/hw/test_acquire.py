@@ -1,0 +1,238 @@
+"""`spherejax acquire` on emulated devices: the protocol, the session it writes, faults that stop
+it with nothing lost, and --resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from hw import acquire
+from spherejax import cli, io
+
+BANDS = list(range(400, 701, 20))
+SAMPLES = ("train-bg00-g0", "test-bg01-g1")
+
+
+def write_profile(folder: pathlib.Path, *, samples=SAMPLES, extra: str = "", move_timeout_s: float = 3.0) -> pathlib.Path:
+    lines = ["[instrument]", 'id = "sphere-1"']
+    for name, port in (("a", "/dev/ttyUSB0"), ("b", "/dev/ttyUSB1")):
+        lines += [f"[wheels.{name}]", f'port = "{port}"', 'model = "FW212C"', "open_slot = 12", f"move_timeout_s = {move_timeout_s}"]
+    lines += ["[shutter]", 'port = "/dev/ttyUSB2"', 'model = "SC10"', "[camera]", 'backend = "sim"', "[bands]"]
+    lines += [f'{nm} = ["{"a" if i < 8 else "b"}", {i % 8 + 1}]' for i, nm in enumerate(BANDS)]
+    lines += ["[acquisition]", "frames_averaged = 2", "dark_frames = 2", "warmup_checks = 2"]
+    for sample in samples:
+        set_name = "training" if sample.startswith("train") else "test"
+        lines += ["[[samples]]", f'id = "{sample}"', f'set = "{set_name}"', 'background = "bg"']
+    path = folder / "sphere.toml"
+    path.write_text("\n".join(lines) + "\n" + extra)
+    return path
+
+
+def quiet_settings(progress=None):
+    return acquire.Settings(log=lambda line: None, progress=progress)
+
+
+def run_acquire(profile, out, **kwargs):
+    with open(os.devnull, "w") as devnull:
+        operator = acquire.Operator(yes=True, stream=devnull)
+        return acquire.acquire(profile, out, emulate=True, operator=operator, settings=quiet_settings(), **kwargs)
+
+
+def test_emulated_acquisition_writes_a_session(tmp_path):
+    profile = write_profile(tmp_path)
+    out = tmp_path / "session"
+    with open(os.devnull, "w") as devnull:
+        acquire.acquire(profile, out, emulate=True, operator=acquire.Operator(yes=True, stream=devnull), settings=quiet_settings())
+    assert not (tmp_path / "session.partial").exists()
+    session = io.load_session(out)
+    assert session.instrument_id == "sphere-1" and list(session.band_centres_nm) == BANDS
+    assert [f.id for f in session.frames] == ["dark", "white", *SAMPLES]
+    assert [f.role for f in session.frames] == ["dark", "white", "sample", "sample"]
+    # One exposure per band, shared by darks, white and samples; blue needs much longer.
+    exposures = {tuple(f.exposure_s) for f in session.frames}
+    assert len(exposures) == 1
+    exposure = dict(zip(BANDS, exposures.pop()))
+    assert exposure[400] > 2 * exposure[560]
+    dark, white = session.dark().astype(float), session.white().astype(float)
+    assert np.all(dark.mean(axis=(0, 1)) < 0.05 * white.mean(axis=(0, 1)))
+    # The white standard sits near the target level in every band, nothing saturated.
+    full = 2**14 - 1
+    level = np.percentile(white.reshape(-1, 16), 99.5, axis=0) / full
+    assert np.all(np.abs(level - 0.8) < 0.1), level
+    assert white.max() < full
+    # Per band metadata: the wheels as read back put that band's filter in the path.
+    for frame in session.frames:
+        bands = frame.metadata["bands"]
+        assert [b["band_nm"] for b in bands] == BANDS
+        for i, b in enumerate(bands):
+            wheel, other = ("a", "b") if i < 8 else ("b", "a")
+            assert b["positions"] == {wheel: i % 8 + 1, other: 12}
+            assert (b["wheel"], b["slot"]) == (wheel, i % 8 + 1)
+            assert b["frames_averaged"] == (2 if frame.role != "dark" else 2)
+            assert b["exposure_s"] == exposure[b["band_nm"]]
+            for key in ("timestamp", "temperature_c", "lamp_hours", "saturated_pixels"):
+                assert key in b
+    assert session.metadata["acquisition"]["warmup"]["drift_percent"] < 0.5
+    # Samples carry the simulated experiment's regions: the session calibrates like a simulated one.
+    assert session.frame("train-bg00-g0").set == "training"
+    assert session.frame("train-bg00-g0").regions
+
+
+@pytest.mark.parametrize("fault", ["stop_answering", "answer_garbage", "vanish"])
+@pytest.mark.parametrize("device", ["wheel", "shutter"])
+def test_fault_stops_with_nothing_lost_and_resume_completes(tmp_path, fault, device):
+    profile = write_profile(tmp_path)
+    out = tmp_path / "session"
+    partial = tmp_path / "session.partial"
+    state = {}
+
+    def inject(instrument):
+        port = instrument.emulated["wheels"]["b"] if device == "wheel" else instrument.emulated["shutter"]
+        state["shutter"] = instrument.emulated["shutter"].emulator
+        camera = instrument.camera
+        real_average = camera.average
+        calls = {"n": 0}
+
+        def average(n):
+            calls["n"] += 1
+            if calls["n"] == 25:  # in the middle of the white standard's bands
+                getattr(port, fault)()
+            return real_average(n)
+
+        camera.average = average
+
+    with open(os.devnull, "w") as devnull:
+        operator = acquire.Operator(yes=True, stream=devnull)
+        with pytest.raises(acquire.AcquisitionStopped) as stopped:
+            acquire.acquire(profile, out, emulate=True, operator=operator, settings=quiet_settings(), on_instrument=inject)
+    message = str(stopped.value)
+    assert "\n" not in message and "--resume" in message and str(partial) in message
+    if device == "wheel":
+        assert state["shutter"].closed  # left safe by the shutter, which still answers
+    # (a shutter that stopped answering, answers garbage or vanished cannot be closed by anyone)
+    journal = acquire.Journal(partial)
+    kept = journal.done_images()
+    assert 16 <= len(kept) < 4 * 16
+    kept_bytes = {key: (partial / record["file"]).read_bytes() for key, record in kept.items()}
+    assert not out.exists()
+
+    with open(os.devnull, "w") as devnull:
+        acquire.acquire(profile, out, emulate=True, resume=True, operator=acquire.Operator(yes=True, stream=devnull), settings=quiet_settings())
+    session = io.load_session(out)
+    assert not partial.exists()
+    assert [f.id for f in session.frames] == ["dark", "white", *SAMPLES]
+    # Nothing retaken: the band images captured before the fault are in the session unchanged.
+    for (capture, band), data in kept_bytes.items():
+        plane = session.read(capture)[..., BANDS.index(band)]
+        kept_plane = np.asarray(_frame_from_bytes(tmp_path, data))[..., 0]
+        np.testing.assert_array_equal(plane, kept_plane, err_msg=f"{capture} {band}")
+
+
+def _frame_from_bytes(tmp_path, data):
+    path = tmp_path / "kept.tif"
+    path.write_bytes(data)
+    return io.read_frame(path)
+
+
+def test_resume_refuses_another_profile(tmp_path):
+    profile = write_profile(tmp_path)
+    partial = tmp_path / "session.partial"
+    partial.mkdir()
+    (partial / "profile.json").write_text(json.dumps({"instrument_id": "other"}))
+    with pytest.raises(acquire.AcquisitionError, match=r"differs from the interrupted acquisition's profile in \['bands'"):
+        run_acquire(profile, tmp_path / "session", resume=True)
+
+
+# ---------------------------------------------------------------------------------- command line
+
+
+def cli_run(argv, capsys):
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def test_cli_acquire_emulated(tmp_path, capsys):
+    profile = write_profile(tmp_path, samples=SAMPLES[:1])
+    status, out, err = cli_run(["acquire", "--profile", str(profile), "-o", str(tmp_path / "s"), "--emulate", "--yes"], capsys)
+    assert status == 0, err
+    assert "session written to" in out and "Traceback" not in err
+    assert "Place the white standard" in err and "assumed done (--yes)" in err
+    assert "48/48 band images" in err
+    assert [f.id for f in io.load_session(tmp_path / "s").frames] == ["dark", "white", SAMPLES[0]]
+
+
+@pytest.mark.parametrize(
+    "setup, argv_extra, match",
+    [
+        (lambda tmp: (tmp / "s").mkdir() or (tmp / "s" / "x").write_text("x"), ["--yes"], "already exists and is not empty"),
+        (lambda tmp: (tmp / "s.partial").mkdir(), ["--yes"], "an interrupted acquisition is there"),
+        (lambda tmp: None, ["--yes", "--resume"], "no interrupted acquisition to resume"),
+        (lambda tmp: None, [], "pass --yes to answer every prompt"),
+    ],
+    ids=["exists", "partial-left", "nothing-to-resume", "no-terminal"],
+)
+def test_cli_acquire_refusals(tmp_path, capsys, monkeypatch, setup, argv_extra, match):
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))  # not a terminal
+    profile = write_profile(tmp_path)
+    setup(tmp_path)
+    before = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
+    status, out, err = cli_run(["acquire", "--profile", str(profile), "-o", str(tmp_path / "s"), "--emulate", *argv_extra], capsys)
+    sys.stdin.close()
+    assert status == 2
+    assert err.count("\n") == 1 and err.startswith("spherejax: error: ") and match in err
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == before
+
+
+def test_wheel_count_mismatch_refused_before_anything_moves(tmp_path, monkeypatch):
+    """A wheel whose pcount? disagrees with the profile: refused naming the wheel, no move."""
+    from hw import emulators
+
+    real = emulators.FilterWheelEmulator
+    made = []
+
+    def fw102c_for_b(*, model, position, **kwargs):
+        emulator = real(model="FW102C", position=6, **kwargs) if not made else real(model=model, position=position, **kwargs)
+        made.append(emulator)
+        return emulator
+
+    monkeypatch.setattr(emulators, "FilterWheelEmulator", fw102c_for_b)
+    profile = write_profile(tmp_path)
+    with pytest.raises(acquire.AcquisitionError, match=r"wheel 'a' \(\[wheels.a\]\) failed its check: .*reports 6 positions"):
+        run_acquire(profile, tmp_path / "s")
+    assert all(emulator.moves == [] for emulator in made)
+    assert not (tmp_path / "s").exists() and not (tmp_path / "s.partial").exists()
+
+
+# ------------------------------------------------------------------------------- kill and resume
+
+
+def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
+    profile = write_profile(tmp_path)
+    out = tmp_path / "s"
+    command = [sys.executable, "-m", "spherejax.cli", "acquire", "--profile", str(profile), "-o", str(out), "--emulate", "--yes"]
+    rng = np.random.default_rng(3)
+    for attempt in range(3):
+        argv = command + (["--resume"] if (tmp_path / "s.partial").exists() else [])
+        process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(float(rng.uniform(4.0, 9.0)))
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        if out.exists():
+            break
+    if not out.exists():
+        done = subprocess.run(command + ["--resume"], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+    session = io.load_session(out)
+    assert [f.id for f in session.frames] == ["dark", "white", *SAMPLES]
+    for frame in session.frames:
+        assert [b["band_nm"] for b in frame.metadata["bands"]] == BANDS  # each band exactly once
+    assert not (tmp_path / "s.partial").exists()
