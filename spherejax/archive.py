@@ -394,7 +394,7 @@ def _remove_outputs(out_root: pathlib.Path, name: str) -> None:
 
 def _correct_into(
     cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
-    attributes: dict, rows_per_strip: int | None,
+    attributes: dict, rows_per_strip: int | None, exr_compression: str,
 ) -> dict[str, tuple[pathlib.Path, str]]:
     """Correct `cube` strip by strip (`stripwise.correct_strips`) into its four outputs, each
     written under a temporary name and renamed into place once complete; on a failure the
@@ -408,8 +408,12 @@ def _correct_into(
     height, width, _ = cube.shape
     bands = [f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()]
     openers = {
-        "reflectance.exr": lambda path: io.open_exr(path, (height, width, len(bands)), channel_names=bands, attributes=attributes),
-        "lab.exr": lambda path: io.open_exr(path, (height, width, 3), channel_names=["L*", "a*", "b*"], attributes=attributes),
+        "reflectance.exr": lambda path: io.open_exr(
+            path, (height, width, len(bands)), channel_names=bands, attributes=attributes, compression=exr_compression
+        ),
+        "lab.exr": lambda path: io.open_exr(
+            path, (height, width, 3), channel_names=["L*", "a*", "b*"], attributes=attributes, compression=exr_compression
+        ),
         "quality.png": lambda path: io.open_png(path, (height, width, 1), channel_names=["quality"]),
         "preview.png": lambda path: io.open_png(path, (height, width, 3), channel_names=["R", "G", "B"]),
     }
@@ -439,7 +443,7 @@ def _correct_into(
 
 def correct_input(
     source: InputSpec, out_root, calibration_path, *, illuminant: str | None = None,
-    rows_per_strip: int | None = None,
+    rows_per_strip: int | None = None, exr_compression: str = io.DEFAULT_EXR_COMPRESSION,
 ) -> FileResult:
     """Correct one input into OUT and return its `FileResult`; never raises for a bad input.
 
@@ -454,6 +458,7 @@ def correct_input(
       calibration_path: the calibration file (verified once per process).
       illuminant: Lab illuminant ("D65", "A", "F2"); None = the calibration's.
       rows_per_strip: strip height; None = `stripwise.strip_height` (the whole image when small).
+      exr_compression: of the EXR outputs, one of `io.EXR_COMPRESSIONS` (all lossless).
     """
     from . import __version__
 
@@ -477,7 +482,7 @@ def correct_input(
             }
             folder, created = _output_folder(out_root, source.name)
             stem = pathlib.PurePosixPath(source.name).name
-            written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip)
+            written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression)
         outputs = {
             path.resolve().relative_to(out_root.resolve()).as_posix(): digest
             for path, digest in written.values()
@@ -677,6 +682,7 @@ def run_batch(
     *,
     resume: bool = False,
     illuminant: str | None = None,
+    exr_compression: str = io.DEFAULT_EXR_COMPRESSION,
     on_start: Callable[[list[InputSpec]], None] | None = None,
     on_result: Callable[[InputSpec, FileResult | None], None] | None = None,
     executor=None,
@@ -689,17 +695,23 @@ def run_batch(
       calibration_path: the calibration file.
       resume: continue a batch already in OUT, skipping verified inputs.
       illuminant: Lab illuminant; None = the calibration's.
+      exr_compression: of the EXR outputs (`io.EXR_COMPRESSIONS`, all lossless).
       on_start: called with the inputs found, before the first is corrected.
       on_result: called per input with its FileResult, or None when it was skipped.
       executor: None corrects in this process; otherwise an object whose
-        map(specs, out_root, calibration_path, illuminant) yields (spec, FileResult) in any
-        order, e.g. `spherejax.cluster.DaskExecutor`.
+        map(specs, out_root, calibration_path, **options) calls `correct_input` with those
+        keyword options and yields (spec, FileResult) in any order, e.g.
+        `spherejax.cluster.DaskExecutor`. Paths reach it absolute: a worker may run elsewhere.
 
     Raises (before anything is written):
       CalibrationFileError: a calibration that cannot be read.
       BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked.
     """
-    out_root = pathlib.Path(out_root)
+    # Absolute: workers started in other folders read and write these paths themselves.
+    out_root = pathlib.Path(os.path.abspath(out_root))
+    calibration_path = pathlib.Path(os.path.abspath(calibration_path))
+    if exr_compression not in io.EXR_COMPRESSIONS:
+        raise ValueError(f"exr_compression: expected one of {list(io.EXR_COMPRESSIONS)}, got {exr_compression!r}")
     header = load_calibration(calibration_path, illuminant).header
     if out_root.exists() and not out_root.is_dir():
         raise BatchError(out_root, "is not a folder", "an output folder (OUT)")
@@ -732,10 +744,11 @@ def run_batch(
                         on_result(spec, None)
                     continue
                 pending.append(spec)
+            options = {"illuminant": illuminant, "exr_compression": exr_compression}
             if executor is None:
-                results = ((spec, correct_input(spec, out_root, calibration_path, illuminant=illuminant)) for spec in pending)
+                results = ((spec, correct_input(spec, out_root, calibration_path, **options)) for spec in pending)
             else:
-                results = executor.map(pending, out_root, calibration_path, illuminant)
+                results = executor.map(pending, out_root, calibration_path, **options)
             # The manifest is written here, by the one process that holds the lock, whoever
             # corrected the input.
             for spec, result in results:

@@ -278,8 +278,8 @@ def cmd_correct(args) -> int:
         with executor as running:
             summary = archive.run_batch(
                 args.inputs, args.output, args.calibration, resume=args.resume,
-                illuminant=args.illuminant, on_start=progress.start, on_result=progress.result,
-                executor=running,
+                illuminant=args.illuminant, exr_compression=args.exr_compression,
+                on_start=progress.start, on_result=progress.result, executor=running,
             )
     finally:
         progress.close()
@@ -419,6 +419,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="continue the batch in OUT: skip inputs whose outputs are verified, redo the rest")
     correct.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
                          help="illuminant for Lab (default: the calibration's)")
+    correct.add_argument("--exr-compression", default="piz", choices=["piz", "zip", "none"],
+                         help="lossless compression of the EXR outputs (default piz: smaller and faster than zip "
+                              "on noisy reflectance; none: fastest, largest)")
     scale = correct.add_mutually_exclusive_group()
     scale.add_argument("--workers", type=int, metavar="N",
                        help="start a local dask.distributed cluster of N single-threaded worker processes")

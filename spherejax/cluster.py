@@ -91,12 +91,13 @@ class DaskExecutor:
             self.cluster.close()
         return False
 
-    def map(self, specs: list, out_root, calibration_path, illuminant) -> Iterator[tuple[object, object]]:
-        """Yield (spec, FileResult) as workers finish; a worker that dies yields a failure."""
+    def map(self, specs: list, out_root, calibration_path, **options) -> Iterator[tuple[object, object]]:
+        """Yield (spec, FileResult) as workers finish; a worker that dies yields a failure.
+        `options` are `archive.correct_input`'s keyword arguments."""
         futures = {
             self.client.submit(
                 archive.correct_input, spec, str(out_root), str(calibration_path),
-                illuminant=illuminant, pure=False, key=f"spherejax-correct-{k}",
+                pure=False, key=f"spherejax-correct-{k}", **options,
             ): spec
             for k, spec in enumerate(specs)
         }

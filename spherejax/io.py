@@ -22,7 +22,8 @@ is read with `read_band_files`.
 
 Corrected outputs (`write_exr`, `write_png`)
 ---------------------------------------------
-float32 zip-compressed OpenEXR with named channels and string attributes, and 8-bit PNG. Neither
+float32 OpenEXR (PIZ-compressed by default, or ZIP or none: all lossless) with named channels and
+string attributes, and 8-bit PNG. Neither
 carries a time stamp, so writing the same pixels twice gives the same bytes (`spherejax.archive`
 relies on it to resume a batch into byte-identical outputs).
 
@@ -964,14 +965,24 @@ def _require_image_shape(path, shape, what: str, channels=None) -> tuple[int, in
     return shape
 
 
-def open_exr(path, shape, *, channel_names, attributes=None) -> AtomicImageWriter:
-    """An `AtomicImageWriter` for a float32 (H, W, C) OpenEXR (zip-compressed, lossless) with
-    named channels and string `attributes` in its header, and no date: OpenImageIO would stamp
-    the current time, and a rerun must give the same bytes."""
+#: Lossless OpenEXR compressions `open_exr` offers. PIZ (wavelet + Huffman) is the default: on
+#: corrected reflectance, whose low mantissa bits are camera noise, it measured 31 % smaller than
+#: uncompressed and faster than ZIP, which saves only 6 % and was the slowest step of a batch
+#: (1024 x 1024 x 31 float32: none 0.25 s, PIZ 1.3 s, ZIP 1.5-2.8 s on 2 cores).
+EXR_COMPRESSIONS = ("piz", "zip", "none")
+DEFAULT_EXR_COMPRESSION = "piz"
+
+
+def open_exr(path, shape, *, channel_names, attributes=None, compression: str = DEFAULT_EXR_COMPRESSION) -> AtomicImageWriter:
+    """An `AtomicImageWriter` for a float32 (H, W, C) OpenEXR, losslessly compressed
+    (`EXR_COMPRESSIONS`), with named channels and string `attributes` in its header, and no date:
+    OpenImageIO would stamp the current time, and a rerun must give the same bytes."""
     path = pathlib.Path(path)
+    if compression not in EXR_COMPRESSIONS:
+        raise ValueError(f"compression: expected one of {list(EXR_COMPRESSIONS)}, got {compression!r}")
     shape = _require_image_shape(path, shape, "(H, W, C) float32")
     spec = _output_spec(path, shape, np.float32, channel_names, attributes)
-    spec.attribute("compression", "zip")
+    spec.attribute("compression", compression)
     spec.attribute("DateTime", "")  # an empty value suppresses OpenImageIO's time stamp
     return AtomicImageWriter(path, spec, "openexr")
 
@@ -995,11 +1006,11 @@ def _write_whole(open_writer, path, array, dtype, what: str, **kwargs) -> str:
         return writer.commit()
 
 
-def write_exr(path, array, *, channel_names, attributes=None) -> str:
+def write_exr(path, array, *, channel_names, attributes=None, compression: str = DEFAULT_EXR_COMPRESSION) -> str:
     """Write a float32 (H, W, C) OpenEXR (`open_exr`), atomically; return its SHA-256 (hex)."""
     return _write_whole(
         open_exr, path, array, np.float32, "(H, W, C) float32",
-        channel_names=channel_names, attributes=attributes,
+        channel_names=channel_names, attributes=attributes, compression=compression,
     )
 
 

@@ -35,12 +35,24 @@ ROW_QUANTUM = 16
 
 def strip_height(height: int, width: int, bands: int, strip_bytes: int = STRIP_BYTES) -> int:
     """Rows per strip so that a strip's working set stays near `strip_bytes`; at least 1, at most
-    `height`."""
+    `height`. Among the heights within that bound (multiples of ROW_QUANTUM when larger), the one
+    that pads the last strip least: 1024 rows go in 8 strips of 128, not 7 of 160 with 96 rows of
+    padding computed for nothing."""
     per_row = max(1, width * BYTES_PER_PIXEL * max(bands, 16) // 16)
-    rows = max(1, strip_bytes // per_row)
-    if rows > ROW_QUANTUM:
-        rows -= rows % ROW_QUANTUM
-    return int(min(rows, height))
+    most = max(1, strip_bytes // per_row)
+    if most >= height:
+        return int(height)
+    if most <= ROW_QUANTUM:
+        return int(most)
+    most -= most % ROW_QUANTUM
+    fewest = -(-height // most)
+    candidates = []
+    for strips in range(fewest, fewest + 4):
+        rows = -(-height // strips)
+        rows += -rows % ROW_QUANTUM  # up to a multiple of the quantum
+        if rows <= most:
+            candidates.append((rows * -(-height // rows) - height, -rows))
+    return int(-min(candidates)[1])
 
 
 def _padded(rows: np.ndarray, height: int) -> np.ndarray:

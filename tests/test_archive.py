@@ -490,3 +490,46 @@ def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
         for output, digest in record["outputs"].items():
             assert archive._sha256_file(killed / output) == digest
     assert not (killed / archive.LOCK_NAME).exists()
+
+
+def test_executor_gets_absolute_paths_whatever_its_folder(cal, tmp_path, rng, monkeypatch):
+    """Workers of a running scheduler may start in another folder: relative OUT and CAL given on
+    the command line must reach them absolute, or outputs land outside the locked OUT."""
+    import shutil
+
+    (tmp_path / "client" / "in").mkdir(parents=True)
+    (tmp_path / "worker").mkdir()
+    shutil.copy(cal, tmp_path / "client" / "cal.npz")
+    io.write_frame(tmp_path / "client" / "in" / "a.tif", frame(rng))
+    monkeypatch.chdir(tmp_path / "client")
+
+    class ElsewhereExecutor:
+        def map(self, specs, out_root, calibration_path, **options):
+            assert pathlib.Path(out_root).is_absolute() and pathlib.Path(calibration_path).is_absolute()
+            here = os.getcwd()
+            os.chdir(tmp_path / "worker")  # the worker's own folder
+            try:
+                for spec in specs:
+                    yield spec, archive.correct_input(spec, out_root, calibration_path, **options)
+            finally:
+                os.chdir(here)
+
+    summary = archive.run_batch(["in"], "out", "cal.npz", executor=ElsewhereExecutor())
+    assert summary.corrected == 1 and not summary.failed
+    assert sorted(outputs_of(tmp_path / "client" / "out")) == sorted(f"in/a.{k}" for k in KINDS)
+    assert list((tmp_path / "worker").iterdir()) == []
+
+
+@pytest.mark.parametrize("compression", ["piz", "zip", "none"])
+def test_exr_compression_is_lossless(cal, tmp_path, rng, capsys, compression):
+    raw = frame(rng)
+    io.write_frame(tmp_path / "a.tif", raw)
+    out = tmp_path / "out"
+    status, _, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(out), "--exr-compression", compression], capsys)
+    assert status == 0, err
+    image = oiio.ImageInput.open(str(out / "a.reflectance.exr"))
+    assert image.spec().get_string_attribute("compression") == compression
+    image.close()
+    refl, _, _ = read_exr(out / "a.reflectance.exr")
+    expected = np.asarray(spherejax.correct(raw, io.load_calibration(cal)[0]).reflectance)
+    assert refl.tobytes() == expected.tobytes()

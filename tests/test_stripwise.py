@@ -145,6 +145,7 @@ def test_strip_height_bounds_memory():
     assert rows * 8192 * stripwise.BYTES_PER_PIXEL <= stripwise.STRIP_BYTES
     assert stripwise.strip_height(40, 48, 16) == 40  # a small image is one strip
     assert stripwise.strip_height(10, 10**9, 16) == 1
+    assert stripwise.strip_height(1024, 1024, 16) == 128  # 8 strips, none padded (not 7 of 160)
 
 
 def test_cube_of_the_wrong_shape_is_refused(tmp_path, rng, calibration_path):

@@ -248,8 +248,8 @@ def test_wheels_must_match_the_profile(profile):
 
 def test_mixed_models(tmp_path):
     path = tmp_path / "profile.toml"
-    text = profile_text(model_b="FW102C", open_b=6).replace('640 = ["b", 5]', '640 = ["b", 5]\n')
-    # Wheel b is an FW102C: slots 1..6, open slot 6, so only bands 560..640 fit on it.
+    # Wheel b is an FW102C: slots 1..6, open slot 6, so only bands 560..640 (slots 1..5) fit on it.
+    text = profile_text(model_b="FW102C", open_b=6)
     text = "\n".join(line for line in text.splitlines() if not line.startswith(("660 ", "680 ", "700 "))) + "\n"
     path.write_text(text)
     profile = load_profile(path)
@@ -288,9 +288,9 @@ def test_pcount_mismatch_is_refused_by_the_driver_at_connect(tmp_path):
         assert emulator.moves == []
 
 
-@pytest.mark.parametrize("identity", ["THORLABS SC10 VERSION 1.07", "ACME Widget 3000", ""])
+@pytest.mark.parametrize("identity", ["THORLABS SC10 VERSION 1.07", "ACME Widget 3000", " "], ids=["sc10", "other", "blank"])
 def test_wrong_identity_is_refused_at_connect(identity):
-    emulator = FilterWheelEmulator(model="FW212C", move_time_scale=0, identity=identity or " ")
+    emulator = FilterWheelEmulator(model="FW212C", move_time_scale=0, identity=identity)
     with EmulatedPort(emulator) as port:
         wheel = FilterWheel(port.path, model="FW212C", timeout_s=0.5)
         with pytest.raises(ProtocolError) as caught:
