@@ -70,20 +70,6 @@ DEFAULT_EXPOSURE_S = 0.05
 _CACHED_SCENES = 8
 
 
-@dataclasses.dataclass(frozen=True)
-class _Scene:
-    """What lies on the holder: a material index map (holder_shape) and its material table,
-    plus the session-manifest fields of the capture (regions in full-sensor pixels)."""
-
-    name: str
-    role: str
-    holder_map: np.ndarray
-    table: tuple
-    regions: tuple = ()
-    set: str | None = None
-    background: str | None = None
-
-
 def _design_for_shape(design: simulate.ExperimentDesign, instrument: simulate.InstrumentModel, image_shape) -> simulate.ExperimentDesign:
     """The design rescaled so that its image is `image_shape` (H, W): pixels per cm from H, the
     strip beside the holder takes the remaining width, patch and region sizes scale with it."""
@@ -111,111 +97,6 @@ def _design_for_shape(design: simulate.ExperimentDesign, instrument: simulate.In
             f"{holder_width + scaled.white_patch_px + 2} (holder {holder_width} px plus the white patch strip)"
         )
     return dataclasses.replace(scaled, strip_px=strip)
-
-
-def _fixed_materials(instrument: simulate.InstrumentModel, seed: int):
-    """The white standard, the white reference tile and the black mount, as the simulator makes them."""
-    flat = simulate._flat
-    standard = simulate._material("white standard", "PTFE board", flat(instrument.white_standard_reflectance), instrument, seed, lambertian=True)
-    tile = simulate._material("white patch", "ceramic tile", flat(instrument.white_patch_reflectance), instrument, seed, lambertian=True)
-    mount = simulate._material("mount", "black anodised", flat(instrument.mount_reflectance), instrument, seed, lambertian=True)
-    return standard, tile, mount
-
-
-def _experiment_scenes(instrument: simulate.InstrumentModel, design: simulate.ExperimentDesign, seed: int) -> dict[str, _Scene]:
-    """The sample and target captures of `simulate.simulate_experiment(seed, instrument, design)`,
-    by frame id, in its order: the same materials, couplings, patch slots and patterns.
-
-    spherejax.simulate builds these layouts inline while rendering; this repeats its layout steps
-    (and its random draws, in the same order) without rendering anything.
-    """
-    library = simulate._Library()
-    holder_shape = design.holder_shape(instrument)
-
-    def material(name, source, reflectance, lambertian=False, fluorescence=0.0):
-        return simulate._material(name, source, reflectance, instrument, seed, lambertian, fluorescence)
-
-    neutrals = []
-    for set_name in ("ColorChecker: BabelColor Average", "ColorChecker: ColorChecker N Ohta", "ColorChecker: ISO 17321-1"):
-        neutrals += [(f"{set_name} / {n}", r) for n, r in library.take(set_name, lambda n: n.startswith(("white", "neutral", "black")))]
-    greys = [material(n, "colour-science", r) for n, r in simulate._spread_by_brightness(neutrals, design.training_patches)]
-
-    ces = library.take("CES (TM-30)")
-    training_picks = simulate._spread_by_brightness(ces, design.training_backgrounds)
-    training_names = {n for n, _ in training_picks}
-    fluorescent = {n for n, _ in training_picks[-design.fluorescent_training_backgrounds :]} if design.fluorescent_training_backgrounds else set()
-    backgrounds = [
-        material(f"CES / {n}", "colour-science", r, fluorescence=1.0 if n in fluorescent else 0.0)
-        for n, r in training_picks
-    ]
-    remaining = [item for item in ces if item[0] not in training_names]
-    remaining += [(f"CQS 9.0 / {n}", r) for n, r in library.take("VS: NIST CQS 9.0")]
-
-    chromatic = library.take("ColorChecker: BabelColor Average", lambda n: not n.startswith(("white", "neutral", "black")))
-    chosen = [chromatic[int(i)] for i in np.round(np.linspace(0, len(chromatic) - 1, design.test_patches))]
-    test_patches = [material(f"BabelColor / {n}", "colour-science", r) for n, r in chosen]
-
-    aces = library.take("RAW to ACES training")
-    target_idx = np.round(np.linspace(0, len(aces) - 1, design.targets)).astype(int)
-    targets = [material(f"ACES / {aces[i][0]}", "colour-science", aces[i][1]) for i in target_idx]
-    chart_surround = greys[len(greys) // 2]
-
-    slots = simulate._patch_slots(holder_shape, design.patch_px, design.patches_per_capture)
-    scenes: dict[str, _Scene] = {}
-
-    def patch_scene(frame_id, set_name, background_name, holder_map, table, patches, shift):
-        holder_map = holder_map.copy()
-        table = list(table)
-        regions = []
-        for k, patch in enumerate(patches):
-            r, c = slots[(k + shift) % len(slots)]
-            table.append(patch)
-            holder_map[r : r + design.patch_px, c : c + design.patch_px] = len(table) - 1
-            regions.append({
-                "name": patch.name, "patch": patch.name,
-                "region": simulate._centred_region(r, c, design.patch_px, design.region_px),
-                "reflectance": patch.at_31().tolist(),
-            })
-        scenes[frame_id] = _Scene(frame_id, "sample", holder_map, tuple(table), tuple(regions), set_name, background_name)
-
-    groups = [greys[i : i + design.patches_per_capture] for i in range(0, len(greys), design.patches_per_capture)]
-    for j, background in enumerate(backgrounds):
-        for g, group in enumerate(groups):
-            patch_scene(f"train-bg{j:02d}-g{g}", "training", background.name, np.zeros(holder_shape, np.int32), [background], group, j + g)
-
-    test_groups = [test_patches[i : i + design.patches_per_capture] for i in range(0, len(test_patches), design.patches_per_capture)]
-    pattern_rng = np.random.default_rng([seed, 7])
-    for j in range(design.test_backgrounds):
-        n_materials = 2 + j % 3
-        picks = [remaining[int(i)] for i in pattern_rng.choice(len(remaining), n_materials, replace=False)]
-        table = [
-            material(n if n.startswith("CQS") else f"CES / {n}", "colour-science", r,
-                     fluorescence=1.0 if (j < design.fluorescent_test_backgrounds and k == 0) else 0.0)
-            for k, (n, r) in enumerate(picks)
-        ]
-        holder_map = simulate._pattern(j, holder_shape, n_materials, pattern_rng)
-        name = "pattern-" + "+".join(m.name.split(" / ")[-1] for m in table)
-        for g, group in enumerate(test_groups):
-            patch_scene(f"test-bg{j:02d}-g{g}", "test", name, holder_map, table, group, j + g)
-
-    per_row = int(np.ceil(np.sqrt(design.targets)))
-    chart = np.zeros(holder_shape, np.int32)
-    table = [chart_surround]
-    regions = []
-    top = (holder_shape[0] - per_row * design.target_px) // 2
-    left = (holder_shape[1] - per_row * design.target_px) // 2
-    for k, target in enumerate(targets):
-        r = top + (k // per_row) * design.target_px
-        c = left + (k % per_row) * design.target_px
-        table.append(target)
-        chart[r : r + design.target_px, c : c + design.target_px] = len(table) - 1
-        regions.append({
-            "name": f"t{k:03d}", "patch": target.name,
-            "region": simulate._centred_region(r, c, design.target_px, design.target_region_px),
-            "reflectance": target.at_31().tolist(),
-        })
-    scenes["targets"] = _Scene("targets", "target", chart, tuple(table), tuple(regions))
-    return scenes
 
 
 class SimulatedCamera(Camera):
@@ -261,12 +142,13 @@ class SimulatedCamera(Camera):
         self._image_shape = tuple(int(v) for v in self.design.image_shape(self.instrument))
         self._holder_shape = tuple(int(v) for v in self.design.holder_shape(self.instrument))
         self._renderer = simulate._Renderer(self.instrument, self._image_shape, self._holder_shape, self.seed)
-        self._standard, self._tile, self._mount = _fixed_materials(self.instrument, self.seed)
+        self._standard, self._tile, self._mount = simulate.fixed_materials(self.instrument, self.seed)
         self._fixed = {
-            "white": _Scene("white", "white", np.zeros(self._holder_shape, np.int32), (self._standard,)),
-            "empty": _Scene("empty", "empty", np.zeros(self._holder_shape, np.int32), (self._mount,)),
+            "white": simulate.Scene("white", "white", np.zeros(self._holder_shape, np.int32), (self._standard,)),
+            "empty": simulate.Scene("empty", "empty", np.zeros(self._holder_shape, np.int32), (self._mount,)),
         }
-        self._samples: dict[str, _Scene] | None = None  # built on first use (loads the spectra)
+        # The experiment's scenes, laid out by the simulator on first use (that loads the spectra).
+        self._samples: dict[str, simulate.Scene] | None = None
         self._cache: collections.OrderedDict[str, tuple[np.ndarray, np.ndarray]] = collections.OrderedDict()
         self._scene = "white"
         self.exposure_s = DEFAULT_EXPOSURE_S
@@ -364,16 +246,12 @@ class SimulatedCamera(Camera):
             self._renderer.calibrate_exposures(white)
         return self._renderer.flux_scale
 
-    def _full_map(self, scene: _Scene) -> tuple[np.ndarray, list]:
+    def _full_map(self, scene: simulate.Scene) -> tuple[np.ndarray, list]:
         """The sensor's material map: holder content plus the black strip with the white patch."""
-        table = list(scene.table) + [self._mount, self._tile]
-        full = np.full(self._image_shape, len(table) - 2, np.int32)
-        full[: self._holder_shape[0], : self._holder_shape[1]] = scene.holder_map
-        r0, r1, c0, c1 = self.design.white_patch(self.instrument)
-        full[r0:r1, c0:c1] = len(table) - 1
-        return full, table
+        white_patch = self.design.white_patch(self.instrument)
+        return simulate.sensor_map(scene, self._image_shape, white_patch, self._mount, self._tile)
 
-    def _render(self, scene: _Scene) -> jax.Array:
+    def _render(self, scene: simulate.Scene) -> jax.Array:
         return self._renderer.rates(*self._full_map(scene))
 
     def _rates(self, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -391,12 +269,12 @@ class SimulatedCamera(Camera):
 
     # --- scenes -------------------------------------------------------------------------------------
 
-    def _sample_scenes(self) -> dict[str, _Scene]:
+    def _sample_scenes(self) -> dict[str, simulate.Scene]:
         if self._samples is None:
-            self._samples = _experiment_scenes(self.instrument, self.design, self.seed)
+            self._samples = simulate.experiment_layout(self.seed, self.instrument, self.design).scenes
         return self._samples
 
-    def _scene_by_name(self, name: str) -> _Scene:
+    def _scene_by_name(self, name: str) -> simulate.Scene:
         return self._fixed[name] if name in self._fixed else self._sample_scenes()[name]
 
     def scenes(self) -> list[str]:
@@ -439,7 +317,7 @@ class SimulatedCamera(Camera):
         pixels [r0, r1, c0, c1]; empty for "white" and "empty"."""
         return self._frame_regions(self._scene_by_name(self._scene))
 
-    def _frame_regions(self, scene: _Scene) -> list[dict]:
+    def _frame_regions(self, scene: simulate.Scene) -> list[dict]:
         out = []
         for region in scene.regions:
             box = self._to_frame(region["region"], whole=True)

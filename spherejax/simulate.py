@@ -500,26 +500,82 @@ def _pattern(kind: int, holder_shape, n_materials: int, rng) -> np.ndarray:
     return (cells % n_materials).astype(np.int32)
 
 
-def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None, design: ExperimentDesign | None = None) -> SimulatedExperiment:
-    """Render the paper's experiment: dark, white standard, training, test and target captures.
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """What lies on the holder for one capture: a material index map over the holder and its
+    material table, plus the session-manifest fields (regions in image pixels)."""
 
-    Deterministic for a given seed, instrument and design.
+    name: str
+    role: str  # "white", "sample" or "target"
+    holder_map: np.ndarray  # (holder H, holder W) int32, indices into `table`
+    table: tuple  # Material, ...
+    regions: tuple = ()  # {"name", "patch", "region": [r0, r1, c0, c1], "reflectance": 31}
+    set: str | None = None
+    background: str | None = None
+
+
+@dataclasses.dataclass
+class ExperimentLayout:
+    """The paper's experiment before rendering: materials and where everything lies.
+
+    `scenes` holds the sample and target captures in capture order; `white` the white standard.
+    `sensor_map` adds what surrounds the holder in every frame (the black mount and the white
+    reference patch).
     """
+
+    instrument: InstrumentModel
+    design: ExperimentDesign
+    seed: int
+    image_shape: tuple[int, int]
+    holder_shape: tuple[int, int]
+    white_patch: tuple[int, int, int, int]
+    standard: Material
+    white_tile: Material
+    mount: Material
+    white: Scene
+    scenes: dict[str, Scene]
+    materials: dict[str, Material]
+
+    def sensor_map(self, scene: Scene) -> tuple[np.ndarray, list[Material]]:
+        """`sensor_map` of a scene of this experiment."""
+        return sensor_map(scene, self.image_shape, self.white_patch, self.mount, self.white_tile)
+
+
+def sensor_map(scene: Scene, image_shape, white_patch, mount: Material, white_tile: Material) -> tuple[np.ndarray, list[Material]]:
+    """(material index map (H, W) over the whole image, material table) of a scene: the
+    holder's content at the top left plus the strip beside it, black mount with the white
+    reference patch at `white_patch` (r0, r1, c0, c1)."""
+    table = list(scene.table) + [mount, white_tile]
+    full = np.full(tuple(image_shape), len(table) - 2, np.int32)
+    height, width = scene.holder_map.shape
+    full[:height, :width] = scene.holder_map
+    r0, r1, c0, c1 = white_patch
+    full[r0:r1, c0:c1] = len(table) - 1
+    return full, table
+
+
+def fixed_materials(instrument: InstrumentModel, seed: int) -> tuple[Material, Material, Material]:
+    """(white standard, white reference tile, black mount): in every experiment."""
+    standard = _material("white standard", "PTFE board", _flat(instrument.white_standard_reflectance), instrument, seed, lambertian=True)
+    white_tile = _material("white patch", "ceramic tile", _flat(instrument.white_patch_reflectance), instrument, seed, lambertian=True)
+    mount = _material("mount", "black anodised", _flat(instrument.mount_reflectance), instrument, seed, lambertian=True)
+    return standard, white_tile, mount
+
+
+def experiment_layout(seed: int = 0, instrument: InstrumentModel | None = None, design: ExperimentDesign | None = None) -> ExperimentLayout:
+    """The materials and scenes of the paper's experiment (Section 4), without rendering:
+    9 grey patches on 10 uniform backgrounds (training), coloured patches on patterned
+    backgrounds (test), a chart of colour targets. Deterministic for a seed, instrument, design.
+    `simulate_experiment` renders it; `hw.simcamera` renders it frame by frame."""
     instrument = instrument or InstrumentModel()
     design = design or ExperimentDesign()
-    rng = np.random.default_rng(seed)
     library = _Library()
     holder_shape = design.holder_shape(instrument)
-    image_shape = design.image_shape(instrument)
-    white_patch = design.white_patch(instrument)
-    renderer = _Renderer(instrument, image_shape, holder_shape, seed)
 
     def material(name, source, reflectance, lambertian=False, fluorescence=0.0):
         return _material(name, source, reflectance, instrument, seed, lambertian, fluorescence)
 
-    standard = material("white standard", "PTFE board", _flat(instrument.white_standard_reflectance), lambertian=True)
-    white_tile = material("white patch", "ceramic tile", _flat(instrument.white_patch_reflectance), lambertian=True)
-    mount = material("mount", "black anodised", _flat(instrument.mount_reflectance), lambertian=True)
+    standard, white_tile, mount = fixed_materials(instrument, seed)
 
     # Greys for training: the neutral rows of the ColorCheckers, spread light to dark.
     neutrals = []
@@ -551,30 +607,11 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
     chart_surround = greys[len(greys) // 2]
 
     materials = {m.name: m for m in [standard, white_tile, mount, *greys, *backgrounds, *test_patches, *targets]}
-    frames: list[SimulatedFrame] = []
-
-    def base_map(holder_map: np.ndarray, table: list[Material]) -> tuple[np.ndarray, list[Material]]:
-        """Holder content plus the strip beside it: black mount with the white patch."""
-        table = list(table) + [mount, white_tile]
-        full = np.full(image_shape, len(table) - 2, np.int32)
-        full[: holder_shape[0], : holder_shape[1]] = holder_map
-        r0, r1, c0, c1 = white_patch
-        full[r0:r1, c0:c1] = len(table) - 1
-        return full, table
-
-    # White standard, then exposures, then the dark frame at those exposures.
-    white_map, white_table = base_map(np.zeros(holder_shape, np.int32), [standard])
-    white_rates = renderer.rates(white_map, white_table)
-    exposure = renderer.calibrate_exposures(white_rates)
-    dark_pixels, t = renderer.capture(None, instrument.frames_averaged_dark)
-    frames.append(SimulatedFrame("dark", "dark", dark_pixels, t))
-    white_pixels, t = renderer.capture(white_rates, instrument.frames_averaged_white)
-    frames.append(SimulatedFrame("white", "white", white_pixels, t))
-
+    scenes: dict[str, Scene] = {}
     slots = _patch_slots(holder_shape, design.patch_px, design.patches_per_capture)
 
-    def patch_capture(frame_id, set_name, background_name, holder_map, table, patches, shift):
-        """Place `patches` on a background at rotated slots; returns the SimulatedFrame."""
+    def patch_scene(frame_id, set_name, background_name, holder_map, table, patches, shift):
+        """Place `patches` on a background at rotated slots."""
         holder_map = holder_map.copy()
         table = list(table)
         regions = []
@@ -587,17 +624,15 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
                 "region": _centred_region(r, c, design.patch_px, design.region_px),
                 "reflectance": patch.at_31().tolist(),
             })
-        full, table = base_map(holder_map, table)
-        pixels, start = renderer.capture(renderer.rates(full, table), instrument.frames_averaged_sample)
-        return SimulatedFrame(frame_id, "sample", pixels, start, set_name, background_name, regions)
+        scenes[frame_id] = Scene(frame_id, "sample", holder_map, tuple(table), tuple(regions), set_name, background_name)
 
     groups = [greys[i : i + design.patches_per_capture] for i in range(0, len(greys), design.patches_per_capture)]
     for j, background in enumerate(backgrounds):
         for g, group in enumerate(groups):
-            frames.append(patch_capture(
+            patch_scene(
                 f"train-bg{j:02d}-g{g}", "training", background.name,
                 np.zeros(holder_shape, np.int32), [background], group, shift=j + g,
-            ))
+            )
 
     test_groups = [test_patches[i : i + design.patches_per_capture] for i in range(0, len(test_patches), design.patches_per_capture)]
     pattern_rng = np.random.default_rng([seed, 7])
@@ -615,7 +650,7 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
         holder_map = _pattern(j, holder_shape, n_materials, pattern_rng)
         name = "pattern-" + "+".join(m.name.split(" / ")[-1] for m in table)
         for g, group in enumerate(test_groups):
-            frames.append(patch_capture(f"test-bg{j:02d}-g{g}", "test", name, holder_map, table, group, shift=j + g))
+            patch_scene(f"test-bg{j:02d}-g{g}", "test", name, holder_map, table, group, shift=j + g)
 
     # The target chart: 12 x 12 targets on a mid-grey surround, centred on the holder.
     per_row = int(np.ceil(np.sqrt(design.targets)))
@@ -634,14 +669,43 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
             "region": _centred_region(r, c, design.target_px, design.target_region_px),
             "reflectance": target.at_31().tolist(),
         })
-    full, table = base_map(chart, table)
-    pixels, start = renderer.capture(renderer.rates(full, table), instrument.frames_averaged_sample)
-    frames.append(SimulatedFrame("targets", "target", pixels, start, regions=regions))
+    scenes["targets"] = Scene("targets", "target", chart, tuple(table), tuple(regions))
+
+    return ExperimentLayout(
+        instrument=instrument, design=design, seed=seed, image_shape=design.image_shape(instrument),
+        holder_shape=holder_shape, white_patch=design.white_patch(instrument), standard=standard,
+        white_tile=white_tile, mount=mount,
+        white=Scene("white", "white", np.zeros(holder_shape, np.int32), (standard,)),
+        scenes=scenes, materials=materials,
+    )
+
+
+def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None, design: ExperimentDesign | None = None) -> SimulatedExperiment:
+    """Render the paper's experiment (`experiment_layout`): dark, white standard, training, test
+    and target captures.
+
+    Deterministic for a given seed, instrument and design.
+    """
+    layout = experiment_layout(seed, instrument, design)
+    instrument, design = layout.instrument, layout.design
+    renderer = _Renderer(instrument, layout.image_shape, layout.holder_shape, seed)
+
+    # White standard, then exposures, then the dark frame at those exposures.
+    white_rates = renderer.rates(*layout.sensor_map(layout.white))
+    exposure = renderer.calibrate_exposures(white_rates)
+    frames: list[SimulatedFrame] = []
+    dark_pixels, t = renderer.capture(None, instrument.frames_averaged_dark)
+    frames.append(SimulatedFrame("dark", "dark", dark_pixels, t))
+    white_pixels, t = renderer.capture(white_rates, instrument.frames_averaged_white)
+    frames.append(SimulatedFrame("white", "white", white_pixels, t))
+    for scene in layout.scenes.values():
+        pixels, start = renderer.capture(renderer.rates(*layout.sensor_map(scene)), instrument.frames_averaged_sample)
+        frames.append(SimulatedFrame(scene.name, scene.role, pixels, start, scene.set, scene.background, list(scene.regions)))
 
     return SimulatedExperiment(
-        instrument=instrument, design=design, seed=seed, image_shape=image_shape,
-        holder=(0, holder_shape[0], 0, holder_shape[1]), white_patch=white_patch,
-        exposure_s=exposure, frames=frames, materials=materials,
+        instrument=instrument, design=design, seed=seed, image_shape=layout.image_shape,
+        holder=(0, layout.holder_shape[0], 0, layout.holder_shape[1]), white_patch=layout.white_patch,
+        exposure_s=exposure, frames=frames, materials=layout.materials,
     )
 
 
@@ -706,6 +770,11 @@ __all__ = [
     "Material",
     "SimulatedFrame",
     "SimulatedExperiment",
+    "Scene",
+    "ExperimentLayout",
+    "experiment_layout",
+    "fixed_materials",
+    "sensor_map",
     "simulate_experiment",
     "simulate_session",
 ]
