@@ -31,28 +31,6 @@ def reply(emulator, data: bytes) -> bytes:
     return b"".join(chunk for _, chunk in chunks)
 
 
-def pty_resources() -> tuple[set[str], set[str]]:
-    """Open pseudo-terminal fds of this process and running EmulatedPort server threads."""
-    fds = set()
-    for fd in os.listdir("/proc/self/fd"):
-        try:
-            target = os.readlink(f"/proc/self/fd/{fd}")
-        except OSError:  # closed between listdir and readlink
-            continue
-        if target.startswith(("/dev/pts/", "/dev/ptmx")):
-            fds.add(f"{fd}->{target}")
-    threads = {t.name for t in threading.enumerate() if t.name.startswith("EmulatedPort")}
-    return fds, threads
-
-
-@pytest.fixture
-def no_leaks():
-    """Fail if a test leaves pty fds or server threads behind (faults included)."""
-    fds, threads = pty_resources()
-    yield
-    assert pty_resources() == (fds, threads)
-
-
 # -- filter wheel state machine ---------------------------------------------------------------------
 
 

@@ -13,6 +13,7 @@ import threading
 import pytest
 import serial
 
+from .support import scripted, transcript
 from hw.emulators import EmulatedPort, FilterWheelEmulator, ScriptedPort
 from hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
 from hw.filterwheel import MODELS, FilterWheel
@@ -39,44 +40,6 @@ OPERATIONS = {
 }
 
 
-def scripted(monkeypatch, script):
-    port = ScriptedPort(script, url="scripted://wheel")
-    monkeypatch.setattr(serial, "serial_for_url", port.serial_for_url)
-    return port
-
-
-def transcript(script):
-    """The expected ScriptedPort transcript for a script: each write followed by its whole reply."""
-    out = []
-    for written, answered in script:
-        out.append(("write", written))
-        if answered:
-            out.append(("read", answered))
-    return out
-
-
-def pty_resources() -> tuple[set[str], set[str]]:
-    """Open pseudo-terminal fds of this process and running EmulatedPort server threads."""
-    fds = set()
-    for fd in os.listdir("/proc/self/fd"):
-        try:
-            target = os.readlink(f"/proc/self/fd/{fd}")
-        except OSError:  # closed between listdir and readlink
-            continue
-        if target.startswith(("/dev/pts/", "/dev/ptmx")):
-            fds.add(f"{fd}->{target}")
-    threads = {t.name for t in threading.enumerate() if t.name.startswith("EmulatedPort")}
-    return fds, threads
-
-
-@pytest.fixture
-def no_leaks():
-    """Fail if a test leaves pty fds or server threads behind (faults included)."""
-    fds, threads = pty_resources()
-    yield
-    assert pty_resources() == (fds, threads)
-
-
 @pytest.fixture
 def emulated(no_leaks):
     """A default FW212C on a pty and a connected driver (short timeouts for the fault tests)."""
@@ -89,7 +52,7 @@ def emulated(no_leaks):
 
 
 def test_connect_transcript(monkeypatch):
-    port = scripted(monkeypatch, CONNECT)
+    port = scripted(monkeypatch, CONNECT, 'scripted://wheel')
     with FilterWheel("scripted://wheel", model="FW212C") as wheel:
         assert wheel.identity == IDN.decode()
         assert wheel.is_connected
@@ -101,7 +64,7 @@ def test_connect_transcript(monkeypatch):
 @pytest.mark.parametrize("name", sorted(OPERATIONS))
 def test_operation_transcript(monkeypatch, name):
     call, result, script = OPERATIONS[name]
-    port = scripted(monkeypatch, CONNECT + script)
+    port = scripted(monkeypatch, CONNECT + script, 'scripted://wheel')
     with FilterWheel("scripted://wheel") as wheel:
         assert call(wheel) == result
     port.assert_done()
@@ -128,7 +91,7 @@ def test_connect_tolerates_prompt_without_space_and_lf_errors(monkeypatch):
         (b"pcount?\r", b"pcount?\r6\r>"),
         (b"sensors=0\r", b"sensors=0\r>"),
     ]
-    port = scripted(monkeypatch, script)
+    port = scripted(monkeypatch, script, 'scripted://wheel')
     with FilterWheel("scripted://wheel", model="FW102C") as wheel:
         assert wheel.identity == IDN.decode()
     port.assert_done()
@@ -136,7 +99,7 @@ def test_connect_tolerates_prompt_without_space_and_lf_errors(monkeypatch):
 
 def test_move_read_back_mismatch_transcript(monkeypatch):
     script = [(b"pos=3\r", b"pos=3\r> "), (b"pos?\r", b"pos?\r4\r> ")]
-    port = scripted(monkeypatch, CONNECT + script)
+    port = scripted(monkeypatch, CONNECT + script, 'scripted://wheel')
     with FilterWheel("scripted://wheel") as wheel, pytest.raises(DeviceError) as info:
         wheel.move_to(3)
     port.assert_done()
@@ -145,7 +108,7 @@ def test_move_read_back_mismatch_transcript(monkeypatch):
 
 
 def test_out_of_range_slot_sends_nothing(monkeypatch):
-    port = scripted(monkeypatch, CONNECT)
+    port = scripted(monkeypatch, CONNECT, 'scripted://wheel')
     with FilterWheel("scripted://wheel") as wheel:
         for slot in (0, 13, -1):
             with pytest.raises(ValueError, match="outside 1..12"):
@@ -159,7 +122,7 @@ def test_out_of_range_slot_sends_nothing(monkeypatch):
 
 def test_wrong_identity_is_protocol_error_and_closes(monkeypatch):
     reply = b"*idn?\rTHORLABS SC10 VERSION 1.07\r> "
-    port = scripted(monkeypatch, [CONNECT[0], (b"*idn?\r", reply)])
+    port = scripted(monkeypatch, [CONNECT[0], (b"*idn?\r", reply)], 'scripted://wheel')
     wheel = FilterWheel("scripted://wheel")
     with pytest.raises(ProtocolError, match="not a Thorlabs FW102C/FW212C") as info:
         wheel.connect()
@@ -169,14 +132,14 @@ def test_wrong_identity_is_protocol_error_and_closes(monkeypatch):
 
 def test_model_mismatch_is_protocol_error(monkeypatch):
     script = CONNECT[:2] + [(b"pcount?\r", b"pcount?\r6\r> ")]
-    scripted(monkeypatch, script)
+    scripted(monkeypatch, script, 'scripted://wheel')
     with pytest.raises(ProtocolError, match="6 positions but an FW212C has 12"):
         FilterWheel("scripted://wheel", model="FW212C").connect()
 
 
 def test_unparsable_values_are_protocol_errors(monkeypatch):
     script = [(b"pos?\r", b"pos?\rthree\r> "), (b"pcount?\r", b"pcount?\r8\r> "), (b"speed?\r", b"speed?\r2\r> ")]
-    scripted(monkeypatch, CONNECT + script)
+    scripted(monkeypatch, CONNECT + script, 'scripted://wheel')
     with FilterWheel("scripted://wheel") as wheel:
         with pytest.raises(ProtocolError, match="expected an integer"):
             wheel.position()

@@ -13,6 +13,7 @@ import threading
 import pytest
 import serial
 
+from .support import scripted, transcript
 from hw.emulators import EmulatedPort, ScriptedPort, ShutterEmulator
 from hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
 from hw.shutter import Shutter
@@ -38,43 +39,6 @@ OPERATIONS = {
 }
 
 
-def scripted(monkeypatch, script):
-    port = ScriptedPort(script, url="scripted://sc10")
-    monkeypatch.setattr(serial, "serial_for_url", port.serial_for_url)
-    return port
-
-
-def transcript(script):
-    out = []
-    for written, answered in script:
-        out.append(("write", written))
-        if answered:
-            out.append(("read", answered))
-    return out
-
-
-def pty_resources() -> tuple[set[str], set[str]]:
-    """Open pseudo-terminal fds of this process and running EmulatedPort server threads."""
-    fds = set()
-    for fd in os.listdir("/proc/self/fd"):
-        try:
-            target = os.readlink(f"/proc/self/fd/{fd}")
-        except OSError:  # closed between listdir and readlink
-            continue
-        if target.startswith(("/dev/pts/", "/dev/ptmx")):
-            fds.add(f"{fd}->{target}")
-    threads = {t.name for t in threading.enumerate() if t.name.startswith("EmulatedPort")}
-    return fds, threads
-
-
-@pytest.fixture
-def no_leaks():
-    """Fail if a test leaves pty fds or server threads behind (faults included)."""
-    fds, threads = pty_resources()
-    yield
-    assert pty_resources() == (fds, threads)
-
-
 @pytest.fixture
 def emulated(no_leaks):
     """A closed SC10 on a pty and a connected driver (short timeouts for the fault tests)."""
@@ -87,7 +51,7 @@ def emulated(no_leaks):
 
 
 def test_connect_transcript(monkeypatch):
-    port = scripted(monkeypatch, CONNECT)
+    port = scripted(monkeypatch, CONNECT, 'scripted://sc10')
     with Shutter("scripted://sc10") as shutter:
         assert shutter.identity == "THORLABS SC10 VERSION 1.07"
     port.assert_done()
@@ -98,7 +62,7 @@ def test_connect_transcript(monkeypatch):
 @pytest.mark.parametrize("name", sorted(OPERATIONS))
 def test_operation_transcript(monkeypatch, name):
     call, result, script = OPERATIONS[name]
-    port = scripted(monkeypatch, CONNECT + script)
+    port = scripted(monkeypatch, CONNECT + script, 'scripted://sc10')
     with Shutter("scripted://sc10") as shutter:
         assert call(shutter) == result
     port.assert_done()
@@ -120,7 +84,7 @@ def test_emulator_speaks_the_golden_transcript(no_leaks, name):
 
 def test_shutter_that_does_not_move_is_device_error(monkeypatch):
     # closed? still 1 after ens (interlock tripped): polled until settle_s, never a second ens.
-    port = scripted(monkeypatch, CONNECT + [CLOSED, ENS] + [CLOSED] * 50)
+    port = scripted(monkeypatch, CONNECT + [CLOSED, ENS] + [CLOSED] * 50, 'scripted://sc10')
     with Shutter("scripted://sc10", settle_s=0.05) as shutter:
         with pytest.raises(DeviceError, match="still closed") as info:
             shutter.open_shutter()
@@ -130,14 +94,14 @@ def test_shutter_that_does_not_move_is_device_error(monkeypatch):
 
 
 def test_bad_closed_value_is_protocol_error(monkeypatch):
-    scripted(monkeypatch, CONNECT + [(b"closed?\r", b"closed?\r2\r> ")])
+    scripted(monkeypatch, CONNECT + [(b"closed?\r", b"closed?\r2\r> ")], 'scripted://sc10')
     with Shutter("scripted://sc10") as shutter, pytest.raises(ProtocolError, match="expected 0 or 1"):
         shutter.is_closed()
 
 
 def test_wrong_identity_is_protocol_error_and_closes(monkeypatch):
     reply = b"id?\rCommand error CMD_NOT_DEFINED\r> "
-    port = scripted(monkeypatch, CONNECT[:1] + [(b"id?\r", reply)])
+    port = scripted(monkeypatch, CONNECT[:1] + [(b"id?\r", reply)], 'scripted://sc10')
     shutter = Shutter("scripted://sc10")
     with pytest.raises(DeviceError, match="CMD_NOT_DEFINED"):
         shutter.connect()
@@ -145,7 +109,7 @@ def test_wrong_identity_is_protocol_error_and_closes(monkeypatch):
 
 
 def test_make_safe_never_raises(monkeypatch, caplog):
-    port = scripted(monkeypatch, CONNECT)
+    port = scripted(monkeypatch, CONNECT, 'scripted://sc10')
     with Shutter("scripted://sc10") as shutter:
         port.vanish()
         with caplog.at_level(logging.WARNING, logger="hw.shutter"):
@@ -155,7 +119,7 @@ def test_make_safe_never_raises(monkeypatch, caplog):
 
 
 def test_make_safe_reconnects_after_a_port_error(monkeypatch):
-    port = scripted(monkeypatch, CONNECT)
+    port = scripted(monkeypatch, CONNECT, 'scripted://sc10')
     with Shutter("scripted://sc10") as shutter:
         port.vanish()
         with pytest.raises(PortError):
