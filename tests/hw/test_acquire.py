@@ -236,3 +236,38 @@ def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
     for frame in session.frames:
         assert [b["band_nm"] for b in frame.metadata["bands"]] == BANDS  # each band exactly once
     assert not (tmp_path / "s.partial").exists()
+
+
+@pytest.mark.parametrize("device", ["wheel", "shutter"])
+def test_wrong_identity_refused_before_anything_moves(tmp_path, monkeypatch, device):
+    """A device whose *idn? / id? is not what the profile names: refused naming the device."""
+    from hw import emulators
+
+    made = []
+    if device == "wheel":
+        real = emulators.FilterWheelEmulator
+
+        def make(**kwargs):
+            made.append(real(identity="ACME FILTERWHEEL 2.0", **kwargs))
+            return made[-1]
+
+        monkeypatch.setattr(emulators, "FilterWheelEmulator", make)
+        match = r"wheel 'a' \(\[wheels.a\]\) failed its check: .*ACME FILTERWHEEL"
+    else:
+        real = emulators.ShutterEmulator
+
+        def make(**kwargs):
+            made.append(real(identity="ACME SHUTTER 1.0", **kwargs))
+            return made[-1]
+
+        monkeypatch.setattr(emulators, "ShutterEmulator", make)
+        match = r"shutter \(\[shutter\]\) failed its check: .*ACME SHUTTER"
+    profile = write_profile(tmp_path)
+    with pytest.raises(acquire.AcquisitionError, match=match) as refused:
+        run_acquire(profile, tmp_path / "s")
+    assert "\n" not in str(refused.value)
+    if device == "wheel":
+        assert made[0].moves == []
+    else:
+        assert made[0].toggles == 0
+    assert not (tmp_path / "s").exists() and not (tmp_path / "s.partial").exists()
