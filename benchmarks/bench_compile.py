@@ -9,8 +9,9 @@ What it measures
       cold      no persistent cache;
       populate  with an empty persistent cache folder (JAX writes the executables);
       warm      with that folder (JAX loads them instead of compiling).
-    Targets (issue 7): cold under 2 s, warm under 0.5 s. The second call of each process must
-    compile nothing (counted with jax.monitoring's backend-compile event).
+    Targets (issue 7): cold under 2 s, warm under 0.5 s (reported PASS / FAIL). The second call
+    of each process must compile nothing (counted with jax.monitoring's backend-compile event):
+    the exit status is 1 if it does.
 
 Run:
     python benchmarks/bench_compile.py [--size 1024] [--json PATH]
@@ -90,7 +91,9 @@ def main(argv=None) -> int:
     for name, r in results.items():
         target = targets.get(name)
         verdict = "" if target is None else ("PASS" if r["compile_s"] < target else "FAIL")
-        ok &= verdict != "FAIL" and r["backend_compiles_second"] == 0
+        # Only a recompilation fails the run: times are reported against their targets, but a
+        # loaded machine must not turn a benchmark into a failing test.
+        ok &= r["backend_compiles_second"] == 0
         print(f"{name:9} {r['first_s']:13.3f} {r['second_s']:14.3f} {r['compile_s']:10.3f} {r['backend_compiles_first']:13d} "
               f"{r['backend_compiles_second']:18d} {('< %.1f s ' % target + verdict) if target else '':>8}")
     if args.json:
