@@ -512,7 +512,11 @@ def acquire(
         captures = _captures(profile, instrument.camera)  # checked before anything moves
         _layout(profile, instrument.camera)
         partial.mkdir(parents=True, exist_ok=True)
-        (partial / "profile.json").write_text(json.dumps(_profile_identity(profile), sort_keys=True))
+        # Atomic: a kill while writing it must not leave a folder --resume refuses to read.
+        identity = partial / "profile.json"
+        temp = partial / ".profile.json.tmp"
+        temp.write_text(json.dumps(_profile_identity(profile), sort_keys=True))
+        os.replace(temp, identity)
         journal = Journal(partial)
         if emulate:
             # An emulated lamp is switched on when the run starts and needs no waiting.

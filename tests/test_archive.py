@@ -533,3 +533,10 @@ def test_exr_compression_is_lossless(cal, tmp_path, rng, capsys, compression):
     refl, _, _ = read_exr(out / "a.reflectance.exr")
     expected = np.asarray(spherejax.correct(raw, io.load_calibration(cal)[0]).reflectance)
     assert refl.tobytes() == expected.tobytes()
+
+
+def test_unknown_exr_compression_is_refused_before_anything(cal, tmp_path, rng):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    with pytest.raises(ValueError, match=r"exr_compression: expected one of \['piz', 'zip', 'none'\], got 'lzw'"):
+        archive.run_batch([tmp_path / "a.tif"], tmp_path / "out", cal, exr_compression="lzw")
+    assert not (tmp_path / "out").exists()

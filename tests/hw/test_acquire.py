@@ -271,3 +271,10 @@ def test_wrong_identity_refused_before_anything_moves(tmp_path, monkeypatch, dev
     else:
         assert made[0].toggles == 0
     assert not (tmp_path / "s").exists() and not (tmp_path / "s.partial").exists()
+
+
+def test_sample_that_the_simulated_camera_cannot_show_is_refused(tmp_path):
+    profile = write_profile(tmp_path, samples=("train-bg00-g0", "my-textile"))
+    with pytest.raises(acquire.AcquisitionError, match="samples id 'my-textile' is not a scene of the simulated camera"):
+        run_acquire(profile, tmp_path / "s")
+    assert not (tmp_path / "s").exists() and not (tmp_path / "s.partial").exists()
