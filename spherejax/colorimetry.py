@@ -22,6 +22,7 @@ References
 from __future__ import annotations
 
 import functools
+import math
 import warnings
 
 import jax
@@ -190,6 +191,12 @@ def _hue_angle_degrees(b, a_prime):
     return jnp.where(origin, 0.0, jnp.mod(h, 360.0))
 
 
+# Constants of T (Eq. 15) for the angle-sum identities in `delta_e_2000`.
+_COS_30, _SIN_30 = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+_COS_6, _SIN_6 = math.cos(math.radians(6.0)), math.sin(math.radians(6.0))
+_COS_63, _SIN_63 = math.cos(math.radians(63.0)), math.sin(math.radians(63.0))
+
+
 def delta_e_2000(lab1, lab2, *, k_L: float = 1.0, k_C: float = 1.0, k_H: float = 1.0):
     """CIEDE2000 colour difference (CIE 142-2001), as written out by Sharma et al. (2005).
 
@@ -253,12 +260,20 @@ def delta_e_2000(lab1, lab2, *, k_L: float = 1.0, k_C: float = 1.0, k_H: float =
     h_bar_p = jnp.where(chroma_zero, h_sum, h_bar_p)
 
     # Eq. 15-22: weighting functions and the rotation term.
+    # T = 1 - 0.17 cos(h - 30°) + 0.24 cos(2h) + 0.32 cos(3h + 6°) - 0.20 cos(4h - 63°), written
+    # with the angle-sum and multiple-angle identities from one cos and one sin of h: exact, and
+    # two transcendental evaluations instead of four (they were a third of the function's time).
+    h_rad = jnp.radians(h_bar_p)
+    cos_1, sin_1 = jnp.cos(h_rad), jnp.sin(h_rad)
+    cos_2, sin_2 = 2.0 * cos_1 * cos_1 - 1.0, 2.0 * sin_1 * cos_1
+    cos_3, sin_3 = cos_1 * (4.0 * cos_1 * cos_1 - 3.0), sin_1 * (3.0 - 4.0 * sin_1 * sin_1)
+    cos_4, sin_4 = 2.0 * cos_2 * cos_2 - 1.0, 2.0 * sin_2 * cos_2
     T = (
         1.0
-        - 0.17 * jnp.cos(jnp.radians(h_bar_p - 30.0))
-        + 0.24 * jnp.cos(jnp.radians(2.0 * h_bar_p))
-        + 0.32 * jnp.cos(jnp.radians(3.0 * h_bar_p + 6.0))
-        - 0.20 * jnp.cos(jnp.radians(4.0 * h_bar_p - 63.0))
+        - 0.17 * (cos_1 * _COS_30 + sin_1 * _SIN_30)
+        + 0.24 * cos_2
+        + 0.32 * (cos_3 * _COS_6 - sin_3 * _SIN_6)
+        - 0.20 * (cos_4 * _COS_63 + sin_4 * _SIN_63)
     )
     delta_theta = 30.0 * jnp.exp(-(((h_bar_p - 275.0) / 25.0) ** 2))
     C_bar_p_7 = C_bar_p**7
