@@ -108,6 +108,7 @@ from bench_correct import (  # noqa: E402
     machine_info,
     reference_constants,
     reference_correct,
+    write_record,
 )
 
 from spherejax import archive, io  # noqa: E402
@@ -733,10 +734,7 @@ def main(argv=None) -> int:
         }
         print_report(record)
         if args.json:
-            os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-            with open(args.json, "w") as f:
-                json.dump(record, f, indent=2)
-            print(f"\nwrote {args.json}")
+            write_record(args.json, record)
     finally:
         if args.keep:
             print(f"kept {workdir}")

@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", metavar="PATH")
     args = parser.parse_args(argv)
     sys.path.insert(0, HERE)
-    from bench_correct import machine_info
+    from bench_correct import machine_info, write_record
 
     with tempfile.TemporaryDirectory(prefix="spherejax-jax-cache-") as cache:
         results = {
@@ -99,10 +99,7 @@ def main(argv=None) -> int:
     if args.json:
         record = {"benchmark": "bench_compile", "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "size": args.size, "results": results, "targets_s": targets, "machine": machine_info(), "argv": sys.argv}
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=2)
-        print(f"wrote {args.json}")
+        write_record(args.json, record)
     return 0 if ok else 1
 
 

@@ -425,6 +425,14 @@ def print_report(summary: dict, agreement: dict, info: dict, size: int, repeats:
             print("warning: other processes competed for the CPUs; the timings are pessimistic")
 
 
+def write_record(path: str, record: dict) -> None:
+    """Write a benchmark's record as indented JSON (its folder created if missing)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(record, f, indent=2)
+    print(f"\nwrote {path}")
+
+
 # --------------------------------------------------------------------------------------------
 
 
@@ -490,10 +498,7 @@ def main(argv=None) -> int:
             "machine": info,
             "argv": sys.argv,
         }
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=2)
-        print(f"\nwrote {args.json}")
+        write_record(args.json, record)
     return 0
 
 

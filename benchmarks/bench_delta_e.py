@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import sys
 import warnings
@@ -42,7 +41,7 @@ jax.config.update("jax_enable_x64", True)
 import colour  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved  # noqa: E402
+from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
 import spherejax  # noqa: E402
 
@@ -110,10 +109,7 @@ def main(argv=None) -> int:
             "benchmark": "bench_delta_e", "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "pairs": args.pairs, "repeats": args.repeats, "results": results, "machine": info, "argv": sys.argv,
         }
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=2)
-        print(f"wrote {args.json}")
+        write_record(args.json, record)
     return 0
 
 

@@ -94,6 +94,7 @@ from bench_correct import (  # noqa: E402
     reference_constants,
     stage2_coeffs,
     wiener_matrix,
+    write_record,
 )
 
 import colour  # noqa: E402  (bench_correct has silenced its matplotlib warning)
@@ -864,10 +865,7 @@ def main(argv=None) -> int:
             "machine": info,
             "argv": sys.argv,
         }
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=2)
-        print(f"\nwrote {args.json}")
+        write_record(args.json, record)
     if not checks_ok:
         print("FAIL: the outputs disagree with the whole-image correction or the reference", file=sys.stderr)
     return 0 if results["pass"] and checks_ok else 1

@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", metavar="PATH")
     args = parser.parse_args(argv)
     sys.path.insert(0, HERE)
-    from bench_correct import machine_info
+    from bench_correct import machine_info, write_record
 
     available = sorted(os.sched_getaffinity(0))
     core_sets = {1: set(available[:1]), len(available[:2]): set(available[:2])}
@@ -85,10 +85,7 @@ def main(argv=None) -> int:
     if args.json:
         record = {"benchmark": "bench_scaling", "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "repeats": args.repeats, "rows": rows, "machine": machine_info(), "argv": sys.argv}
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=2)
-        print(f"wrote {args.json}")
+        write_record(args.json, record)
     return 0
 
 

@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import sys
 import tempfile
@@ -62,7 +61,7 @@ import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved  # noqa: E402
+from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
 from spherejax import calibrate, simulate  # noqa: E402
 from spherejax.polynomial import (  # noqa: E402
@@ -439,10 +438,7 @@ def main(argv=None) -> int:
             "machine": info,
             "argv": sys.argv,
         }
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=2)
-        print(f"\nwrote {args.json}")
+        write_record(args.json, record)
     return 0 if robust_ok and exact_ok else 1
 
 
