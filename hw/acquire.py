@@ -47,7 +47,7 @@ from .errors import HardwareError
 from .filterbank import FilterBank, WheelCountMismatch
 from .filterwheel import FilterWheel
 from .lamp import Lamp
-from .profile import Profile, ProfileError, SamplePlan, load_profile
+from .profile import Profile, load_profile
 from .shutter import Shutter
 
 JOURNAL_NAME = "journal.jsonl"
@@ -214,10 +214,10 @@ def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lam
 
         if emulated:
             wheel_state = emulated["wheels"]
-            light_path = lambda: _band_index(profile, profile.band_at({n: p.emulator.position for n, p in wheel_state.items()}))  # noqa: E731
+            light_path = lambda: _band_index(profile.band_at({n: p.emulator.position for n, p in wheel_state.items()}))  # noqa: E731
             shutter_open = lambda: not emulated["shutter"].emulator.closed  # noqa: E731
         else:
-            light_path = lambda: _band_index(profile, bank.band_in_path())  # noqa: E731
+            light_path = lambda: _band_index(bank.band_in_path())  # noqa: E731
             shutter_open = lambda: not shutter.is_closed()  # noqa: E731
         options = dict(profile.camera.options)
         camera = SimulatedCamera(light_path=light_path, shutter_open=shutter_open, **options)
@@ -247,9 +247,12 @@ def _naming(device: str) -> Iterator[None]:
         raise AcquisitionError(f"{device} failed its check: {error}") from None
 
 
-def _band_index(profile: Profile, band: int | None) -> int | None:
-    """The simulated camera's band index (400 nm = 0, step 20) of a band in the path."""
-    return None if band is None else (band - 400) // 20
+def _band_index(band: int | None) -> int | None:
+    """The simulated camera's band index of a band in the path (its bands are spherejax's grid;
+    `connect` has checked the profile's bands are among them)."""
+    from spherejax.grid import BAND_CENTRES_NM
+
+    return None if band is None else BAND_CENTRES_NM.tolist().index(band)
 
 
 # ------------------------------------------------------------------------------------- protocol

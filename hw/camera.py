@@ -87,6 +87,18 @@ class Camera(abc.ABC):
 
     # --- public interface ----------------------------------------------------------------------
 
+    def _count(self, value, problem: str) -> int:
+        """`value` as an integer >= 1 (bools refused), else ValueError(`problem`)."""
+        try:
+            if isinstance(value, bool):
+                raise TypeError
+            count = operator.index(value)
+        except TypeError:
+            raise ValueError(self._error(problem)) from None
+        if count < 1:
+            raise ValueError(self._error(problem))
+        return count
+
     def _error(self, problem: str) -> str:
         return f"camera {self.name!r}: {problem}"
 
@@ -163,14 +175,7 @@ class Camera(abc.ABC):
                     f"the {sensor_h} x {sensor_w} sensor"
                 )
             )
-        try:
-            if isinstance(binning, bool):
-                raise TypeError
-            b = operator.index(binning)
-        except TypeError:
-            raise ValueError(self._error(f"binning {binning!r} is not an integer >= 1")) from None
-        if b < 1:
-            raise ValueError(self._error(f"binning {binning!r} is not an integer >= 1"))
+        b = self._count(binning, f"binning {binning!r} is not an integer >= 1")
         if height % b or width % b:
             raise ValueError(
                 self._error(f"binning {b} does not divide the ROI's height {height} and width {width}")
@@ -200,14 +205,7 @@ class Camera(abc.ABC):
     def average(self, n: int) -> np.ndarray:
         """Mean of `n` >= 1 consecutive snaps, (H, W) float64 (DN): averaging shrinks shot and
         read noise as 1 / sqrt(n)."""
-        try:
-            if isinstance(n, bool):
-                raise TypeError
-            count = operator.index(n)
-        except TypeError:
-            raise ValueError(self._error(f"average needs an integer number of frames >= 1, got {n!r}")) from None
-        if count < 1:
-            raise ValueError(self._error(f"average needs an integer number of frames >= 1, got {n!r}"))
+        count = self._count(n, f"average needs an integer number of frames >= 1, got {n!r}")
         total = np.zeros(self.frame_shape, np.float64)
         for _ in range(count):
             total += self.snap()

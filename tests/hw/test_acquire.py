@@ -238,35 +238,30 @@ def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
     assert not (tmp_path / "s.partial").exists()
 
 
-@pytest.mark.parametrize("device", ["wheel", "shutter"])
-def test_wrong_identity_refused_before_anything_moves(tmp_path, monkeypatch, device):
+@pytest.mark.parametrize(
+    "emulator, identity, match",
+    [
+        ("FilterWheelEmulator", "ACME FILTERWHEEL 2.0", r"wheel 'a' \(\[wheels.a\]\) failed its check: .*ACME FILTERWHEEL"),
+        ("ShutterEmulator", "ACME SHUTTER 1.0", r"shutter \(\[shutter\]\) failed its check: .*ACME SHUTTER"),
+    ],
+    ids=["wheel", "shutter"],
+)
+def test_wrong_identity_refused_before_anything_moves(tmp_path, monkeypatch, emulator, identity, match):
     """A device whose *idn? / id? is not what the profile names: refused naming the device."""
     from hw import emulators
 
-    made = []
-    if device == "wheel":
-        real = emulators.FilterWheelEmulator
+    real, made = getattr(emulators, emulator), []
 
-        def make(**kwargs):
-            made.append(real(identity="ACME FILTERWHEEL 2.0", **kwargs))
-            return made[-1]
+    def make(**kwargs):
+        made.append(real(identity=identity, **kwargs))
+        return made[-1]
 
-        monkeypatch.setattr(emulators, "FilterWheelEmulator", make)
-        match = r"wheel 'a' \(\[wheels.a\]\) failed its check: .*ACME FILTERWHEEL"
-    else:
-        real = emulators.ShutterEmulator
-
-        def make(**kwargs):
-            made.append(real(identity="ACME SHUTTER 1.0", **kwargs))
-            return made[-1]
-
-        monkeypatch.setattr(emulators, "ShutterEmulator", make)
-        match = r"shutter \(\[shutter\]\) failed its check: .*ACME SHUTTER"
+    monkeypatch.setattr(emulators, emulator, make)
     profile = write_profile(tmp_path)
     with pytest.raises(acquire.AcquisitionError, match=match) as refused:
         run_acquire(profile, tmp_path / "s")
     assert "\n" not in str(refused.value)
-    if device == "wheel":
+    if emulator == "FilterWheelEmulator":
         assert made[0].moves == []
     else:
         assert made[0].toggles == 0
