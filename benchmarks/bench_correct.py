@@ -23,7 +23,12 @@ dispatches asynchronously, so without it only the dispatch would be timed). The 
 other processes took during timing is recorded, since on 2 cores it shows up in every figure.
 
 Run:
-    python benchmarks/bench_correct.py [--size 1024] [--repeats 7] [--json PATH]
+    python benchmarks/bench_correct.py [--size 1024] [--repeats 7] [--allocator reuse|default]
+        [--json PATH]
+
+Allocator: by default the script first calls `spherejax.allocator.keep_freed_memory()`, as the
+command line does, so neither implementation pays the kernel for fresh zeroed pages on every
+call; `--allocator default` leaves glibc as it comes (that module's docstring says why it matters).
 """
 
 from __future__ import annotations
@@ -50,6 +55,7 @@ import jax  # noqa: E402
 
 import spherejax  # noqa: E402
 from spherejax import spectra  # noqa: E402
+from spherejax.allocator import keep_freed_memory  # noqa: E402
 from spherejax.polynomial import PAPER_TABLE_2  # noqa: E402
 
 BANDS = 16
@@ -396,7 +402,8 @@ def print_report(summary: dict, agreement: dict, info: dict, size: int, repeats:
     print(f"\nspherejax.correct vs numpy + colour-science, {size} x {size} x {BANDS} uint16 "
           f"({summary['megapixels']:.3f} MP), median of {repeats}")
     print(f"machine: {info['cpu_model']}, {info['nproc']} CPUs, jax {info['jax']}, "
-          f"numpy {info['numpy']}, colour-science {info['colour-science']}")
+          f"numpy {info['numpy']}, colour-science {info['colour-science']}, "
+          f"allocator {info.get('allocator', 'glibc default')}")
     print(f"agreement over {agreement['valid_pixels']} valid pixels "
           f"({agreement['bad_pixels']} flagged bad in both): "
           f"reflectance max |diff| {agreement['reflectance_max_abs_diff']:.2e}, "
@@ -442,6 +449,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=7, help="timed runs per implementation")
     parser.add_argument("--json", metavar="PATH", help="also write the results here")
     parser.add_argument("--copy-mib", type=int, default=512, help="buffer size of the copy test")
+    parser.add_argument(
+        "--allocator", choices=("reuse", "default"), default="reuse",
+        help="reuse: glibc keeps freed blocks (spherejax.allocator.keep_freed_memory, what the "
+             "command line does), for both implementations; default: glibc as it comes",
+    )
     args = parser.parse_args(argv)
     if args.size < PATCH_SIZE + 8:
         parser.error(f"--size must be at least {PATCH_SIZE + 8} to hold the white patch")
@@ -452,7 +464,10 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    # Before any JAX work: glibc threads keep the arenas they already have.
+    allocator_reuse = args.allocator == "reuse" and keep_freed_memory()
     info = machine_info()
+    info["allocator"] = "reuse (keep_freed_memory)" if allocator_reuse else "glibc default"
 
     coeffs = stage2_coeffs()
     wiener = wiener_matrix()

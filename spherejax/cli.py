@@ -31,6 +31,8 @@ import pathlib
 import sys
 import time
 
+from .allocator import keep_freed_memory
+
 EXIT_BAD_INPUT = 2
 
 #: Stage II losses (spherejax.polynomial.LOSSES, repeated so --help needs no JAX import).
@@ -442,6 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # Before any JAX work: reuse freed blocks instead of page-faulting fresh ones on every image
+    # (spherejax.allocator says why; about 2x on a 1-megapixel correction).
+    keep_freed_memory()
     try:
         return args.run(args)
     except KeyboardInterrupt:

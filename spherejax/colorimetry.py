@@ -133,8 +133,20 @@ def _lab_f(t):
     masks the value, not the gradient, so the cube root is fed a harmless 1 on the linear branch.
     """
     above = t > _LAB_EPSILON
-    cube_root = jnp.cbrt(jnp.where(above, t, 1.0))
+    cube_root = _cube_root_positive(jnp.where(above, t, 1.0))
     return jnp.where(above, cube_root, (_LAB_KAPPA / 116.0) * t + 16.0 / 116.0)
+
+
+def _cube_root_positive(x):
+    """x^(1/3) for x > 0: exp(log(x) / 3), then one Newton step.
+
+    Written out because XLA's CPU `cbrt` is slow: 22 ms for 3 x 10^6 float32 values on 2 cores
+    against 2-4 ms for exp and log, which XLA vectorises. exp(log(x) / 3) alone is off by up to
+    about |log x| ulp (the rounding of log x, scaled by exp); the Newton step for y^3 = x takes
+    that to 1-2 ulp of `jnp.cbrt` over 1e-6..1e6 (tested) for one division more.
+    """
+    y = jnp.exp(jnp.log(x) * (1.0 / 3.0))
+    return y + (x / (y * y) - y) * (1.0 / 3.0)
 
 
 def xyz_to_lab(xyz, white_xyz):

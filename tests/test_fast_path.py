@@ -1,0 +1,189 @@
+"""The speed-ups of the per-pixel path (issue 7) against the plain forms they replace.
+
+Each fast form is checked against the straightforward one it stands for: the NaN-row projection
+against `where(good, v @ M, nan)` (values and gradients), the exp/log cube root against
+`jnp.cbrt`, the min/max flat-field flag against `any` over the bands, and `correct` as a whole
+against the path written out plainly from the equations. The allocator setting is checked by
+what it is for: page faults of a repeated correction.
+"""
+
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import spherejax as sj
+from spherejax import allocator, colorimetry, pipeline
+from spherejax.flatfield import white_signal_usable
+
+HIGHEST = jax.lax.Precision.HIGHEST
+
+
+def plain_projection(good, v, matrix):
+    return jnp.where(good, jnp.matmul(v, matrix, precision=HIGHEST), jnp.nan)
+
+
+class TestProjectGoodPixels:
+    @pytest.mark.parametrize("matrix_kind", ["random", "zeros"])
+    def test_equals_the_masked_product(self, dtype, matrix_kind):
+        rng = np.random.default_rng(0)
+        v = jnp.asarray(rng.uniform(0, 1, (7, 9, 16)), dtype)
+        good = jnp.asarray(rng.random((7, 9, 1)) > 0.3)
+        v = jnp.where(good, v, 0.0)  # the safe-where convention of the caller
+        matrix = jnp.asarray(rng.normal(size=(16, 31)) if matrix_kind == "random" else np.zeros((16, 31)), dtype)
+        fast = np.asarray(pipeline._project_good_pixels(good, v, matrix))
+        plain = np.asarray(plain_projection(good, v, matrix))
+        assert np.isnan(fast[~np.asarray(good)[..., 0]]).all()  # NaN in every channel, even x 0
+        np.testing.assert_array_equal(np.isnan(fast), np.isnan(plain))
+        np.testing.assert_allclose(fast, plain, rtol=1e-6 if dtype == np.float32 else 1e-13)
+
+    def test_gradients_equal_the_masked_product(self):
+        rng = np.random.default_rng(1)
+        v = jnp.asarray(rng.uniform(0, 1, (40, 16)))
+        good = jnp.asarray(rng.random((40, 1)) > 0.25)
+        v = jnp.where(good, v, 0.0)
+        matrix = jnp.asarray(rng.normal(size=(16, 3)))
+        weights = jnp.asarray(rng.normal(size=(40, 3)))
+
+        def loss(projection, v, matrix):
+            out = projection(good, v, matrix)
+            return jnp.sum(jnp.where(good, out, 0.0) * weights)
+
+        fast = jax.grad(lambda v, m: loss(pipeline._project_good_pixels, v, m), argnums=(0, 1))(v, matrix)
+        plain = jax.grad(lambda v, m: loss(plain_projection, v, m), argnums=(0, 1))(v, matrix)
+        for f, p in zip(fast, plain):
+            assert np.isfinite(np.asarray(f)).all()
+            np.testing.assert_allclose(np.asarray(f), np.asarray(p), rtol=1e-12, atol=1e-15)
+
+
+class TestCubeRoot:
+    def test_agrees_with_cbrt(self, dtype):
+        x = np.geomspace(1e-6, 1e6, 20001).astype(dtype)
+        fast = np.asarray(colorimetry._cube_root_positive(jnp.asarray(x)))
+        exact = np.cbrt(x.astype(np.float64))
+        ulp = np.spacing(exact.astype(dtype)).astype(np.float64)
+        assert np.max(np.abs(fast - exact) / ulp) <= 2
+
+    def test_lab_of_the_whites_and_greys(self, dtype):
+        """Exact points: the white is L* 100 and Y/Yn = 1/8 is L* 116/2 - 16 = 42."""
+        white = jnp.asarray([95.047, 100.0, 108.883], dtype)
+        lab = np.asarray(sj.xyz_to_lab(jnp.stack([white, white / 8]), white))
+        tolerance = 2e-5 if dtype == np.float32 else 1e-12
+        np.testing.assert_allclose(lab[:, 0], [100.0, 42.0], atol=tolerance)
+        np.testing.assert_allclose(lab[:, 1:], 0.0, atol=tolerance)
+
+
+class TestNoFlatField:
+    def test_equals_any_over_the_bands(self, dtype):
+        rng = np.random.default_rng(2)
+        dark = rng.uniform(90, 110, (64, 16)).astype(dtype)
+        white = (dark + rng.uniform(-50, 1000, (64, 16))).astype(dtype)
+        specials = [np.nan, np.inf, -np.inf, 0.0]
+        for row in range(0, 64, 3):
+            band = rng.integers(0, 16)
+            target = white if row % 2 else dark
+            target[row, band] = specials[row % 4]
+        white[5] = dark[5]  # white == dark in every band
+        # NaN in the first, a middle and the last band: a vectorised minimum may drop NaN
+        # depending on where it sits (YNNPACK's does).
+        white[[7, 8, 10], [0, 15, 9]] = np.nan
+        fast = np.asarray(pipeline._no_flat_field(jnp.asarray(dark), jnp.asarray(white)))
+        plain = np.asarray(jnp.any(~white_signal_usable(jnp.asarray(dark), jnp.asarray(white)), axis=-1))
+        np.testing.assert_array_equal(fast, plain)
+        assert 0 < fast.sum() < 64
+
+
+def plain_correct(raw, calibration, p):
+    """The per-pixel path as the equations read, with one `where` per output (no fast forms)."""
+    dtype = np.float64
+    raw_f = jnp.asarray(raw, dtype)
+    dark, white = jnp.asarray(calibration.dark, dtype), jnp.asarray(calibration.white, dtype)
+    usable = white_signal_usable(dark, white)
+    saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= calibration.saturation), axis=-1)
+    nonfinite = jnp.any(~jnp.isfinite(raw_f), axis=-1)
+    no_flat_field = jnp.any(~usable, axis=-1)
+    bits = [(saturated, sj.QUALITY_SATURATED), (nonfinite, sj.QUALITY_NONFINITE),
+            (no_flat_field, sj.QUALITY_WHITE_NOT_ABOVE_DARK)]
+    quality = sum(np.where(np.asarray(flag), bit, 0) for flag, bit in bits).astype(np.uint8)
+    good = (quality == 0)[..., None]
+    v = sj.flat_field(raw_f, dark, white)
+    v_tilde = sj.stage2(v, p, calibration.coeffs)
+    reflectance = jnp.where(good, sj.wiener(v_tilde, calibration.wiener), jnp.nan)
+    lab = jnp.where(good, sj.reflectance_to_lab(jnp.where(good, reflectance, 0.0), calibration.illuminant), jnp.nan)
+    return reflectance, lab, quality
+
+
+def test_correct_equals_the_plain_path_with_bad_pixels():
+    rng = np.random.default_rng(3)
+    H, W, B = 24, 30, 16
+    dark = rng.uniform(95, 105, (H, W, B))
+    white = dark + rng.uniform(8000, 12000, (H, W, B))
+    raw = np.rint(dark + (white - dark) * rng.uniform(0.05, 0.95, (H, W, B)))
+    raw[3, 4, 5] = 16383.0
+    raw[6, 7, 0] = np.nan
+    raw[8, 9, 15] = -np.inf
+    white[10, 11, 2] = dark[10, 11, 2]
+    white[12, 13, 3] = np.nan
+    raw[12, 13, 4] = 16383.0  # saturated and no flat field: both bits
+    patch = np.zeros((H, W), bool)
+    patch[18:22, 20:26] = True
+    calibration = sj.Calibration(
+        dark=dark, white=white, patch=patch, coeffs=np.asarray(sj.identity_coeffs(B, np.float64)),
+        wiener=rng.normal(0, 0.3, (31, B)), illuminant="D65", saturation=16383.0,
+    )
+    result = sj.correct(raw, calibration)
+    reflectance, lab, quality = plain_correct(raw, calibration, result.p)
+    np.testing.assert_array_equal(np.asarray(result.quality), np.asarray(quality))
+    assert np.asarray(result.quality)[12, 13] == sj.QUALITY_SATURATED | sj.QUALITY_WHITE_NOT_ABOVE_DARK
+    assert (np.asarray(quality) != 0).sum() == 5
+    np.testing.assert_allclose(np.asarray(result.reflectance), np.asarray(reflectance), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(result.lab), np.asarray(lab), rtol=1e-10, atol=1e-10)
+
+
+FAULTS_SCRIPT = textwrap.dedent("""
+    import resource, sys
+    import numpy as np
+    import spherejax as sj
+    from spherejax.allocator import keep_freed_memory
+    applied = keep_freed_memory() if sys.argv[1] == "reuse" else False
+    import jax
+    size, bands = 768, 16
+    rng = np.random.default_rng(0)
+    dark = np.full((size, size, bands), 100.0, np.float32)
+    white = dark + 10000.0
+    raw = (dark + 5000.0 * rng.uniform(0.2, 0.9, (size, size, bands))).astype(np.uint16)
+    patch = np.zeros((size, size), bool); patch[8:40, 8:40] = True
+    calibration = sj.Calibration(dark=dark, white=white, patch=patch,
+                                 coeffs=np.asarray(sj.identity_coeffs(bands, np.float32)),
+                                 wiener=np.full((31, bands), 1.0 / bands, np.float32), saturation=16383.0)
+    raw = jax.numpy.asarray(raw)
+    for _ in range(3):
+        jax.block_until_ready(sj.correct(raw, calibration))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(5):
+        jax.block_until_ready(sj.correct(raw, calibration))
+    print(applied, (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) // 5)
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings are Linux-only")
+def test_keep_freed_memory_stops_the_page_faults_of_repeated_corrections():
+    """A 768 x 768 correction frees blocks above glibc's mmap threshold (32 MiB; the reflectance
+    is 73 MB); with the setting they are reused, so a repeated call touches no fresh page."""
+    faults = {}
+    for mode in ("default", "reuse"):
+        out = subprocess.run([sys.executable, "-c", FAULTS_SCRIPT, mode], capture_output=True, text=True, check=True)
+        applied, count = out.stdout.split()
+        faults[mode] = int(count)
+        assert applied == str(mode == "reuse")
+    assert faults["default"] > 15000, faults  # the reflectance alone is 18 000 pages
+    assert faults["reuse"] < 500, faults
+
+
+def test_keep_freed_memory_is_idempotent():
+    first = allocator.keep_freed_memory()
+    assert allocator.keep_freed_memory() is first
