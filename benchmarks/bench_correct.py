@@ -432,6 +432,23 @@ def print_report(summary: dict, agreement: dict, info: dict, size: int, repeats:
             print("warning: other processes competed for the CPUs; the timings are pessimistic")
 
 
+def add_allocator_argument(parser: argparse.ArgumentParser) -> None:
+    """--allocator reuse|default, shared by the benchmarks that time repeated calls."""
+    parser.add_argument(
+        "--allocator", choices=("reuse", "default"), default="reuse",
+        help="reuse: glibc keeps freed blocks (spherejax.allocator.keep_freed_memory, what the "
+             "command line does), for both implementations; default: glibc as it comes",
+    )
+
+
+def apply_allocator_argument(args: argparse.Namespace) -> str:
+    """Apply --allocator; call before any JAX work (glibc threads keep the arenas they have).
+    Returns what is in effect, for the record."""
+    if args.allocator == "reuse" and keep_freed_memory():
+        return "reuse (keep_freed_memory)"
+    return "glibc default"
+
+
 def write_record(path: str, record: dict) -> None:
     """Write a benchmark's record as indented JSON (its folder created if missing)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -449,11 +466,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=7, help="timed runs per implementation")
     parser.add_argument("--json", metavar="PATH", help="also write the results here")
     parser.add_argument("--copy-mib", type=int, default=512, help="buffer size of the copy test")
-    parser.add_argument(
-        "--allocator", choices=("reuse", "default"), default="reuse",
-        help="reuse: glibc keeps freed blocks (spherejax.allocator.keep_freed_memory, what the "
-             "command line does), for both implementations; default: glibc as it comes",
-    )
+    add_allocator_argument(parser)
     args = parser.parse_args(argv)
     if args.size < PATCH_SIZE + 8:
         parser.error(f"--size must be at least {PATCH_SIZE + 8} to hold the white patch")
@@ -464,10 +477,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    # Before any JAX work: glibc threads keep the arenas they already have.
-    allocator_reuse = args.allocator == "reuse" and keep_freed_memory()
+    allocator = apply_allocator_argument(args)
     info = machine_info()
-    info["allocator"] = "reuse (keep_freed_memory)" if allocator_reuse else "glibc default"
+    info["allocator"] = allocator
 
     coeffs = stage2_coeffs()
     wiener = wiener_matrix()

@@ -19,7 +19,12 @@ Timing as bench_correct.py: the first call (trace + compile) apart, then spherej
 reference take turns for --repeats calls; median and minimum, block_until_ready on JAX results.
 
 Run:
-    python benchmarks/bench_delta_e.py [--pairs 1000000] [--repeats 7] [--json PATH]
+    python benchmarks/bench_delta_e.py [--pairs 1000000] [--repeats 7] [--allocator reuse|default]
+        [--json PATH]
+
+    --allocator as in bench_correct.py: by default glibc keeps freed blocks, as the command line
+    has it, for both implementations. It matters here too: without it every call page-faults on
+    XLA's fresh output buffers, and spherejax takes twice as long.
 """
 
 from __future__ import annotations
@@ -41,7 +46,10 @@ jax.config.update("jax_enable_x64", True)
 import colour  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
+from bench_correct import (  # noqa: E402
+    OtherProcessesLoad, add_allocator_argument, apply_allocator_argument, machine_info, time_first_call,
+    time_interleaved, write_record,
+)
 
 import spherejax  # noqa: E402
 
@@ -67,8 +75,11 @@ def main(argv=None) -> int:
     parser.add_argument("--pairs", type=int, default=1_000_000)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--json", metavar="PATH")
+    add_allocator_argument(parser)
     args = parser.parse_args(argv)
+    allocator = apply_allocator_argument(args)
     info = machine_info()
+    info["allocator"] = allocator
     lab1, lab2 = make_pairs(args.pairs)
     expected = np.asarray(colour.delta_E(lab1, lab2, method="CIE 2000"))
 
@@ -97,7 +108,8 @@ def main(argv=None) -> int:
         print("agreement FAILED: " + "; ".join(failures))
         return 1
 
-    print(f"ΔE00 on {args.pairs:,} Lab pairs, median of {args.repeats} ({info['cpu_model']}, {info['nproc']} CPUs)")
+    print(f"ΔE00 on {args.pairs:,} Lab pairs, median of {args.repeats} ({info['cpu_model']}, {info['nproc']} CPUs, "
+          f"allocator {allocator})")
     print(f"{'dtype':8} {'spherejax ms':>13} {'colour-science ms':>18} {'ratio':>7} {'Mpairs/s':>9} {'compile s':>10} {'max |diff|':>11} {'other load':>11}")
     for name, r in results.items():
         t = r["timings"]

@@ -46,9 +46,10 @@ class TestSharma2005:
         """ΔE00 is discontinuous where |h1' - h2'| = 180°: the mean hue h̄' jumps by 180° (Eq. 14),
         which changes T and Δθ. For complementary colours (chroma, ±0.01) vs (-chroma, ∓0.01 (1+d))
         float64 sees the side of the discontinuity that d puts it on; float32 rounds the hue
-        difference to 180° ± 1 ulp and may pick either side, even for d = 0 (it picks the
-        upper branch there, float64 the lower). Its answer is always one of the two one-sided
-        float64 limits, never something in between, and the two limits differ by `jump`.
+        difference to 180° ± 1 ulp and may pick either side. Its answer is always one of the two
+        one-sided float64 limits, never something in between, and the two limits differ by
+        `jump`. At d = 0 exactly the colours are opposite, which `delta_e_2000` decides from
+        a', b rather than from the rounded hue angles: both dtypes take Eq. 14's first case.
         """
         def pair(d):
             return np.array([50.0, chroma, -0.01]), np.array([50.0, -chroma, 0.01 * (1.0 + d)])
@@ -60,12 +61,31 @@ class TestSharma2005:
             lab1, lab2 = pair(d)
             f32 = float(sj.delta_e_2000(lab1.astype(np.float32), lab2.astype(np.float32)))
             assert min(abs(f32 - below), abs(f32 - above)) < 1e-5 * above
+        lab1, lab2 = pair(0.0)
+        f64 = float(sj.delta_e_2000(lab1, lab2))
+        assert float(sj.delta_e_2000(lab1.astype(np.float32), lab2.astype(np.float32))) == pytest.approx(f64, rel=1e-5)
         # Away from the discontinuity by 1e-4 relative (~0.0001° of hue) float32 agrees again.
         for d in (-1e-3, 1e-3):
             lab1, lab2 = pair(d)
             f64 = float(sj.delta_e_2000(lab1, lab2))
             f32 = float(sj.delta_e_2000(lab1.astype(np.float32), lab2.astype(np.float32)))
             assert f32 == pytest.approx(f64, rel=1e-6)
+
+
+def test_exactly_opposite_hues_take_the_unwrapped_branch():
+    """|h1' - h2'| = 180° exactly (Sharma's pair 14 is one): Eq. 10 and 14 take their first
+    case, whatever side of 180° the two separately rounded hue angles land on. Decided from the
+    rounded angles, float32 and float64 would disagree, by the jump of the test above, on the
+    pairs whose angles round to opposite sides; decided from a', b they agree on all 500."""
+    rng = np.random.default_rng(5)
+    L = rng.uniform(10, 90, 500)
+    a, b = rng.uniform(-60, 60, 500), rng.uniform(-60, 60, 500)
+    lab1 = np.stack([L, a, b], -1)
+    lab2 = np.stack([L + rng.normal(0, 2, 500), -a, -b], -1)
+    f64 = np.asarray(sj.delta_e_2000(lab1, lab2))
+    f32 = np.asarray(sj.delta_e_2000(lab1.astype(np.float32), lab2.astype(np.float32)))
+    np.testing.assert_allclose(f32, f64, rtol=2e-5)
+    np.testing.assert_allclose(f64, np.asarray(sj.delta_e_2000(lab2, lab1)), rtol=1e-12)
 
 
 class TestAgainstColourScience:
