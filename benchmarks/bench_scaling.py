@@ -12,7 +12,10 @@ The inputs and the agreement check are bench_correct's (make_inputs, compare): a
 disagrees with the reference stops the benchmark.
 
 Run:
-    python benchmarks/bench_scaling.py [--sizes 1024 2048 4096] [--repeats 3] [--json PATH]
+    python benchmarks/bench_scaling.py [--sizes 1024 2048 4096] [--repeats 3]
+        [--allocator reuse|default] [--json PATH]
+
+    --allocator as in bench_correct.py, applied in each child process before JAX starts.
 """
 
 from __future__ import annotations
@@ -31,9 +34,11 @@ import json, os, sys, warnings
 os.sched_setaffinity(0, {cpus!r})
 warnings.filterwarnings("ignore")
 sys.path.insert(0, {here!r})
+import spherejax, spherejax.allocator
+if {reuse!r}:
+    spherejax.allocator.keep_freed_memory()  # before any JAX work, as the command line does
 import jax
 import bench_correct as bc
-import spherejax
 inputs = bc.make_inputs({size})
 coeffs, wiener = bc.stage2_coeffs(), bc.wiener_matrix()
 calibration = bc.make_calibration(inputs, coeffs, wiener)
@@ -46,8 +51,8 @@ print(json.dumps({{"agreement": agreement, "timings": {{k: {{"median_s": v["medi
 """
 
 
-def run(size: int, cpus: set[int], repeats: int) -> dict:
-    code = CHILD.format(here=HERE, size=size, cpus=sorted(cpus), repeats=repeats)
+def run(size: int, cpus: set[int], repeats: int, reuse: bool) -> dict:
+    code = CHILD.format(here=HERE, size=size, cpus=sorted(cpus), repeats=repeats, reuse=reuse)
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=3600)
     if done.returncode != 0:
         last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"
@@ -60,16 +65,17 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", metavar="PATH")
-    args = parser.parse_args(argv)
     sys.path.insert(0, HERE)
-    from bench_correct import machine_info, write_record
+    from bench_correct import add_allocator_argument, machine_info, write_record
+    add_allocator_argument(parser)
+    args = parser.parse_args(argv)
 
     available = sorted(os.sched_getaffinity(0))
     core_sets = {1: set(available[:1]), len(available[:2]): set(available[:2])}
     rows = []
     for size in args.sizes:
         for cores, cpus in core_sets.items():
-            result = run(size, cpus, args.repeats)
+            result = run(size, cpus, args.repeats, args.allocator == "reuse")
             megapixels = size * size / 1e6
             t = result["timings"]
             rows.append({

@@ -10,6 +10,7 @@ and can be jitted, vmapped and differentiated; bad pixel values give NaN, never 
 bad shapes and names raise ValueError.
 """
 
+from .allocator import keep_freed_memory as keep_freed_memory
 from .colorimetry import (
     delta_e_2000 as delta_e_2000,
     reflectance_to_lab as reflectance_to_lab,
@@ -46,6 +47,7 @@ from .wiener_estimation import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "keep_freed_memory",
     "BAND_CENTRES_NM",
     "WAVELENGTHS_NM",
     "QUALITY_NONFINITE",
