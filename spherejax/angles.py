@@ -119,8 +119,9 @@ def atan2_degrees(y, x):
     """atan2(y, x) in degrees, in [-180, 180], the shape of the broadcast inputs.
 
     The ratio is taken as smaller over larger magnitude, so it stays within [0, 1]. The result
-    is then mirrored into the right octant. At the origin the result is 0 (and, as for
-    `jnp.arctan2`, the gradient there is not finite: callers move the origin first).
+    is then mirrored into the right octant. At the origin the result is 0 with a finite
+    (one-sided) gradient, as the ratio's denominator is replaced by 1 there, where
+    `jnp.arctan2`'s gradient is 0/0.
     """
     ax, ay = jnp.abs(x), jnp.abs(y)
     larger, smaller = jnp.maximum(ax, ay), jnp.minimum(ax, ay)

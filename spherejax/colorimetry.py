@@ -208,11 +208,11 @@ def _safe_sqrt_jvp(primals, tangents):
 def _hue_angle_degrees(b, a_prime):
     """h' = atan2(b, a') in [0, 360) degrees; 0 for a' = b = 0 (Sharma et al. 2005, Eq. 4).
 
-    atan2's gradient at the origin is 0/0, so the origin is replaced by (1, 0) before the call.
+    `angles.atan2_degrees` gives 0 at the origin with a finite gradient, so the origin needs no
+    special case here (with `jnp.arctan2` it did: its gradient there is 0/0).
     """
-    origin = (a_prime == 0) & (b == 0)
-    h = atan2_degrees(jnp.where(origin, 0.0, b), jnp.where(origin, 1.0, a_prime))
-    return jnp.where(origin, 0.0, jnp.where(h < 0, h + 360.0, h))
+    h = atan2_degrees(b, a_prime)
+    return jnp.where(h < 0, h + 360.0, h)
 
 
 # Constants of T (Eq. 15) for the angle-sum identities in `delta_e_2000`.

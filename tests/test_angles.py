@@ -101,3 +101,12 @@ class TestAtan2:
         r2 = np.asarray(x) ** 2 + np.asarray(y) ** 2
         np.testing.assert_allclose(np.asarray(dy), np.degrees(np.asarray(x) / r2), rtol=1e-12)
         np.testing.assert_allclose(np.asarray(dx), np.degrees(-np.asarray(y) / r2), rtol=1e-12)
+
+
+def test_value_and_gradient_at_the_origin_are_finite(dtype):
+    """0 at the origin, with a finite gradient (one-sided: the origin has no derivative), where
+    jnp.arctan2's gradient is 0/0; CIEDE2000 relies on it for colours of zero chroma."""
+    zero = jnp.asarray(0.0, dtype)
+    assert float(angles.atan2_degrees(zero, zero)) == 0.0
+    grad = jax.grad(angles.atan2_degrees, argnums=(0, 1))(zero, zero)
+    assert all(np.isfinite(float(g)) for g in grad)
