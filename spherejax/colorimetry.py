@@ -318,7 +318,8 @@ def delta_e_2000(lab1, lab2, *, k_L: float = 1.0, k_C: float = 1.0, k_H: float =
 
     # The three quotients of Eq. 23 from one division: divisions (and square roots) are what is
     # left of this function's cost on CPU, and each one XLA materialises as a pass over memory.
-    # S_L, S_C, S_H >= 1, so the product neither overflows nor loses precision.
+    # S_L, S_C, S_H >= 1 (T is within 0.36..1.58), so the product neither overflows nor loses
+    # precision.
     inverse = 1.0 / (S_L * S_C * S_H)
     L_term = delta_L_p * (S_C * S_H * inverse) / k_L
     C_term = delta_C_p * (S_L * S_H * inverse) / k_C
