@@ -27,14 +27,16 @@ from collections.abc import Iterator
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed
 
 from . import archive
+from .allocator import keep_freed_memory
 
 #: Where workers keep compiled executables unless SPHEREJAX_COMPILATION_CACHE says otherwise.
 DEFAULT_CACHE = pathlib.Path.home() / ".cache" / "spherejax" / "jax-compilation"
 
 
 class JaxWorkerSetup(WorkerPlugin):
-    """Runs in every worker before its first task: optional pinning to one core, and the
-    persistent compilation cache."""
+    """Runs in every worker before its first task: optional pinning to one core, glibc keeping
+    freed memory (`allocator.keep_freed_memory`, as the command line's own process does), and
+    the persistent compilation cache."""
 
     def __init__(self, cache_dir: str, pin: bool):
         self.cache_dir = cache_dir
@@ -45,6 +47,7 @@ class JaxWorkerSetup(WorkerPlugin):
             cores = sorted(os.sched_getaffinity(0))
             index = abs(hash(str(worker.name))) if not str(worker.name).isdigit() else int(worker.name)
             os.sched_setaffinity(0, {cores[index % len(cores)]})
+        keep_freed_memory()  # before the worker's first JAX work
         import jax
 
         jax.config.update("jax_compilation_cache_dir", self.cache_dir)

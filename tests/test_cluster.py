@@ -1,11 +1,14 @@
 """`spherejax correct --workers N`: a dask LocalCluster on loopback gives the in-process result."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
 from spherejax import archive, cluster, io
 
-from .test_archive import H, NAMES, W, frame, make_calibration, outputs_of, run
+from .test_archive import NAMES, frame, make_calibration, outputs_of, run
 
 
 @pytest.fixture(scope="module")
@@ -49,3 +52,15 @@ def test_unreachable_scheduler_is_one_line(batch, tmp_path, capsys):
                           "--scheduler", "tcp://127.0.0.1:9"], capsys)
     assert status == 2 and len(err.strip().splitlines()) == 1 and "--scheduler" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_worker_setup_keeps_freed_memory(tmp_path):
+    """Each worker process gets the command line's allocator setting before its first JAX work
+    (spherejax.allocator), checked in a fresh process as a worker would run the plugin."""
+    code = (
+        "import sys, types; from spherejax import allocator, cluster; "
+        "cluster.JaxWorkerSetup(sys.argv[1], pin=False).setup(types.SimpleNamespace(name='0')); "
+        "print(allocator._applied)"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == ("True" if sys.platform.startswith("linux") else "False")
