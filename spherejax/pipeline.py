@@ -194,16 +194,13 @@ def _pixel_flags(raw, raw_f, dark, white, saturation):
     """
     pixel_shape = jnp.broadcast_shapes(raw.shape, dark.shape)[:-1]
     if jnp.issubdtype(raw.dtype, jnp.integer):
-        # Counts are always finite: skip a pass, and compare the counts as they are.
-        nonfinite = jnp.zeros(pixel_shape, dtype=bool)
-        saturated_band = raw_f >= saturation if saturation is not None else None
+        nonfinite = jnp.zeros(pixel_shape, dtype=bool)  # counts are always finite: skip a pass
     else:
         nonfinite = jnp.any(~jnp.isfinite(raw_f), axis=-1)
-        saturated_band = jnp.isfinite(raw_f) & (raw_f >= saturation) if saturation is not None else None
-    if saturated_band is None:
+    if saturation is None:
         saturated = jnp.zeros(pixel_shape, dtype=bool)
     else:
-        saturated = jnp.any(saturated_band, axis=-1)
+        saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= saturation), axis=-1)
     no_flat_field = jnp.broadcast_to(_no_flat_field(dark, white), pixel_shape)
     return saturated, nonfinite, no_flat_field
 
