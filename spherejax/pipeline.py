@@ -25,6 +25,8 @@ from v_tilde directly; that equals reflectance @ weights up to rounding (tested)
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -243,7 +245,7 @@ def _patch_flags(raw, raw_f, dark, white, saturation):
     return saturated | nonfinite | no_flat_field
 
 
-@eqx.filter_jit
+@functools.partial(jax.jit, static_argnames=("saturation", "dtype"))
 def _patch_ratio(raw_box, dark_box, white_box, patch_box, saturation, dtype):
     """Eq. 14-15 over the usable pixels of the patch's box: p (..., B) in `dtype`."""
     raw_f = raw_box.astype(dtype)
@@ -285,7 +287,10 @@ def _project_good_pixels_jvp(primals, tangents):
     return out, jnp.where(good, out_dot, 0.0)
 
 
-@eqx.filter_jit
+# jax.jit rather than eqx.filter_jit, here and for _patch_ratio: every array in a Calibration is a
+# leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
+# call (6 % of a 256 x 256 correction).
+@functools.partial(jax.jit, static_argnames=("intermediates",))
 def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool):
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B)."""
     dtype = _compute_dtype(raw, calibration)
@@ -413,7 +418,7 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
         bands = calibration.bands
         _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
         _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
-    return _correct_pixels(raw, calibration, p, bool(intermediates))
+    return _correct_pixels(raw, calibration, p, intermediates=bool(intermediates))
 
 
 __all__ = [
