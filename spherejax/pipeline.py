@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks, colorimetry
+from . import _checks, colorimetry, fused
 from .colorimetry import delta_e_2000, xyz_to_lab
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .grid import N_WAVELENGTHS
@@ -287,30 +287,30 @@ def _project_good_pixels_jvp(primals, tangents):
     return out, jnp.where(good, out_dot, 0.0)
 
 
-# jax.jit rather than eqx.filter_jit, here and for _patch_ratio: every array in a Calibration is a
-# leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
-# call (6 % of a 256 x 256 correction).
-@functools.partial(jax.jit, static_argnames=("intermediates",))
-def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool):
-    """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B)."""
-    dtype = _compute_dtype(raw, calibration)
-    raw_f = raw.astype(dtype)
-    dark = calibration.dark.astype(dtype)
-    white = calibration.white.astype(dtype)
-    coeffs = calibration.coeffs.astype(dtype)
-    W = calibration.wiener.astype(dtype)
-    p = p.astype(dtype)
-    saturation = _saturation_level(raw, calibration)
-
+def _quality(raw, raw_f, dark, white, p, saturation):
+    """(..., H, W) uint8 bit mask of the QUALITY_* flags."""
     saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation)
     patch_unusable = jnp.any(~jnp.isfinite(p), axis=-1)  # (...,)
-    quality = (
+    return (
         saturated.astype(jnp.uint8) * QUALITY_SATURATED
         | nonfinite.astype(jnp.uint8) * QUALITY_NONFINITE
         | no_flat_field.astype(jnp.uint8) * QUALITY_WHITE_NOT_ABOVE_DARK
         | jnp.broadcast_to(patch_unusable[..., None, None], saturated.shape).astype(jnp.uint8)
         * QUALITY_PATCH_UNUSABLE
     )
+
+
+def _pixel_outputs(raw, dark, white, p, coeffs, wiener, weights, *, saturation, intermediates=False):
+    """The per-pixel path in jax.numpy: the definition the fused CPU kernel is tested against.
+
+    Args: raw (..., H, W, B); dark, white (H, W, B); p (..., B); coeffs (B, 4); wiener (31, B);
+    weights (31, 3) tristimulus weights; all but raw in the compute dtype.
+
+    Returns (reflectance, lab, quality), then v, v_stage1 and v_stage2 if `intermediates`.
+    """
+    dtype = dark.dtype
+    raw_f = raw.astype(dtype)
+    quality = _quality(raw, raw_f, dark, white, p, saturation)
     good = (quality == 0)[..., None]
 
     p_pixel = p[..., None, None, :]
@@ -323,17 +323,41 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool):
     # Lab from v_tilde through the folded (B, 3) matrix W^T @ weights: XYZ never goes through the
     # 31-channel cube. (One (B, 34) matmul sliced into the two outputs measured twice as slow:
     # the slices are copies.)
-    weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
-    weights = jnp.asarray(weights, dtype)
-    reflectance = _project_good_pixels(good, v_stage2_safe, W.T)
-    xyz = _project_good_pixels(good, v_stage2_safe, jnp.matmul(W.T, weights, precision=_HIGHEST))
+    reflectance = _project_good_pixels(good, v_stage2_safe, wiener.T)
+    xyz = _project_good_pixels(good, v_stage2_safe, jnp.matmul(wiener.T, weights, precision=_HIGHEST))
     lab = xyz_to_lab(xyz, jnp.sum(weights, axis=0))
+    if not intermediates:
+        return reflectance, lab, quality
+    v_out = jnp.where(good, v, jnp.nan)
+    v_stage2_out = jnp.where(good, v_stage2_safe, jnp.nan)
+    return reflectance, lab, quality, v_out, v_out * p_pixel, v_stage2_out
 
-    if intermediates:
-        v_out = jnp.where(good, v, jnp.nan)
-        v_stage2_out = jnp.where(good, v_stage2_safe, jnp.nan)
-        return CorrectionResult(reflectance, lab, quality, p, v_out, v_out * p_pixel, v_stage2_out)
-    return CorrectionResult(reflectance, lab, quality, p)
+
+# jax.jit rather than eqx.filter_jit, here and for _patch_ratio: every array in a Calibration is a
+# leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
+# call (6 % of a 256 x 256 correction).
+@functools.partial(jax.jit, static_argnames=("intermediates", "use_kernel"))
+def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, use_kernel: bool):
+    """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
+
+    `use_kernel` (static; `fused.applies`, decided by the caller so that the environment switch is
+    part of the cache key) sends the work to the fused CPU kernel (`spherejax.fused`).
+    """
+    dtype = _compute_dtype(raw, calibration)
+    weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
+    arrays = (
+        raw, calibration.dark.astype(dtype), calibration.white.astype(dtype), p.astype(dtype),
+        calibration.coeffs.astype(dtype), calibration.wiener.astype(dtype), jnp.asarray(weights, dtype),
+    )
+    plain = functools.partial(
+        _pixel_outputs, saturation=_saturation_level(raw, calibration), intermediates=intermediates
+    )
+    p = arrays[3]
+    if use_kernel:
+        reflectance, lab, quality = fused.correct_pixels(plain, *arrays, saturation=plain.keywords["saturation"])
+        return CorrectionResult(reflectance, lab, quality, p)
+    reflectance, lab, quality, *cubes = plain(*arrays)
+    return CorrectionResult(reflectance, lab, quality, p, *cubes)
 
 
 def _check_calibration(calibration) -> None:
@@ -418,7 +442,9 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
         bands = calibration.bands
         _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
         _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
-    return _correct_pixels(raw, calibration, p, intermediates=bool(intermediates))
+    intermediates = bool(intermediates)
+    use_kernel = fused.applies(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, intermediates)
+    return _correct_pixels(raw, calibration, p, intermediates=intermediates, use_kernel=use_kernel)
 
 
 __all__ = [

@@ -1,0 +1,394 @@
+// The per-pixel path of spherejax.correct as one fused CPU kernel, called from XLA (FFI).
+//
+// Why this exists. XLA on CPU does not fuse a matrix product with elementwise work, so the
+// plain jitted path (spherejax/pipeline.py, `_correct_pixels_plain`) writes the Stage II cube
+// and the white signal to memory and reads them back for the Wiener and XYZ products: about
+// 500 MB a megapixel against the 297 bytes a pixel the path must move, and XLA's elementwise
+// loops reach only part of the copy bandwidth (benchmarks/README.md, "Where the time of
+// `correct` goes"). This kernel reads each pixel once and writes its outputs once.
+//
+// It computes exactly the equations of the plain path, in float32, pixel by pixel:
+//   quality  bits: 1 saturated (finite raw >= saturation in some band), 2 raw not finite,
+//            4 white - dark not finite and > 0 in some band, 8 the image's p not finite
+//   v        = (raw - dark) / (white - dark)                         (Eq. 10)
+//   v_tilde  = (c1 p + c2) v + c3 p + c4                              (Eq. 17 and 23)
+//   [reflectance | XYZ] = v_tilde @ projection                        (Wiener 16 -> 31 and the
+//            folded (B, 3) XYZ matrix, one (B, 34) product)
+//   Lab      = CIE 1976 from XYZ / white_xyz                          (CIE 15:2004)
+// and NaN in reflectance and Lab wherever quality != 0. The tests compare it with the plain
+// path on every branch (tests/test_fused.py).
+//
+// Each pixel goes through the same code wherever it lies (the last block of a range is padded,
+// never handled by a scalar tail), so a strip of an image gives the same bits as the whole image.
+//
+// Layout: raw (N, P, B) uint16 or float32, dark and white (P, B), p (N, B), coeffs (B, 4),
+// projection (B, 34), white_xyz (3,); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
+// (N, P) uint8. The work is split into chunks of pixels run on XLA's intra-op thread pool.
+
+#include <Python.h>
+
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <condition_variable>
+#include <cstdint>
+#include <cstring>
+#include <memory>
+#include <mutex>
+#include <type_traits>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+constexpr int64_t kReflectance = 31;            // 400..700 nm step 10
+constexpr int64_t kOutputs = kReflectance + 3;  // reflectance then X, Y, Z
+constexpr int64_t kLanes = 16;                  // floats in one 512-bit vector
+constexpr int64_t kPadded = 48;                 // kOutputs rounded up to whole vectors
+constexpr int64_t kMaxBands = 64;
+constexpr int64_t kBlock = 32;                  // pixels whose XYZ are turned into Lab together
+constexpr int64_t kChunk = 8192;                // pixels per thread-pool task
+constexpr float kLabEpsilon = 216.0f / 24389.0f;
+constexpr float kLabKappa = 24389.0f / 27.0f;
+
+// GCC/Clang vector extension: 16 floats. Compiled for each target of `target_clones` below, it
+// is one zmm register with AVX-512, two ymm with AVX2, four xmm otherwise.
+typedef float Vec __attribute__((vector_size(kLanes * sizeof(float)), aligned(64)));
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define SPHEREJAX_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define SPHEREJAX_CLONES
+#endif
+#define SPHEREJAX_INLINE inline __attribute__((always_inline))
+
+struct Problem {
+  const void* raw;
+  bool raw_is_u16;
+  const float* dark;
+  const float* white;
+  int64_t images, pixels, bands;
+  float saturation;  // NaN: no saturation check
+  // Per image and band: a = c1 p + c2 and c = c3 p + c4, so v_tilde = a v + c.
+  const float* gain;
+  const float* offset;
+  const uint8_t* image_bad;  // per image: QUALITY 8 when some p is not finite
+  const Vec* projection;     // (bands, 3) vectors: the (B, 34) matrix padded to 48 columns
+  float inverse_white[3];
+  float* reflectance;
+  float* lab;
+  uint8_t* quality;
+};
+
+// x^(1/3) for x > 0: an exponent-dividing first guess (within 4 %), then two Halley steps
+// y <- y (y^3 + 2x) / (2 y^3 + x), each cubing the relative error: 1 ulp or so in float32.
+// Written out because libm's cbrtf does not vectorise.
+SPHEREJAX_INLINE float cube_root_positive(float x) {
+  uint32_t bits;
+  std::memcpy(&bits, &x, sizeof bits);
+  bits = bits / 3u + 0x2a5137a0u;
+  float y;
+  std::memcpy(&y, &bits, sizeof y);
+  for (int step = 0; step < 2; ++step) {
+    const float y3 = y * y * y;
+    y = y * (y3 + 2.0f * x) / (2.0f * y3 + x);
+  }
+  return y;
+}
+
+SPHEREJAX_INLINE float lab_f(float t) {
+  const bool above = t > kLabEpsilon;
+  const float root = cube_root_positive(above ? t : 1.0f);
+  return above ? root : (kLabKappa / 116.0f) * t + 16.0f / 116.0f;
+}
+
+// Quality bits and v_tilde (Eq. 10, 17, 23) of one pixel, any band count.
+template <typename Raw>
+SPHEREJAX_INLINE uint8_t pixel_stage2(const Problem& pr, const Raw* r, const float* d, const float* w,
+                                      const float* a, const float* c, float* tilde) {
+  int32_t bits = 0;
+  for (int64_t b = 0; b < pr.bands; ++b) {
+    const float value = static_cast<float>(r[b]);
+    const float signal = w[b] - d[b];
+    const bool value_finite = std::isfinite(value);
+    bits |= (value_finite & (value >= pr.saturation)) | (!value_finite << 1) |
+            ((!(signal > 0.0f) | !std::isfinite(signal)) << 2);
+    tilde[b] = a[b] * ((value - d[b]) / signal) + c[b];
+  }
+  return static_cast<uint8_t>(bits);
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define SPHEREJAX_AVX512 1
+#define SPHEREJAX_AVX512_TARGET __attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,fma")))
+
+// The same for 16 bands (the instrument's) on AVX-512: one register a quantity, the flags as
+// mask registers. Written with intrinsics because GCC turns vector-extension comparisons into
+// scalar code (measured: the generic loop above took 2x longer per pixel).
+template <typename Raw>
+SPHEREJAX_AVX512_TARGET inline uint8_t pixel_stage2_16(const Problem& pr, const Raw* r, const float* d,
+                                                       const float* w, const float* a, const float* c,
+                                                       float* tilde) {
+  __m512 value;
+  if constexpr (std::is_same_v<Raw, uint16_t>) {
+    const __m256i counts = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(r));
+    value = _mm512_cvtepi32_ps(_mm512_cvtepu16_epi32(counts));
+  } else {
+    value = _mm512_loadu_ps(r);
+  }
+  const __m512 zero = _mm512_setzero_ps();
+  const __m512 dark = _mm512_loadu_ps(d);
+  const __m512 signal = _mm512_sub_ps(_mm512_loadu_ps(w), dark);
+  // x - x == 0 exactly when x is finite.
+  const __mmask16 value_finite = _mm512_cmp_ps_mask(_mm512_sub_ps(value, value), zero, _CMP_EQ_OQ);
+  const __mmask16 saturated =
+      _mm512_mask_cmp_ps_mask(value_finite, value, _mm512_set1_ps(pr.saturation), _CMP_GE_OQ);
+  const __mmask16 flat_field_ok =
+      _mm512_cmp_ps_mask(signal, zero, _CMP_GT_OQ) &
+      _mm512_cmp_ps_mask(_mm512_sub_ps(signal, signal), zero, _CMP_EQ_OQ);
+  const __m512 v = _mm512_div_ps(_mm512_sub_ps(value, dark), signal);
+  _mm512_store_ps(tilde, _mm512_fmadd_ps(_mm512_loadu_ps(a), v, _mm512_loadu_ps(c)));
+  return static_cast<uint8_t>((saturated != 0) | ((value_finite != 0xFFFF) << 1) |
+                              ((flat_field_ok != 0xFFFF) << 2));
+}
+#endif
+
+// One block of up to kBlock pixels starting at `first` (flat over images and pixels).
+// kAvx512: 16 bands, and the caller is compiled for AVX-512.
+template <typename Raw, bool kAvx512>
+SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t count) {
+  const Raw* raw = static_cast<const Raw*>(pr.raw);
+  const int64_t B = kAvx512 ? kLanes : pr.bands;
+  alignas(64) float xyz[3][kBlock];
+  alignas(64) float tilde[kMaxBands];
+  uint8_t quality[kBlock];
+  // (image, pixel) of the block's first pixel; later ones step on without a division.
+  int64_t image = first / pr.pixels, pixel = first - image * pr.pixels;
+  const int64_t first_image = image, first_pixel = pixel;
+  for (int64_t i = 0; i < kBlock; ++i) {
+    // Padding pixels of the last block repeat the block's first pixel: same code, no output.
+    if (i == count) image = first_image, pixel = first_pixel;
+    const int64_t flat = image * pr.pixels + pixel;
+    const Raw* r = raw + flat * B;
+    const float *d = pr.dark + pixel * B, *w = pr.white + pixel * B;
+    const float *a = pr.gain + image * B, *c = pr.offset + image * B;
+    uint8_t q;
+#if SPHEREJAX_AVX512
+    if constexpr (kAvx512) {
+      q = pixel_stage2_16<Raw>(pr, r, d, w, a, c, tilde);
+    } else {
+      q = pixel_stage2<Raw>(pr, r, d, w, a, c, tilde);
+    }
+#else
+    q = pixel_stage2<Raw>(pr, r, d, w, a, c, tilde);
+#endif
+    q |= pr.image_bad[image] * 8;
+    quality[i] = q;
+    // Two sets of accumulators, even and odd bands, halve the chain of dependent FMAs.
+    Vec acc[2][3] = {};
+    for (int64_t b = 0; b < B; ++b) {
+      const float s = q ? NAN : tilde[b];
+      for (int k = 0; k < 3; ++k) acc[b & 1][k] += s * pr.projection[3 * b + k];
+    }
+    const Vec out0 = acc[0][0] + acc[1][0], out1 = acc[0][1] + acc[1][1], out2 = acc[0][2] + acc[1][2];
+    if (i < count) {
+      float* out = pr.reflectance + flat * kReflectance;
+      std::memcpy(out, &out0, sizeof(Vec));
+      std::memcpy(out + kLanes, &out1, (kReflectance - kLanes) * sizeof(float));
+    }
+    xyz[0][i] = out1[kReflectance - kLanes];
+    xyz[1][i] = out2[0];
+    xyz[2][i] = out2[1];
+    if (i < count && ++pixel == pr.pixels) pixel = 0, ++image;
+  }
+  alignas(64) float lab[3][kBlock];
+  for (int64_t i = 0; i < kBlock; ++i) {
+    const float fx = lab_f(xyz[0][i] * pr.inverse_white[0]);
+    const float fy = lab_f(xyz[1][i] * pr.inverse_white[1]);
+    const float fz = lab_f(xyz[2][i] * pr.inverse_white[2]);
+    lab[0][i] = 116.0f * fy - 16.0f;
+    lab[1][i] = 500.0f * (fx - fy);
+    lab[2][i] = 200.0f * (fy - fz);
+  }
+  for (int64_t i = 0; i < count; ++i) {
+    float* out = pr.lab + (first + i) * 3;
+    out[0] = lab[0][i];
+    out[1] = lab[1][i];
+    out[2] = lab[2][i];
+    pr.quality[first + i] = quality[i];
+  }
+}
+
+template <typename Raw, bool kAvx512>
+SPHEREJAX_INLINE void correct_range_body(const Problem& pr, int64_t first, int64_t last) {
+  for (int64_t block = first; block < last; block += kBlock) {
+    correct_block<Raw, kAvx512>(pr, block, std::min(kBlock, last - block));
+  }
+}
+
+// The generic kernel, compiled for three x86-64 levels and picked at load time (target_clones).
+SPHEREJAX_CLONES void correct_range_u16(const Problem& pr, int64_t first, int64_t last) {
+  correct_range_body<uint16_t, false>(pr, first, last);
+}
+SPHEREJAX_CLONES void correct_range_f32(const Problem& pr, int64_t first, int64_t last) {
+  correct_range_body<float, false>(pr, first, last);
+}
+
+#if SPHEREJAX_AVX512
+// flatten: inline everything, pixel_stage2_16 included, which the always_inline chain cannot
+// (a default-target function may not inline an AVX-512 one).
+SPHEREJAX_AVX512_TARGET __attribute__((flatten)) void correct_range_16_avx512_u16(const Problem& pr, int64_t first, int64_t last) {
+  correct_range_body<uint16_t, true>(pr, first, last);
+}
+SPHEREJAX_AVX512_TARGET __attribute__((flatten)) void correct_range_16_avx512_f32(const Problem& pr, int64_t first, int64_t last) {
+  correct_range_body<float, true>(pr, first, last);
+}
+#endif
+
+void correct_range(const Problem& pr, int64_t first, int64_t last) {
+#if SPHEREJAX_AVX512
+  static const bool avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+                             __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl");
+  if (avx512 && pr.bands == kLanes) {
+    return pr.raw_is_u16 ? correct_range_16_avx512_u16(pr, first, last)
+                         : correct_range_16_avx512_f32(pr, first, last);
+  }
+#endif
+  return pr.raw_is_u16 ? correct_range_u16(pr, first, last) : correct_range_f32(pr, first, last);
+}
+
+// Chunks handed out by an atomic counter to the calling thread and to tasks on XLA's pool.
+// The state is shared-owned: a task the pool starts late finds no chunk left and only drops
+// its reference.
+struct Shared {
+  Problem problem;
+  int64_t chunks = 0;
+  std::atomic<int64_t> next{0};
+  std::atomic<int64_t> finished{0};
+  std::mutex mutex;
+  std::condition_variable all_done;
+
+  void work() {
+    const int64_t total = problem.images * problem.pixels;
+    for (int64_t chunk; (chunk = next.fetch_add(1)) < chunks;) {
+      const int64_t first = chunk * kChunk, last = std::min(total, first + kChunk);
+      correct_range(problem, first, last);
+      if (finished.fetch_add(1) + 1 == chunks) {
+        std::lock_guard<std::mutex> lock(mutex);
+        all_done.notify_all();
+      }
+    }
+  }
+};
+
+ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F32> dark,
+                   ffi::Buffer<ffi::F32> white, ffi::Buffer<ffi::F32> p,
+                   ffi::Buffer<ffi::F32> coeffs, ffi::Buffer<ffi::F32> projection,
+                   ffi::Buffer<ffi::F32> white_xyz, float saturation,
+                   ffi::ResultBuffer<ffi::F32> reflectance, ffi::ResultBuffer<ffi::F32> lab,
+                   ffi::ResultBuffer<ffi::U8> quality) {
+  const auto dims = raw.dimensions();
+  if (dims.size() != 3) return ffi::Error::InvalidArgument("raw: expected (N, P, B)");
+  const int64_t images = dims[0], pixels = dims[1], bands = dims[2];
+  const bool u16 = raw.element_type() == ffi::U16;
+  if (!u16 && raw.element_type() != ffi::F32) {
+    return ffi::Error::InvalidArgument("raw: expected uint16 or float32");
+  }
+  if (bands < 1 || bands > kMaxBands) return ffi::Error::InvalidArgument("bands: expected 1..64");
+  if (dark.element_count() != size_t(pixels * bands) || white.element_count() != dark.element_count() ||
+      p.element_count() != size_t(images * bands) || coeffs.element_count() != size_t(bands * 4) ||
+      projection.element_count() != size_t(bands * kOutputs) || white_xyz.element_count() != 3) {
+    return ffi::Error::InvalidArgument("inputs: shapes do not match raw (N, P, B)");
+  }
+
+  auto shared = std::make_shared<Shared>();
+  auto gain = std::make_unique<float[]>(images * bands);
+  auto offset = std::make_unique<float[]>(images * bands);
+  auto image_bad = std::make_unique<uint8_t[]>(images);
+  auto padded = std::make_unique<Vec[]>(3 * bands);  // new[] of an over-aligned type aligns it
+  const float* c = coeffs.typed_data();
+  const float* ratio = p.typed_data();
+  for (int64_t n = 0; n < images; ++n) {
+    bool bad = false;
+    for (int64_t b = 0; b < bands; ++b) {
+      const float pb = ratio[n * bands + b];
+      bad |= !std::isfinite(pb);
+      gain[n * bands + b] = c[4 * b + 0] * pb + c[4 * b + 1];
+      offset[n * bands + b] = c[4 * b + 2] * pb + c[4 * b + 3];
+    }
+    image_bad[n] = bad;
+  }
+  const float* m = projection.typed_data();
+  for (int64_t b = 0; b < bands; ++b) {
+    float* row = reinterpret_cast<float*>(&padded[3 * b]);
+    for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? m[b * kOutputs + k] : 0.0f;
+  }
+  const float* wxyz = white_xyz.typed_data();
+
+  Problem& pr = shared->problem;
+  pr.raw = raw.untyped_data();
+  pr.raw_is_u16 = u16;
+  pr.dark = dark.typed_data();
+  pr.white = white.typed_data();
+  pr.images = images;
+  pr.pixels = pixels;
+  pr.bands = bands;
+  pr.saturation = saturation;
+  pr.gain = gain.get();
+  pr.offset = offset.get();
+  pr.image_bad = image_bad.get();
+  pr.projection = padded.get();
+  for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
+  pr.reflectance = reflectance->typed_data();
+  pr.lab = lab->typed_data();
+  pr.quality = quality->typed_data();
+
+  const int64_t total = images * pixels;
+  shared->chunks = (total + kChunk - 1) / kChunk;
+  const int64_t helpers = std::min<int64_t>(pool.num_threads(), shared->chunks - 1);
+  for (int64_t t = 0; t < helpers; ++t) pool.Schedule([shared] { shared->work(); });
+  shared->work();
+  std::unique_lock<std::mutex> lock(shared->mutex);
+  shared->all_done.wait(lock, [&] { return shared->finished.load() == shared->chunks; });
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(SpherejaxFusedCorrect, Correct,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::AnyBuffer>()           // raw
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // dark
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // white
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // p
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // coeffs
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // projection
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // white_xyz
+                                  .Attr<float>("saturation")
+                                  .Ret<ffi::Buffer<ffi::F32>>()    // reflectance
+                                  .Ret<ffi::Buffer<ffi::F32>>()    // lab
+                                  .Ret<ffi::Buffer<ffi::U8>>());   // quality
+
+// A Python module with one function, handler(), returning the FFI handler as a capsule for
+// jax.ffi.register_ffi_target (spherejax/fused.py).
+static PyObject* handler(PyObject*, PyObject*) {
+  return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxFusedCorrect), nullptr, nullptr);
+}
+
+static PyMethodDef methods[] = {
+    {"handler", handler, METH_NOARGS, "The XLA FFI handler of the fused correction, as a capsule."},
+    {nullptr, nullptr, 0, nullptr},
+};
+
+static PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fused_correct",
+                             "Fused CPU kernel of spherejax.correct (see spherejax/fused.py).", -1,
+                             methods};
+
+PyMODINIT_FUNC PyInit__fused_correct() { return PyModule_Create(&module); }

@@ -1,0 +1,146 @@
+"""The fused CPU kernel of `correct`'s per-pixel step, and when it is used.
+
+On CPU, `spherejax.correct` runs its per-pixel step (flat field, Stage I and II, Wiener, Lab and
+the quality mask) as one XLA custom call into a compiled kernel (`_fused_correct.cc`), instead of
+the jitted jax.numpy path in `pipeline.py`. XLA does not fuse a matrix product with elementwise
+work on CPU, so the jax.numpy path writes and reads back the whole Stage II cube; the kernel reads
+each pixel once and writes its outputs once, about 3 times faster at 1024 x 1024 x 16
+(benchmarks/README.md). It computes the same equations; the jax.numpy path stays the definition
+it is tested against (tests/test_fused.py), and it is what runs:
+
+- on GPUs and any platform other than CPU (`jax.lax.platform_dependent` picks at lowering time);
+- in float64 (a float64 calibration or raw), and for raw other than uint16 or float32;
+- with `intermediates=True`, which asks for cubes the kernel never forms;
+- when the extension was not built (no C++ compiler at install: setup.py builds it as optional),
+  or when the environment variable SPHEREJAX_FUSED is "0" (to compare the two, or to rule the
+  kernel out when something looks wrong).
+
+Derivatives: the kernel's outputs carry a custom JVP that is the JVP of the jax.numpy path, so
+`jax.grad` and `jax.jacfwd` through `correct` give what they gave before the kernel existed.
+Under `jax.vmap` the kernel runs once per mapped element (`vmap_method="sequential"`); batches of
+images given as leading axes of `raw` go to the kernel in one call.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+try:  # built by setup.py as an optional extension
+    from . import _fused_correct
+except ImportError:  # pragma: no cover - exercised only where the build failed
+    _fused_correct = None
+
+#: The name the kernel is registered under with XLA (jax.ffi).
+TARGET = "spherejax_fused_correct"
+
+#: The kernel keeps one pixel's bands in a fixed-size buffer.
+MAX_BANDS = 64
+
+#: Raw dtypes the kernel reads directly; others take the jax.numpy path.
+RAW_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
+
+#: Environment variable: "0" turns the kernel off (read when `correct` is traced).
+SWITCH = "SPHEREJAX_FUSED"
+
+
+@functools.cache
+def _register() -> bool:
+    if _fused_correct is None:
+        return False
+    jax.ffi.register_ffi_target(TARGET, _fused_correct.handler(), platform="cpu")
+    return True
+
+
+def built() -> bool:
+    """True if the compiled kernel was built and imported."""
+    return _fused_correct is not None
+
+
+def enabled() -> bool:
+    """True if `correct` uses the kernel on CPU: built, and not switched off by SPHEREJAX_FUSED=0."""
+    return built() and os.environ.get(SWITCH, "1") != "0"
+
+
+def applies(raw_dtype, compute_dtype, bands: int, intermediates: bool) -> bool:
+    """Whether the kernel can compute this call (on CPU): see the module docstring."""
+    return (
+        enabled()
+        and not intermediates
+        and np.dtype(compute_dtype) == np.float32
+        and np.dtype(raw_dtype) in RAW_DTYPES
+        and 1 <= bands <= MAX_BANDS
+    )
+
+
+def _kernel_call(raw, dark, white, p, coeffs, projection, white_xyz, saturation: float | None):
+    """The custom call on arrays shaped as the kernel wants them (see `_fused_correct.cc`).
+
+    raw (N, P, B); dark, white (P, B); p (N, B); coeffs (B, 4); projection (B, 34); white_xyz (3,).
+    Returns reflectance (N, P, 31), lab (N, P, 3) float32 and quality (N, P) uint8.
+    """
+    _register()
+    images, pixels, _ = raw.shape
+    out_types = (
+        jax.ShapeDtypeStruct((images, pixels, 31), jnp.float32),
+        jax.ShapeDtypeStruct((images, pixels, 3), jnp.float32),
+        jax.ShapeDtypeStruct((images, pixels), jnp.uint8),
+    )
+    call = jax.ffi.ffi_call(TARGET, out_types, vmap_method="sequential")
+    # NaN saturation: the kernel's `value >= saturation` is then never true, i.e. no check.
+    level = np.float32(np.nan if saturation is None else saturation)
+    return call(raw, dark, white, p, coeffs, projection, white_xyz, saturation=level)
+
+
+def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights, saturation):
+    """reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W): the kernel on CPU,
+    `plain` elsewhere, with `plain`'s JVP everywhere.
+
+    Args:
+      plain: the jax.numpy definition, called as plain(raw, dark, white, p, coeffs, wiener,
+        weights) -> (reflectance, lab, quality), with `saturation` already bound.
+      raw: (..., H, W, B) uint16 or float32.
+      dark, white: (H, W, B) float32.
+      p: (..., B) float32, the white-patch ratio of each image.
+      coeffs: (B, 4) float32, Stage II c1..c4.
+      wiener: (31, B) float32.
+      weights: (31, 3) float32 tristimulus weights (white = their column sums).
+      saturation: the saturation level, or None for no check.
+    """
+    arrays = (raw, dark, white, p, coeffs, wiener, weights)
+
+    @jax.custom_jvp
+    def outputs(*arrays):
+        return jax.lax.platform_dependent(*arrays, cpu=on_cpu, default=plain)
+
+    @outputs.defjvp
+    def outputs_jvp(primals, tangents):
+        _, tangents_out = jax.jvp(plain, primals, tangents)
+        return outputs(*primals), tangents_out
+
+    def on_cpu(raw, dark, white, p, coeffs, wiener, weights):
+        height, width, bands = raw.shape[-3:]
+        batch = raw.shape[:-3]
+        images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
+        hi = jax.lax.Precision.HIGHEST
+        projection = jnp.concatenate([wiener.T, jnp.matmul(wiener.T, weights, precision=hi)], axis=1)
+        reflectance, lab, quality = _kernel_call(
+            raw.reshape(images, pixels, bands), dark.reshape(pixels, bands),
+            white.reshape(pixels, bands), jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands),
+            coeffs, projection, jnp.sum(weights, axis=0), saturation,
+        )
+        return (
+            reflectance.reshape(*batch, height, width, 31),
+            lab.reshape(*batch, height, width, 3),
+            quality.reshape(*batch, height, width),
+        )
+
+    return outputs(*arrays)
+
+
+__all__ = ["TARGET", "MAX_BANDS", "SWITCH", "built", "enabled", "applies", "correct_pixels"]

@@ -1,0 +1,243 @@
+"""The fused CPU kernel (spherejax/_fused_correct.cc) against the jax.numpy path it replaces.
+
+The jax.numpy path (`SPHEREJAX_FUSED=0`) is the definition; every branch of the kernel is
+compared with it: the AVX-512 16-band code and the generic loop (other band counts), uint16 and
+float32 raw, every quality bit, batches of images, several thread-pool chunks, strips, gradients
+and vmap. Values agree to float32 rounding, quality masks and NaN positions exactly.
+"""
+
+from __future__ import annotations
+
+import platform
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import spherejax as sj
+from spherejax import fused
+from spherejax.pipeline import _compute_dtype, _correct_pixels, patch_ratio
+from spherejax.polynomial import PAPER_TABLE_2
+
+SATURATION = 16383.0
+
+
+def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, saturation=SATURATION):
+    """A calibration and raw frames with every kind of bad pixel, for `bands` bands."""
+    rng = np.random.default_rng(seed)
+    dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
+    white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
+    # Reflectances from 0.001 to 1.2: XYZ / white spans both branches of the Lab companding.
+    level = np.exp(rng.uniform(np.log(1e-3), np.log(1.2), (*images, height, width, 1)))
+    raw = dark + (white - dark) * level * rng.uniform(0.9, 1.1, (*images, height, width, bands))
+    raw = np.clip(np.rint(raw), 0, saturation - 1)
+    index = (0,) * len(images)
+    raw[(*index, 3, 4, 5 % bands)] = saturation  # saturated
+    white[10, 11, 2 % bands] = dark[10, 11, 2 % bands]  # white == dark
+    white[12, 13, 3 % bands] = dark[12, 13, 3 % bands] - 5  # white < dark
+    raw[(*index, 12, 13, 0)] = saturation  # saturated and no flat field: two bits
+    if raw_dtype == np.float32:
+        white[14, 15, 1 % bands] = np.nan
+        white[16, 17, 0] = np.inf
+        raw[(*index, 6, 7, 0)] = np.nan
+        raw[(*index, 8, 9, bands - 1)] = -np.inf
+        raw[(*index, 18, 19, 0)] = np.inf
+    raw = raw.astype(raw_dtype)
+    patch = np.zeros((height, width), bool)
+    patch[height // 2 - 4:height // 2 + 4, width // 2 - 5:width // 2 + 5] = True
+    coeffs = np.asarray(PAPER_TABLE_2[np.arange(bands) % 16], np.float32)
+    wiener = (np.abs(rng.normal(0.0, 1.0, (31, bands))) / bands).astype(np.float32)
+    calibration = sj.Calibration(
+        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=saturation
+    )
+    return raw, calibration
+
+
+def correct_both(monkeypatch, raw, calibration, **kwargs):
+    kernel = sj.correct(raw, calibration, **kwargs)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    plain = sj.correct(raw, calibration, **kwargs)
+    monkeypatch.delenv(fused.SWITCH)
+    return kernel, plain
+
+
+def assert_same_result(kernel, plain):
+    quality = np.asarray(plain.quality)
+    np.testing.assert_array_equal(np.asarray(kernel.quality), quality)
+    np.testing.assert_array_equal(np.asarray(kernel.p), np.asarray(plain.p))
+    for name, atol in (("reflectance", 2e-6), ("lab", 3e-3)):
+        got, want = np.asarray(getattr(kernel, name)), np.asarray(getattr(plain, name))
+        assert got.dtype == want.dtype == np.float32
+        np.testing.assert_array_equal(np.isnan(got), np.broadcast_to(quality[..., None] != 0, got.shape), err_msg=name)
+        np.testing.assert_allclose(got, want, rtol=2e-5, atol=atol, err_msg=name)
+
+
+def lowered_text(raw, calibration, **kwargs):
+    p = patch_ratio(raw, calibration)
+    use = fused.applies(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, False)
+    return _correct_pixels.lower(raw, calibration, p, intermediates=False, use_kernel=use).as_text()
+
+
+@pytest.mark.skipif(
+    not (sys.platform.startswith("linux") and platform.machine() == "x86_64"),
+    reason="CI and the benchmark machines are Linux x86-64; elsewhere the build may be skipped",
+)
+def test_the_kernel_was_built():
+    """setup.py builds the kernel as an optional extension: a failed build must not go unnoticed
+    where it is expected to work, since `correct` would silently be 3x slower."""
+    assert fused.built()
+
+
+pytestmark_kernel = pytest.mark.skipif(not fused.built(), reason="the fused kernel was not built")
+
+
+@pytestmark_kernel
+@pytest.mark.parametrize("bands", [16, 7, 33])
+@pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype):
+    """16 bands take the AVX-512 code (on CPUs that have it), others the generic loop; 96 x 100
+    pixels are two thread-pool chunks and a part block."""
+    raw, calibration = make_case(96, 100, bands, raw_dtype=raw_dtype)
+    kernel, plain = correct_both(monkeypatch, raw, calibration)
+    assert "spherejax_fused_correct" in lowered_text(jnp.asarray(raw), calibration)
+    assert_same_result(kernel, plain)
+    quality = np.asarray(kernel.quality)
+    assert quality[3, 4] == sj.QUALITY_SATURATED
+    assert quality[10, 11] == quality[12, 13] - sj.QUALITY_SATURATED == sj.QUALITY_WHITE_NOT_ABOVE_DARK
+    if raw_dtype == np.float32:
+        assert quality[6, 7] == quality[8, 9] == quality[18, 19] == sj.QUALITY_NONFINITE
+        assert quality[14, 15] == quality[16, 17] == sj.QUALITY_WHITE_NOT_ABOVE_DARK
+    assert (quality != 0).sum() == (8 if raw_dtype == np.float32 else 3)
+
+
+@pytestmark_kernel
+def test_kernel_is_as_accurate_as_the_plain_path_against_float64(monkeypatch):
+    """Both float32 paths against the float64 path (the float64 calibration never takes the
+    kernel): the kernel's error is no worse than the plain path's, up to rounding."""
+    raw, calibration = make_case(40, 50, 16)
+    calibration64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), calibration)
+    kernel, plain = correct_both(monkeypatch, raw, calibration)
+    exact = sj.correct(raw, calibration64)
+    assert exact.lab.dtype == jnp.float64
+    good = np.asarray(exact.quality) == 0
+    for name in ("reflectance", "lab"):
+        truth = np.asarray(getattr(exact, name))[good]
+        err_kernel = np.abs(np.asarray(getattr(kernel, name))[good] - truth).max()
+        err_plain = np.abs(np.asarray(getattr(plain, name))[good] - truth).max()
+        assert err_kernel <= 2.0 * err_plain + 1e-6, (name, err_kernel, err_plain)
+
+
+@pytestmark_kernel
+def test_kernel_batches_of_images_with_their_own_ratio(monkeypatch):
+    raw, calibration = make_case(32, 36, 16, images=(2, 3))
+    kernel, plain = correct_both(monkeypatch, raw, calibration)
+    assert kernel.reflectance.shape == (2, 3, 32, 36, 31)
+    assert kernel.p.shape == (2, 3, 16)
+    assert_same_result(kernel, plain)
+
+
+@pytestmark_kernel
+@pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+def test_kernel_unusable_patch_flags_the_whole_image(monkeypatch, raw_dtype):
+    raw, calibration = make_case(32, 48, 16, raw_dtype=raw_dtype)
+    p = np.asarray(patch_ratio(raw, calibration)).copy()
+    p[4] = np.nan
+    kernel, plain = correct_both(monkeypatch, raw, calibration, p=p)
+    assert_same_result(kernel, plain)
+    assert (np.asarray(kernel.quality) & sj.QUALITY_PATCH_UNUSABLE).all()
+
+
+@pytestmark_kernel
+@pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+def test_kernel_without_a_saturation_level(monkeypatch, raw_dtype):
+    """None: the full scale of uint16 counts (65535), and no check at all for float raw."""
+    raw, calibration = make_case(24, 40, 16, raw_dtype=raw_dtype, saturation=60000.0)
+    calibration = sj.Calibration(
+        dark=calibration.dark, white=calibration.white, patch=calibration.patch,
+        coeffs=calibration.coeffs, wiener=calibration.wiener, saturation=None,
+    )
+    raw[5, 6, 7] = 65535
+    kernel, plain = correct_both(monkeypatch, raw, calibration)
+    assert_same_result(kernel, plain)
+    expected = sj.QUALITY_SATURATED if raw_dtype == np.uint16 else 0
+    assert np.asarray(kernel.quality)[5, 6] == expected
+
+
+@pytestmark_kernel
+def test_kernel_strips_equal_the_whole_image_bit_for_bit():
+    """Each pixel goes through the same code wherever it lies in a block or a chunk."""
+    raw, calibration = make_case(97, 101, 16)
+    whole = sj.correct(raw, calibration)
+    p = patch_ratio(raw, calibration)
+    for row0, row1 in ((0, 1), (1, 40), (40, 97), (13, 14)):
+        strip = sj.correct(raw[row0:row1], calibration.rows(row0, row1), p=p)
+        for name in ("reflectance", "lab", "quality"):
+            np.testing.assert_array_equal(
+                np.asarray(getattr(strip, name)), np.asarray(getattr(whole, name))[row0:row1]
+            )
+
+
+@pytestmark_kernel
+def test_kernel_gradients_are_the_plain_paths(monkeypatch):
+    """The kernel's outputs carry the JVP of the jax.numpy path (fused.correct_pixels)."""
+    raw, calibration = make_case(24, 24, 16)
+
+    def loss(coeffs, wiener):
+        cal = sj.Calibration(
+            dark=calibration.dark, white=calibration.white, patch=calibration.patch, coeffs=coeffs,
+            wiener=wiener, saturation=SATURATION,
+        )
+        result = sj.correct(raw, cal)
+        return jnp.nansum(result.lab[..., 0]) + jnp.nansum(result.reflectance)
+
+    grad = jax.grad(loss, argnums=(0, 1))
+    with_kernel = grad(calibration.coeffs, calibration.wiener)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    without = grad(calibration.coeffs, calibration.wiener)
+    for got, want in zip(with_kernel, without):
+        assert np.isfinite(np.asarray(got)).all()
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-3)
+
+
+@pytestmark_kernel
+def test_kernel_under_vmap_over_calibrations(monkeypatch):
+    raw, calibration = make_case(24, 28, 16)
+    scales = jnp.asarray([0.5, 1.0, 2.0], jnp.float32)
+
+    def lab_for(scale):
+        cal = sj.Calibration(
+            dark=calibration.dark, white=calibration.white, patch=calibration.patch,
+            coeffs=calibration.coeffs, wiener=calibration.wiener * scale, saturation=SATURATION,
+        )
+        return sj.correct(raw, cal).lab
+
+    mapped = jax.vmap(lab_for)(scales)
+    looped = np.stack([np.asarray(lab_for(s)) for s in scales])
+    # The (B, 34) projection is a batched product under vmap: rounding differs in the last bits,
+    # which a* = 500 (f_x - f_y) magnifies.
+    np.testing.assert_allclose(np.asarray(mapped), looped, rtol=2e-5, atol=2e-3)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    np.testing.assert_allclose(np.asarray(jax.vmap(lab_for)(scales)), looped, rtol=2e-5, atol=3e-3)
+
+
+def test_when_the_kernel_applies(monkeypatch):
+    f32, f64 = np.dtype(np.float32), np.dtype(np.float64)
+    if fused.built():
+        assert fused.applies(np.uint16, f32, 16, False)
+        assert fused.applies(np.float32, f32, 5, False)
+    assert not fused.applies(np.uint16, f32, 16, True)  # intermediates: the plain path
+    assert not fused.applies(np.uint16, f64, 16, False)  # float64
+    assert not fused.applies(np.uint8, f32, 16, False)  # raw dtype the kernel does not read
+    assert not fused.applies(np.uint16, f32, fused.MAX_BANDS + 1, False)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    assert not fused.enabled()
+    assert not fused.applies(np.uint16, f32, 16, False)
+
+
+@pytestmark_kernel
+def test_switched_off_the_kernel_is_not_lowered(monkeypatch):
+    raw, calibration = make_case(24, 24, 16)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    assert "spherejax_fused_correct" not in lowered_text(jnp.asarray(raw), calibration)
