@@ -190,13 +190,24 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
 #endif
     q |= pr.image_bad[image] * 8;
     quality[i] = q;
-    // Two sets of accumulators, even and odd bands, halve the chain of dependent FMAs.
-    Vec acc[2][3] = {};
-    for (int64_t b = 0; b < B; ++b) {
-      const float s = q ? NAN : tilde[b];
-      for (int k = 0; k < 3; ++k) acc[b & 1][k] += s * pr.projection[3 * b + k];
+    // A bad pixel goes on as NaN, which NaN x anything carries into every output.
+    if (q) std::fill(tilde, tilde + B, NAN);
+    // Separate accumulators for even and odd bands halve the chain of dependent FMAs; named
+    // variables, not an array, so that they stay in registers.
+    Vec even0 = {}, even1 = {}, even2 = {}, odd0 = {}, odd1 = {}, odd2 = {};
+    int64_t b = 0;
+#pragma GCC unroll 8
+    for (; b + 1 < B; b += 2) {
+      const Vec* m = pr.projection + 3 * b;
+      const float s = tilde[b], t = tilde[b + 1];
+      even0 += s * m[0], even1 += s * m[1], even2 += s * m[2];
+      odd0 += t * m[3], odd1 += t * m[4], odd2 += t * m[5];
     }
-    const Vec out0 = acc[0][0] + acc[1][0], out1 = acc[0][1] + acc[1][1], out2 = acc[0][2] + acc[1][2];
+    if (b < B) {
+      const Vec* m = pr.projection + 3 * b;
+      even0 += tilde[b] * m[0], even1 += tilde[b] * m[1], even2 += tilde[b] * m[2];
+    }
+    const Vec out0 = even0 + odd0, out1 = even1 + odd1, out2 = even2 + odd2;
     if (i < count) {
       float* out = pr.reflectance + flat * kReflectance;
       std::memcpy(out, &out0, sizeof(Vec));

@@ -245,15 +245,38 @@ def _patch_flags(raw, raw_f, dark, white, saturation):
     return saturated | nonfinite | no_flat_field
 
 
-@functools.partial(jax.jit, static_argnames=("saturation", "dtype"))
-def _patch_ratio(raw_box, dark_box, white_box, patch_box, saturation, dtype):
-    """Eq. 14-15 over the usable pixels of the patch's box: p (..., B) in `dtype`."""
+@functools.partial(jax.jit, static_argnames=("box_shape",))
+def _patch_ratio(raw, calibration: Calibration, box_origin, box_shape):
+    """Eq. 14-15 over the usable pixels of the patch's box: p (..., B) in the compute dtype.
+
+    The box is cut here, with its origin (2,) an argument and its shape static, so that patches of
+    one size share a compiled program, and `correct` traces this same function into its own:
+    the ratio `correct` uses is the one `patch_ratio` returns, bit for bit (strips rely on it).
+    """
+    height, width = box_shape
+
+    def box(x, trailing: int):
+        lead = x.ndim - 2 - trailing
+        zero = jnp.zeros((), box_origin.dtype)  # dynamic_slice wants one index dtype
+        start = (zero,) * lead + (box_origin[0], box_origin[1]) + (zero,) * trailing
+        return jax.lax.dynamic_slice(x, start, (*x.shape[:lead], height, width, *x.shape[lead + 2:]))
+
+    dtype = _compute_dtype(raw, calibration)
+    raw_box = box(raw, 1)
     raw_f = raw_box.astype(dtype)
-    dark, white = dark_box.astype(dtype), white_box.astype(dtype)
+    dark, white = box(calibration.dark, 1).astype(dtype), box(calibration.white, 1).astype(dtype)
     # One saturated or non-finite pixel in the patch must not shift p for the whole image.
-    bad = _patch_flags(raw_box, raw_f, dark, white, saturation)
-    weights = jnp.where(bad, 0.0, patch_box.astype(dtype))
+    bad = _patch_flags(raw_box, raw_f, dark, white, _saturation_level(raw, calibration))
+    weights = jnp.where(bad, 0.0, box(calibration.patch, 0).astype(dtype))
     return patch_ratio_weighted(raw_f, dark, white, weights[..., None])
+
+
+def _patch_box_arguments(raw, calibration: Calibration):
+    """(origin (2,) int32, shape) of the patch's bounding box; the whole frame if the patch is
+    traced (`patch_bounding_box`)."""
+    box = calibration.patch_box
+    r0, r1, c0, c1 = box if box is not None else (0, raw.shape[-3], 0, raw.shape[-2])
+    return np.array([r0, c0], np.int32), (r1 - r0, c1 - c0)
 
 
 @jax.custom_jvp
@@ -360,6 +383,17 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, use_k
     return CorrectionResult(reflectance, lab, quality, p, *cubes)
 
 
+@functools.partial(jax.jit, static_argnames=("box_shape", "intermediates", "use_kernel"))
+def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, use_kernel: bool):
+    """`correct` of whole frames as one program: p over the patch's box, then every pixel.
+
+    The same two steps as `patch_ratio` then `_correct_pixels`, traced together: one dispatch
+    instead of two and no wait between them, 1.5-2.5 ms a call (benchmarks/README.md).
+    """
+    p = _patch_ratio(raw, calibration, box_origin, box_shape)
+    return _correct_pixels(raw, calibration, p, intermediates=intermediates, use_kernel=use_kernel)
+
+
 def _check_calibration(calibration) -> None:
     if not isinstance(calibration, Calibration):
         raise ValueError(
@@ -398,16 +432,10 @@ def patch_ratio(raw, calibration: Calibration) -> jax.Array:
     if calibration.patch is None:
         raise ValueError("calibration: has no patch (rows of a calibration): p needs the whole one")
     raw = _check_raw(raw, calibration, "the calibration's H, W, B")
-    saturation = _saturation_level(raw, calibration)
     # Only the patch's bounding box is read: the ratio then costs nothing next to the per-pixel
     # path. Pixels of weight 0 in the box add nothing to it, so the crop is exact.
-    box = calibration.patch_box
-    r0, r1, c0, c1 = box if box is not None else (0, raw.shape[-3], 0, raw.shape[-2])
-    crop = (slice(r0, r1), slice(c0, c1))
-    return _patch_ratio(
-        raw[..., r0:r1, c0:c1, :], calibration.dark[crop], calibration.white[crop],
-        calibration.patch[crop], saturation, _compute_dtype(raw, calibration),
-    )
+    box_origin, box_shape = _patch_box_arguments(raw, calibration)
+    return _patch_ratio(raw, calibration, box_origin, box_shape)
 
 
 def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = False) -> CorrectionResult:
@@ -430,20 +458,23 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
     _check_calibration(calibration)
     what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
     raw = _check_raw(raw, calibration, what)
+    intermediates = bool(intermediates)
+    use_kernel = fused.applies(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, intermediates)
     if p is None:
         if calibration.patch is None:
             raise ValueError(
                 "p: expected the whole image's white-patch ratio with rows of a calibration "
                 "(patch_ratio of the whole image), got None"
             )
-        p = patch_ratio(raw, calibration)
+        box_origin, box_shape = _patch_box_arguments(raw, calibration)
+        return _correct_image(
+            raw, calibration, box_origin, box_shape, intermediates=intermediates, use_kernel=use_kernel
+        )
     else:
         p = _checks.as_array("p", p)
         bands = calibration.bands
         _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
         _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
-    intermediates = bool(intermediates)
-    use_kernel = fused.applies(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, intermediates)
     return _correct_pixels(raw, calibration, p, intermediates=intermediates, use_kernel=use_kernel)
 
 

@@ -68,9 +68,9 @@ def test_another_shape_compiles_once(rng):
     with count_compilations() as compiled:
         for _ in range(3):
             spherejax.correct(rng.integers(0, 16000, shape).astype(np.uint16), calibration).lab.block_until_ready()
-    # Once: the patch ratio, the per-pixel step, and the few eager slices that cut the patch's
-    # box out of raw, dark and white (5 in all, measured); none of them again for images 2 and 3.
-    assert 2 <= compiled["n"] <= 6
+    # Once: whole frames are one program (the patch's box, its ratio and every pixel); it is not
+    # compiled again for images 2 and 3.
+    assert compiled["n"] == 1
 
 
 def test_strips_of_an_image_compile_once(tmp_path, rng):
