@@ -11,7 +11,11 @@ Against what
     Both run in the same process on the same inputs, and their outputs are checked to agree
     before anything is timed (reflectance within 1e-4, Lab within 1e-2, identical quality masks).
 
-    A third figure puts both in physical terms: the memory floor. The path must read the raw cube
+    A third row times the same `spherejax.correct` call with its fused CPU kernel switched off
+    (SPHEREJAX_FUSED=0, `spherejax.fused`): the jax.numpy path the kernel replaced, which is
+    still what runs on GPUs, in float64 and for gradients. It must agree with the reference too.
+
+    A further figure puts them in physical terms: the memory floor. The path must read the raw cube
     (uint16), the dark frame and the white standard (float32) and write reflectance, Lab (float32)
     and the quality mask (uint8), 297 bytes per pixel; at the machine's copy bandwidth, measured
     in the same run, that takes `floor` seconds. DESIGN.md, "Performance model".
@@ -55,6 +59,7 @@ import jax  # noqa: E402
 
 import spherejax  # noqa: E402
 from spherejax import spectra  # noqa: E402
+from spherejax import fused  # noqa: E402
 from spherejax.allocator import keep_freed_memory  # noqa: E402
 from spherejax.polynomial import PAPER_TABLE_2  # noqa: E402
 
@@ -403,7 +408,8 @@ def print_report(summary: dict, agreement: dict, info: dict, size: int, repeats:
           f"({summary['megapixels']:.3f} MP), median of {repeats}")
     print(f"machine: {info['cpu_model']}, {info['nproc']} CPUs, jax {info['jax']}, "
           f"numpy {info['numpy']}, colour-science {info['colour-science']}, "
-          f"allocator {info.get('allocator', 'glibc default')}")
+          f"allocator {info.get('allocator', 'glibc default')}, "
+          f"fused kernel {'on' if info.get('fused_kernel') else 'off'}")
     print(f"agreement over {agreement['valid_pixels']} valid pixels "
           f"({agreement['bad_pixels']} flagged bad in both): "
           f"reflectance max |diff| {agreement['reflectance_max_abs_diff']:.2e}, "
@@ -480,6 +486,8 @@ def main(argv=None) -> int:
     allocator = apply_allocator_argument(args)
     info = machine_info()
     info["allocator"] = allocator
+    # "spherejax" is the fused CPU kernel unless it was not built or SPHEREJAX_FUSED=0 is set.
+    info["fused_kernel"] = fused.enabled()
 
     coeffs = stage2_coeffs()
     wiener = wiener_matrix()
@@ -490,6 +498,18 @@ def main(argv=None) -> int:
     def run_spherejax():
         return jax.block_until_ready(spherejax.correct(inputs["raw"], calibration))
 
+    def run_spherejax_jnp():
+        # The same call with the fused CPU kernel switched off: the jax.numpy path it replaced.
+        previous = os.environ.get(fused.SWITCH)
+        os.environ[fused.SWITCH] = "0"
+        try:
+            return jax.block_until_ready(spherejax.correct(inputs["raw"], calibration))
+        finally:
+            if previous is None:
+                del os.environ[fused.SWITCH]
+            else:
+                os.environ[fused.SWITCH] = previous
+
     def run_reference():
         return reference_correct(
             inputs["raw"], inputs["dark"], inputs["white"], inputs["patch"],
@@ -497,13 +517,16 @@ def main(argv=None) -> int:
         )
 
     compile_s, result = time_first_call(run_spherejax)
-    agreement = compare(result, run_reference())
-    del result  # keep the timed runs' memory the same for both implementations
+    reference = run_reference()
+    agreement = compare(result, reference)
+    compare(run_spherejax_jnp(), reference)  # the jax.numpy path must agree too
+    del result, reference  # keep the timed runs' memory the same for all implementations
 
     copy_bytes = args.copy_mib * 2**20
     with OtherProcessesLoad() as other_load:
         timings = time_interleaved(
-            {"spherejax": run_spherejax, "reference": run_reference}, args.repeats
+            {"spherejax": run_spherejax, "spherejax jax.numpy path": run_spherejax_jnp,
+             "reference": run_reference}, args.repeats
         )
         bandwidth = {
             "single_thread": copy_bandwidth(copy_bytes, threads=1),

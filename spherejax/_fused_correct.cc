@@ -75,6 +75,7 @@ struct Problem {
   const float* white;
   int64_t images, pixels, bands;
   float saturation;  // NaN: no saturation check
+  bool portable;     // skip the AVX-512 code even where the CPU has it (SPHEREJAX_FUSED=portable)
   // Per image and band: a = c1 p + c2 and c = c3 p + c4, so v_tilde = a v + c.
   const float* gain;
   const float* offset;
@@ -266,7 +267,7 @@ void correct_range(const Problem& pr, int64_t first, int64_t last) {
 #if SPHEREJAX_AVX512
   static const bool avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
                              __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl");
-  if (avx512 && pr.bands == kLanes) {
+  if (avx512 && pr.bands == kLanes && !pr.portable) {
     return pr.raw_is_u16 ? correct_range_16_avx512_u16(pr, first, last)
                          : correct_range_16_avx512_f32(pr, first, last);
   }
@@ -301,7 +302,7 @@ struct Shared {
 ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F32> dark,
                    ffi::Buffer<ffi::F32> white, ffi::Buffer<ffi::F32> p,
                    ffi::Buffer<ffi::F32> coeffs, ffi::Buffer<ffi::F32> projection,
-                   ffi::Buffer<ffi::F32> white_xyz, float saturation,
+                   ffi::Buffer<ffi::F32> white_xyz, float saturation, int32_t portable,
                    ffi::ResultBuffer<ffi::F32> reflectance, ffi::ResultBuffer<ffi::F32> lab,
                    ffi::ResultBuffer<ffi::U8> quality) {
   const auto dims = raw.dimensions();
@@ -351,6 +352,7 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
   pr.pixels = pixels;
   pr.bands = bands;
   pr.saturation = saturation;
+  pr.portable = portable != 0;
   pr.gain = gain.get();
   pr.offset = offset.get();
   pr.image_bad = image_bad.get();
@@ -383,6 +385,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(SpherejaxFusedCorrect, Correct,
                                   .Arg<ffi::Buffer<ffi::F32>>()    // projection
                                   .Arg<ffi::Buffer<ffi::F32>>()    // white_xyz
                                   .Attr<float>("saturation")
+                                  .Attr<int32_t>("portable")
                                   .Ret<ffi::Buffer<ffi::F32>>()    // reflectance
                                   .Ret<ffi::Buffer<ffi::F32>>()    // lab
                                   .Ret<ffi::Buffer<ffi::U8>>());   // quality

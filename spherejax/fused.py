@@ -15,6 +15,9 @@ it is tested against (tests/test_fused.py), and it is what runs:
   or when the environment variable SPHEREJAX_FUSED is "0" (to compare the two, or to rule the
   kernel out when something looks wrong).
 
+SPHEREJAX_FUSED=portable keeps the kernel but not its AVX-512 code, so that the portable code,
+which CPUs without AVX-512 run, can be tested and timed on a machine that has it.
+
 Derivatives: the kernel's outputs carry a custom JVP that is the JVP of the jax.numpy path, so
 `jax.grad` and `jax.jacfwd` through `correct` give what they gave before the kernel existed.
 Under `jax.vmap` the kernel runs once per mapped element (`vmap_method="sequential"`); batches of
@@ -62,23 +65,32 @@ def built() -> bool:
     return _fused_correct is not None
 
 
+#: Values of `mode`: the kernel with the best code the CPU runs, or its portable code only.
+AUTO, PORTABLE = "auto", "portable"
+
+
 def enabled() -> bool:
     """True if `correct` uses the kernel on CPU: built, and not switched off by SPHEREJAX_FUSED=0."""
-    return built() and os.environ.get(SWITCH, "1") != "0"
+    return built() and os.environ.get(SWITCH, AUTO) != "0"
 
 
-def applies(raw_dtype, compute_dtype, bands: int, intermediates: bool) -> bool:
-    """Whether the kernel can compute this call (on CPU): see the module docstring."""
-    return (
+def mode(raw_dtype, compute_dtype, bands: int, intermediates: bool) -> str | None:
+    """How `correct` computes this call on CPU: AUTO or PORTABLE (the kernel, see SWITCH), or
+    None (the jax.numpy path; see the module docstring). A static argument of the jitted step,
+    so that a change of the environment variable traces again."""
+    usable = (
         enabled()
         and not intermediates
         and np.dtype(compute_dtype) == np.float32
         and np.dtype(raw_dtype) in RAW_DTYPES
         and 1 <= bands <= MAX_BANDS
     )
+    if not usable:
+        return None
+    return PORTABLE if os.environ.get(SWITCH) == PORTABLE else AUTO
 
 
-def _kernel_call(raw, dark, white, p, coeffs, projection, white_xyz, saturation: float | None):
+def _kernel_call(raw, dark, white, p, coeffs, projection, white_xyz, saturation: float | None, kernel_mode: str):
     """The custom call on arrays shaped as the kernel wants them (see `_fused_correct.cc`).
 
     raw (N, P, B); dark, white (P, B); p (N, B); coeffs (B, 4); projection (B, 34); white_xyz (3,).
@@ -94,10 +106,11 @@ def _kernel_call(raw, dark, white, p, coeffs, projection, white_xyz, saturation:
     call = jax.ffi.ffi_call(TARGET, out_types, vmap_method="sequential")
     # NaN saturation: the kernel's `value >= saturation` is then never true, i.e. no check.
     level = np.float32(np.nan if saturation is None else saturation)
-    return call(raw, dark, white, p, coeffs, projection, white_xyz, saturation=level)
+    portable = np.int32(kernel_mode == PORTABLE)
+    return call(raw, dark, white, p, coeffs, projection, white_xyz, saturation=level, portable=portable)
 
 
-def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights, saturation):
+def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights, saturation, kernel_mode=AUTO):
     """reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W): the kernel on CPU,
     `plain` elsewhere, with `plain`'s JVP everywhere.
 
@@ -111,6 +124,7 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights
       wiener: (31, B) float32.
       weights: (31, 3) float32 tristimulus weights (white = their column sums).
       saturation: the saturation level, or None for no check.
+      kernel_mode: AUTO or PORTABLE (`mode`).
     """
     arrays = (raw, dark, white, p, coeffs, wiener, weights)
 
@@ -132,7 +146,7 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights
         reflectance, lab, quality = _kernel_call(
             raw.reshape(images, pixels, bands), dark.reshape(pixels, bands),
             white.reshape(pixels, bands), jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands),
-            coeffs, projection, jnp.sum(weights, axis=0), saturation,
+            coeffs, projection, jnp.sum(weights, axis=0), saturation, kernel_mode,
         )
         return (
             reflectance.reshape(*batch, height, width, 31),
@@ -143,4 +157,4 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights
     return outputs(*arrays)
 
 
-__all__ = ["TARGET", "MAX_BANDS", "SWITCH", "built", "enabled", "applies", "correct_pixels"]
+__all__ = ["TARGET", "MAX_BANDS", "SWITCH", "AUTO", "PORTABLE", "built", "enabled", "mode", "correct_pixels"]

@@ -359,12 +359,13 @@ def _pixel_outputs(raw, dark, white, p, coeffs, wiener, weights, *, saturation, 
 # jax.jit rather than eqx.filter_jit, here and for _patch_ratio: every array in a Calibration is a
 # leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
 # call (6 % of a 256 x 256 correction).
-@functools.partial(jax.jit, static_argnames=("intermediates", "use_kernel"))
-def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, use_kernel: bool):
+@functools.partial(jax.jit, static_argnames=("intermediates", "kernel_mode"))
+def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None):
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
-    `use_kernel` (static; `fused.applies`, decided by the caller so that the environment switch is
-    part of the cache key) sends the work to the fused CPU kernel (`spherejax.fused`).
+    `kernel_mode` (static; `fused.mode`, decided by the caller so that the environment switch is
+    part of the cache key): None for the jax.numpy path, else the fused CPU kernel's mode
+    (`spherejax.fused`).
     """
     dtype = _compute_dtype(raw, calibration)
     weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
@@ -376,22 +377,24 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, use_k
         _pixel_outputs, saturation=_saturation_level(raw, calibration), intermediates=intermediates
     )
     p = arrays[3]
-    if use_kernel:
-        reflectance, lab, quality = fused.correct_pixels(plain, *arrays, saturation=plain.keywords["saturation"])
+    if kernel_mode is not None:
+        reflectance, lab, quality = fused.correct_pixels(
+            plain, *arrays, saturation=plain.keywords["saturation"], kernel_mode=kernel_mode
+        )
         return CorrectionResult(reflectance, lab, quality, p)
     reflectance, lab, quality, *cubes = plain(*arrays)
     return CorrectionResult(reflectance, lab, quality, p, *cubes)
 
 
-@functools.partial(jax.jit, static_argnames=("box_shape", "intermediates", "use_kernel"))
-def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, use_kernel: bool):
+@functools.partial(jax.jit, static_argnames=("box_shape", "intermediates", "kernel_mode"))
+def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None):
     """`correct` of whole frames as one program: p over the patch's box, then every pixel.
 
     The same two steps as `patch_ratio` then `_correct_pixels`, traced together: one dispatch
     instead of two and no wait between them, 1.5-2.5 ms a call (benchmarks/README.md).
     """
     p = _patch_ratio(raw, calibration, box_origin, box_shape)
-    return _correct_pixels(raw, calibration, p, intermediates=intermediates, use_kernel=use_kernel)
+    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode)
 
 
 def _check_calibration(calibration) -> None:
@@ -459,7 +462,7 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
     what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
     raw = _check_raw(raw, calibration, what)
     intermediates = bool(intermediates)
-    use_kernel = fused.applies(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, intermediates)
+    kernel_mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, intermediates)
     if p is None:
         if calibration.patch is None:
             raise ValueError(
@@ -468,14 +471,14 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
             )
         box_origin, box_shape = _patch_box_arguments(raw, calibration)
         return _correct_image(
-            raw, calibration, box_origin, box_shape, intermediates=intermediates, use_kernel=use_kernel
+            raw, calibration, box_origin, box_shape, intermediates=intermediates, kernel_mode=kernel_mode
         )
     else:
         p = _checks.as_array("p", p)
         bands = calibration.bands
         _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
         _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
-    return _correct_pixels(raw, calibration, p, intermediates=intermediates, use_kernel=use_kernel)
+    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode)
 
 
 __all__ = [

@@ -56,10 +56,11 @@ def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, s
 
 
 def correct_both(monkeypatch, raw, calibration, **kwargs):
+    """(with the kernel as the environment says, with the jax.numpy path)."""
     kernel = sj.correct(raw, calibration, **kwargs)
-    monkeypatch.setenv(fused.SWITCH, "0")
-    plain = sj.correct(raw, calibration, **kwargs)
-    monkeypatch.delenv(fused.SWITCH)
+    with monkeypatch.context() as patched:
+        patched.setenv(fused.SWITCH, "0")
+        plain = sj.correct(raw, calibration, **kwargs)
     return kernel, plain
 
 
@@ -76,8 +77,8 @@ def assert_same_result(kernel, plain):
 
 def lowered_text(raw, calibration, **kwargs):
     p = patch_ratio(raw, calibration)
-    use = fused.applies(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, False)
-    return _correct_pixels.lower(raw, calibration, p, intermediates=False, use_kernel=use).as_text()
+    mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, False)
+    return _correct_pixels.lower(raw, calibration, p, intermediates=False, kernel_mode=mode).as_text()
 
 
 @pytest.mark.skipif(
@@ -94,12 +95,14 @@ pytestmark_kernel = pytest.mark.skipif(not fused.built(), reason="the fused kern
 
 
 @pytestmark_kernel
+@pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
 @pytest.mark.parametrize("bands", [16, 7, 33])
 @pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
-def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype):
-    """16 bands take the AVX-512 code (on CPUs that have it), others the generic loop; 96 x 100
-    pixels are two thread-pool chunks and a part block."""
+def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype, kernel_mode):
+    """16 bands take the AVX-512 code (on CPUs that have it, unless portable), others the
+    portable loop; 96 x 100 pixels are two thread-pool chunks and a part block."""
     raw, calibration = make_case(96, 100, bands, raw_dtype=raw_dtype)
+    monkeypatch.setenv(fused.SWITCH, kernel_mode)
     kernel, plain = correct_both(monkeypatch, raw, calibration)
     assert "spherejax_fused_correct" in lowered_text(jnp.asarray(raw), calibration)
     assert_same_result(kernel, plain)
@@ -224,16 +227,19 @@ def test_kernel_under_vmap_over_calibrations(monkeypatch):
 
 def test_when_the_kernel_applies(monkeypatch):
     f32, f64 = np.dtype(np.float32), np.dtype(np.float64)
+    monkeypatch.delenv(fused.SWITCH, raising=False)
     if fused.built():
-        assert fused.applies(np.uint16, f32, 16, False)
-        assert fused.applies(np.float32, f32, 5, False)
-    assert not fused.applies(np.uint16, f32, 16, True)  # intermediates: the plain path
-    assert not fused.applies(np.uint16, f64, 16, False)  # float64
-    assert not fused.applies(np.uint8, f32, 16, False)  # raw dtype the kernel does not read
-    assert not fused.applies(np.uint16, f32, fused.MAX_BANDS + 1, False)
+        assert fused.mode(np.uint16, f32, 16, False) == fused.AUTO
+        assert fused.mode(np.float32, f32, 5, False) == fused.AUTO
+        monkeypatch.setenv(fused.SWITCH, "portable")
+        assert fused.mode(np.uint16, f32, 16, False) == fused.PORTABLE
+    assert fused.mode(np.uint16, f32, 16, True) is None  # intermediates: the plain path
+    assert fused.mode(np.uint16, f64, 16, False) is None  # float64
+    assert fused.mode(np.uint8, f32, 16, False) is None  # raw dtype the kernel does not read
+    assert fused.mode(np.uint16, f32, fused.MAX_BANDS + 1, False) is None
     monkeypatch.setenv(fused.SWITCH, "0")
     assert not fused.enabled()
-    assert not fused.applies(np.uint16, f32, 16, False)
+    assert fused.mode(np.uint16, f32, 16, False) is None
 
 
 @pytestmark_kernel
