@@ -4,7 +4,7 @@ On CPU, `spherejax.correct` runs its per-pixel step (flat field, Stage I and II,
 the quality mask) as one XLA custom call into a compiled kernel (`_fused_correct.cc`), instead of
 the jitted jax.numpy path in `pipeline.py`. XLA does not fuse a matrix product with elementwise
 work on CPU, so the jax.numpy path writes and reads back the whole Stage II cube; the kernel reads
-each pixel once and writes its outputs once, about 3 times faster at 1024 x 1024 x 16
+each pixel once and writes its outputs once: 2.3 times faster at 1024 x 1024 x 16
 (benchmarks/README.md). It computes the same equations; the jax.numpy path stays the definition
 it is tested against (tests/test_fused.py), and it is what runs:
 

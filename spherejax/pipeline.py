@@ -13,14 +13,16 @@
 Bad pixels never raise: they become NaN in every output and carry bits in `quality`. Shapes and
 configuration are checked before tracing and raise ValueError naming the argument.
 
-Two jitted steps, so that an image too large for memory can be corrected in strips with the same
+Two steps, so that an image too large for memory can be corrected in strips with the same
 compiled code (`spherejax.stripwise`): `patch_ratio` reads only the white patch's bounding box,
-and the per-pixel step takes p as an argument. `correct(raw, calibration)` runs both;
-`correct(strip, calibration_rows, p=p)` runs the second on rows of an image with the whole
-image's p, and gives the same numbers bit for bit as the whole-image call (tested).
+and the per-pixel step takes p as an argument. `correct(raw, calibration)` traces both into one
+program; `correct(strip, calibration_rows, p=p)` runs the second on rows of an image with the
+whole image's p, and gives the same numbers bit for bit as the whole-image call (tested).
 
-For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so XYZ is computed
-from v_tilde directly; that equals reflectance @ weights up to rounding (tested).
+On CPU the per-pixel step in float32 is one fused compiled kernel (`spherejax.fused`); the
+jax.numpy code here (`_pixel_outputs`) is its definition, runs everywhere else and gives its
+derivatives. For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so
+XYZ is computed from v_tilde directly; that equals reflectance @ weights up to rounding (tested).
 """
 
 from __future__ import annotations

@@ -247,3 +247,22 @@ def test_switched_off_the_kernel_is_not_lowered(monkeypatch):
     raw, calibration = make_case(24, 24, 16)
     monkeypatch.setenv(fused.SWITCH, "0")
     assert "spherejax_fused_correct" not in lowered_text(jnp.asarray(raw), calibration)
+
+
+@pytestmark_kernel
+def test_lowered_for_a_gpu_the_jax_numpy_path_runs(monkeypatch):
+    """`jax.lax.platform_dependent` keeps the CPU kernel out of a GPU program. No GPU is needed
+    to check: the step is exported (lowered) for CUDA on this machine."""
+    raw, calibration = make_case(24, 24, 16)
+    raw = jnp.asarray(raw)
+    p = patch_ratio(raw, calibration)
+    mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, False)
+    assert mode == fused.AUTO
+
+    def step(raw, calibration, p):
+        return _correct_pixels(raw, calibration, p, intermediates=False, kernel_mode=mode)
+
+    exported = jax.export.export(jax.jit(step), platforms=["cuda"])(raw, calibration, p)
+    text = exported.mlir_module()
+    assert "spherejax_fused_correct" not in text
+    assert "dot_general" in text  # the jax.numpy path's two products
