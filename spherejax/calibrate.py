@@ -67,6 +67,16 @@ def _region_mean(cube: np.ndarray, region) -> np.ndarray:
     return block[usable].mean(axis=0)
 
 
+def _finite_mean(values: np.ndarray) -> np.ndarray:
+    """Mean over axis 0 of the finite entries, NaN where there is none: np.nanmean without its
+    RuntimeWarning ("Mean of empty slice"), which would print lines beside the one-line error a
+    dark capture gets further on (`_check_patch_ratios`)."""
+    finite = np.isfinite(values)
+    count = finite.sum(axis=0)
+    total = np.where(finite, values, 0.0).sum(axis=0)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
 def measure_frames(session, frames, calibration: Calibration) -> list[RegionMeasurement]:
     """Region averages of v and p for `frames` (FrameInfo) of `session`."""
     holder = session.holder_mask()
@@ -75,13 +85,47 @@ def measure_frames(session, frames, calibration: Calibration) -> list[RegionMeas
         result = correct(session.read(frame), calibration, intermediates=True)
         v = np.asarray(result.v, np.float64)
         p = np.asarray(result.p, np.float64)
-        holder_v = np.nanmean(v[holder], axis=0)
+        holder_v = _finite_mean(v[holder])
         for region in frame.regions:
             measurements.append(RegionMeasurement(
                 frame.id, frame.set, frame.background, region.patch,
                 _region_mean(v, region), p, holder_v, region.reflectance,
             ))
     return measurements
+
+
+#: A white standard with fewer usable pixels than this is refused: a calibration from it would
+#: flag, or silently mis-scale, most of every image it corrects.
+MIN_USABLE_WHITE_FRACTION = 0.5
+
+
+def _check_white_standard(session, base: Calibration) -> None:
+    """Raise ValueError naming the white frame unless most pixels, and the patch, have a white
+    signal that is finite, above dark in every band and below saturation (Eq. 10 needs it)."""
+    dark, white = np.asarray(base.dark), np.asarray(base.white)
+    signal = white - dark
+    usable = np.all(np.isfinite(signal) & (signal > 0) & (white < base.saturation), axis=-1)
+    patch = np.asarray(base.patch)
+    if usable.mean() < MIN_USABLE_WHITE_FRACTION or not usable[patch].any():
+        path = session.frame_path(session.frames_with(role="white")[0])
+        raise ValueError(
+            f"{path}: the white standard is above the dark frame and below saturation in only "
+            f"{100 * usable.mean():.1f} % of pixels and {100 * usable[patch].mean():.1f} % of the "
+            f"white patch (expected nearly all: is it the white standard, at the right exposure?)"
+        )
+
+
+def _check_patch_ratios(session, frames, measurements: list[RegionMeasurement]) -> None:
+    """Raise ValueError naming the first training capture whose white-patch ratio (Eq. 15) is
+    not finite: its patch reads no signal above dark, so Stage II cannot be fitted from it."""
+    bad = {m.frame_id for m in measurements if not np.all(np.isfinite(m.p))}
+    for frame in frames:
+        if frame.id in bad:
+            raise ValueError(
+                f"{session.frame_path(frame)}: the white patch reads no usable signal above dark "
+                "in some band, so its white-patch ratio is not finite (expected the patch lit, "
+                "not saturated)"
+            )
 
 
 def reference_background(measurements: list[RegionMeasurement]) -> str:
@@ -170,9 +214,11 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
     """
     check_session(session, reference)
     base = base_calibration(session)
+    _check_white_standard(session, base)
     training = session.frames_with(role="sample", set="training")
     targets = session.frames_with(role="target")
     measurements = measure_frames(session, training, base)
+    _check_patch_ratios(session, training, measurements)
     reference = reference or reference_background(measurements)
     v, p, target = stage2_training_data(measurements, reference)
     fit = fit_stage2_detailed(v, p, target, loss)
@@ -185,6 +231,12 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
     responses = np.asarray(stage2(np.stack([m.v for m in target_measurements]), np.stack([m.p for m in target_measurements]), coeffs))
     reflectances = np.stack([m.reflectance for m in target_measurements])
     usable = np.all(np.isfinite(responses), axis=1)
+    if usable.sum() < 2:
+        raise ValueError(
+            f"{session.manifest_path}: only {int(usable.sum())} of the {len(usable)} target regions "
+            "give a finite response (expected at least 2 for the Wiener matrix: are the target "
+            "captures dark or saturated?)"
+        )
     noise_variance, _, _ = select_wiener_noise_variance(responses[usable], reflectances[usable])
     wiener_matrix = np.asarray(fit_wiener(responses[usable], reflectances[usable], noise_variance))
 
