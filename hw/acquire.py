@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 import pathlib
+import re
 import shutil
 import sys
 import time
@@ -132,7 +133,8 @@ class Journal:
         return records
 
     def append(self, record: dict) -> None:
-        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        # O_NOFOLLOW: a symbolic link in the journal's place must not redirect the append.
+        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o666)
         try:
             size = os.fstat(fd).st_size
             prefix = b""
@@ -447,6 +449,21 @@ def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
         )
 
 
+def _remove_stale_staging(out: pathlib.Path) -> None:
+    """Remove the staging folders a run killed while writing the session left beside it.
+
+    io.write_session writes the session into a hidden sibling (io._temp_sibling's name,
+    ".<name>.<12 hex>.tmp") and renames it into place; a kill before the rename leaves that
+    folder, which the run that completes the session would otherwise leave there for good.
+    Called on --resume only, when the run that made it is over.
+    """
+    staging = re.compile(rf"\.{re.escape(out.name)}\.[0-9a-f]{{12}}\.tmp")
+    with contextlib.suppress(OSError):
+        for entry in out.parent.iterdir():
+            if staging.fullmatch(entry.name) and entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+
+
 def _profile_identity(profile: Profile) -> dict:
     return {
         "instrument_id": profile.instrument_id,
@@ -494,6 +511,7 @@ def acquire(
     if emulate and profile.camera.backend != "sim":
         profile = dataclasses.replace(profile, camera=dataclasses.replace(profile.camera, backend="sim", options={}))
     if resume:
+        _remove_stale_staging(out)
         if (out / "manifest.json").is_file():
             shutil.rmtree(partial, ignore_errors=True)  # a run killed after writing the session
             settings.log(f"{out}: the session is already complete")

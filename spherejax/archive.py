@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import fcntl
 import functools
 import hashlib
@@ -540,12 +541,22 @@ def read_manifest(out_root) -> dict[str, dict]:
     return records
 
 
+def _link_or(error: OSError) -> str:
+    """The reason an os.open with O_NOFOLLOW failed, in words: ELOOP means a symbolic link."""
+    return "it is a symbolic link" if error.errno == errno.ELOOP else str(error.strerror)
+
+
 class Manifest:
     """OUT/manifest.jsonl opened for appending: one os.write + fsync per record."""
 
     def __init__(self, out_root: pathlib.Path):
         self.path = out_root / MANIFEST_NAME
-        self.fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        # O_NOFOLLOW: a symbolic link planted as OUT's manifest must not make us append to the
+        # file it points at, outside OUT (tests/robustness/test_security.py).
+        try:
+            self.fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+        except OSError as error:
+            raise BatchError(self.path, f"cannot be opened: {_link_or(error)}", "a regular file inside OUT") from None
         # A run killed mid-write may have left a line without its newline: end it, so the next
         # record starts on a line of its own (the broken line is then skipped on reading).
         size = os.fstat(self.fd).st_size
@@ -575,9 +586,11 @@ class OutputLock:
     def acquire(self) -> None:
         while True:
             try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+                # O_NOFOLLOW: the lock is written (the holder's pid); a symbolic link planted in
+                # its place must not redirect that write to a file outside OUT.
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
             except OSError as error:
-                raise BatchError(self.path, f"cannot be created: {error.strerror}", "a writable OUT") from None
+                raise BatchError(self.path, f"cannot be created: {_link_or(error)}", "a regular file in a writable OUT") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
