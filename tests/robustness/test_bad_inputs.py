@@ -35,8 +35,7 @@ import spherejax as sj
 from hw import profile as hw_profile
 from spherejax import archive, cli, io
 from tests.hw.test_acquire import write_profile
-from tests.test_archive import NAMES, cal, frame  # noqa: F401  (cal: a fixture)
-from tests.test_cli import workspace  # noqa: F401  (a fixture: a small session and its calibration)
+from tests.test_archive import NAMES, frame
 
 # --------------------------------------------------------------------------------------------
 # Helpers
@@ -377,7 +376,7 @@ def _run_child(argv: list[str], limit: int) -> tuple[int, str]:
 
 
 @pytest.mark.parametrize("case", CATALOGUE, ids=[case.id for case in CATALOGUE])
-def test_bad_input(case: Case, workspace, cal, tmp_path, capsys):  # noqa: F811  (fixtures)
+def test_bad_input(case: Case, workspace, cal, tmp_path, capsys):
     f = Folder(tmp_path / "case", workspace, tmp_path / "cube-cal.npz")
     f.tmp.mkdir()
     shutil.copyfile(cal, f.cube_cal)

@@ -18,8 +18,7 @@ import spherejax
 from hw import profile as hw_profile
 from spherejax import archive, cli, io
 from tests.hw.test_acquire import write_profile
-from tests.test_archive import NAMES, cal, frame  # noqa: F401  (cal: a fixture)
-from tests.test_cli import workspace  # noqa: F401  (a fixture)
+from tests.test_archive import NAMES, frame
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 SOURCES = sorted([*(ROOT / "spherejax").rglob("*.py"), *(ROOT / "hw").rglob("*.py")])
@@ -67,7 +66,7 @@ class _Touch:
         return (pathlib.Path.touch, (pathlib.Path(self.marker),))
 
 
-def test_a_calibration_file_carrying_a_pickle_is_refused_unopened(workspace, tmp_path):  # noqa: F811
+def test_a_calibration_file_carrying_a_pickle_is_refused_unopened(workspace, tmp_path):
     with np.load(workspace / "cal.npz", allow_pickle=False) as stored:
         arrays = {name: stored[name] for name in stored.files}
     marker = tmp_path / "pwned"
@@ -82,7 +81,7 @@ def test_a_calibration_file_carrying_a_pickle_is_refused_unopened(workspace, tmp
 
 
 @pytest.mark.parametrize("path", ["/etc/passwd", "../outside.tif", "frames/../../outside.tif", "frames/../../../x"])
-def test_session_manifest_paths_stay_in_the_session(workspace, tmp_path, path):  # noqa: F811
+def test_session_manifest_paths_stay_in_the_session(workspace, tmp_path, path):
     session = tmp_path / "session"
     shutil.copytree(workspace / "session", session)
     (tmp_path / "outside.tif").write_bytes((session / "frames" / "dark.tif").read_bytes())
@@ -108,7 +107,7 @@ def _victim(tmp_path) -> tuple[pathlib.Path, str]:
 
 
 @pytest.mark.parametrize("planted", [archive.LOCK_NAME, archive.MANIFEST_NAME])
-def test_a_link_planted_as_the_lock_or_manifest_is_not_followed(cal, tmp_path, capsys, planted):  # noqa: F811
+def test_a_link_planted_as_the_lock_or_manifest_is_not_followed(cal, tmp_path, capsys, planted):
     io.write_frame(tmp_path / "a.tif", frame(np.random.default_rng(0)), channel_names=NAMES)
     victim, digest = _victim(tmp_path)
     out = tmp_path / "out"
@@ -125,7 +124,7 @@ def test_a_link_planted_as_the_lock_or_manifest_is_not_followed(cal, tmp_path, c
     assert (out / planted).is_symlink()
 
 
-def test_a_tampered_manifest_cannot_remove_or_overwrite_files_outside_out(cal, tmp_path, capsys):  # noqa: F811
+def test_a_tampered_manifest_cannot_remove_or_overwrite_files_outside_out(cal, tmp_path, capsys):
     """--resume reads OUT's manifest, which anyone may edit: outputs it names outside OUT are
     neither checked, removed nor rewritten."""
     (tmp_path / "in").mkdir()
