@@ -19,7 +19,8 @@ last band image is in, the session is written (all or nothing) and SESSION.parti
 device that stops answering, answers garbage or vanishes stops the run with one line; the shutter
 is closed if it still answers, and `--resume` re-runs the warm-up check and takes only the band
 images the journal does not hold (verified by SHA-256), with the exposures already chosen, so
-darks, whites and samples always share exposures.
+darks, whites and samples always share exposures. A kill while the session is written leaves its
+hidden staging folder beside SESSION; `--resume` removes it.
 
 Per band image the metadata holds: band centre, every wheel's slot read back with pos?, the
 exposure, frames averaged, time stamp (UTC), sensor temperature, lamp hours and the count of
@@ -435,6 +436,10 @@ def _write_session(out: pathlib.Path, partial: pathlib.Path, journal: Journal, i
 def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
     saved = partial / "profile.json"
     if not saved.is_file():
+        # A run killed between creating the folder and renaming profile.json into place left
+        # nothing to keep (at most the temporary, half written): the resumed run starts afresh.
+        if {entry.name for entry in partial.iterdir()} <= {".profile.json.tmp"}:
+            return
         raise AcquisitionError(f"{partial}: holds no profile.json: not an acquisition spherejax can resume")
     try:
         before = json.loads(saved.read_text())

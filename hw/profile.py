@@ -195,8 +195,11 @@ class _Table:
         # A TOML boolean is a Python int: refuse it wherever a number is expected (kind may be a
         # tuple such as (int, float), which `kind in (int, float)` would not catch).
         ok = isinstance(value, kind) and not (isinstance(value, bool) and kind is not bool)
-        if ok and isinstance(value, float):
-            ok = math.isfinite(value)
+        if ok and isinstance(value, (int, float)) and not isinstance(value, bool):
+            try:
+                ok = math.isfinite(value)
+            except OverflowError:  # a TOML integer beyond float range: float() of it would raise
+                ok = False
         if not ok or (check is not None and not check(value)):
             raise ProfileError(self.path, self.key(name), f"is {_show(value)}", expected)
         return value
@@ -300,7 +303,8 @@ def _inside(path: pathlib.Path, key: str, value: str) -> pathlib.Path:
     """A path from the profile, relative to its folder and confined to it."""
     folder = path.resolve().parent
     relative = pathlib.PurePosixPath(value)
-    if relative.is_absolute() or ".." in relative.parts or not value:
+    # A NUL byte cannot be in a file name: resolving one raises ValueError.
+    if relative.is_absolute() or ".." in relative.parts or not value or "\0" in value:
         raise ProfileError(path, key, f"is {value!r}", "a file name inside the profile's folder")
     target = (folder / relative).resolve()
     if not target.is_relative_to(folder):
@@ -322,7 +326,9 @@ def load_profile(path) -> Profile:
         raise ProfileError(path, None, "no such file", "an instrument profile (TOML)") from None
     except (OSError, UnicodeDecodeError) as error:
         raise ProfileError(path, None, f"cannot be read: {error}", "an instrument profile (TOML)") from None
-    except tomllib.TOMLDecodeError as error:
+    except (ValueError, RecursionError) as error:
+        # TOMLDecodeError is a ValueError; so is int() refusing an integer of more than 4300
+        # digits, and arrays nested thousands deep raise RecursionError.
         raise ProfileError(path, None, f"is not valid TOML: {error}", "an instrument profile (TOML)") from None
     root = _Table(path, data, "")
     root.only({"instrument", "wheels", "shutter", "camera", "bands", "acquisition", "layout", "lamp", "samples"})

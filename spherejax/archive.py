@@ -534,7 +534,7 @@ def read_manifest(out_root) -> dict[str, dict]:
     for line in path.read_bytes().split(b"\n"):
         try:
             record = json.loads(line)
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: arrays nested thousands deep
             continue
         if isinstance(record, dict) and isinstance(record.get("name"), str):
             records[record["name"]] = record
@@ -627,10 +627,12 @@ class OutputLock:
 
 
 def _describe_holder(content: bytes) -> str:
+    """The holder a lock file names, in one line (it goes into messages); never raises: the file
+    may hold anything."""
     try:
         holder = json.loads(content)
-        return f"pid {holder['pid']} on {holder['host']}"
-    except (ValueError, TypeError, KeyError):
+        return " ".join(f"pid {holder['pid']} on {holder['host']}".split())
+    except (ValueError, TypeError, KeyError, RecursionError):
         return "another process"
 
 

@@ -85,6 +85,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import functools
 import hashlib
 import json
 import math
@@ -92,8 +93,10 @@ import os
 import pathlib
 import re
 import shutil
+import tokenize
 import uuid
 import zipfile
+import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
@@ -253,7 +256,12 @@ def _is_int(value) -> bool:
 
 
 def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # a JSON integer beyond float range (JSON puts no limit on digits)
+        return False
 
 
 def _is_timestamp(value) -> bool:
@@ -405,7 +413,8 @@ class _Fields:
         """A path relative to the file's folder, with no "..": it cannot name a file outside."""
 
         def check(value):
-            if not isinstance(value, str) or value in ("", "."):
+            # A NUL byte cannot be in a file name: os calls on one raise ValueError.
+            if not isinstance(value, str) or value in ("", ".") or "\0" in value:
                 return False
             # Both readings: a manifest written on Windows may use "\\" and drive letters.
             posix, native = pathlib.PurePosixPath(value), pathlib.PurePath(value)
@@ -436,6 +445,30 @@ def _check_format(fields: _Fields, name: str, version: int) -> None:
 # ------------------------------------------------------------------------------------------ frames
 
 
+def _refuse_undecodable_text(expected: str):
+    """Decorate a reader whose first argument is the file: a UnicodeDecodeError out of it
+    becomes a SpherejaxFileError naming the file.
+
+    OpenImageIO's binding decodes every string it hands to Python (error messages, channel
+    names, attributes) as UTF-8. A damaged file can make them quote bytes that are not, and the
+    UnicodeDecodeError would then name neither the file nor the problem.
+    """
+
+    def decorate(reader):
+        @functools.wraps(reader)
+        def checked(path, *args, **kwargs):
+            try:
+                return reader(path, *args, **kwargs)
+            except UnicodeDecodeError:
+                problem = "is corrupted: OpenImageIO finds text in it that is not UTF-8"
+                raise SpherejaxFileError(path, problem, expected) from None
+
+        return checked
+
+    return decorate
+
+
+@_refuse_undecodable_text(_FRAME_EXPECTED)
 def _open_checked_frame(path: pathlib.Path) -> oiio.ImageInput:
     """An open ImageInput on a checked camera frame (one page, uint16 samples); the caller closes it."""
     if not path.is_file():
@@ -512,6 +545,7 @@ def frame_spec(path) -> tuple[int, int, int]:
         return _spec_shape(image)
 
 
+@_refuse_undecodable_text(_FRAME_EXPECTED)
 def read_frame(path, *, expected_shape: Sequence[int] | None = None) -> np.ndarray:
     """Read a camera frame.
 
@@ -540,6 +574,7 @@ def read_frame(path, *, expected_shape: Sequence[int] | None = None) -> np.ndarr
     return np.ascontiguousarray(np.asarray(pixels, dtype=np.uint16).reshape(shape))
 
 
+@_refuse_undecodable_text(_FRAME_EXPECTED)
 def read_frame_metadata(path) -> dict:
     """The channel names and attributes `write_frame` stored in a frame (header only).
 
@@ -553,10 +588,10 @@ def read_frame_metadata(path) -> dict:
         description = spec.get_string_attribute("ImageDescription")
     try:
         stored = json.loads(description)
-        names, attributes = stored["channel_names"], stored["attributes"]
-    except (ValueError, TypeError, KeyError):
+        # Converted inside the try: a description that is JSON but not write_frame's falls back too.
+        return {"channel_names": list(stored["channel_names"]), "attributes": dict(stored["attributes"])}
+    except (ValueError, TypeError, KeyError, RecursionError):
         return {"channel_names": list(spec.channelnames), "attributes": {}}
-    return {"channel_names": list(names), "attributes": dict(attributes)}
 
 
 def _frame_names_and_attributes(path, channels: int, channel_names, attributes):
@@ -745,7 +780,7 @@ def _channel_names(image: oiio.ImageInput) -> list[str]:
         stored = json.loads(spec.get_string_attribute("ImageDescription"))["channel_names"]
         if isinstance(stored, list) and len(stored) == spec.nchannels:
             return [str(name) for name in stored]
-    except (ValueError, TypeError, KeyError):
+    except (ValueError, TypeError, KeyError, RecursionError):  # not write_frame's JSON
         pass
     return list(spec.channelnames)
 
@@ -829,7 +864,10 @@ class CubeReader:
             skip = 0
         if pixels is None or image.has_error:
             # OIIO does not always say why (a damaged deflate stream gives no message).
-            detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
+            try:
+                detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
+            except UnicodeDecodeError:  # see _refuse_undecodable_text
+                detail = "OpenImageIO's message about it is not UTF-8 text"
             raise SpherejaxFileError(plane.path, f"is corrupted: {detail}", plane.expected)
         rows = np.asarray(pixels, dtype=self.dtype).reshape(-1, width, plane.channels)
         return rows[skip : skip + row1 - row0]
@@ -846,6 +884,7 @@ class CubeReader:
         self.close()
 
 
+@_refuse_undecodable_text(_CUBE_EXPECTED)
 def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> CubeReader:
     """Open a camera cube stored in one file, checking its header; pixels are read by
     `CubeReader.read_rows`.
@@ -1322,7 +1361,9 @@ def _read_manifest(manifest_path: pathlib.Path):
         raise SessionError(manifest_path, f"is not UTF-8 text: {error}", "JSON") from None
     try:
         return json.loads(text)
-    except json.JSONDecodeError as error:
+    except (ValueError, RecursionError) as error:
+        # Besides JSONDecodeError (a ValueError): an integer of more than 4300 digits raises
+        # ValueError, and arrays nested thousands deep RecursionError.
         raise SessionError(manifest_path, f"is not valid JSON: {error}", "JSON") from None
 
 
@@ -1578,6 +1619,13 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
             f"array 'patch' has dtype {arrays['patch'].dtype.str}: patch weights cannot be stored",
             "a boolean patch mask (|b1), e.g. weights > 0",
         )
+    for name in ("dark", "white", "coeffs", "wiener"):
+        # Strings, raw bytes (|V...) or complex numbers would pass the header check but are no
+        # calibration (JAX would refuse them with a TypeError that names no file).
+        if arrays[name].dtype.kind not in "iuf":
+            raise CalibrationFileError(
+                path, f"array {name!r} has dtype {arrays[name].dtype.str}", "integer or floating-point numbers"
+            )
     bands = header["band_centres_nm"]
     if arrays["dark"].shape[-1:] != (len(bands),):
         raise CalibrationFileError(
@@ -1609,6 +1657,8 @@ class _StoredArray:
         self.nbytes = (self.shape[0] if self.shape else 1) * self.row_bytes
 
     def _read_into(self, buffer: np.ndarray, offset: int) -> None:
+        if not buffer.nbytes:
+            return  # an empty array: memoryview refuses to cast a view with a 0 in its shape
         view = memoryview(buffer).cast("B")
         done = 0
         while done < len(view):
@@ -1673,20 +1723,28 @@ def _index_npz(path: pathlib.Path, fd: int) -> dict:
                     read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
                     if read_header is None:
                         raise ValueError(f"member {info.filename!r} has .npy version {version}")
-                    shape, fortran_order, dtype = read_header(member)
+                    try:
+                        shape, fortran_order, dtype = read_header(member)
+                    except (SyntaxError, tokenize.TokenError, TypeError, RecursionError) as error:
+                        # numpy parses the header's text with ast and tokenize, which raise these
+                        # (not ValueError) on some damaged texts.
+                        raise ValueError(f"member {info.filename!r} has a damaged .npy header: {error!r}") from None
                     if dtype.hasobject:
                         raise ValueError(f"member {info.filename!r} holds Python objects")
                     header_length = member.tell()
+                # Checked before any data is read: a damaged shape must not make a compressed
+                # member allocate more than the archive holds.
+                if any(n < 0 for n in shape) or header_length + math.prod(shape) * dtype.itemsize != info.file_size:
+                    raise ValueError(f"member {info.filename!r} does not hold the array its header describes")
                 if info.compress_type == zipfile.ZIP_STORED and not fortran_order:
                     offset = _member_data_offset(fd, info) + header_length
-                    stored = _StoredArray(path, fd, offset, shape, dtype)
-                    if header_length + stored.nbytes != info.file_size:
-                        raise ValueError(f"member {info.filename!r} does not hold the array its header describes")
-                    entries[name] = stored
+                    entries[name] = _StoredArray(path, fd, offset, shape, dtype)
                 else:
                     with archive.open(info) as member:
                         entries[name] = np.lib.format.read_array(member, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError, zlib.error) as error:
+        # zipfile raises RuntimeError for an encrypted member (NotImplementedError, a subclass,
+        # for an unknown compression method) and zlib.error for a damaged deflate stream.
         raise CalibrationFileError(path, f"is corrupted: {error}", "a spherejax calibration file") from None
     if foreign:
         raise CalibrationFileError(
@@ -1703,10 +1761,16 @@ def _decode_header(path, raw: np.ndarray | None) -> dict:
         problem = f"has a header of dtype {raw.dtype} and shape {raw.shape}"
         raise CalibrationFileError(path, problem, expected)
     try:
-        return json.loads(raw.tobytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        # NaN and Infinity are not JSON (save_calibration never writes them), and the checksum,
+        # computed over strict JSON, could not be verified with one in the header.
+        return json.loads(raw.tobytes().decode("utf-8"), parse_constant=_not_json)
+    except (ValueError, RecursionError) as error:  # as in _read_manifest; UnicodeDecodeError too
         problem = f"has a header that is not UTF-8 JSON: {error}"
         raise CalibrationFileError(path, problem, expected) from None
+
+
+def _not_json(constant: str):
+    raise ValueError(f"{constant} is not a JSON value")
 
 
 def save_calibration(
@@ -1771,6 +1835,13 @@ def save_calibration(
     return header
 
 
+def _native(array: np.ndarray) -> np.ndarray:
+    """`array` in this machine's byte order. A file may store another (">f4": written on a
+    big-endian machine, or by a tool that chose it); the checksum covers the bytes as stored,
+    but JAX takes native byte order only."""
+    return array.astype(array.dtype.newbyteorder("="), copy=False)
+
+
 class CalibrationFile:
     """A calibration file, open and verified (header, checksum, contents), whose arrays are read
     when needed: a dark frame and white standard larger than `IN_MEMORY_BYTES` stay on disk and
@@ -1813,11 +1884,11 @@ class CalibrationFile:
 
     def _value(self, name: str) -> np.ndarray:
         array = self._arrays[name]
-        return array.read() if isinstance(array, _StoredArray) else array
+        return _native(array.read() if isinstance(array, _StoredArray) else array)
 
     def _rows(self, name: str, row0: int, row1: int) -> np.ndarray:
         array = self._arrays[name]
-        return array.read_rows(row0, row1) if isinstance(array, _StoredArray) else array[row0:row1]
+        return _native(array.read_rows(row0, row1) if isinstance(array, _StoredArray) else array[row0:row1])
 
     def _crop(self, row0: int, row1: int, col0: int, col1: int) -> Calibration:
         crop = lambda name: np.ascontiguousarray(self._rows(name, row0, row1)[:, col0:col1])  # noqa: E731
