@@ -360,9 +360,10 @@ class _Fields:
             default,
         )
 
-    def increasing_ints(self, key: str, expected: str) -> list[int]:
+    def increasing_ints(self, key: str, expected: str, *, maximum: int = 2**31 - 1) -> list[int]:
+        # The maximum keeps the values inside int64 arithmetic (JSON puts no limit on digits).
         def check(v):
-            if not (isinstance(v, list) and v and all(_is_int(x) and x > 0 for x in v)):
+            if not (isinstance(v, list) and v and all(_is_int(x) and 0 < x <= maximum for x in v)):
                 return False
             return all(a < b for a, b in zip(v, v[1:]))
 
@@ -378,8 +379,8 @@ class _Fields:
         return values if values is None else np.asarray(values, dtype=np.float64)
 
     def shape(self, key: str, ndim: int, expected: str) -> tuple[int, ...]:
-        def check(v):
-            return isinstance(v, list) and len(v) == ndim and all(_is_int(x) and x > 0 for x in v)
+        def check(v):  # the bound as in increasing_ints: sizes stay inside int64 arithmetic
+            return isinstance(v, list) and len(v) == ndim and all(_is_int(x) and 0 < x < 2**31 for x in v)
 
         return tuple(self.value(key, expected, check))
 
@@ -1328,7 +1329,7 @@ def _parse_manifest(doc, *, manifest_path: pathlib.Path, root: pathlib.Path) -> 
     _check_format(top, SESSION_FORMAT, SESSION_FORMAT_VERSION)
     top.only(_SESSION_KEYS)
     bands = np.asarray(
-        top.increasing_ints("band_centres_nm", "band centres in nm: integers > 0, increasing"),
+        top.increasing_ints("band_centres_nm", "band centres in nm: integers from 1 to 100000, increasing", maximum=100_000),
         dtype=np.int64,
     )
     image_shape = top.shape("image_shape", 2, "[H, W], two integers > 0")
@@ -1565,7 +1566,7 @@ def _check_calibration_header(path, header) -> None:
     fields.only(_CALIBRATION_KEYS)
     for key in ("software_version", "instrument_id", "illuminant", "observer"):
         fields.string(key)
-    fields.increasing_ints("band_centres_nm", "band centres in nm: integers > 0, increasing")
+    fields.increasing_ints("band_centres_nm", "band centres in nm: integers from 1 to 100000, increasing", maximum=100_000)
     fields.number("saturation", allow_null=True)
     fields.timestamp("created")
     fields.mapping("metadata")

@@ -28,7 +28,6 @@ import sys
 from collections.abc import Callable
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 
 import spherejax as sj
@@ -36,6 +35,7 @@ from hw import profile as hw_profile
 from spherejax import archive, cli, io
 from tests.hw.test_acquire import write_profile
 from tests.test_archive import NAMES, frame
+from tests.test_io import write_with_oiio
 
 # --------------------------------------------------------------------------------------------
 # Helpers
@@ -134,12 +134,9 @@ def huge_tiff(path: pathlib.Path, width: int = 200_000, height: int = 150_000) -
 
 
 def write_any_tiff(path: pathlib.Path, array: np.ndarray) -> pathlib.Path:
-    """A TIFF of any dtype OpenImageIO writes (io.write_frame writes uint16 only)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """A TIFF of any dtype OpenImageIO writes, in place of `path` (io.write_frame writes uint16 only)."""
     path.unlink(missing_ok=True)
-    output = oiio.ImageOutput.create(str(path))
-    spec = oiio.ImageSpec(array.shape[1], array.shape[0], array.shape[2], array.dtype.name)
-    assert output.open(str(path), spec) and output.write_image(array) and output.close(), oiio.geterror()
+    write_with_oiio(path, [array])
     return path
 
 

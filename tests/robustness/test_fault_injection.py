@@ -46,6 +46,18 @@ def calibration_file(tmp_path_factory) -> pathlib.Path:
     return path
 
 
+def _kill(process: subprocess.Popen) -> bool:
+    """SIGKILL `process` and reap it; False (and no kill) if it had already ended, successfully."""
+    if process.poll() is not None:
+        _, err = process.communicate()
+        assert process.returncode == 0, err.decode()
+        return False
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+    assert process.returncode == -signal.SIGKILL
+    return True
+
+
 def _temporaries(out: pathlib.Path) -> set[str]:
     """The temporary files under OUT (io's naming: ".<name>.<12 hex>.tmp")."""
     return {p.relative_to(out).as_posix() for p in out.rglob("*") if archive._TEMP_NAME.fullmatch(p.name)}
@@ -147,13 +159,8 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(calibration_file, 
                 _wait_until(process, lambda: bool(_unrecorded(killed)) or len(_done(killed)) > reached)
             else:
                 time.sleep(delays.uniform(0.0, 0.020))
-        if process.poll() is not None:  # it finished first: not a kill; the next run gets this one
-            _, err = process.communicate()
-            assert process.returncode == 0, err.decode()
+        if not _kill(process):  # it finished first: not a kill; the next run gets this one
             continue
-        process.send_signal(signal.SIGKILL)
-        process.communicate(timeout=60)
-        assert process.returncode == -signal.SIGKILL
 
         # At every kill: whatever is under its final name is complete (the reference's bytes), and
         # every input the manifest calls done has its outputs there with the recorded SHA-256.
@@ -260,13 +267,8 @@ def test_kills_during_acquisition_lose_and_duplicate_no_capture(tmp_path):
         else:
             _wait_until(process, lambda: bool(_staging(out)))
             time.sleep(delays.uniform(0.0, 0.050))
-        if process.poll() is not None:  # it finished first: not a kill
-            _, err = process.communicate()
-            assert process.returncode == 0, err.decode()
+        if not _kill(process):  # it finished first: not a kill
             continue
-        process.send_signal(signal.SIGKILL)
-        process.communicate(timeout=60)
-        assert process.returncode == -signal.SIGKILL
 
         if (out / "manifest.json").exists():  # killed after the session was written: checked below
             landed.append((mode, IMAGES, True))
