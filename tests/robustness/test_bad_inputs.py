@@ -334,6 +334,9 @@ CATALOGUE: list[Case] = [
     _correct_case("cube-wrong-band-count", lambda f: f.cube("in/b15.tif", frame(np.random.default_rng(5), (40, 48, 15)), NAMES[:15]), "15 channels"),
     _correct_case("cube-wrong-size", lambda f: f.cube("in/size.tif", frame(np.random.default_rng(5), (40, 50, 16))), "40 x 50"),
     _correct_case("cube-wrong-dtype", lambda f: write_any_tiff(f.tmp / "in" / "int8.tif", np.zeros((40, 48, 16), np.int8)), "in/int8.tif"),
+    _correct_case("output-through-a-link-out-of-out", lambda f: (
+        (f.tmp / "elsewhere").mkdir() or (f.tmp / "out" / "in" / "esc").symlink_to(f.tmp / "elsewhere")
+        or f.cube("in/esc/y.tif")), "would be written outside OUT"),
     Case("calibration-missing-for-correct", "correct", lambda f: (
         f.cube("in/a.tif") and ["correct", "-c", str(f.tmp / "none.npz"), str(f.tmp / "in"), "-o", str(f.tmp / "out2")],
         str(f.tmp / "none.npz")), "no such"),
