@@ -459,7 +459,8 @@ def _remove_stale_staging(out: pathlib.Path) -> None:
 
     io.write_session writes the session into a hidden sibling (io._temp_sibling's name,
     ".<name>.<12 hex>.tmp") and renames it into place; a kill before the rename leaves that
-    folder, which the run that completes the session would otherwise leave there for good.
+    folder, which the run that completes the session would otherwise leave there for good. The
+    finished SESSION.partial is moved to such a name too before it is deleted (`acquire`).
     Called on --resume only, when the run that made it is over.
     """
     staging = re.compile(rf"\.{re.escape(out.name)}\.[0-9a-f]{{12}}\.tmp")
@@ -564,7 +565,15 @@ def acquire(
         instrument.shutter.make_safe()
         exposures = {int(k): v for k, v in journal.last("exposures")["exposure_s"].items()}
         _write_session(out, partial, journal, instrument, captures, exposures)
-    shutil.rmtree(partial, ignore_errors=True)
+        # The session is complete: move the work folder aside at once, in one rename, so that a
+        # kill from here on (closing the devices takes a while) leaves no SESSION.partial. Its
+        # hidden name is a staging name, which --resume removes if a kill leaves it
+        # (`_remove_stale_staging`).
+        from spherejax import io
+
+        finished = io._temp_sibling(out)
+        os.rename(partial, finished)
+    shutil.rmtree(finished, ignore_errors=True)
     return out
 
 

@@ -273,3 +273,32 @@ def test_sample_that_the_simulated_camera_cannot_show_is_refused(tmp_path):
     with pytest.raises(acquire.AcquisitionError, match="samples id 'my-textile' is not a scene of the simulated camera"):
         run_acquire(profile, tmp_path / "s")
     assert not (tmp_path / "s").exists() and not (tmp_path / "s.partial").exists()
+
+
+def test_a_kill_after_the_session_is_written_leaves_no_partial_folder(tmp_path, monkeypatch):
+    """The finished SESSION.partial is renamed aside before the devices close and before it is
+    deleted: a kill there (here: the deletion never returns) leaves the session and a hidden
+    staging folder, which --resume removes, and never a SESSION.partial that blocks the name."""
+    from hw import acquire as acquire_module
+
+    profile = write_profile(tmp_path, samples=SAMPLES[:1])
+    out = tmp_path / "s"
+
+    real_rmtree = acquire_module.shutil.rmtree
+
+    def killed(path, **kwargs):  # only the deletion of the finished work folder (it holds the journal) "dies"
+        if (pathlib.Path(path) / "journal.jsonl").is_file():
+            raise SystemExit("killed")
+        return real_rmtree(path, **kwargs)
+
+    with monkeypatch.context() as patched:
+        patched.setattr(acquire_module.shutil, "rmtree", killed)
+        with pytest.raises(SystemExit):
+            run_acquire(profile, out)
+    assert (out / "manifest.json").is_file() and not (tmp_path / "s.partial").exists()
+    hidden = [p.name for p in tmp_path.iterdir() if p.name.startswith(".s.") and p.name.endswith(".tmp")]
+    assert len(hidden) == 1
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert run_acquire(profile, out, resume=True) == out
+    assert not any(p.name.startswith(".s.") for p in tmp_path.iterdir())
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
