@@ -304,6 +304,10 @@ CATALOGUE: list[Case] = [
         f.replace_frame(m["file"].split("/")[-1], np.zeros_like(f.frame_of("white.tif")))
         for m in json.loads((f.session() / "manifest.json").read_text())["frames"] if m["role"] == "sample"
     ][0], "white-patch ratio"),
+    _session_case("targets-all-zero", lambda f: [
+        f.replace_frame(m["file"].split("/")[-1], np.zeros_like(f.frame_of("white.tif")))
+        for m in json.loads((f.session() / "manifest.json").read_text())["frames"] if m["role"] == "target"
+    ] and f.session() / "manifest.json", "target regions"),
     # ---- calibrate: the output
     Case("calibrate-into-read-only-folder", "calibrate",
          lambda f: ((f.tmp / "locked").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "locked" / "c.npz")],
