@@ -36,7 +36,6 @@ import hashlib
 import json
 import os
 import pathlib
-import re
 import shutil
 import sys
 import time
@@ -457,16 +456,17 @@ def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
 def _remove_stale_staging(out: pathlib.Path) -> None:
     """Remove the staging folders a run killed while writing the session left beside it.
 
-    io.write_session writes the session into a hidden sibling (io._temp_sibling's name,
-    ".<name>.<12 hex>.tmp") and renames it into place; a kill before the rename leaves that
-    folder, which the run that completes the session would otherwise leave there for good. The
-    finished SESSION.partial is moved to such a name too before it is deleted (`acquire`).
+    io.write_session writes the session into a hidden sibling (`io.temp_sibling`) and renames it
+    into place; a kill before the rename leaves that folder, which the run that completes the
+    session would otherwise leave there for good. The finished SESSION.partial is moved to such
+    a name too before it is deleted (`acquire`).
     Called on --resume only, when the run that made it is over.
     """
-    staging = re.compile(rf"\.{re.escape(out.name)}\.[0-9a-f]{{12}}\.tmp")
+    from spherejax import io
+
     with contextlib.suppress(OSError):
         for entry in out.parent.iterdir():
-            if staging.fullmatch(entry.name) and entry.is_dir() and not entry.is_symlink():
+            if io.is_temp_sibling(entry.name, out.name) and entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
 
 
@@ -571,7 +571,7 @@ def acquire(
         # (`_remove_stale_staging`).
         from spherejax import io
 
-        finished = io._temp_sibling(out)
+        finished = io.temp_sibling(out)
         os.rename(partial, finished)
     shutil.rmtree(finished, ignore_errors=True)
     return out

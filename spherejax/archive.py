@@ -93,8 +93,6 @@ CUBE_SUFFIXES = (".tif", ".tiff", ".exr")
 PREVIEW_BAD_PIXEL = (255, 0, 255)
 
 _BAND_FILE = re.compile(r"(?P<prefix>.*?)[_-]?(?P<nm>\d{3,4})nm", re.IGNORECASE)
-# io._temp_sibling's names: ".<name>.<12 hex>.tmp".
-_TEMP_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.tmp")
 
 
 class BatchError(io.SpherejaxFileError):
@@ -641,7 +639,7 @@ def _remove_temporaries(out_root: pathlib.Path) -> int:
     removed = 0
     for dirpath, _, filenames in os.walk(out_root):
         for filename in filenames:
-            if _TEMP_NAME.fullmatch(filename):
+            if io.is_temp_sibling(filename):
                 os.unlink(os.path.join(dirpath, filename))
                 removed += 1
     return removed

@@ -198,13 +198,20 @@ def _show(value) -> str:
 # ------------------------------------------------------------------------------ shared file helpers
 
 
-def _temp_sibling(path: pathlib.Path) -> pathlib.Path:
+def temp_sibling(path: pathlib.Path) -> pathlib.Path:
     """An unused hidden name beside `path`: same folder, so os.replace / os.rename is atomic.
 
     Not tempfile.mkstemp / mkdtemp: they create mode 0600 / 0700, which the rename would carry
     into the final file or session folder; files created here follow the user's umask.
     """
     return path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
+
+
+def is_temp_sibling(name: str, of: str | None = None) -> bool:
+    """True if `name` is one `temp_sibling` makes (".<name>.<12 hex>.tmp"), of a file or folder
+    named `of` if given: what a killed run leaves, and cleans up after."""
+    stem = re.escape(of) if of is not None else ".+"
+    return re.fullmatch(rf"\.{stem}\.[0-9a-f]{{12}}\.tmp", name) is not None
 
 
 def _json_value(path, value, error_type: type[SpherejaxFileError], what: str):
@@ -677,7 +684,7 @@ class AtomicImageWriter:
         self.path = pathlib.Path(path)
         self.height = spec.height
         self._next_row = 0
-        self._temp = _temp_sibling(self.path)
+        self._temp = temp_sibling(self.path)
         self._output = None
         try:
             os.close(os.open(self._temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
@@ -1500,7 +1507,7 @@ def write_session(
             )
     check_new_session_folder(path)
 
-    staging = _temp_sibling(path)
+    staging = temp_sibling(path)
     channel_names = [f"{nm}nm" for nm in session.band_centres_nm.tolist()]
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -1822,7 +1829,7 @@ def save_calibration(
     _check_calibration_contents(path, header, arrays)  # refuse to write what load would refuse
 
     encoded = _readable_json(header).encode("utf-8")
-    temp = _temp_sibling(path)
+    temp = temp_sibling(path)
     try:
         with open(temp, "xb") as file:
             np.savez(file, header=np.frombuffer(encoded, dtype=np.uint8), **arrays)
@@ -2024,6 +2031,8 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
 
 
 __all__ = [
+    "temp_sibling",
+    "is_temp_sibling",
     "SpherejaxFileError",
     "SessionError",
     "CalibrationFileError",

@@ -60,7 +60,7 @@ def _kill(process: subprocess.Popen) -> bool:
 
 def _temporaries(out: pathlib.Path) -> set[str]:
     """The temporary files under OUT (io's naming: ".<name>.<12 hex>.tmp")."""
-    return {p.relative_to(out).as_posix() for p in out.rglob("*") if archive._TEMP_NAME.fullmatch(p.name)}
+    return {p.relative_to(out).as_posix() for p in out.rglob("*") if io.is_temp_sibling(p.name)}
 
 
 def _tree(folder: pathlib.Path) -> list[str]:
@@ -78,7 +78,7 @@ def _unrecorded(out: pathlib.Path) -> set[str]:
     skip = {archive.MANIFEST_NAME, archive.LOCK_NAME}
     present = {
         p.relative_to(out).as_posix().rsplit(".", 2)[0] for p in out.rglob("*")
-        if p.name not in skip and not archive._TEMP_NAME.fullmatch(p.name) and p.is_file()
+        if p.name not in skip and not io.is_temp_sibling(p.name) and p.is_file()
     }
     return present - set(_done(out))
 
