@@ -304,6 +304,8 @@ def load_reference_calibration(path) -> dict:
     per batch: the colorimetric constants and the pixels without a flat field."""
     with np.load(path) as npz:
         arrays = {name: npz[name] for name in ("dark", "white", "patch", "coeffs", "wiener")}
+        # Format version 2 stores the estimator's offset r0; a version 1 file has none (r0 = 0).
+        arrays["wiener_offset"] = npz["wiener_offset"] if "wiener_offset" in npz.files else None
         header = json.loads(bytes(npz["header"]).decode("utf-8"))
     # reference_correct is written for a D65, 14-bit calibration (bench_correct's constants).
     if header["illuminant"] != "D65" or header["saturation"] != SATURATION:
@@ -321,6 +323,7 @@ def reference_outputs(raw: np.ndarray, calibration: dict) -> dict:
     result = reference_correct(
         raw, calibration["dark"], calibration["white"], calibration["patch"], calibration["coeffs"],
         calibration["wiener"], calibration["xyz_weights"], calibration["whitepoint_xy"],
+        calibration["wiener_offset"],
     )
     quality = np.where(np.any(raw >= SATURATION, axis=-1), QUALITY_SATURATED, 0).astype(np.uint8)
     quality[calibration["no_flat_field"]] |= QUALITY_WHITE_NOT_ABOVE_DARK

@@ -3,7 +3,7 @@
 What it measures
     `spherejax.correct(raw, calibration)` on one synthetic (size, size, 16) uint16 cube: quality
     mask -> flat field (Eq. 10) -> white-patch ratio (Eq. 14-15) -> Stage II (Eq. 23) -> Wiener
-    (16 -> 31) -> XYZ (ASTM E308) -> CIELAB, output reflectance (H, W, 31) and Lab (H, W, 3).
+    (16 -> 31, affine: W v + r0) -> XYZ (ASTM E308) -> CIELAB, output reflectance (H, W, 31) and Lab (H, W, 3).
 
 Against what
     `reference_correct` below: the same path written the way a lab would write it without JAX,
@@ -98,11 +98,21 @@ def camera_sensitivity() -> np.ndarray:
     return filters / filters.sum(axis=1, keepdims=True)
 
 
-def wiener_matrix() -> np.ndarray:
-    """(31, 16) float32 Wiener matrix trained on every reflectance spherejax ships."""
+def wiener_estimator() -> tuple[np.ndarray, np.ndarray]:
+    """(W (31, 16), r0 (31,)) float32: the affine Wiener estimator r = W v + r0 trained on every
+    reflectance spherejax ships. A plain matrix (what `fit_wiener` returned before the
+    estimator became affine) is taken with a zero offset."""
     reflectances = spectra.all_reflectances()
     responses = reflectances @ camera_sensitivity().T
-    return np.asarray(spherejax.fit_wiener(responses, reflectances), dtype=np.float32)
+    estimator = spherejax.fit_wiener(responses, reflectances)
+    matrix = getattr(estimator, "matrix", estimator)
+    offset = getattr(estimator, "offset", np.zeros(matrix.shape[0]))
+    return np.asarray(matrix, dtype=np.float32), np.asarray(offset, dtype=np.float32)
+
+
+def wiener_matrix() -> np.ndarray:
+    """(31, 16) float32: the matrix W of `wiener_estimator` (its offset left out)."""
+    return wiener_estimator()[0]
 
 
 def vignetting(size: int) -> np.ndarray:
@@ -156,7 +166,8 @@ def make_inputs(size: int, seed: int = SEED) -> dict:
     return {"raw": raw, "dark": dark, "white": white, "patch": patch}
 
 
-def make_calibration(inputs: dict, coeffs: np.ndarray, wiener: np.ndarray) -> spherejax.Calibration:
+def make_calibration(inputs: dict, coeffs: np.ndarray, wiener: np.ndarray, wiener_offset=None) -> spherejax.Calibration:
+    """The calibration of `make_inputs`; wiener_offset r0 (31,), None = zeros."""
     return spherejax.Calibration(
         dark=inputs["dark"],
         white=inputs["white"],
@@ -165,6 +176,7 @@ def make_calibration(inputs: dict, coeffs: np.ndarray, wiener: np.ndarray) -> sp
         wiener=wiener,
         illuminant="D65",
         saturation=SATURATION,
+        wiener_offset=np.zeros(31, np.float32) if wiener_offset is None else wiener_offset,
     )
 
 
@@ -172,8 +184,10 @@ def make_calibration(inputs: dict, coeffs: np.ndarray, wiener: np.ndarray) -> sp
 # The reference: numpy + colour-science
 
 
-def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whitepoint_xy) -> dict:
+def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whitepoint_xy, wiener_offset=None) -> dict:
     """The `correct` path in numpy, float32 throughout except inside colour-science.
+
+    wiener_offset: the estimator's offset r0 (31,), None = zeros.
 
     Returns a dict with reflectance (H, W, 31), lab (H, W, 3) and valid (H, W) bool. Bad pixels
     (saturated, non-finite, white <= dark) and every pixel of an image whose patch ratio is not
@@ -203,6 +217,8 @@ def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whit
     v_tilde[~valid] = np.nan
 
     reflectance = v_tilde @ wiener.T  # (H, W, 31)
+    if wiener_offset is not None:
+        reflectance += wiener_offset  # the affine estimate W v + r0; NaN rows stay NaN
     xyz = reflectance @ xyz_weights  # ASTM E308, Y = 100 for the perfect diffuser
     # colour-science works in float64 internally (its default float dtype); that is how a user
     # would call it, so it is left that way and only the result is cast back.
@@ -490,9 +506,9 @@ def main(argv=None) -> int:
     info["fused_kernel"] = fused.enabled()
 
     coeffs = stage2_coeffs()
-    wiener = wiener_matrix()
+    wiener, wiener_offset = wiener_estimator()
     inputs = make_inputs(args.size)
-    calibration = make_calibration(inputs, coeffs, wiener)
+    calibration = make_calibration(inputs, coeffs, wiener, wiener_offset)
     xyz_weights, whitepoint_xy = reference_constants()
 
     def run_spherejax():
@@ -513,7 +529,7 @@ def main(argv=None) -> int:
     def run_reference():
         return reference_correct(
             inputs["raw"], inputs["dark"], inputs["white"], inputs["patch"],
-            coeffs, wiener, xyz_weights, whitepoint_xy,
+            coeffs, wiener, xyz_weights, whitepoint_xy, wiener_offset,
         )
 
     compile_s, result = time_first_call(run_spherejax)

@@ -119,6 +119,8 @@ REQUIREMENT_SIZE = 8192
 FIXED_COST_SIZE = 128  # `spherejax correct` on this input: the command's fixed cost
 SAMPLE_PERIOD_S = 0.2
 INSTRUMENT = "bench-out-of-core"
+N_WAVELENGTHS = 31  # reflectance at 400..700 nm step 10
+WIENER_OFFSET = np.zeros(N_WAVELENGTHS, np.float32)  # the calibration file's r0 (format version 2)
 
 #: Upper bound of the bytes on disk per pixel of one dataset: calibration (dark, white float32,
 #: patch), cube (uint16, before compression) and the outputs (reflectance and Lab float32,
@@ -257,6 +259,9 @@ def calibration_header(capture: SyntheticCapture, coeffs: np.ndarray, wiener: np
         "patch": ([size, size], np.dtype(bool)),
         "coeffs": (list(coeffs.shape), coeffs.dtype),
         "wiener": (list(wiener.shape), wiener.dtype),
+        # Format version 2: the affine estimator's offset r0; zero here (the benchmark's W is
+        # bench_correct.wiener_matrix() alone, and its reference adds no offset).
+        "wiener_offset": ([N_WAVELENGTHS], WIENER_OFFSET.dtype),
     }
     return {
         "format": io.CALIBRATION_FORMAT,
@@ -282,6 +287,8 @@ def _array_chunks(name: str, capture: SyntheticCapture, coeffs, wiener):
         yield np.ascontiguousarray(coeffs)
     elif name == "wiener":
         yield np.ascontiguousarray(wiener)
+    elif name == "wiener_offset":
+        yield WIENER_OFFSET
     else:
         for block in range(capture.blocks):
             yield np.ascontiguousarray(capture.block(block, (name,))[name])
@@ -332,7 +339,7 @@ def write_inputs(capture: SyntheticCapture, folder: pathlib.Path, coeffs, wiener
         raise RuntimeError(f"{cube_path}: cannot be written: {output.geterror()}")
     cube_s = time.perf_counter() - start
 
-    for name in ("white", "patch", "coeffs", "wiener"):
+    for name in ("white", "patch", "coeffs", "wiener", "wiener_offset"):  # io.CALIBRATION_ARRAYS' order
         digest.update(_checksum_line(name, header["arrays"][name]))
         for chunk in _array_chunks(name, capture, coeffs, wiener):
             digest.update(chunk)
@@ -374,7 +381,10 @@ def check_inputs(capture: SyntheticCapture, files: dict, coeffs, wiener) -> dict
         assert opened.image_shape == (capture.size, capture.size) and opened.bands == BANDS
         assert opened.patch_box == (PATCH[0], PATCH[1], PATCH[2], PATCH[3]), opened.patch_box
     calibration, header = io.load_calibration(files["calibration"], band_centres_nm=BAND_CENTRES)
-    expected = {**{k: frames[k] for k in ("dark", "white", "patch")}, "coeffs": coeffs, "wiener": wiener}
+    expected = {
+        **{k: frames[k] for k in ("dark", "white", "patch")}, "coeffs": coeffs, "wiener": wiener,
+        "wiener_offset": WIENER_OFFSET,
+    }
     for name, array in expected.items():
         loaded = np.asarray(getattr(calibration, name))
         if loaded.dtype != array.dtype or not np.array_equal(loaded, array):

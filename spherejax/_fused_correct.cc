@@ -12,8 +12,9 @@
 //            4 white - dark not finite and > 0 in some band, 8 the image's p not finite
 //   v        = (raw - dark) / (white - dark)                         (Eq. 10)
 //   v_tilde  = (c1 p + c2) v + c3 p + c4                              (Eq. 17 and 23)
-//   [reflectance | XYZ] = v_tilde @ projection                        (Wiener 16 -> 31 and the
-//            folded (B, 3) XYZ matrix, one (B, 34) product)
+//   [reflectance | XYZ] = v_tilde @ projection + bias                 (the affine Wiener estimate
+//            W v_tilde + r0, 16 -> 31, and the folded (B, 3) XYZ matrix with its offset r0 @
+//            weights: one (B, 34) product whose accumulators start at the (34,) bias)
 //   Lab      = CIE 1976 from XYZ / white_xyz                          (CIE 15:2004)
 // and NaN in reflectance and Lab wherever quality != 0. The tests compare it with the plain
 // path on every branch (tests/test_fused.py).
@@ -22,7 +23,7 @@
 // never handled by a scalar tail), so a strip of an image gives the same bits as the whole image.
 //
 // Layout: raw (N, P, B) uint16 or float32, dark and white (P, B), p (N, B), coeffs (B, 4),
-// projection (B, 34), white_xyz (3,); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
+// projection (B, 34), bias (34,), white_xyz (3,); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
 // (N, P) uint8. The work is split into chunks of pixels run on XLA's intra-op thread pool.
 
 #include <Python.h>
@@ -81,6 +82,7 @@ struct Problem {
   const float* offset;
   const uint8_t* image_bad;  // per image: QUALITY 8 when some p is not finite
   const Vec* projection;     // (bands, 3) vectors: the (B, 34) matrix padded to 48 columns
+  const Vec* bias;           // 3 vectors: the (34,) bias [r0 | r0 @ weights] padded to 48
   float inverse_white[3];
   float* reflectance;
   float* lab;
@@ -194,8 +196,10 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
     // A bad pixel goes on as NaN, which NaN x anything carries into every output.
     if (q) std::fill(tilde, tilde + B, NAN);
     // Separate accumulators for even and odd bands halve the chain of dependent FMAs; named
-    // variables, not an array, so that they stay in registers.
-    Vec even0 = {}, even1 = {}, even2 = {}, odd0 = {}, odd1 = {}, odd2 = {};
+    // variables, not an array, so that they stay in registers. The even ones start at the bias
+    // (the estimator's offset): no extra operation per pixel, and a zero bias gives the bits of
+    // a zero start. A bad pixel's NaN still reaches every output (NaN + bias is NaN).
+    Vec even0 = pr.bias[0], even1 = pr.bias[1], even2 = pr.bias[2], odd0 = {}, odd1 = {}, odd2 = {};
     int64_t b = 0;
 #pragma GCC unroll 8
     for (; b + 1 < B; b += 2) {
@@ -302,7 +306,7 @@ struct Shared {
 ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F32> dark,
                    ffi::Buffer<ffi::F32> white, ffi::Buffer<ffi::F32> p,
                    ffi::Buffer<ffi::F32> coeffs, ffi::Buffer<ffi::F32> projection,
-                   ffi::Buffer<ffi::F32> white_xyz, float saturation, int32_t portable,
+                   ffi::Buffer<ffi::F32> bias, ffi::Buffer<ffi::F32> white_xyz, float saturation, int32_t portable,
                    ffi::ResultBuffer<ffi::F32> reflectance, ffi::ResultBuffer<ffi::F32> lab,
                    ffi::ResultBuffer<ffi::U8> quality) {
   const auto dims = raw.dimensions();
@@ -315,7 +319,8 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
   if (bands < 1 || bands > kMaxBands) return ffi::Error::InvalidArgument("bands: expected 1..64");
   if (dark.element_count() != size_t(pixels * bands) || white.element_count() != dark.element_count() ||
       p.element_count() != size_t(images * bands) || coeffs.element_count() != size_t(bands * 4) ||
-      projection.element_count() != size_t(bands * kOutputs) || white_xyz.element_count() != 3) {
+      projection.element_count() != size_t(bands * kOutputs) || bias.element_count() != size_t(kOutputs) ||
+      white_xyz.element_count() != 3) {
     return ffi::Error::InvalidArgument("inputs: shapes do not match raw (N, P, B)");
   }
 
@@ -324,6 +329,7 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
   auto offset = std::make_unique<float[]>(images * bands);
   auto image_bad = std::make_unique<uint8_t[]>(images);
   auto padded = std::make_unique<Vec[]>(3 * bands);  // new[] of an over-aligned type aligns it
+  auto padded_bias = std::make_unique<Vec[]>(3);
   const float* c = coeffs.typed_data();
   const float* ratio = p.typed_data();
   for (int64_t n = 0; n < images; ++n) {
@@ -341,6 +347,9 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
     float* row = reinterpret_cast<float*>(&padded[3 * b]);
     for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? m[b * kOutputs + k] : 0.0f;
   }
+  const float* offsets = bias.typed_data();
+  float* bias_row = reinterpret_cast<float*>(padded_bias.get());
+  for (int64_t k = 0; k < kPadded; ++k) bias_row[k] = k < kOutputs ? offsets[k] : 0.0f;
   const float* wxyz = white_xyz.typed_data();
 
   Problem& pr = shared->problem;
@@ -357,6 +366,7 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
   pr.offset = offset.get();
   pr.image_bad = image_bad.get();
   pr.projection = padded.get();
+  pr.bias = padded_bias.get();
   for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
   pr.reflectance = reflectance->typed_data();
   pr.lab = lab->typed_data();
@@ -383,6 +393,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(SpherejaxFusedCorrect, Correct,
                                   .Arg<ffi::Buffer<ffi::F32>>()    // p
                                   .Arg<ffi::Buffer<ffi::F32>>()    // coeffs
                                   .Arg<ffi::Buffer<ffi::F32>>()    // projection
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // bias
                                   .Arg<ffi::Buffer<ffi::F32>>()    // white_xyz
                                   .Attr<float>("saturation")
                                   .Attr<int32_t>("portable")

@@ -12,8 +12,10 @@ disagree about v, p or bad pixels:
    background of median brightness (holder-mean Stage I response), so that on average the
    correction is as small as possible, and it is an option.
 3. Stage II fitted by `fit_stage2` (the closed form of Eq. 22 by default).
-4. The Wiener matrix from the target captures: their Stage II responses against their known
-   reflectances (`fit_wiener`, noise variance by leave-one-out cross-validation).
+4. The reflectance estimator from the target captures: their Stage II responses against their
+   known reflectances (`fit_wiener`: the affine training-based or model-based Wiener estimator,
+   method and regularisers chosen by cross-validation that holds out whole groups of targets,
+   e.g. charts or materials, when a manifest field names them).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import numpy as np
 
 from .pipeline import Calibration, correct
 from .polynomial import STATUS_NAMES, fit_stage2_detailed, identity_coeffs, stage2
-from .wiener_estimation import select_wiener_noise_variance, fit_wiener
+from .wiener_estimation import METHODS as WIENER_METHODS, fit_wiener
 from .grid import N_WAVELENGTHS
 
 
@@ -160,10 +162,11 @@ def stage2_training_data(measurements: list[RegionMeasurement], reference: str):
     return v, p, target
 
 
-def check_session(session, reference: str | None = None) -> None:
+def check_session(session, reference: str | None = None, wiener_groups: str | None = None) -> None:
     """Raise ValueError naming the manifest unless `session` can be calibrated: training
-    captures with regions, a target capture with known reflectances, and `reference` (if
-    given) among the training backgrounds. Cheap: reads no pixels."""
+    captures with regions, a target capture with known reflectances, `reference` (if given)
+    among the training backgrounds, and `wiener_groups` (if given) naming at least two groups of
+    targets. Cheap: reads no pixels."""
     manifest = session.manifest_path
     training = session.frames_with(role="sample", set="training")
     if not any(frame.regions for frame in training):
@@ -175,6 +178,16 @@ def check_session(session, reference: str | None = None) -> None:
     backgrounds = sorted({frame.background for frame in training})
     if reference is not None and reference not in backgrounds:
         raise ValueError(f"{manifest}: no training background named {reference!r} (expected one of {backgrounds})")
+    if wiener_groups is not None:
+        _check_groups(session, target_groups(session, targets, wiener_groups), wiener_groups)
+
+
+def _check_groups(session, groups, field: str) -> None:
+    if len(set(groups)) < 2:
+        raise ValueError(
+            f"{session.manifest_path}: every target is in group {groups[0]!r} of field {field!r}; "
+            "expected at least 2 groups to hold out in turn (or no --wiener-groups)"
+        )
 
 
 @dataclasses.dataclass
@@ -186,7 +199,8 @@ class CalibrationReport:
     training_patches: int
     training_backgrounds: int
     targets: int
-    wiener_noise_variance: float
+    wiener_method: str
+    wiener_cross_validation: list[dict]
     stage2_loss: str
     stage2_rms_residual: list[float]
     stage2_status: list[str]
@@ -197,8 +211,34 @@ class CalibrationReport:
         return dataclasses.asdict(self)
 
 
-def calibrate_session(session, *, reference: str | None = None, loss: str = "l2", illuminant: str = "D65"):
-    """Fit Stage II and the Wiener matrix from a session's training and target captures.
+#: `--wiener-groups` names that are frame fields rather than keys of a frame's metadata.
+FRAME_GROUP_FIELDS = ("id", "set", "background")
+
+
+def target_groups(session, frames, field: str) -> list[str]:
+    """The group of each target region of `frames`: the frame's `field` ("id", "set",
+    "background") or, for any other name, the value of that key in the frame's metadata.
+    Raises ValueError naming the manifest and the first frame that lacks it."""
+    groups = []
+    for frame in frames:
+        if field in FRAME_GROUP_FIELDS:
+            value = getattr(frame, field)
+        else:
+            value = frame.metadata.get(field)
+        if value is None or isinstance(value, (dict, list)):
+            raise ValueError(
+                f"{session.manifest_path}: target frame {frame.id!r} has no {field!r} to group targets by "
+                f"(got {value!r}; expected a string or number in the frame's metadata, or one of {FRAME_GROUP_FIELDS})"
+            )
+        groups.extend([str(value)] * sum(region.reflectance is not None for region in frame.regions))
+    return groups
+
+
+def calibrate_session(
+    session, *, reference: str | None = None, loss: str = "l2", illuminant: str = "D65",
+    wiener_method: str = "auto", wiener_groups: str | None = None,
+):
+    """Fit Stage II and the reflectance estimator from a session's training and target captures.
 
     Args:
       session: a `spherejax.io.Session` with training samples (role "sample", set "training",
@@ -208,11 +248,14 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
       loss: "l2" (closed form, default), "huber", "cauchy" or "tukey" (`fit_stage2_detailed`);
         bands whose fit did not converge are listed in the report, not raised.
       illuminant: stored in the Calibration for Lab.
+      wiener_method: "auto" (default), "training" or "model" (`fit_wiener`).
+      wiener_groups: a manifest field naming each target capture's group (`target_groups`):
+        cross-validation then holds out one group at a time; None: k folds of alike targets.
 
     Returns:
       (Calibration, CalibrationReport).
     """
-    check_session(session, reference)
+    check_session(session, reference, wiener_groups)
     base = base_calibration(session)
     _check_white_standard(session, base)
     training = session.frames_with(role="sample", set="training")
@@ -227,6 +270,9 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
     residual = np.sqrt(np.nanmean((prediction - target) ** 2, axis=0))
 
     with_stage2 = dataclasses.replace(base, coeffs=coeffs.astype(np.float32))
+    if wiener_method not in WIENER_METHODS:
+        raise ValueError(f"wiener method: expected one of {WIENER_METHODS}, got {wiener_method!r}")
+    groups = None if wiener_groups is None else target_groups(session, targets, wiener_groups)
     target_measurements = [m for m in measure_frames(session, targets, with_stage2) if m.reflectance is not None]
     responses = np.asarray(stage2(np.stack([m.v for m in target_measurements]), np.stack([m.p for m in target_measurements]), coeffs))
     reflectances = np.stack([m.reflectance for m in target_measurements])
@@ -237,12 +283,15 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
             "give a finite response (expected at least 2 for the Wiener matrix: are the target "
             "captures dark or saturated?)"
         )
-    noise_variance, _, _ = select_wiener_noise_variance(responses[usable], reflectances[usable])
-    wiener_matrix = np.asarray(fit_wiener(responses[usable], reflectances[usable], noise_variance))
+    if groups is not None:
+        groups = [g for g, keep in zip(groups, usable) if keep]
+        _check_groups(session, groups, wiener_groups)
+    estimator = fit_wiener(responses[usable], reflectances[usable], method=wiener_method, groups=groups)
 
     calibration = Calibration(
         dark=base.dark, white=base.white, patch=base.patch,
-        coeffs=coeffs.astype(np.float32), wiener=wiener_matrix.astype(np.float32),
+        coeffs=coeffs.astype(np.float32), wiener=np.asarray(estimator.matrix, np.float32),
+        wiener_offset=np.asarray(estimator.offset, np.float32),
         illuminant=illuminant, saturation=base.saturation,
     )
     report = CalibrationReport(
@@ -251,7 +300,8 @@ def calibrate_session(session, *, reference: str | None = None, loss: str = "l2"
         training_patches=len({m.patch for m in measurements}),
         training_backgrounds=len({m.background for m in measurements}),
         targets=int(usable.sum()),
-        wiener_noise_variance=float(noise_variance),
+        wiener_method=estimator.method,
+        wiener_cross_validation=[cv.as_dict() for cv in estimator.cross_validation],
         stage2_loss=loss,
         stage2_rms_residual=[float(x) for x in residual],
         stage2_status=[STATUS_NAMES[int(x)] for x in np.asarray(fit.status)],
@@ -270,4 +320,5 @@ __all__ = [
     "reference_background",
     "stage2_training_data",
     "calibrate_session",
+    "target_groups",
 ]

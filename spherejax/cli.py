@@ -111,10 +111,11 @@ def cmd_simulate(args) -> int:
 def _calibrate(session, args, progress):
     from . import calibrate
 
-    calibrate.check_session(session, args.reference_background)  # bad input before any work
+    calibrate.check_session(session, args.reference_background, args.wiener_groups)  # bad input before any work
     progress.start(f"calibrating from {session.path}")
     calibration, report = calibrate.calibrate_session(
-        session, reference=args.reference_background, loss=args.loss, illuminant=args.illuminant
+        session, reference=args.reference_background, loss=args.loss, illuminant=args.illuminant,
+        wiener_method=args.wiener_method, wiener_groups=args.wiener_groups,
     )
     for band in report.unconverged_bands:
         print(
@@ -128,7 +129,26 @@ def _calibrate(session, args, progress):
         f"reference background {report.reference_background}, {report.training_samples} samples, "
         f"{report.targets} targets"
     )
+    if not args.quiet:
+        print(wiener_report_table(report))
     return calibration, report
+
+
+def wiener_report_table(report) -> str:
+    """The reflectance estimator's cross-validated errors per method tried, chosen one first."""
+    tried = report.wiener_cross_validation
+    lines = [
+        f"reflectance estimator: {report.wiener_method} (cross-validated on {report.targets} targets, "
+        f"{tried[0]['folds']})",
+        f"  {'method':<10} {'spectral rms':>12} {'mean ΔE00 D65':>14}  settings",
+    ]
+    for entry in tried:
+        chosen = "*" if entry["method"] == report.wiener_method else " "
+        settings = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry["settings"].items())
+        lines.append(
+            f"{chosen} {entry['method']:<10} {entry['spectral_rms']:>12.5f} {entry['delta_e_d65']:>14.3f}  {settings}"
+        )
+    return "\n".join(lines)
 
 
 def _save_calibration(path, calibration, report, session) -> None:
@@ -376,6 +396,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--illuminant", default="D65", choices=["D65", "A", "F2"], help="illuminant for Lab (default D65)")
         p.add_argument("--loss", default="l2", choices=list(LOSSES),
                        help="Stage II loss: l2 (closed form, Eq. 22; default) or a robust huber, cauchy, tukey")
+        p.add_argument("--wiener-method", default="auto", choices=["auto", "training", "model"],
+                       help="reflectance estimator: auto (default: the lower cross-validated error), "
+                            "training (regression on the targets) or model (system model + Wiener)")
+        p.add_argument("--wiener-groups", metavar="FIELD", default=None,
+                       help="manifest field naming each target capture's group (a key of its metadata, "
+                            "or id, set, background): cross-validation holds out one group at a time")
 
     study = commands.add_parser("study", help="fit Stage II end to end for colour consistency and compare on held-out data")
     study.add_argument("session", metavar="SESSION")

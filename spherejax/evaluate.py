@@ -110,8 +110,10 @@ def _assemble(measurements, calibration, kappa, white_r) -> StageData:
             truth[i] = m.reflectance
     with np.errstate(invalid="ignore"):
         responses = {s: np.where(counts > 0, sums[s] / np.maximum(counts, 1), np.nan) for s in STAGES}
+    # The affine Wiener estimate r = W v + r0 of every stage's responses; unmeasured (NaN) stay NaN.
     W = np.asarray(calibration.wiener, np.float64)
-    reflectance = {s: responses[s] @ W.T for s in STAGES}
+    r0 = np.asarray(calibration.wiener_offset, np.float64)
+    reflectance = {s: responses[s] @ W.T + r0 for s in STAGES}
     return StageData(patches, backgrounds, responses, reflectance, truth)
 
 

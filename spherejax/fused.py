@@ -90,10 +90,11 @@ def mode(raw_dtype, compute_dtype, bands: int, intermediates: bool) -> str | Non
     return PORTABLE if os.environ.get(SWITCH) == PORTABLE else AUTO
 
 
-def _kernel_call(raw, dark, white, p, coeffs, projection, white_xyz, saturation: float | None, kernel_mode: str):
+def _kernel_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation: float | None, kernel_mode: str):
     """The custom call on arrays shaped as the kernel wants them (see `_fused_correct.cc`).
 
-    raw (N, P, B); dark, white (P, B); p (N, B); coeffs (B, 4); projection (B, 34); white_xyz (3,).
+    raw (N, P, B); dark, white (P, B); p (N, B); coeffs (B, 4); projection (B, 34) = [W^T |
+    W^T weights]; bias (34,) = [r0 | r0 weights], the affine estimator's offset; white_xyz (3,).
     Returns reflectance (N, P, 31), lab (N, P, 3) float32 and quality (N, P) uint8.
     """
     _register()
@@ -107,26 +108,28 @@ def _kernel_call(raw, dark, white, p, coeffs, projection, white_xyz, saturation:
     # NaN saturation: the kernel's `value >= saturation` is then never true, i.e. no check.
     level = np.float32(np.nan if saturation is None else saturation)
     portable = np.int32(kernel_mode == PORTABLE)
-    return call(raw, dark, white, p, coeffs, projection, white_xyz, saturation=level, portable=portable)
+    return call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation=level, portable=portable)
 
 
-def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights, saturation, kernel_mode=AUTO):
+def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_offset, weights, saturation,
+                   kernel_mode=AUTO):
     """reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W): the kernel on CPU,
-    `plain` elsewhere, with `plain`'s JVP everywhere.
+    `plain` elsewhere, with `plain`'s JVP everywhere (so also with respect to wiener_offset).
 
     Args:
       plain: the jax.numpy definition, called as plain(raw, dark, white, p, coeffs, wiener,
-        weights) -> (reflectance, lab, quality), with `saturation` already bound.
+        wiener_offset, weights) -> (reflectance, lab, quality), with `saturation` already bound.
       raw: (..., H, W, B) uint16 or float32.
       dark, white: (H, W, B) float32.
       p: (..., B) float32, the white-patch ratio of each image.
       coeffs: (B, 4) float32, Stage II c1..c4.
-      wiener: (31, B) float32.
+      wiener: (31, B) float32, the Wiener matrix W.
+      wiener_offset: (31,) float32, the estimator's offset r0 (reflectance = W v_tilde + r0).
       weights: (31, 3) float32 tristimulus weights (white = their column sums).
       saturation: the saturation level, or None for no check.
       kernel_mode: AUTO or PORTABLE (`mode`).
     """
-    arrays = (raw, dark, white, p, coeffs, wiener, weights)
+    arrays = (raw, dark, white, p, coeffs, wiener, wiener_offset, weights)
 
     @jax.custom_jvp
     def outputs(*arrays):
@@ -137,16 +140,18 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, weights
         _, tangents_out = jax.jvp(plain, primals, tangents)
         return outputs(*primals), tangents_out
 
-    def on_cpu(raw, dark, white, p, coeffs, wiener, weights):
+    def on_cpu(raw, dark, white, p, coeffs, wiener, wiener_offset, weights):
         height, width, bands = raw.shape[-3:]
         batch = raw.shape[:-3]
         images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
         hi = jax.lax.Precision.HIGHEST
         projection = jnp.concatenate([wiener.T, jnp.matmul(wiener.T, weights, precision=hi)], axis=1)
+        # The same regrouping for the offset: XYZ = v_tilde (W^T weights) + r0 weights.
+        bias = jnp.concatenate([wiener_offset, jnp.matmul(wiener_offset, weights, precision=hi)])
         reflectance, lab, quality = _kernel_call(
             raw.reshape(images, pixels, bands), dark.reshape(pixels, bands),
             white.reshape(pixels, bands), jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands),
-            coeffs, projection, jnp.sum(weights, axis=0), saturation, kernel_mode,
+            coeffs, projection, bias, jnp.sum(weights, axis=0), saturation, kernel_mode,
         )
         return (
             reflectance.reshape(*batch, height, width, 31),

@@ -62,12 +62,13 @@ and a region is
 Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
 camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
 
-Calibration file (format "spherejax-calibration", version 1)
+Calibration file (format "spherejax-calibration", version 2)
 ------------------------------------------------------------
 An .npz archive (`numpy.savez`, no pickled objects) holding the arrays of a `Calibration`
-    dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B)
+    dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B),
+    wiener_offset (31,)
 and "header", a uint8 array of UTF-8 JSON:
-    {"format": "spherejax-calibration", "format_version": 1, "software_version",
+    {"format": "spherejax-calibration", "format_version": 2, "software_version",
      "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
      "saturation": number or null, "created": UTC ISO 8601,
      "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
@@ -75,9 +76,15 @@ and "header", a uint8 array of UTF-8 JSON:
 Read the header with ``bytes(numpy.load(path)["header"]).decode()``. The checksum is SHA-256 over
 the header JSON without the "checksum" field, serialised with sorted keys, separators "," and ":"
 and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
-wiener, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and the array's
-raw bytes in C order. It is computed from the parsed header, so the stored JSON's layout does not
-matter.
+wiener, wiener_offset, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
+the array's raw bytes in C order. It is computed from the parsed header, so the stored JSON's
+layout does not matter. "metadata" is free JSON from the writer (`save_calibration(...,
+metadata=)`), e.g. how the Stage II and Wiener fits were made.
+
+The reflectance estimate is affine, r = W v_tilde + r0, with W the "wiener" array and r0 the
+"wiener_offset" array. Version 1 (before the offset existed) is the same without the member
+"wiener_offset", in the header's "arrays" and in the checksum; it is still read, with r0 = 0,
+which is what it meant.
 """
 
 from __future__ import annotations
@@ -110,7 +117,7 @@ SESSION_FORMAT = "spherejax-session"
 SESSION_FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 CALIBRATION_FORMAT = "spherejax-calibration"
-CALIBRATION_FORMAT_VERSION = 1
+CALIBRATION_FORMAT_VERSION = 2
 
 ROLES = ("dark", "white", "sample", "target")
 SETS = ("training", "test")
@@ -123,7 +130,12 @@ CALIBRATION_ARRAYS = {
     "coeffs": "Stage II coefficients (B, 4) ordered c1..c4, dimensionless (Eq. 23)",
     "wiener": "Wiener matrix (31, B): Stage II response -> reflectance at 400..700 nm step 10 "
     "(Section 2, Wiener estimation)",
+    "wiener_offset": "Wiener estimator offset r0 (31,), reflectance (dimensionless) at 400..700 nm "
+    "step 10: reflectance = wiener @ v_tilde + wiener_offset, the affine form of the Wiener "
+    "estimate (Section 2, Wiener estimation; new in format version 2, 0 in version 1)",
 }
+#: The arrays of an older calibration format version, where they differ from CALIBRATION_ARRAYS.
+_OLDER_CALIBRATION_ARRAYS = {1: tuple(name for name in CALIBRATION_ARRAYS if name != "wiener_offset")}
 
 _FRAME_EXPECTED = "a single-page 16-bit TIFF of shape (H, W, C)"
 _SAFE_ID = re.compile(r"[A-Za-z0-9._-]+")
@@ -1536,15 +1548,22 @@ def write_session(
 # -------------------------------------------------------------------------------- calibration file
 
 
+def _calibration_arrays(header: Mapping) -> tuple[str, ...]:
+    """The names of the arrays a calibration file of the header's format version holds, in
+    checksum order (version 1 has no wiener_offset). Call after the version was checked."""
+    version = header.get("format_version", CALIBRATION_FORMAT_VERSION)
+    return _OLDER_CALIBRATION_ARRAYS.get(version, tuple(CALIBRATION_ARRAYS))
+
+
 def _checksum(header: Mapping, arrays: Mapping) -> str:
     """The header's checksum, sha256:<hex>, over the header without it and the arrays (numpy
     arrays or `_StoredArray`s, hashed block by block so that a calibration larger than memory
-    is never read whole).
+    is never read whole) that the header's format version holds.
 
     The exact byte sequence is in the module docstring: other software must reproduce it.
     """
     digest = hashlib.sha256(_canonical_json({k: v for k, v in header.items() if k != "checksum"}))
-    for name in CALIBRATION_ARRAYS:
+    for name in _calibration_arrays(header):
         array = arrays[name]
         digest.update(f"{name} {array.dtype.str} {json.dumps(list(array.shape))}\n".encode("ascii"))
         if isinstance(array, _StoredArray):
@@ -1578,9 +1597,10 @@ def _check_calibration_header(path, header) -> None:
     fields.timestamp("created")
     fields.mapping("metadata")
     fields.value("checksum", '"sha256:" and 64 hex digits', _is_sha256)
-    described = fields.child("arrays", f"an object describing {list(CALIBRATION_ARRAYS)}")
-    described.only(frozenset(CALIBRATION_ARRAYS))
-    for name in CALIBRATION_ARRAYS:
+    names = _calibration_arrays(header)
+    described = fields.child("arrays", f"an object describing {list(names)}")
+    described.only(frozenset(names))
+    for name in names:
         array = described.child(name, "the array's shape, dtype and description")
         array.only(frozenset({"shape", "dtype", "description"}))
         array.value("shape", "a list of integers >= 0", _is_shape)
@@ -1599,15 +1619,17 @@ def _is_shape(value) -> bool:
 def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) -> None:
     """Everything but the checksum: header fields, and arrays present and as the header says."""
     _check_calibration_header(path, header)
-    missing = [name for name in CALIBRATION_ARRAYS if name not in arrays]
+    names = _calibration_arrays(header)
+    version = header["format_version"]
+    missing = [name for name in names if name not in arrays]
     if missing:
         raise CalibrationFileError(
-            path, f"has no array {missing}", f"the arrays {list(CALIBRATION_ARRAYS)} and a header"
+            path, f"has no array {missing}", f"the arrays {list(names)} and a header (format version {version})"
         )
-    unexpected = sorted(set(arrays) - set(CALIBRATION_ARRAYS))
+    unexpected = sorted(set(arrays) - set(names))
     if unexpected:
         raise CalibrationFileError(
-            path, f"holds unexpected entries {unexpected}", f"only {list(CALIBRATION_ARRAYS)}"
+            path, f"holds unexpected entries {unexpected}", f"only {list(names)} (format version {version})"
         )
     for name, array in arrays.items():
         described = header["arrays"][name]
@@ -1627,7 +1649,7 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
             f"array 'patch' has dtype {arrays['patch'].dtype.str}: patch weights cannot be stored",
             "a boolean patch mask (|b1), e.g. weights > 0",
         )
-    for name in ("dark", "white", "coeffs", "wiener"):
+    for name in (n for n in names if n != "patch"):
         # Strings, raw bytes (|V...) or complex numbers would pass the header check but are no
         # calibration (JAX would refuse them with a TypeError that names no file).
         if arrays[name].dtype.kind not in "iuf":
@@ -1792,7 +1814,8 @@ def save_calibration(
       calibration: the `Calibration` to store, arrays bit for bit.
       instrument_id: the instrument it was built for.
       band_centres_nm: (B,) integer band centres, B = calibration.bands.
-      metadata: free JSON stored in the header (e.g. how the fit was made).
+      metadata: free JSON stored in the header's "metadata" (e.g. how the fit was made: the
+        Wiener estimator's method and cross-validated errors); read back as header["metadata"].
 
     Returns:
       The header written, checksum included.
@@ -1867,6 +1890,10 @@ class CalibrationFile:
         self, path: pathlib.Path, fd: int | None, header: dict, arrays: dict, illuminant: str | None = None
     ):
         self.path, self.header = path, header
+        if "wiener_offset" not in arrays:
+            # Format version 1 (its checksum, verified before, covers no offset): the estimate
+            # was linear, r = W v_tilde, i.e. r0 = 0.
+            arrays = {**arrays, "wiener_offset": np.zeros(N_WAVELENGTHS, np.float32)}
         self._fd, self._arrays = None, arrays  # the fd is owned once the checks below pass
         self._calibration_fields = {
             "illuminant": header["illuminant"] if illuminant is None else illuminant,
@@ -1901,9 +1928,13 @@ class CalibrationFile:
     def _crop(self, row0: int, row1: int, col0: int, col1: int) -> Calibration:
         crop = lambda name: np.ascontiguousarray(self._rows(name, row0, row1)[:, col0:col1])  # noqa: E731
         return Calibration(
-            dark=crop("dark"), white=crop("white"), patch=crop("patch"),
-            coeffs=self._value("coeffs"), wiener=self._value("wiener"), **self._calibration_fields,
+            dark=crop("dark"), white=crop("white"), patch=crop("patch"), **self._small_arrays(),
+            **self._calibration_fields,
         )
+
+    def _small_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays every part of the calibration shares: coeffs, wiener and wiener_offset."""
+        return {name: self._value(name) for name in ("coeffs", "wiener", "wiener_offset")}
 
     @property
     def patch_calibration(self) -> Calibration:
@@ -1919,7 +1950,7 @@ class CalibrationFile:
             raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
         return Calibration(
             dark=self._rows("dark", row0, row1), white=self._rows("white", row0, row1), patch=None,
-            coeffs=self._value("coeffs"), wiener=self._value("wiener"), **self._calibration_fields,
+            **self._small_arrays(), **self._calibration_fields,
         )
 
     def calibration(self) -> Calibration:

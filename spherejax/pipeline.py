@@ -7,7 +7,7 @@
                                             pixels only
       -> v_check = p v (Stage I, Eq. 16-17)
       -> v_tilde = Stage II (Eq. 23)
-      -> reflectance = W v_tilde (Wiener, 16 -> 31)
+      -> reflectance = W v_tilde + r0 (the affine Wiener estimator, 16 -> 31)
       -> Lab under the calibration's illuminant (ASTM E308 XYZ, perfect-diffuser white)
 
 Bad pixels never raise: they become NaN in every output and carry bits in `quality`. Shapes and
@@ -23,10 +23,12 @@ On CPU the per-pixel step in float32 is one fused compiled kernel (`spherejax.fu
 jax.numpy code here (`_pixel_outputs`) is its definition, runs everywhere else and gives its
 derivatives. For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so
 XYZ is computed from v_tilde directly; that equals reflectance @ weights up to rounding (tested).
+The estimator's offset r0 is folded the same way: XYZ = v_tilde (W^T weights) + r0 weights.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -62,11 +64,16 @@ class Calibration(eqx.Module):
         sum of sample signals. None for rows of a calibration (`rows`): `correct` then needs
         the whole image's p.
       coeffs: Stage II coefficients (B, 4), ordered c1..c4 (Eq. 23).
-      wiener: Wiener matrix (31, B) (`wiener.fit_wiener`).
+      wiener: Wiener matrix W (31, B) (`wiener.fit_wiener`): reflectance per unit of the Stage II
+        response.
       illuminant: "D65", "A" or "F2" for Lab.
       observer: colour-matching functions for Lab (`colorimetry.OBSERVERS`).
       saturation: raw level at or above which a pixel counts as saturated; None = the full scale
         of an integer raw dtype (65535 for uint16) and no check for float raw.
+      wiener_offset: the estimator's offset r0 (31,), reflectance (dimensionless, 400..700 nm
+        step 10): the estimate is r = W v_tilde + r0 (`wiener.fit_wiener`). Default zeros, the
+        plain linear Wiener estimate, which gives the same numbers as before the offset existed.
+        Last among the fields so that positional construction keeps its meaning.
     """
 
     dark: jax.Array = eqx.field(converter=jnp.asarray)
@@ -77,6 +84,11 @@ class Calibration(eqx.Module):
     illuminant: str = eqx.field(static=True, default="D65")
     observer: str = eqx.field(static=True, default=colorimetry.DEFAULT_OBSERVER)
     saturation: float | None = eqx.field(static=True, default=None)
+    # A factory, not an array default: dataclasses refuse unhashable defaults. float32 zeros
+    # promote nothing, so a float64 calibration without an offset still computes in float64.
+    wiener_offset: jax.Array = eqx.field(
+        converter=jnp.asarray, default_factory=lambda: np.zeros(N_WAVELENGTHS, np.float32)
+    )
 
     def __check_init__(self):
         # Unknown names raise here, at construction, rather than at the first correction.
@@ -92,6 +104,9 @@ class Calibration(eqx.Module):
         )
         _checks.require_shape(
             "wiener", self.wiener, (N_WAVELENGTHS, bands), f"31 wavelengths x the {bands} bands"
+        )
+        _checks.require_shape(
+            "wiener_offset", self.wiener_offset, (N_WAVELENGTHS,), "one reflectance offset r0 per wavelength, 400..700 nm step 10"
         )
         if self.saturation is not None and not float(self.saturation) > 0:
             raise ValueError(f"saturation: expected a level > 0 or None, got {self.saturation!r}")
@@ -119,11 +134,9 @@ class Calibration(eqx.Module):
         height = self.image_shape[0]
         if not 0 <= row0 < row1 <= height:
             raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
-        return Calibration(
-            dark=self.dark[row0:row1], white=self.white[row0:row1], patch=None,
-            coeffs=self.coeffs, wiener=self.wiener, illuminant=self.illuminant,
-            observer=self.observer, saturation=self.saturation,
-        )
+        # dataclasses.replace carries every other field (the Wiener offset included) and runs
+        # the checks again.
+        return dataclasses.replace(self, dark=self.dark[row0:row1], white=self.white[row0:row1], patch=None)
 
 
 class CorrectionResult(eqx.Module):
@@ -178,7 +191,8 @@ def delta_e_map(lab, reference):
 
 def _compute_dtype(raw, calibration: Calibration):
     return _checks.float_dtype(
-        raw, calibration.dark, calibration.white, calibration.coeffs, calibration.wiener
+        raw, calibration.dark, calibration.white, calibration.coeffs, calibration.wiener,
+        calibration.wiener_offset,
     )
 
 
@@ -282,13 +296,14 @@ def _patch_box_arguments(raw, calibration: Calibration):
 
 
 @jax.custom_jvp
-def _project_good_pixels(good, v, matrix):
-    """v @ matrix for good pixels and NaN in every output channel of the others.
+def _project_good_pixels(good, v, matrix, bias):
+    """v @ matrix + bias for good pixels and NaN in every output channel of the others.
 
     Args:
       good: (..., H, W, 1) bool.
       v: (..., H, W, B), finite everywhere (0 on bad pixels: the safe-where convention).
       matrix: (B, K).
+      bias: (K,), added to every good pixel's product (the affine estimator's offset).
 
     Returns:
       (..., H, W, K).
@@ -299,16 +314,28 @@ def _project_good_pixels(good, v, matrix):
     the Stage II step) comes out in every channel of the row, whatever the matrix holds, because
     NaN x anything is NaN (tested). The custom JVP keeps the derivative of the masked form,
     which is 0 on bad pixels; differentiating the NaN rows would give NaN x 0 = NaN.
+
+    The bias is added after the product: x + 0 == x, so a zero bias leaves the product's bits
+    as they were (only a -0 would become +0), and NaN + bias keeps bad pixels NaN. It costs one
+    more elementwise pass over the output, which XLA on CPU does not fuse into the matmul:
+    about 15 ms a megapixel on 2 cores (70 -> 85 ms). Folding the bias into the product as a
+    row of the matrix against a column of ones costs nothing, but changes the product's
+    rounding for most band counts (XLA picks another dot kernel for K + 1), so a zero offset
+    would no longer give the numbers it gave before the offset existed. The CPU kernel of
+    `spherejax.fused`, the default path in float32, starts its accumulators at the bias instead,
+    for free.
     """
-    return jnp.matmul(jnp.where(good, v, jnp.nan), matrix, precision=_HIGHEST)
+    return jnp.matmul(jnp.where(good, v, jnp.nan), matrix, precision=_HIGHEST) + bias
 
 
 @_project_good_pixels.defjvp
 def _project_good_pixels_jvp(primals, tangents):
-    good, v, matrix = primals
-    _, v_dot, matrix_dot = tangents
-    out = _project_good_pixels(good, v, matrix)
-    out_dot = jnp.matmul(v_dot, matrix, precision=_HIGHEST) + jnp.matmul(v, matrix_dot, precision=_HIGHEST)
+    good, v, matrix, bias = primals
+    _, v_dot, matrix_dot, bias_dot = tangents
+    out = _project_good_pixels(good, v, matrix, bias)
+    out_dot = (
+        jnp.matmul(v_dot, matrix, precision=_HIGHEST) + jnp.matmul(v, matrix_dot, precision=_HIGHEST) + bias_dot
+    )
     return out, jnp.where(good, out_dot, 0.0)
 
 
@@ -325,11 +352,15 @@ def _quality(raw, raw_f, dark, white, p, saturation):
     )
 
 
-def _pixel_outputs(raw, dark, white, p, coeffs, wiener, weights, *, saturation, intermediates=False):
+def _pixel_outputs(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, *, saturation, intermediates=False):
     """The per-pixel path in jax.numpy: the definition the fused CPU kernel is tested against.
 
-    Args: raw (..., H, W, B); dark, white (H, W, B); p (..., B); coeffs (B, 4); wiener (31, B);
-    weights (31, 3) tristimulus weights; all but raw in the compute dtype.
+    Args: raw (..., H, W, B); dark, white (H, W, B); p (..., B); coeffs (B, 4); wiener W (31, B);
+    wiener_offset r0 (31,); weights (31, 3) tristimulus weights; all but raw in the compute dtype.
+
+    reflectance = v_tilde W^T + r0 and XYZ = v_tilde (W^T weights) + r0 weights, the latter
+    being reflectance @ weights (ASTM E308) regrouped so that the 31-channel cube is not read
+    back; both on good pixels only.
 
     Returns (reflectance, lab, quality), then v, v_stage1 and v_stage2 if `intermediates`.
     """
@@ -348,8 +379,11 @@ def _pixel_outputs(raw, dark, white, p, coeffs, wiener, weights, *, saturation, 
     # Lab from v_tilde through the folded (B, 3) matrix W^T @ weights: XYZ never goes through the
     # 31-channel cube. (One (B, 34) matmul sliced into the two outputs measured twice as slow:
     # the slices are copies.)
-    reflectance = _project_good_pixels(good, v_stage2_safe, wiener.T)
-    xyz = _project_good_pixels(good, v_stage2_safe, jnp.matmul(wiener.T, weights, precision=_HIGHEST))
+    reflectance = _project_good_pixels(good, v_stage2_safe, wiener.T, wiener_offset)
+    xyz = _project_good_pixels(
+        good, v_stage2_safe, jnp.matmul(wiener.T, weights, precision=_HIGHEST),
+        jnp.matmul(wiener_offset, weights, precision=_HIGHEST),
+    )
     lab = xyz_to_lab(xyz, jnp.sum(weights, axis=0))
     if not intermediates:
         return reflectance, lab, quality
@@ -373,7 +407,8 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
     weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
     arrays = (
         raw, calibration.dark.astype(dtype), calibration.white.astype(dtype), p.astype(dtype),
-        calibration.coeffs.astype(dtype), calibration.wiener.astype(dtype), jnp.asarray(weights, dtype),
+        calibration.coeffs.astype(dtype), calibration.wiener.astype(dtype),
+        calibration.wiener_offset.astype(dtype), jnp.asarray(weights, dtype),
     )
     plain = functools.partial(
         _pixel_outputs, saturation=_saturation_level(raw, calibration), intermediates=intermediates

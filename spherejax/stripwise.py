@@ -15,6 +15,7 @@ calibration's patch mask (H x W bytes) and what the process holds anyway.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 
 import numpy as np
@@ -69,10 +70,10 @@ def _rows_of(calibration: io.CalibrationFile, row0: int, row1: int, height: int)
     rows = calibration.rows(row0, row1)
     if row1 - row0 == height:
         return rows
-    return Calibration(
-        dark=_padded(np.asarray(rows.dark), height), white=_padded(np.asarray(rows.white), height),
-        patch=None, coeffs=rows.coeffs, wiener=rows.wiener, illuminant=rows.illuminant,
-        observer=rows.observer, saturation=rows.saturation,
+    # replace, not a new Calibration: every other field (coeffs, the Wiener matrix and offset,
+    # illuminant, ...) carries over, including any a later version adds.
+    return dataclasses.replace(
+        rows, dark=_padded(np.asarray(rows.dark), height), white=_padded(np.asarray(rows.white), height)
     )
 
 

@@ -6,16 +6,20 @@ user cares about is colour. This study starts from that closed form and minimise
 optimistix's BFGS and gradients through the whole path (Stage II -> Wiener -> XYZ -> CIELAB ->
 CIEDE2000), the same criterion in colour:
 
-    E(c) = mean over training samples (i, j) of ΔE00( Lab(W s(v_ij, p_ij; c)), Lab(W p_i,jref v_i,jref) )
+    E(c) = mean over training samples (i, j) of ΔE00( Lab(W s(v_ij, p_ij; c) + r0), Lab(W p_i,jref v_i,jref + r0) )
 
-with s the Stage II polynomial (Eq. 23), W the Wiener matrix and Lab under the calibration's
-illuminant. Anchoring every patch to its Stage I colour on the reference background is what
+with s the Stage II polynomial (Eq. 23), W the Wiener matrix and r0 its offset (the affine
+estimator r = W v + r0) and Lab under the calibration's illuminant. Anchoring every patch to its Stage I colour on the reference background is what
 keeps the problem well posed: plain pairwise inconsistency across backgrounds is minimised by
 the degenerate c1 = c2 = c3 = 0 (every patch the same colour everywhere).
 
-With `fit_wiener=True` the Wiener matrix is optimised too; since the anchor then moves with W,
-the objective adds the mean ΔE00 of the target chart against the targets' known reflectances,
-which keeps W a reflectance estimator.
+With `fit_wiener=True` the Wiener estimator is optimised too, its matrix W and its offset r0
+together: they are one affine estimator, fitted together in closed form, and holding r0 at the
+closed form's value while W moves would tie W to an intercept fitted for another W. Since the
+anchor then moves with the estimator, the objective adds the mean ΔE00 of the target chart
+against the targets' known reflectances, which keeps (W, r0) a reflectance estimator (and pins
+r0, which the consistency term alone cannot see: a common offset shifts a patch's colour on
+every background alike). Without `fit_wiener` both stay as the calibration has them.
 
 The result is validated on the held-out test captures (patches and backgrounds that the study
 never saw) with `spherejax.evaluate`, in the format of the paper's Table 6.
@@ -43,7 +47,7 @@ _HIGHEST = jax.lax.Precision.HIGHEST
 class StudyResult:
     """The studied calibration and how the optimisation went.
 
-    calibration: the closed-form calibration with Stage II (and W, if studied) replaced.
+    calibration: the closed-form calibration with Stage II (and W and r0, if studied) replaced.
     objective_start, objective_end: E(c) (mean ΔE00 to the reference colours) on the training
       samples before and after; steps: BFGS iterations; converged: optimistix's verdict.
     reference: the reference background.
@@ -58,8 +62,9 @@ class StudyResult:
     fit_wiener: bool
 
 
-def _lab_of_responses(responses, W, illuminant):
-    return reflectance_to_lab(jnp.matmul(responses, W.T, precision=_HIGHEST), illuminant)
+def _lab_of_responses(responses, W, r0, illuminant):
+    """Lab of the affine Wiener estimate r = W v + r0 of responses (n, B); W (31, B), r0 (31,)."""
+    return reflectance_to_lab(jnp.matmul(responses, W.T, precision=_HIGHEST) + r0, illuminant)
 
 
 def _training_arrays(measurements: list[RegionMeasurement], reference: str):
@@ -80,6 +85,7 @@ class _Problem(eqx.Module):
     target_p: jax.Array
     target_lab: jax.Array
     fixed_W: jax.Array
+    fixed_offset: jax.Array
     response_scale: jax.Array
     response_weight: float
     illuminant: str = eqx.field(static=True)
@@ -89,16 +95,17 @@ class _Problem(eqx.Module):
 def _objective(params, problem: _Problem):
     coeffs = params["coeffs"]
     W = params["wiener"] if problem.fit_wiener else problem.fixed_W
+    r0 = params["wiener_offset"] if problem.fit_wiener else problem.fixed_offset
     responses = stage2_unchecked(problem.v, problem.p, coeffs)
-    lab = _lab_of_responses(responses, W, problem.illuminant)
-    lab_anchor = _lab_of_responses(problem.anchor, W, problem.illuminant)
+    lab = _lab_of_responses(responses, W, r0, problem.illuminant)
+    lab_anchor = _lab_of_responses(problem.anchor, W, r0, problem.illuminant)
     inconsistency = jnp.mean(delta_e_2000(lab, lab_anchor))
     # Eq. 21 in units of the closed form's residual: pins the band combinations that ΔE00 of
     # grey training patches cannot see.
     inconsistency = inconsistency + problem.response_weight * jnp.mean(((responses - problem.anchor) / problem.response_scale) ** 2)
     if not problem.fit_wiener:
         return inconsistency
-    target_lab = _lab_of_responses(stage2_unchecked(problem.target_v, problem.target_p, coeffs), W, problem.illuminant)
+    target_lab = _lab_of_responses(stage2_unchecked(problem.target_v, problem.target_p, coeffs), W, r0, problem.illuminant)
     return inconsistency + jnp.mean(delta_e_2000(target_lab, problem.target_lab))
 
 
@@ -110,7 +117,7 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
     Args:
       session: a `spherejax.io.Session` with training (and, for fit_wiener, target) captures.
       calibration: the starting point, normally `calibrate_session`'s closed form.
-      fit_wiener: also optimise the Wiener matrix (see the module docstring).
+      fit_wiener: also optimise the Wiener estimator, matrix and offset (see the module docstring).
       response_weight: weight of Eq. 21's response residual, in units of the closed form's rms
         residual per band, added to the ΔE00 objective. 0 is the pure colour objective; it
         over-fits the grey training patches (on the demo session its held-out accuracy against
@@ -142,13 +149,16 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
     closed_form_residual = np.asarray(stage2_unchecked(v, p, np.asarray(calibration.coeffs, np.float64))) - anchor
     response_scale = np.sqrt(np.mean(closed_form_residual**2, axis=0)) + 1e-6
     problem = _Problem(
-        *(jnp.asarray(x, dtype) for x in (v, p, anchor, target_v, target_p, target_lab, calibration.wiener, response_scale)),
+        *(jnp.asarray(x, dtype) for x in (
+            v, p, anchor, target_v, target_p, target_lab, calibration.wiener, calibration.wiener_offset, response_scale,
+        )),
         response_weight=float(response_weight),
         illuminant=calibration.illuminant, fit_wiener=fit_wiener,
     )
     start = {"coeffs": jnp.asarray(calibration.coeffs, dtype)}
     if fit_wiener:
         start["wiener"] = jnp.asarray(calibration.wiener, dtype)
+        start["wiener_offset"] = jnp.asarray(calibration.wiener_offset, dtype)
     objective = eqx.filter_jit(_objective)
     tolerance = 1e-9 if dtype == np.float64 else 1e-6
     solution = optx.minimise(
@@ -156,11 +166,9 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
         max_steps=max_steps, throw=False,
     )
     params = solution.value
-    studied = dataclasses.replace(
-        calibration,
-        coeffs=np.asarray(params["coeffs"], np.float32),
-        wiener=np.asarray(params["wiener"] if fit_wiener else calibration.wiener, np.float32),
-    )
+    estimator = {"wiener": np.asarray(params["wiener"], np.float32),
+                 "wiener_offset": np.asarray(params["wiener_offset"], np.float32)} if fit_wiener else {}
+    studied = dataclasses.replace(calibration, coeffs=np.asarray(params["coeffs"], np.float32), **estimator)
     return StudyResult(
         calibration=studied,
         objective_start=float(objective(start, problem)),

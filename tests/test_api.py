@@ -62,6 +62,8 @@ def test_options_after_arrays_are_keyword_only_or_design_named(name):
         # Non-DESIGN functions: their positional parameters are arrays or the same illuminant.
         "illuminant", "responses", "reflectances", "noise_variances", "noise_variance",
         "sensitivity", "lab", "reference", "bands", "dtype", "reflectance", "present",
+        # wiener_from_system's arrays of the system and the reflectance statistics (E6-E7).
+        "offset", "reflectance_mean", "reflectance_covariance",
     }
     for parameter in signature.parameters.values():
         if parameter.kind is parameter.POSITIONAL_OR_KEYWORD:

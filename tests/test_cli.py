@@ -63,6 +63,54 @@ class TestCommands:
         report = header["metadata"]["calibration_report"]
         assert report["stage2_loss"] == "huber" and set(report["stage2_status"]) == {"converged"}
 
+    def test_calibrate_reports_the_reflectance_estimator(self, workspace, tmp_path, capsys):
+        """Per method tried: the cross-validated spectral rms and mean ΔE00 (D65), on stdout and
+        in the file's report; the chosen estimator's offset is in the calibration."""
+        status, stdout, _ = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "c.npz")], capsys)
+        assert status == 0
+        calibration, header = io.load_calibration(tmp_path / "c.npz")
+        report = header["metadata"]["calibration_report"]
+        tried = report["wiener_cross_validation"]
+        assert {entry["method"] for entry in tried} == {"training", "model"}
+        assert tried[0]["method"] == report["wiener_method"]
+        assert tried[0]["spectral_rms"] <= tried[1]["spectral_rms"]
+        assert "k-means" in tried[0]["folds"]
+        lines = stdout.splitlines()
+        assert lines[0].startswith(f"reflectance estimator: {report['wiener_method']} (cross-validated on 16 targets")
+        for entry in tried:
+            row = next(line for line in lines if line[2:].startswith(entry["method"]))
+            assert f"{entry['spectral_rms']:.5f}" in row and f"{entry['delta_e_d65']:.3f}" in row
+        assert np.any(np.asarray(calibration.wiener_offset) != 0)
+
+    def test_calibrate_with_one_wiener_method(self, workspace, tmp_path, capsys):
+        status, _, _ = run(["-q", "calibrate", str(workspace / "session"), "-o", str(tmp_path / "t.npz"),
+                            "--wiener-method", "training"], capsys)
+        assert status == 0
+        _, header = io.load_calibration(tmp_path / "t.npz")
+        report = header["metadata"]["calibration_report"]
+        assert report["wiener_method"] == "training" and len(report["wiener_cross_validation"]) == 1
+
+    def test_calibrate_holds_out_named_groups_of_targets(self, workspace, tmp_path, capsys):
+        """Two target charts named by a metadata field: each is held out in turn."""
+        session = tmp_path / "session"
+        shutil.copytree(workspace / "session", session)
+
+        def split_chart(manifest):
+            chart = next(f for f in manifest["frames"] if f["role"] == "target")
+            second = json.loads(json.dumps(chart))
+            half = len(chart["regions"]) // 2
+            chart["regions"], second["regions"] = chart["regions"][:half], chart["regions"][half:]
+            chart["metadata"] = {**chart.get("metadata", {}), "chart": "A"}
+            second["id"], second["metadata"] = "targets-b", {**second.get("metadata", {}), "chart": "B"}
+            manifest["frames"].append(second)
+
+        edit_manifest(session, split_chart)
+        status, stdout, _ = run(["calibrate", str(session), "-o", str(tmp_path / "g.npz"), "--wiener-groups", "chart"], capsys)
+        assert status == 0
+        _, header = io.load_calibration(tmp_path / "g.npz")
+        assert header["metadata"]["calibration_report"]["wiener_cross_validation"][0]["folds"] == "leave one group out (2 groups)"
+        assert "leave one group out (2 groups)" in stdout
+
     def test_cli_losses_are_the_library_losses(self):
         from spherejax.polynomial import LOSSES
 
@@ -153,6 +201,18 @@ class TestBadSessions:
     def test_manifest_lacks_a_field(self, broken, tmp_path, capsys, field):
         edit_manifest(broken, lambda m: m.pop(field))
         self.refuse(broken, capsys, tmp_path, "manifest.json", field)
+
+    def test_wiener_groups_field_missing(self, broken, tmp_path, capsys):
+        before = snapshot(tmp_path)
+        status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.npz"), "--wiener-groups", "chart"], capsys)
+        assert_refused(status, err, "manifest.json", "'targets'", "'chart'")
+        assert snapshot(tmp_path) == before
+
+    def test_wiener_groups_of_one_group(self, broken, tmp_path, capsys):
+        before = snapshot(tmp_path)
+        status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.npz"), "--wiener-groups", "id"], capsys)
+        assert_refused(status, err, "manifest.json", "every target is in group 'targets'", "at least 2 groups")
+        assert snapshot(tmp_path) == before
 
     def test_frame_missing(self, broken, tmp_path, capsys):
         (broken / "frames" / "train-bg01-g0.tif").unlink()

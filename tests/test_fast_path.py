@@ -23,23 +23,29 @@ from spherejax.flatfield import white_signal_usable
 HIGHEST = jax.lax.Precision.HIGHEST
 
 
-def plain_projection(good, v, matrix):
-    return jnp.where(good, jnp.matmul(v, matrix, precision=HIGHEST), jnp.nan)
+def plain_projection(good, v, matrix, bias):
+    return jnp.where(good, jnp.matmul(v, matrix, precision=HIGHEST) + bias, jnp.nan)
 
 
 class TestProjectGoodPixels:
+    @pytest.mark.parametrize("bias_kind", ["zeros", "random"])
     @pytest.mark.parametrize("matrix_kind", ["random", "zeros"])
-    def test_equals_the_masked_product(self, dtype, matrix_kind):
+    def test_equals_the_masked_product(self, dtype, matrix_kind, bias_kind):
         rng = np.random.default_rng(0)
         v = jnp.asarray(rng.uniform(0, 1, (7, 9, 16)), dtype)
         good = jnp.asarray(rng.random((7, 9, 1)) > 0.3)
         v = jnp.where(good, v, 0.0)  # the safe-where convention of the caller
         matrix = jnp.asarray(rng.normal(size=(16, 31)) if matrix_kind == "random" else np.zeros((16, 31)), dtype)
-        fast = np.asarray(pipeline._project_good_pixels(good, v, matrix))
-        plain = np.asarray(plain_projection(good, v, matrix))
+        bias = jnp.asarray(rng.normal(size=31) if bias_kind == "random" else np.zeros(31), dtype)
+        fast = np.asarray(pipeline._project_good_pixels(good, v, matrix, bias))
+        plain = np.asarray(plain_projection(good, v, matrix, bias))
         assert np.isnan(fast[~np.asarray(good)[..., 0]]).all()  # NaN in every channel, even x 0
         np.testing.assert_array_equal(np.isnan(fast), np.isnan(plain))
         np.testing.assert_allclose(fast, plain, rtol=1e-6 if dtype == np.float32 else 1e-13)
+        if bias_kind == "zeros":
+            # A zero offset leaves the product's bits as they were before the offset existed.
+            unbiased = np.asarray(jnp.matmul(jnp.where(good, v, jnp.nan), matrix, precision=HIGHEST))
+            np.testing.assert_array_equal(fast, unbiased)
 
     def test_gradients_equal_the_masked_product(self):
         rng = np.random.default_rng(1)
@@ -47,14 +53,15 @@ class TestProjectGoodPixels:
         good = jnp.asarray(rng.random((40, 1)) > 0.25)
         v = jnp.where(good, v, 0.0)
         matrix = jnp.asarray(rng.normal(size=(16, 3)))
+        bias = jnp.asarray(rng.normal(size=3))
         weights = jnp.asarray(rng.normal(size=(40, 3)))
 
-        def loss(projection, v, matrix):
-            out = projection(good, v, matrix)
+        def loss(projection, v, matrix, bias):
+            out = projection(good, v, matrix, bias)
             return jnp.sum(jnp.where(good, out, 0.0) * weights)
 
-        fast = jax.grad(lambda v, m: loss(pipeline._project_good_pixels, v, m), argnums=(0, 1))(v, matrix)
-        plain = jax.grad(lambda v, m: loss(plain_projection, v, m), argnums=(0, 1))(v, matrix)
+        fast = jax.grad(lambda *a: loss(pipeline._project_good_pixels, *a), argnums=(0, 1, 2))(v, matrix, bias)
+        plain = jax.grad(lambda *a: loss(plain_projection, *a), argnums=(0, 1, 2))(v, matrix, bias)
         for f, p in zip(fast, plain):
             assert np.isfinite(np.asarray(f)).all()
             np.testing.assert_allclose(np.asarray(f), np.asarray(p), rtol=1e-12, atol=1e-15)
@@ -112,12 +119,13 @@ def plain_correct(raw, calibration, p):
     good = (quality == 0)[..., None]
     v = sj.flat_field(raw_f, dark, white)
     v_tilde = sj.stage2(v, p, calibration.coeffs)
-    reflectance = jnp.where(good, sj.wiener(v_tilde, calibration.wiener), jnp.nan)
+    reflectance = jnp.where(good, sj.wiener(v_tilde, calibration.wiener) + calibration.wiener_offset, jnp.nan)
     lab = jnp.where(good, sj.reflectance_to_lab(jnp.where(good, reflectance, 0.0), calibration.illuminant), jnp.nan)
     return reflectance, lab, quality
 
 
-def test_correct_equals_the_plain_path_with_bad_pixels():
+@pytest.mark.parametrize("with_offset", [False, True])
+def test_correct_equals_the_plain_path_with_bad_pixels(with_offset):
     rng = np.random.default_rng(3)
     H, W, B = 24, 30, 16
     dark = rng.uniform(95, 105, (H, W, B))
@@ -134,6 +142,7 @@ def test_correct_equals_the_plain_path_with_bad_pixels():
     calibration = sj.Calibration(
         dark=dark, white=white, patch=patch, coeffs=np.asarray(sj.identity_coeffs(B, np.float64)),
         wiener=rng.normal(0, 0.3, (31, B)), illuminant="D65", saturation=16383.0,
+        wiener_offset=rng.uniform(-0.05, 0.05, 31) if with_offset else np.zeros(31),
     )
     result = sj.correct(raw, calibration)
     reflectance, lab, quality = plain_correct(raw, calibration, result.p)

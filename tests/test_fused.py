@@ -3,7 +3,7 @@
 The jax.numpy path (`SPHEREJAX_FUSED=0`) is the definition; every branch of the kernel is
 compared with it: the AVX-512 16-band code and the generic loop (other band counts), uint16 and
 float32 raw, every quality bit, batches of images, several thread-pool chunks, strips, gradients
-and vmap. Values agree to float32 rounding, quality masks and NaN positions exactly.
+and vmap, each with a zero and a non-zero Wiener offset r0 (the kernel's bias). Values agree to float32 rounding, quality masks and NaN positions exactly.
 """
 
 from __future__ import annotations
@@ -24,8 +24,9 @@ from spherejax.polynomial import PAPER_TABLE_2
 SATURATION = 16383.0
 
 
-def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, saturation=SATURATION):
-    """A calibration and raw frames with every kind of bad pixel, for `bands` bands."""
+def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, saturation=SATURATION, offset=False):
+    """A calibration and raw frames with every kind of bad pixel, for `bands` bands; with
+    `offset`, a non-zero Wiener offset r0 of both signs (else r0 = 0)."""
     rng = np.random.default_rng(seed)
     dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
     white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
@@ -49,8 +50,10 @@ def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, s
     patch[height // 2 - 4:height // 2 + 4, width // 2 - 5:width // 2 + 5] = True
     coeffs = np.asarray(PAPER_TABLE_2[np.arange(bands) % 16], np.float32)
     wiener = (np.abs(rng.normal(0.0, 1.0, (31, bands))) / bands).astype(np.float32)
+    wiener_offset = (rng.uniform(-0.05, 0.05, 31) if offset else np.zeros(31)).astype(np.float32)
     calibration = sj.Calibration(
-        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=saturation
+        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=saturation,
+        wiener_offset=wiener_offset,
     )
     return raw, calibration
 
@@ -95,13 +98,14 @@ pytestmark_kernel = pytest.mark.skipif(not fused.built(), reason="the fused kern
 
 
 @pytestmark_kernel
+@pytest.mark.parametrize("offset", [False, True], ids=["r0=0", "r0"])
 @pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
 @pytest.mark.parametrize("bands", [16, 7, 33])
 @pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
-def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype, kernel_mode):
+def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype, kernel_mode, offset):
     """16 bands take the AVX-512 code (on CPUs that have it, unless portable), others the
     portable loop; 96 x 100 pixels are two thread-pool chunks and a part block."""
-    raw, calibration = make_case(96, 100, bands, raw_dtype=raw_dtype)
+    raw, calibration = make_case(96, 100, bands, raw_dtype=raw_dtype, offset=offset)
     monkeypatch.setenv(fused.SWITCH, kernel_mode)
     kernel, plain = correct_both(monkeypatch, raw, calibration)
     assert "spherejax_fused_correct" in lowered_text(jnp.asarray(raw), calibration)
@@ -116,10 +120,11 @@ def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype, kernel_mode
 
 
 @pytestmark_kernel
-def test_kernel_is_as_accurate_as_the_plain_path_against_float64(monkeypatch):
+@pytest.mark.parametrize("offset", [False, True], ids=["r0=0", "r0"])
+def test_kernel_is_as_accurate_as_the_plain_path_against_float64(monkeypatch, offset):
     """Both float32 paths against the float64 path (the float64 calibration never takes the
     kernel): the kernel's error is no worse than the plain path's, up to rounding."""
-    raw, calibration = make_case(40, 50, 16)
+    raw, calibration = make_case(40, 50, 16, offset=offset)
     calibration64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), calibration)
     kernel, plain = correct_both(monkeypatch, raw, calibration)
     exact = sj.correct(raw, calibration64)
@@ -133,18 +138,22 @@ def test_kernel_is_as_accurate_as_the_plain_path_against_float64(monkeypatch):
 
 
 @pytestmark_kernel
-def test_kernel_batches_of_images_with_their_own_ratio(monkeypatch):
-    raw, calibration = make_case(32, 36, 16, images=(2, 3))
+@pytest.mark.parametrize("offset", [False, True], ids=["r0=0", "r0"])
+@pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
+@pytest.mark.parametrize("bands", [16, 7])
+def test_kernel_batches_of_images_with_their_own_ratio(monkeypatch, bands, kernel_mode, offset):
+    raw, calibration = make_case(32, 36, bands, images=(2, 3), offset=offset)
+    monkeypatch.setenv(fused.SWITCH, kernel_mode)
     kernel, plain = correct_both(monkeypatch, raw, calibration)
     assert kernel.reflectance.shape == (2, 3, 32, 36, 31)
-    assert kernel.p.shape == (2, 3, 16)
+    assert kernel.p.shape == (2, 3, bands)
     assert_same_result(kernel, plain)
 
 
 @pytestmark_kernel
 @pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
 def test_kernel_unusable_patch_flags_the_whole_image(monkeypatch, raw_dtype):
-    raw, calibration = make_case(32, 48, 16, raw_dtype=raw_dtype)
+    raw, calibration = make_case(32, 48, 16, raw_dtype=raw_dtype, offset=True)  # NaN despite r0
     p = np.asarray(patch_ratio(raw, calibration)).copy()
     p[4] = np.nan
     kernel, plain = correct_both(monkeypatch, raw, calibration, p=p)
@@ -169,9 +178,13 @@ def test_kernel_without_a_saturation_level(monkeypatch, raw_dtype):
 
 
 @pytestmark_kernel
-def test_kernel_strips_equal_the_whole_image_bit_for_bit():
+@pytest.mark.parametrize("offset", [False, True], ids=["r0=0", "r0"])
+@pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
+@pytest.mark.parametrize("bands", [16, 7])
+def test_kernel_strips_equal_the_whole_image_bit_for_bit(monkeypatch, bands, kernel_mode, offset):
     """Each pixel goes through the same code wherever it lies in a block or a chunk."""
-    raw, calibration = make_case(97, 101, 16)
+    raw, calibration = make_case(97, 101, bands, offset=offset)
+    monkeypatch.setenv(fused.SWITCH, kernel_mode)
     whole = sj.correct(raw, calibration)
     p = patch_ratio(raw, calibration)
     for row0, row1 in ((0, 1), (1, 40), (40, 97), (13, 14)):
@@ -184,35 +197,41 @@ def test_kernel_strips_equal_the_whole_image_bit_for_bit():
 
 @pytestmark_kernel
 def test_kernel_gradients_are_the_plain_paths(monkeypatch):
-    """The kernel's outputs carry the JVP of the jax.numpy path (fused.correct_pixels)."""
-    raw, calibration = make_case(24, 24, 16)
+    """The kernel's outputs carry the JVP of the jax.numpy path (fused.correct_pixels), with
+    respect to the Wiener offset too."""
+    raw, calibration = make_case(24, 24, 16, offset=True)
 
-    def loss(coeffs, wiener):
+    def loss(coeffs, wiener, wiener_offset):
         cal = sj.Calibration(
             dark=calibration.dark, white=calibration.white, patch=calibration.patch, coeffs=coeffs,
-            wiener=wiener, saturation=SATURATION,
+            wiener=wiener, saturation=SATURATION, wiener_offset=wiener_offset,
         )
         result = sj.correct(raw, cal)
-        return jnp.nansum(result.lab[..., 0]) + jnp.nansum(result.reflectance)
+        return jnp.nansum(result.lab[..., 0]) + jnp.nansum(result.lab[..., 2]) + jnp.nansum(result.reflectance)
 
-    grad = jax.grad(loss, argnums=(0, 1))
-    with_kernel = grad(calibration.coeffs, calibration.wiener)
+    grad = jax.grad(loss, argnums=(0, 1, 2))
+    arguments = (calibration.coeffs, calibration.wiener, calibration.wiener_offset)
+    with_kernel = grad(*arguments)
+    assert "spherejax_fused_correct" in lowered_text(jnp.asarray(raw), calibration)
     monkeypatch.setenv(fused.SWITCH, "0")
-    without = grad(calibration.coeffs, calibration.wiener)
+    without = grad(*arguments)
     for got, want in zip(with_kernel, without):
         assert np.isfinite(np.asarray(got)).all()
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-3)
+    # d(sum of reflectance)/d r0_k is the number of good pixels; Lab adds its own share.
+    assert np.abs(np.asarray(with_kernel[2])).min() > 0
 
 
 @pytestmark_kernel
 def test_kernel_under_vmap_over_calibrations(monkeypatch):
-    raw, calibration = make_case(24, 28, 16)
+    raw, calibration = make_case(24, 28, 16, offset=True)
     scales = jnp.asarray([0.5, 1.0, 2.0], jnp.float32)
 
     def lab_for(scale):
         cal = sj.Calibration(
             dark=calibration.dark, white=calibration.white, patch=calibration.patch,
             coeffs=calibration.coeffs, wiener=calibration.wiener * scale, saturation=SATURATION,
+            wiener_offset=calibration.wiener_offset * scale,
         )
         return sj.correct(raw, cal).lab
 

@@ -7,6 +7,7 @@ names, the problem (`match=`), and that nothing new or partial is left on disk.
 import contextlib
 import copy
 import datetime
+import hashlib
 import json
 import pathlib
 import re
@@ -148,6 +149,7 @@ def make_calibration(rng, dtype=np.float32, saturation=16383, illuminant="A"):
         wiener=rng.normal(size=(31, B)).astype(dtype),
         illuminant=illuminant,
         saturation=saturation,
+        wiener_offset=rng.normal(scale=0.05, size=31).astype(dtype),
     )
 
 
@@ -750,14 +752,14 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
 
     loaded, header = io.load_calibration(path, band_centres_nm=BANDS)
     assert header == written
-    for name in ("dark", "white", "patch", "coeffs", "wiener"):
+    for name in ("dark", "white", "patch", "coeffs", "wiener", "wiener_offset"):
         original, out = np.asarray(getattr(calibration, name)), np.asarray(getattr(loaded, name))
         assert out.dtype == original.dtype and out.shape == original.shape
         assert out.tobytes() == original.tobytes(), name  # bit for bit
     assert loaded.illuminant == "A" and loaded.observer == calibration.observer
     assert loaded.saturation == saturation and type(loaded.saturation) is type(saturation)
 
-    assert header["format"] == "spherejax-calibration" and header["format_version"] == 1
+    assert header["format"] == "spherejax-calibration" and header["format_version"] == 2
     assert header["software_version"] == sj.__version__
     assert header["instrument_id"] == "sim-sphere-1" and header["band_centres_nm"] == BANDS
     assert (header["illuminant"], header["saturation"]) == ("A", saturation)
@@ -768,12 +770,15 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert header["arrays"]["dark"]["shape"] == [H, W, B]
     assert header["arrays"]["patch"]["dtype"] == "|b1"
     assert header["arrays"]["coeffs"]["dtype"] == np.dtype(dtype).str
+    assert header["arrays"]["wiener_offset"]["shape"] == [31]
+    assert header["arrays"]["wiener_offset"]["dtype"] == np.dtype(dtype).str
+    assert "r0" in header["arrays"]["wiener_offset"]["description"]
     for name, entry in header["arrays"].items():
         assert re.search(r"Eq\.|Section", entry["description"]), name
 
     # Self-describing without spherejax: numpy alone reads the header and the arrays.
     entries = npz_entries(path)
-    assert sorted(entries) == ["coeffs", "dark", "header", "patch", "white", "wiener"]
+    assert sorted(entries) == ["coeffs", "dark", "header", "patch", "white", "wiener", "wiener_offset"]
     assert header_of(entries) == header
 
 
@@ -901,7 +906,7 @@ def test_load_calibration_tampered_header(calibration_path):
         io.load_calibration(calibration_path)
 
 
-@pytest.mark.parametrize("missing", ["wiener", "patch"])
+@pytest.mark.parametrize("missing", ["wiener", "patch", "wiener_offset"])
 def test_load_calibration_missing_array(calibration_path, missing):
     entries = npz_entries(calibration_path)
     del entries[missing]
@@ -955,9 +960,113 @@ def test_load_calibration_newer_version(calibration_path):
     rewrite_npz(calibration_path, entries, header)
     match = (
         "is spherejax-calibration format version 3, newer than spherejax 0.1.0 reads "
-        r"\(expected format version 1 or older; upgrade spherejax"
+        r"\(expected format version 2 or older; upgrade spherejax"
     )
     with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+def version_1_checksum(header: dict, entries: dict) -> str:
+    """The checksum of a format version 1 file, as the version 1 writer computed it (io module
+    docstring): SHA-256 of the canonical header JSON without the checksum, then, for dark,
+    white, patch, coeffs and wiener (no wiener_offset in version 1), the line
+    "<name> <dtype.str> <shape>\\n" and the array's bytes. Written out here, not taken from io,
+    so that a change of io's checksum for old files shows."""
+    digest = hashlib.sha256(json.dumps(
+        {k: v for k, v in header.items() if k != "checksum"},
+        sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False,
+    ).encode("utf-8"))
+    for name in ("dark", "white", "patch", "coeffs", "wiener"):
+        array = entries[name]
+        digest.update(f"{name} {array.dtype.str} {json.dumps(list(array.shape))}\n".encode("ascii"))
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return "sha256:" + digest.hexdigest()
+
+
+def write_version_1(path, calibration: sj.Calibration) -> dict:
+    """`calibration` written as the format version 1 writer did: the five arrays without
+    wiener_offset, format_version 1, its checksum. Returns the header."""
+    header = io.save_calibration(path, calibration, instrument_id="sim-sphere-1", band_centres_nm=BANDS)
+    entries = npz_entries(path)
+    del entries["wiener_offset"]
+    header = {k: v for k, v in header.items() if k != "checksum"}
+    header["format_version"] = 1
+    header["arrays"] = {k: v for k, v in header["arrays"].items() if k != "wiener_offset"}
+    header["checksum"] = version_1_checksum(header, entries)
+    rewrite_npz(path, entries, header)
+    return header
+
+
+def test_calibration_of_format_version_1_opens_with_a_zero_offset(tmp_path, rng, monkeypatch):
+    calibration = make_calibration(rng)
+    assert np.abs(np.asarray(calibration.wiener_offset)).max() > 0
+    path = tmp_path / "old.npz"
+    written = write_version_1(path, calibration)
+    assert sorted(npz_entries(path)) == ["coeffs", "dark", "header", "patch", "white", "wiener"]
+    loaded, header = io.load_calibration(path, band_centres_nm=BANDS)
+    assert header == written and header["format_version"] == 1
+    offset = np.asarray(loaded.wiener_offset)
+    assert offset.shape == (31,) and not offset.any()
+    for name in ("dark", "white", "patch", "coeffs", "wiener"):
+        assert np.asarray(getattr(loaded, name)).tobytes() == np.asarray(getattr(calibration, name)).tobytes()
+    # Read by rows (a large file) and cropped to the patch: the same zero offset.
+    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)
+    with io.open_calibration(path) as opened:
+        for part in (opened.rows(2, 7), opened.patch_calibration, opened.calibration()):
+            assert part.wiener_offset.shape == (31,) and not np.asarray(part.wiener_offset).any()
+
+
+def test_calibration_offset_survives_rows_and_crops(calibration_path, monkeypatch):
+    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)
+    loaded, _ = io.load_calibration(calibration_path)
+    assert np.abs(np.asarray(loaded.wiener_offset)).max() > 0
+    with io.open_calibration(calibration_path) as opened:
+        for part in (opened.rows(2, 7), opened.patch_calibration):
+            assert np.asarray(part.wiener_offset).tobytes() == np.asarray(loaded.wiener_offset).tobytes()
+
+
+def test_calibration_checksum_covers_the_offset(calibration_path):
+    entries = npz_entries(calibration_path)
+    entries["wiener_offset"] = entries["wiener_offset"].copy()
+    entries["wiener_offset"][17] += 0.01
+    rewrite_npz(calibration_path, entries)
+    with refused(CalibrationFileError, calibration_path, "does not match its checksum: tampered or corrupted"):
+        io.load_calibration(calibration_path)
+
+
+def test_calibration_version_1_with_an_offset_is_refused(tmp_path, rng):
+    """A version 1 file has no offset: one found there is not what its writer wrote."""
+    path = tmp_path / "old.npz"
+    header = write_version_1(path, make_calibration(rng))
+    entries = npz_entries(path)
+    entries["wiener_offset"] = np.zeros(31, np.float32)
+    rewrite_npz(path, entries, header)
+    match = r"holds unexpected entries \['wiener_offset'\] \(expected only .* \(format version 1\)\)"
+    with refused(CalibrationFileError, path, match):
+        io.load_calibration(path)
+
+
+def test_calibration_version_2_without_an_offset_is_refused(calibration_path):
+    entries = npz_entries(calibration_path)
+    del entries["wiener_offset"]
+    header = header_of(entries)
+    del header["arrays"]["wiener_offset"]
+    rewrite_npz(calibration_path, entries, header)  # refused before the checksum is looked at
+    match = r"header\.arrays\.wiener_offset is missing"
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)
+
+
+@pytest.mark.parametrize("shape", [(30,), (31, 1)])
+def test_calibration_offset_of_the_wrong_shape_is_refused(calibration_path, shape):
+    entries = npz_entries(calibration_path)
+    entries["wiener_offset"] = np.zeros(shape, np.float32)
+    header = header_of(entries)
+    header["arrays"]["wiener_offset"]["shape"] = list(shape)
+    header["arrays"]["wiener_offset"]["dtype"] = "<f4"
+    rewrite_npz(calibration_path, entries, header, recompute_checksum=True)
+    match = rf"does not hold a valid calibration: wiener_offset: expected shape \(31,\).*got {re.escape(str(shape))}"
+    with refused(CalibrationFileError, calibration_path, match, says_expected=False):
         io.load_calibration(calibration_path)
 
 

@@ -1,5 +1,8 @@
 """`correct()` and `Calibration`: the whole per-pixel path for an image."""
 
+import dataclasses
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,12 +27,14 @@ jax.monitoring.register_event_duration_secs_listener(
 @pytest.fixture(scope="module")
 def scene():
     """A Lambertian sphere imaging a mosaic of measured spectra, with dark current, vignetting,
-    a lamp change and a Wiener matrix trained on other spectra. Frames are float64 counts."""
+    a lamp change and an affine Wiener estimator (matrix and offset) trained on other spectra.
+    Frames are float64 counts."""
     rng = np.random.default_rng(11)
     sets = spectra.reflectance_sets()
     M = gaussian_sensitivity()
     train = np.concatenate([v for k, v in sets.items() if k.startswith(("ColorChecker", "TCS"))])
-    wiener_matrix = np.asarray(sj.fit_wiener(train @ M.T, train, noise_variance=1e-7))
+    estimator = sj.fit_wiener(train @ M.T, train, noise_variance=1e-7)
+    wiener_matrix, wiener_offset = np.asarray(estimator.matrix), np.asarray(estimator.offset)
     mosaic = sets["CES (TM-30)"][rng.integers(0, 99, (H // 4, W // 4))]
     truth = np.repeat(np.repeat(mosaic, 4, axis=0), 4, axis=1)  # (H, W, 31)
     patch = np.zeros((H, W), bool)
@@ -44,7 +49,7 @@ def scene():
     )
     calibration = sj.Calibration(
         dark=dark, white=white, patch=patch, coeffs=np.asarray(sj.identity_coeffs(B, np.float64)),
-        wiener=wiener_matrix, illuminant="D65", saturation=16383.0,
+        wiener=wiener_matrix, illuminant="D65", saturation=16383.0, wiener_offset=wiener_offset,
     )
     return dict(raw=raw, truth=truth, calibration=calibration, patch=patch)
 
@@ -54,7 +59,7 @@ def with_dtype(calibration, dtype):
         dark=np.asarray(calibration.dark, dtype), white=np.asarray(calibration.white, dtype),
         patch=calibration.patch, coeffs=np.asarray(calibration.coeffs, dtype),
         wiener=np.asarray(calibration.wiener, dtype), illuminant=calibration.illuminant,
-        saturation=calibration.saturation,
+        saturation=calibration.saturation, wiener_offset=np.asarray(calibration.wiener_offset, dtype),
     )
 
 
@@ -63,7 +68,7 @@ def kernel_composition(raw, calibration):
     v = sj.flat_field(raw, calibration.dark, calibration.white)
     p = sj.white_patch_ratio(raw, calibration.dark, calibration.white, calibration.patch)
     v_tilde = sj.stage2(v, p, calibration.coeffs)
-    reflectance = sj.wiener(v_tilde, calibration.wiener)
+    reflectance = sj.wiener(v_tilde, calibration.wiener) + calibration.wiener_offset  # r = W v + r0
     return v, p, v_tilde, reflectance, sj.reflectance_to_lab(reflectance, calibration.illuminant)
 
 
@@ -225,6 +230,7 @@ class TestGradients:
             cal = sj.Calibration(
                 dark=calibration.dark, white=calibration.white, patch=calibration.patch,
                 coeffs=coeffs, wiener=wiener_matrix, saturation=16383.0,
+                wiener_offset=calibration.wiener_offset,
             )
             result = sj.correct(raw, cal)
             de = sj.delta_e_2000(result.lab, reference)
@@ -240,6 +246,96 @@ class TestGradients:
         step = jnp.zeros_like(coeffs).at[5, 1].set(eps)
         fd = (loss(coeffs + step, wiener_matrix) - loss(coeffs - step, wiener_matrix)) / (2 * eps)
         assert float(g_coeffs[5, 1]) == pytest.approx(float(fd), rel=1e-5)
+
+
+def with_offset(calibration, offset):
+    """`calibration` with the Wiener offset r0 replaced (every other field as it was)."""
+    return dataclasses.replace(calibration, wiener_offset=np.asarray(offset, np.asarray(calibration.wiener).dtype))
+
+
+#: A reflectance offset of the size an affine fit gives (a few hundredths), with both signs.
+OFFSET = 0.03 * np.sin(np.linspace(0.0, 3.0 * np.pi, 31)) + 0.01
+
+
+class TestWienerOffset:
+    """The affine estimator r = W v_tilde + r0 through `correct`, on both CPU paths (the fused
+    kernel in float32 by default, the jax.numpy path with SPHEREJAX_FUSED=0) and float64."""
+
+    @pytest.fixture
+    def dirty(self, scene):
+        """The scene's raw frames with bad pixels of every per-pixel kind."""
+        raw = scene["raw"].copy()
+        raw[10, 10, 3] = 16383.0
+        raw[11, 12, 0] = np.nan
+        raw[12, 14, 15] = -np.inf
+        return raw
+
+    @pytest.mark.parametrize("path", ["default", "jax.numpy"])
+    def test_offset_adds_to_the_reflectance_of_good_pixels(self, scene, dirty, dtype, path, monkeypatch):
+        if path == "jax.numpy":
+            monkeypatch.setenv("SPHEREJAX_FUSED", "0")
+        base = with_offset(with_dtype(scene["calibration"], dtype), np.zeros(31))
+        shifted = with_offset(base, OFFSET)
+        raw = dirty.astype(dtype)
+        without, with_r0 = sj.correct(raw, base), sj.correct(raw, shifted)
+        quality = np.asarray(with_r0.quality)
+        np.testing.assert_array_equal(quality, np.asarray(without.quality))
+        good = quality == 0
+        assert (~good).sum() == 3
+        refl0, refl = np.asarray(without.reflectance), np.asarray(with_r0.reflectance)
+        tolerance = {np.float32: 2e-6, np.float64: 1e-13}[dtype]
+        np.testing.assert_allclose(refl[good], refl0[good] + OFFSET.astype(dtype), rtol=0, atol=tolerance)
+        # Colour oracle: Lab of the shifted spectra through the public colorimetry (ASTM E308
+        # weights, colour-science's convention), not through the folded (B, 3) matrix.
+        lab_oracle = np.asarray(sj.reflectance_to_lab(jnp.asarray(refl0[good] + OFFSET.astype(dtype)), base.illuminant))
+        np.testing.assert_allclose(np.asarray(with_r0.lab)[good], lab_oracle, rtol=0, atol={np.float32: 2e-2, np.float64: 1e-8}[dtype])
+        assert np.abs(np.asarray(with_r0.lab)[good] - np.asarray(without.lab)[good]).max() > 0.5  # r0 shows in Lab
+        # Bad pixels stay NaN in every channel, whatever the offset.
+        for name in ("reflectance", "lab"):
+            out = np.asarray(getattr(with_r0, name))
+            assert np.isnan(out[~good]).all() and np.isfinite(out[good]).all(), name
+
+    def test_zero_offset_is_the_default(self, scene, dirty):
+        """A calibration built without an offset has r0 = 0 and gives the same bits."""
+        calibration = scene["calibration"]
+        plain = sj.Calibration(
+            dark=calibration.dark, white=calibration.white, patch=calibration.patch,
+            coeffs=calibration.coeffs, wiener=calibration.wiener, saturation=16383.0,
+        )
+        np.testing.assert_array_equal(np.asarray(plain.wiener_offset), np.zeros(31))
+        zero = with_offset(calibration, np.zeros(31))
+        for a, b in zip(jax.tree.leaves(sj.correct(dirty, plain)), jax.tree.leaves(sj.correct(dirty, zero))):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    def test_rows_carry_the_offset(self, scene):
+        rows = with_offset(scene["calibration"], OFFSET).rows(3, 9)
+        np.testing.assert_array_equal(np.asarray(rows.wiener_offset), OFFSET)
+        assert rows.patch is None and rows.dark.shape == (6, W, B)
+
+    @pytest.mark.parametrize("path", ["default", "jax.numpy"])
+    def test_gradient_with_respect_to_the_offset(self, scene, dirty, dtype, path, monkeypatch):
+        """d(mean ΔE00 to the truth)/d r0 with bad pixels in the image: finite, and equal to
+        central differences."""
+        if path == "jax.numpy":
+            monkeypatch.setenv("SPHEREJAX_FUSED", "0")
+        calibration = with_dtype(scene["calibration"], dtype)
+        reference = sj.reflectance_to_lab(scene["truth"].astype(dtype))
+        raw = dirty.astype(dtype)
+
+        def loss(offset):
+            result = sj.correct(raw, dataclasses.replace(calibration, wiener_offset=offset))
+            de = sj.delta_e_2000(result.lab, reference)
+            return jnp.sum(jnp.where(result.valid, de, 0.0)) / jnp.sum(result.valid).astype(de.dtype)
+
+        offset = jnp.asarray(OFFSET, dtype)
+        grad = np.asarray(jax.grad(loss)(offset))
+        assert grad.shape == (31,) and grad.dtype == dtype
+        assert np.isfinite(grad).all() and np.abs(grad).max() > 0
+        eps, rel = {np.float32: (1e-3, 2e-2), np.float64: (1e-6, 1e-5)}[dtype]
+        for k in (0, 12, 30):
+            step = jnp.zeros_like(offset).at[k].set(eps)
+            fd = (float(loss(offset + step)) - float(loss(offset - step))) / (2 * eps)
+            assert float(grad[k]) == pytest.approx(fd, rel=rel, abs=rel * float(np.abs(grad).max())), k
 
 
 class TestDeltaEMap:
@@ -315,6 +411,12 @@ class TestBadInput:
     def test_wiener_shape(self, scene):
         with pytest.raises(ValueError, match=r"wiener: expected shape \(31, 16\).*got \(16, 31\)"):
             self.make(scene, wiener=np.ones((B, 31)))
+
+    @pytest.mark.parametrize("shape", [(30,), (31, 1), (16,), ()])
+    def test_wiener_offset_shape(self, scene, shape):
+        expected = r"wiener_offset: expected shape \(31,\) \(one reflectance offset r0 per wavelength.*got " + re.escape(str(shape))
+        with pytest.raises(ValueError, match=expected):
+            self.make(scene, wiener_offset=np.zeros(shape))
 
     def test_unknown_illuminant(self, scene):
         with pytest.raises(ValueError, match="illuminant: unknown illuminant 'D50'"):

@@ -28,8 +28,12 @@ def make_calibration(rng, dtype=np.float32):
     patch[r0:r1, c0:c1] = True
     coeffs = np.tile(np.asarray([0.01, 0.97, 0.02, -0.01], dtype), (B, 1))
     wiener = (rng.uniform(0, 1, (31, B)) / B).astype(dtype)
+    # A non-zero Wiener offset r0: strips (read from the file, the last one padded) must carry
+    # it like the whole image does.
+    wiener_offset = rng.uniform(-0.05, 0.05, 31).astype(dtype)
     return spherejax.Calibration(
-        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=16383.0
+        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=16383.0,
+        wiener_offset=wiener_offset,
     )
 
 

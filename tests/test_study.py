@@ -25,6 +25,8 @@ def test_study_lowers_its_training_objective_from_the_closed_form(session, close
     assert result.objective_end < 0.9 * result.objective_start
     assert np.isfinite(np.asarray(result.calibration.coeffs)).all()
     np.testing.assert_array_equal(np.asarray(result.calibration.wiener), np.asarray(closed_form.wiener))
+    # Without fit_wiener the estimator's offset r0 is held too.
+    np.testing.assert_array_equal(np.asarray(result.calibration.wiener_offset), np.asarray(closed_form.wiener_offset))
     # The training patches' colours really are more consistent with their reference colours.
     before = evaluate.evaluate_session(session, closed_form).metrics["training"]["stage2"]["delta_e00_D65"]
     after = evaluate.evaluate_session(session, result.calibration).metrics["training"]["stage2"]["delta_e00_D65"]
@@ -35,6 +37,10 @@ def test_study_with_the_wiener_matrix(session, closed_form):
     result = study.study_session(session, closed_form, fit_wiener=True, max_steps=30)
     assert result.objective_end < result.objective_start
     assert not np.array_equal(np.asarray(result.calibration.wiener), np.asarray(closed_form.wiener))
+    # The offset r0 is optimised with W: one affine estimator (study module docstring).
+    offset = np.asarray(result.calibration.wiener_offset)
+    assert offset.shape == (31,) and np.isfinite(offset).all()
+    assert not np.array_equal(offset, np.asarray(closed_form.wiener_offset))
 
 
 def test_comparison_table_and_verdict(session, closed_form):
