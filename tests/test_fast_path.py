@@ -73,7 +73,10 @@ class TestCubeRoot:
         fast = np.asarray(colorimetry._cube_root_positive(jnp.asarray(x)))
         exact = np.cbrt(x.astype(np.float64))
         ulp = np.spacing(exact.astype(dtype)).astype(np.float64)
-        assert np.max(np.abs(fast - exact) / ulp) <= 2
+        # float64: the Newton correction is evaluated in float64 itself, so its own rounding
+        # (y*y, the division, the subtraction) leaves up to 3 ulp; which points reach 3 depends
+        # on the CPU's exp/log code (AVX2 here, 0.1 % of points; 2 ulp on AVX-512 machines).
+        assert np.max(np.abs(fast - exact) / ulp) <= {np.float32: 1, np.float64: 3}[dtype]
 
     def test_lab_of_the_whites_and_greys(self, dtype):
         """Exact points: the white is L* 100 and Y/Yn = 1/8 is L* 116/2 - 16 = 42."""

@@ -17,6 +17,7 @@ import json
 import os
 import pathlib
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -143,7 +144,7 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(calibration_file, 
         assert runs <= 2 * KILLS, f"only {len(landed)} of {KILLS} kills landed in {runs - 1} runs: {landed}"
         mode, argument = plan[len(landed)]
         stale = _temporaries(killed) if killed.exists() else set()
-        process = _start([*argv, str(killed), *(["--resume"] if runs > 1 else [])])
+        process = _start([*argv, str(killed), *(["--resume"] if killed.exists() else [])])
         if mode in ("start-up", "time"):
             time.sleep(argument)
         else:
@@ -160,6 +161,14 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(calibration_file, 
             else:
                 time.sleep(delays.uniform(0.0, 0.020))
         if not _kill(process):  # it finished first: not a kill; the next run gets this one
+            # The plan's times come from the first, uninterrupted run; a resumed run with few
+            # inputs left, or a quicker machine, finishes before them. Bring a time kill forward,
+            # and give a run that finished the whole batch a fresh OUT: no later kill could land
+            # in a batch that is complete (CI saw "only 4 of 20 kills landed").
+            if mode == "time":
+                plan[len(landed)] = (mode, argument / 2)
+            if len(_done(killed)) == INPUTS:
+                shutil.rmtree(killed)
             continue
 
         # At every kill: whatever is under its final name is complete (the reference's bytes), and
