@@ -25,7 +25,7 @@ import dataclasses
 import numpy as np
 
 from .pipeline import Calibration, correct
-from .polynomial import STATUS_NAMES, fit_stage2_detailed, identity_coeffs, stage2
+from .polynomial import MIN_SAMPLES, STATUS_NAMES, UNDETERMINED, fit_stage2_detailed, identity_coeffs, stage2, why_undetermined
 from .wiener_estimation import METHODS as WIENER_METHODS, fit_wiener
 from .grid import N_WAVELENGTHS
 
@@ -176,6 +176,13 @@ def check_session(session, reference: str | None = None, wiener_groups: str | No
     if known < 2:
         raise ValueError(f"{manifest}: the target captures hold {known} regions with known reflectance; the Wiener matrix needs at least 2")
     backgrounds = sorted({frame.background for frame in training})
+    samples = [region.patch for frame in training for region in frame.regions]
+    if len(samples) < MIN_SAMPLES or len(backgrounds) < 2 or len(set(samples)) < 2:
+        raise ValueError(
+            f"{manifest}: the training captures hold {len(samples)} patch regions of {len(set(samples))} "
+            f"patch(es) on {len(backgrounds)} background(s); Stage II's 4 coefficients per band need at "
+            f"least {MIN_SAMPLES} regions, 2 patches and 2 backgrounds (the paper: 9 patches on 10)"
+        )
     if reference is not None and reference not in backgrounds:
         raise ValueError(f"{manifest}: no training background named {reference!r} (expected one of {backgrounds})")
     if wiener_groups is not None:
@@ -234,6 +241,19 @@ def target_groups(session, frames, field: str) -> list[str]:
     return groups
 
 
+def _refuse_undetermined(session, bands, v, p, target) -> None:
+    """Raise ValueError naming the manifest if Stage II cannot be determined in `bands` (indices):
+    a calibration with NaN coefficients would flag every pixel it corrects."""
+    if len(bands):
+        band = int(bands[0])
+        raise ValueError(
+            f"{session.manifest_path}: Stage II cannot be fitted in {len(bands)} band(s), first "
+            f"{int(session.band_centres_nm[band])} nm: its training samples have "
+            f"{why_undetermined(v[:, band], p[:, band], target[:, band])} (saturated, dark or flagged "
+            "training regions?)"
+        )
+
+
 def calibrate_session(
     session, *, reference: str | None = None, loss: str = "l2", illuminant: str = "D65",
     wiener_method: str = "auto", wiener_groups: str | None = None,
@@ -264,7 +284,10 @@ def calibrate_session(
     _check_patch_ratios(session, training, measurements)
     reference = reference or reference_background(measurements)
     v, p, target = stage2_training_data(measurements, reference)
+    usable = np.sum(np.isfinite(v) & np.isfinite(p) & np.isfinite(target), axis=0)
+    _refuse_undetermined(session, np.flatnonzero(usable < MIN_SAMPLES), v, p, target)
     fit = fit_stage2_detailed(v, p, target, loss)
+    _refuse_undetermined(session, np.flatnonzero(np.asarray(fit.status) == UNDETERMINED), v, p, target)
     coeffs = np.asarray(fit.coeffs)
     prediction = np.asarray(stage2(v, p, coeffs))
     residual = np.sqrt(np.nanmean((prediction - target) ** 2, axis=0))

@@ -10,13 +10,19 @@ it is tested against (tests/test_fused.py), and it is what runs:
 
 - on GPUs and any platform other than CPU (`jax.lax.platform_dependent` picks at lowering time);
 - in float64 (a float64 calibration or raw), and for raw other than uint16 or float32;
-- with `intermediates=True`, which asks for cubes the kernel never forms;
 - when the extension was not built (no C++ compiler at install: setup.py builds it as optional),
   or when the environment variable SPHEREJAX_FUSED is "0" (to compare the two, or to rule the
   kernel out when something looks wrong).
 
-SPHEREJAX_FUSED=portable keeps the kernel but not its AVX-512 code, so that the portable code,
-which CPUs without AVX-512 run, can be tested and timed on a machine that has it.
+With `intermediates=True` the main outputs still come from the kernel, so that they do not depend
+on what else was asked for; the cubes it never forms (v, v_stage1, v_stage2) come from the
+jax.numpy path, whose own reflectance and Lab XLA then drops as unused.
+
+SPHEREJAX_FUSED takes "auto" (the default, as when unset) or "1": the kernel with the best code
+the CPU runs; "portable": the kernel without its AVX-512 code, so that the portable code, which
+CPUs without AVX-512 run, can be tested and timed on a machine that has it; "0": the jax.numpy
+path. Any other value is refused (`switch`), so that a typo such as "off" cannot leave the
+kernel on.
 
 Derivatives: the kernel's outputs carry a custom JVP that is the JVP of the jax.numpy path, so
 `jax.grad` and `jax.jacfwd` through `correct` give what they gave before the kernel existed.
@@ -68,26 +74,42 @@ def built() -> bool:
 #: Values of `mode`: the kernel with the best code the CPU runs, or its portable code only.
 AUTO, PORTABLE = "auto", "portable"
 
+#: The values SWITCH may take; unset means AUTO.
+SWITCH_VALUES = (AUTO, "1", PORTABLE, "0")
+
+
+def switch() -> str:
+    """The value of SPHEREJAX_FUSED ("auto" if unset).
+
+    Raises:
+      ValueError: any value but those of SWITCH_VALUES, naming the variable.
+    """
+    value = os.environ.get(SWITCH, AUTO)
+    if value not in SWITCH_VALUES:
+        raise ValueError(
+            f"{SWITCH}: expected one of {', '.join(repr(v) for v in SWITCH_VALUES)} or unset, got {value!r}"
+        )
+    return value
+
 
 def enabled() -> bool:
     """True if `correct` uses the kernel on CPU: built, and not switched off by SPHEREJAX_FUSED=0."""
-    return built() and os.environ.get(SWITCH, AUTO) != "0"
+    return built() and switch() != "0"
 
 
-def mode(raw_dtype, compute_dtype, bands: int, intermediates: bool) -> str | None:
+def mode(raw_dtype, compute_dtype, bands: int) -> str | None:
     """How `correct` computes this call on CPU: AUTO or PORTABLE (the kernel, see SWITCH), or
     None (the jax.numpy path; see the module docstring). A static argument of the jitted step,
     so that a change of the environment variable traces again."""
     usable = (
         enabled()
-        and not intermediates
         and np.dtype(compute_dtype) == np.float32
         and np.dtype(raw_dtype) in RAW_DTYPES
         and 1 <= bands <= MAX_BANDS
     )
     if not usable:
         return None
-    return PORTABLE if os.environ.get(SWITCH) == PORTABLE else AUTO
+    return PORTABLE if switch() == PORTABLE else AUTO
 
 
 def _kernel_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation: float | None, kernel_mode: str):
@@ -162,4 +184,7 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
     return outputs(*arrays)
 
 
-__all__ = ["TARGET", "MAX_BANDS", "SWITCH", "AUTO", "PORTABLE", "built", "enabled", "mode", "correct_pixels"]
+__all__ = [
+    "TARGET", "MAX_BANDS", "SWITCH", "SWITCH_VALUES", "AUTO", "PORTABLE", "built", "enabled", "mode", "switch",
+    "correct_pixels",
+]

@@ -410,15 +410,18 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
         calibration.coeffs.astype(dtype), calibration.wiener.astype(dtype),
         calibration.wiener_offset.astype(dtype), jnp.asarray(weights, dtype),
     )
-    plain = functools.partial(
-        _pixel_outputs, saturation=_saturation_level(raw, calibration), intermediates=intermediates
-    )
+    saturation = _saturation_level(raw, calibration)
+    plain = functools.partial(_pixel_outputs, saturation=saturation, intermediates=intermediates)
     p = arrays[3]
     if kernel_mode is not None:
-        reflectance, lab, quality = fused.correct_pixels(
-            plain, *arrays, saturation=plain.keywords["saturation"], kernel_mode=kernel_mode
-        )
-        return CorrectionResult(reflectance, lab, quality, p)
+        main = functools.partial(_pixel_outputs, saturation=saturation, intermediates=False)
+        reflectance, lab, quality = fused.correct_pixels(main, *arrays, saturation=saturation, kernel_mode=kernel_mode)
+        cubes = ()
+        if intermediates:
+            # The main outputs stay the kernel's whatever else is asked for; the cubes it never
+            # forms come from the jax.numpy path, whose reflectance and Lab XLA drops as unused.
+            _, _, _, *cubes = plain(*arrays)
+        return CorrectionResult(reflectance, lab, quality, p, *cubes)
     reflectance, lab, quality, *cubes = plain(*arrays)
     return CorrectionResult(reflectance, lab, quality, p, *cubes)
 
@@ -499,7 +502,7 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
     what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
     raw = _check_raw(raw, calibration, what)
     intermediates = bool(intermediates)
-    kernel_mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, intermediates)
+    kernel_mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands)
     if p is None:
         if calibration.patch is None:
             raise ValueError(

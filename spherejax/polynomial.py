@@ -99,9 +99,14 @@ LOSSES = ("l2", *ROBUST_TUNING)
 #: Consistency factor of the median absolute deviation for Gaussian residuals: s = 1.4826 MAD.
 MAD_TO_SIGMA = 1.4826
 
-#: Per-band status codes of `Stage2Fit.status`.
-CONVERGED, MAX_STEPS, NONFINITE = 0, 1, 2
-STATUS_NAMES = {CONVERGED: "converged", MAX_STEPS: "max steps reached", NONFINITE: "non-finite"}
+#: Per-band status codes of `Stage2Fit.status`. UNDETERMINED: the band's usable samples cannot
+#: determine c1..c4 (fewer than 4, or a design matrix of rank < 4: every sample alike, or p the
+#: same in every sample, i.e. one background); NONFINITE: determined, but the fit is not finite.
+CONVERGED, MAX_STEPS, NONFINITE, UNDETERMINED = 0, 1, 2, 3
+STATUS_NAMES = {
+    CONVERGED: "converged", MAX_STEPS: "max steps reached", NONFINITE: "non-finite",
+    UNDETERMINED: "undetermined (the samples cannot determine c1..c4)",
+}
 
 
 def _irls_weights(loss: str, u):
@@ -188,7 +193,7 @@ def _fit_band(v, p, target, scale, loss: str, max_steps: int):
         status = jnp.where(solution.result == optx.RESULTS.successful, CONVERGED, MAX_STEPS).astype(jnp.int32)
         used_scale = scale_for(coeffs)
     finite = determined & jnp.all(jnp.isfinite(coeffs))
-    status = jnp.where(finite, status, NONFINITE)
+    status = jnp.where(finite, status, jnp.where(determined, NONFINITE, UNDETERMINED))
     coeffs = jnp.where(finite, coeffs, jnp.nan)
     return coeffs, status, steps, used_scale, dropped
 
@@ -198,8 +203,9 @@ class Stage2Fit(eqx.Module):
     `throw=False`: a batch of fits never fails on one bad band; inspect `status` instead.
 
     Fields:
-      coeffs: (B, 4), c1..c4 (NaN for a band whose status is NONFINITE).
-      status: (B,) int32: CONVERGED (0), MAX_STEPS (1), NONFINITE (2) (`STATUS_NAMES`).
+      coeffs: (B, 4), c1..c4 (NaN for a band whose status is NONFINITE or UNDETERMINED).
+      status: (B,) int32: CONVERGED (0), MAX_STEPS (1), NONFINITE (2), UNDETERMINED (3)
+        (`STATUS_NAMES`).
       steps: (B,) IRLS iterations taken (0 for "l2").
       scale: (B,) residual scale s used by the robust loss (NaN for "l2").
       dropped: (B,) number of non-finite samples left out.
@@ -301,17 +307,48 @@ def fit_stage2_detailed(v, p, target, loss: str = "l2", *, scale=None, max_steps
     return _fit_all_bands(v.astype(dtype), p.astype(dtype), target.astype(dtype), scale, loss, max_steps)
 
 
+def why_undetermined(v, p, target) -> str:
+    """What keeps one band's samples v, p, target (n,) from determining c1..c4, in words."""
+    usable = np.isfinite(v) & np.isfinite(p) & np.isfinite(target)
+    v, p = np.asarray(v)[usable], np.asarray(p)[usable]
+    if usable.sum() < MIN_SAMPLES:
+        return f"only {int(usable.sum())} finite samples (4 coefficients need at least {MIN_SAMPLES})"
+    if np.ptp(p) == 0:
+        return (
+            f"p is {p[0]:.6g} in every sample (one background only?): c1 p v + c2 v and c3 p + c4 "
+            "cannot be told apart; expected samples on several backgrounds"
+        )
+    if np.ptp(v) == 0:
+        return f"v is {v[0]:.6g} in every sample: expected patches of different lightness"
+    rank = np.linalg.matrix_rank(np.stack([p * v, v, p, np.ones_like(v)], axis=-1))
+    return f"the design (p v, v, p, 1) of Eq. 20 has rank {rank} of 4 (samples too alike)"
+
+
 def fit_stage2(v, p, target, loss: str = "l2", *, scale=None, max_steps: int = 100):
     """Fit the Stage II coefficients of every band (Eq. 19-22, or a robust loss).
 
     Args and losses as `fit_stage2_detailed`.
 
     Returns:
-      coeffs, shape (B, 4), ordered c1..c4. A band with fewer than 4 finite samples, whose
-      samples do not determine the four coefficients (rank < 4), or whose fit is not finite, is
-      NaN; `fit_stage2_detailed` also returns per-band status, scale and dropped-sample counts.
+      coeffs, shape (B, 4), ordered c1..c4. A band whose fit is not finite is NaN;
+      `fit_stage2_detailed` also returns per-band status, scale and dropped-sample counts.
+
+    Raises:
+      ValueError: (concrete data) a band whose samples cannot determine c1..c4: fewer than 4
+        finite samples, every sample alike, or p the same in every sample (one background).
+        Under jit such a band comes out NaN with status UNDETERMINED in `fit_stage2_detailed`.
     """
-    return fit_stage2_detailed(v, p, target, loss, scale=scale, max_steps=max_steps).coeffs
+    fit = fit_stage2_detailed(v, p, target, loss, scale=scale, max_steps=max_steps)
+    if _checks.is_concrete(fit.status):
+        undetermined = np.flatnonzero(np.asarray(fit.status) == UNDETERMINED)
+        if undetermined.size:
+            band = int(undetermined[0])
+            v_b, p_b, t_b = (np.asarray(x, np.float64)[:, band] for x in (v, p, target))
+            raise ValueError(
+                f"v, p, target: band(s) {undetermined.tolist()} cannot be fitted: band {band} has "
+                f"{why_undetermined(v_b, p_b, t_b)}"
+            )
+    return fit.coeffs
 
 
 __all__ = [
@@ -322,10 +359,12 @@ __all__ = [
     "CONVERGED",
     "MAX_STEPS",
     "NONFINITE",
+    "UNDETERMINED",
     "STATUS_NAMES",
     "Stage2Fit",
     "identity_coeffs",
     "stage2",
     "fit_stage2",
     "fit_stage2_detailed",
+    "why_undetermined",
 ]

@@ -202,6 +202,46 @@ class TestBadSessions:
         edit_manifest(broken, lambda m: m.pop(field))
         self.refuse(broken, capsys, tmp_path, "manifest.json", field)
 
+    def test_training_samples_that_cannot_determine_stage2(self, broken, tmp_path, capsys):
+        """One training capture (3 patches on one background): 3 samples for 4 coefficients.
+        The closed form used to write NaN coefficients into the calibration."""
+        def one_capture(manifest):
+            training = [f for f in manifest["frames"] if f.get("set") == "training"]
+            manifest["frames"] = [f for f in manifest["frames"] if f.get("set") != "training" or f is training[0]]
+
+        edit_manifest(broken, one_capture)
+        self.refuse(broken, capsys, tmp_path, "manifest.json", "3 patch regions of 3 patch(es) on 1 background(s)")
+
+    def test_training_captures_saturated_but_one(self, broken, tmp_path, capsys):
+        """The manifest is fine, the pixels are not: every training capture but one saturated in
+        a band, so that no patch has a usable Stage I target on the reference background (the
+        check after the pixels are read; the fit's error used to name no file)."""
+        manifest = json.loads((broken / "manifest.json").read_text())
+        training = [f for f in manifest["frames"] if f.get("set") == "training"]
+        for frame_info in training[1:]:
+            path = broken / frame_info["file"]
+            frame = io.read_frame(path).copy()
+            frame[..., 5] = manifest["saturation"]
+            frame[slice(*manifest["white_patch"][:2]), slice(*manifest["white_patch"][2:]), 5] = 1000  # the patch stays usable
+            path.unlink()
+            io.write_frame(path, frame)
+        before = snapshot(tmp_path)
+        # -q: the refusal comes after the pixels are read, when the progress line is out already.
+        status, _, err = run(["-q", "calibrate", str(broken), "-o", str(tmp_path / "out.npz")], capsys)
+        assert_refused(status, err, "manifest.json", "Stage II cannot be fitted in 16 band(s), first 400 nm", "only 0 finite samples")
+        assert snapshot(tmp_path) == before
+
+    def test_training_on_one_background(self, broken, tmp_path, capsys):
+        """Every capture on one background: p barely varies, c1 p v + c2 v and c3 p + c4 cannot be
+        told apart (the closed form gave NaN coefficients)."""
+        def one_background(manifest):
+            for frame in manifest["frames"]:
+                if frame.get("set") == "training":
+                    frame["background"] = "only"
+
+        edit_manifest(broken, one_background)
+        self.refuse(broken, capsys, tmp_path, "manifest.json", "on 1 background(s)", "2 backgrounds")
+
     def test_wiener_groups_field_missing(self, broken, tmp_path, capsys):
         before = snapshot(tmp_path)
         status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.npz"), "--wiener-groups", "chart"], capsys)

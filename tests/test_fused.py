@@ -9,6 +9,7 @@ and vmap, each with a zero and a non-zero Wiener offset r0 (the kernel's bias). 
 from __future__ import annotations
 
 import platform
+import re
 import sys
 
 import jax
@@ -78,10 +79,10 @@ def assert_same_result(kernel, plain):
         np.testing.assert_allclose(got, want, rtol=2e-5, atol=atol, err_msg=name)
 
 
-def lowered_text(raw, calibration, **kwargs):
+def lowered_text(raw, calibration, intermediates=False):
     p = patch_ratio(raw, calibration)
-    mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, False)
-    return _correct_pixels.lower(raw, calibration, p, intermediates=False, kernel_mode=mode).as_text()
+    mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands)
+    return _correct_pixels.lower(raw, calibration, p, intermediates=intermediates, kernel_mode=mode).as_text()
 
 
 @pytest.mark.skipif(
@@ -248,17 +249,44 @@ def test_when_the_kernel_applies(monkeypatch):
     f32, f64 = np.dtype(np.float32), np.dtype(np.float64)
     monkeypatch.delenv(fused.SWITCH, raising=False)
     if fused.built():
-        assert fused.mode(np.uint16, f32, 16, False) == fused.AUTO
-        assert fused.mode(np.float32, f32, 5, False) == fused.AUTO
+        assert fused.mode(np.uint16, f32, 16) == fused.AUTO
+        assert fused.mode(np.float32, f32, 5) == fused.AUTO
+        monkeypatch.setenv(fused.SWITCH, "1")
+        assert fused.mode(np.uint16, f32, 16) == fused.AUTO
         monkeypatch.setenv(fused.SWITCH, "portable")
-        assert fused.mode(np.uint16, f32, 16, False) == fused.PORTABLE
-    assert fused.mode(np.uint16, f32, 16, True) is None  # intermediates: the plain path
-    assert fused.mode(np.uint16, f64, 16, False) is None  # float64
-    assert fused.mode(np.uint8, f32, 16, False) is None  # raw dtype the kernel does not read
-    assert fused.mode(np.uint16, f32, fused.MAX_BANDS + 1, False) is None
+        assert fused.mode(np.uint16, f32, 16) == fused.PORTABLE
+    assert fused.mode(np.uint16, f64, 16) is None  # float64
+    assert fused.mode(np.uint8, f32, 16) is None  # raw dtype the kernel does not read
+    assert fused.mode(np.uint16, f32, fused.MAX_BANDS + 1) is None
     monkeypatch.setenv(fused.SWITCH, "0")
     assert not fused.enabled()
-    assert fused.mode(np.uint16, f32, 16, False) is None
+    assert fused.mode(np.uint16, f32, 16) is None
+
+
+@pytest.mark.parametrize("value", ["off", "false", "no", "", "AUTO", " 0"])
+def test_an_undocumented_switch_value_is_refused(monkeypatch, value):
+    """SPHEREJAX_FUSED=off used to leave the kernel on."""
+    raw, calibration = make_case(24, 24, 16)
+    monkeypatch.setenv(fused.SWITCH, value)
+    with pytest.raises(ValueError, match=rf"SPHEREJAX_FUSED: expected one of 'auto', '1', 'portable', '0' or unset, got {re.escape(repr(value))}"):
+        sj.correct(raw, calibration)
+
+
+@pytestmark_kernel
+def test_intermediates_do_not_change_the_main_outputs(monkeypatch):
+    """Asking for v, v_stage1, v_stage2 used to switch the kernel off, so Lab moved by up to
+    1.5e-4 and reflectance was not bit-identical to the call without them."""
+    monkeypatch.delenv(fused.SWITCH, raising=False)
+    raw, calibration = make_case(40, 48, 16)
+    plain = sj.correct(raw, calibration)
+    with_cubes = sj.correct(raw, calibration, intermediates=True)
+    for name in ("reflectance", "lab", "quality", "p"):
+        np.testing.assert_array_equal(np.asarray(getattr(with_cubes, name)), np.asarray(getattr(plain, name)), err_msg=name)
+    assert "spherejax_fused_correct" in lowered_text(jnp.asarray(raw), calibration, intermediates=True)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    reference = sj.correct(raw, calibration, intermediates=True)
+    for name in ("v", "v_stage1", "v_stage2"):
+        np.testing.assert_array_equal(np.asarray(getattr(with_cubes, name)), np.asarray(getattr(reference, name)), err_msg=name)
 
 
 @pytestmark_kernel
@@ -275,7 +303,7 @@ def test_lowered_for_a_gpu_the_jax_numpy_path_runs(monkeypatch):
     raw, calibration = make_case(24, 24, 16)
     raw = jnp.asarray(raw)
     p = patch_ratio(raw, calibration)
-    mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands, False)
+    mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands)
     assert mode == fused.AUTO
 
     def step(raw, calibration, p):

@@ -7,7 +7,7 @@ import pytest
 
 import spherejax as sj
 
-from spherejax.polynomial import CONVERGED, MAX_STEPS, NONFINITE, fit_stage2_detailed
+from spherejax.polynomial import CONVERGED, MAX_STEPS, STATUS_NAMES, UNDETERMINED, fit_stage2_detailed
 
 from .helpers import TABLE_2
 
@@ -94,17 +94,39 @@ class TestFitStage2:
         target = np.asarray(sj.stage2(v, p, TABLE_2))
         v = v.copy()
         v[3:, 7] = np.nan  # 3 usable samples left in band 7
-        fitted = np.asarray(sj.fit_stage2(v, p, target))
-        assert np.isnan(fitted[7]).all()
-        np.testing.assert_allclose(np.delete(fitted, 7, axis=0), np.delete(TABLE_2, 7, axis=0), atol=1e-6)
+        with pytest.raises(ValueError, match=r"band\(s\) \[7\] cannot be fitted: band 7 has only 3 finite samples"):
+            sj.fit_stage2(v, p, target)
+        fit = fit_stage2_detailed(v, p, target)
+        assert np.asarray(fit.status)[7] == UNDETERMINED and np.isnan(np.asarray(fit.coeffs)[7]).all()
+        np.testing.assert_allclose(np.delete(np.asarray(fit.coeffs), 7, axis=0), np.delete(TABLE_2, 7, axis=0), atol=1e-6)
 
-    def test_rank_deficient_band_is_nan(self):
+    @pytest.mark.parametrize("loss", ["l2", "huber", "cauchy", "tukey"])
+    def test_one_background_is_refused_not_nan(self, loss):
+        """A constant p (one background) makes the columns (pv, v) and (p, 1) collinear: the
+        closed form used to return NaN coefficients silently."""
         v, p = training_set()
         p = p.copy()
-        p[:, 4] = 1.1  # a constant p makes the columns (pv, v) and (p, 1) collinear
+        p[:, 4] = 1.1
         target = np.asarray(sj.stage2(v, p, TABLE_2))
-        fitted = np.asarray(sj.fit_stage2(v, p, target))
-        assert np.isnan(fitted[4]).all() and np.isfinite(np.delete(fitted, 4, axis=0)).all()
+        with pytest.raises(ValueError, match=r"band\(s\) \[4\] cannot be fitted: band 4 has p is 1.1 in every sample \(one background only\?\)"):
+            sj.fit_stage2(v, p, target, loss=loss)
+        fit = fit_stage2_detailed(v, p, target, loss)
+        assert fit.problems() == {4: STATUS_NAMES[UNDETERMINED]}
+        assert np.isfinite(np.delete(np.asarray(fit.coeffs), 4, axis=0)).all()
+
+    def test_identical_samples_are_refused_not_nan(self):
+        v = np.full((90, B), 0.4)
+        p = np.tile(np.linspace(1.0, 1.2, 90)[:, None], (1, B))
+        with pytest.raises(ValueError, match=r"band\(s\) \[0, 1, .*15\] cannot be fitted: band 0 has v is 0.4 in every sample"):
+            sj.fit_stage2(v, p, p * v)
+
+    def test_traced_fit_flags_instead_of_raising(self):
+        v, p = training_set()
+        p = p.copy()
+        p[:, 4] = 1.1
+        target = np.asarray(sj.stage2(v, p, TABLE_2))
+        coeffs = jax.jit(sj.fit_stage2)(v, p, target)
+        assert np.isnan(np.asarray(coeffs)[4]).all()
 
 
 ROBUST = ["huber", "cauchy", "tukey"]
@@ -177,11 +199,11 @@ class TestRobustFits:
         v[5, 9] = np.inf  # band 9: one dropped
         fit = fit_stage2_detailed(v, p, with_gross_outliers(clean), "cauchy")
         status = np.asarray(fit.status)
-        assert status[3] == NONFINITE and np.isnan(np.asarray(fit.coeffs)[3]).all()
+        assert status[3] == UNDETERMINED and np.isnan(np.asarray(fit.coeffs)[3]).all()
         assert np.all(np.delete(status, 3) == CONVERGED)
         dropped = np.asarray(fit.dropped)
         assert dropped[3] == 88 and dropped[9] == 1 and dropped[0] == 0
-        assert fit.problems() == {3: "non-finite"}
+        assert fit.problems() == {3: STATUS_NAMES[UNDETERMINED]}
 
     def test_max_steps_is_reported_not_raised(self, data):
         v, p, clean, _ = data
