@@ -22,6 +22,11 @@ images the journal does not hold (verified by SHA-256), with the exposures alrea
 darks, whites and samples always share exposures. A kill while the session is written leaves its
 hidden staging folder beside SESSION; `--resume` removes it.
 
+SIGINT (Ctrl-C) or SIGTERM, when the command line has turned them into stop requests
+(`spherejax.interrupt`), stop the run between band images (or warm-up checks, or exposure
+choices): the shutter is closed, the journal and SESSION.partial are kept for `--resume`, and
+`acquire` raises `interrupt.Interrupted` saying how many band images are kept.
+
 Per band image the metadata holds: band centre, every wheel's slot read back with pos?, the
 exposure, frames averaged, time stamp (UTC), sensor temperature, lamp hours and the count of
 saturated pixels. Averages are rounded to 16-bit counts for the session's frames.
@@ -42,6 +47,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
+
+from spherejax import interrupt
 
 from .camera import Camera, CameraError, open_camera
 from .errors import HardwareError
@@ -93,7 +100,9 @@ class Operator:
         if self.yes:
             print(f"spherejax: {message}: assumed done (--yes)", file=self.stream, flush=True)
             return
-        self.input_fn(f"{message}, then press Enter ")
+        # A signal while the prompt waits stops the run at once, not after the next Enter.
+        with interrupt.immediately():
+            self.input_fn(f"{message}, then press Enter ")
 
 
 # -------------------------------------------------------------------------------------- journal
@@ -314,6 +323,7 @@ def _warm_up(instrument: Instrument, exposures: dict[int, float] | None, setting
     means, times, start = [], [], time.monotonic()
     needed = config.warmup_checks + 1
     while True:
+        interrupt.check()
         means.append(_central_mean(camera.average(4)))
         times.append(time.monotonic())
         if len(means) >= needed:
@@ -559,6 +569,13 @@ def acquire(
                 f"acquisition stopped: {' '.join(str(error).split())}; {kept} band images kept in "
                 f"{partial} (run again with --resume to complete it)"
             ) from None
+        except interrupt.Interrupted as stopped:
+            # SIGINT or SIGTERM (spherejax.interrupt), seen between band images: the journal and
+            # SESSION.partial stay as they are for --resume.
+            instrument.shutter.make_safe()
+            stopped.done, stopped.total = len(journal.done_images()), len(captures) * len(profile.band_centres_nm)
+            stopped.unit = "band images"
+            raise
         except BaseException:
             instrument.shutter.make_safe()
             raise
@@ -598,6 +615,7 @@ def _run_protocol(instrument: Instrument, captures: Sequence[Capture], partial: 
     if exposures is None:
         exposures, start = {}, 0.05
         for band in bands:
+            interrupt.check()
             instrument.bank.select(band)
             exposures[band], level = choose_exposure(camera, config, start_s=start)
             start = exposures[band]
@@ -619,6 +637,7 @@ def _run_protocol(instrument: Instrument, captures: Sequence[Capture], partial: 
             instrument.shutter.open_shutter()
             frames = config.frames_averaged
         for band in missing:
+            interrupt.check()  # a safe point: every band image so far is in the journal
             _take_image(instrument, partial, journal, capture, band, exposures[band], frames)
             count += 1
             if settings.progress is not None:

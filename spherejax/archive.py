@@ -15,6 +15,21 @@ Inputs (`discover_inputs`)
   is a TIFF whose name ends in the band centre, ``<prefix>400nm.tif`` (``a_400nm.tif``,
   ``a-400nm.tif``, ``400nm.tif``); the band files of one folder with the same prefix form one
   input, which must hold exactly one file per calibration band. Other files are ignored.
+- A FIFO, socket or device (given, or named like a cube inside a folder) is refused by what it
+  is ("PATH: is a FIFO (expected a cube file or a folder)"), a failed input; it is never opened
+  (reading a FIFO waits for a writer, /dev/zero never ends). Discovery looks with os.stat only.
+
+Each physical input is corrected once, however many ways it is named. Folders are known by
+(st_dev, st_ino), so a folder reached again (a link to a folder searched already, the same folder
+given twice) is not searched again, and a folder that holds the folder being searched (a link
+such as ``self -> ..``, which would otherwise be followed about 40 levels deep and correct
+everything under the parent at every level) is not followed. Files are known the same way: a
+file named again (given twice, or through a link and directly) is corrected under its first name
+that is not a symbolic link and skipped under the others. Each folder not followed and each name
+skipped gets one line, "spherejax: warning: ...", naming it and what it repeats. These are no
+failures: every input found is corrected once, so they leave the exit status alone (0 if nothing
+failed) and nothing about them goes into the manifest. Links to folders elsewhere (neither
+searched already nor above the folder searched) are followed as before.
 
 Output names
 ------------
@@ -60,6 +75,16 @@ host (for the message that refuses a second run). The kernel drops the flock whe
 so a crashed or killed run never leaves OUT locked: its lock file is simply taken over. This is
 sturdier than "is that pid alive", which a reused pid fools. Temporary files left by a killed run
 are removed when the next run takes the lock.
+
+Stopping
+--------
+Inside `interrupt.stop_requests()` (the command line), SIGINT and SIGTERM stop the batch at the
+next safe point: before an input, between the strips of its writes, or before its outputs are
+renamed into place. The input under way then leaves nothing (its temporary files and the folders
+it created are removed; it gets no manifest line), every input finished before it is in the
+manifest, the lock is released, and `run_batch` raises `interrupt.Interrupted`; `--resume`
+continues with the rest. With dask, submitting stops and the inputs already on workers finish and
+are recorded first (`cluster.DaskExecutor.map`).
 """
 
 from __future__ import annotations
@@ -75,12 +100,13 @@ import os
 import pathlib
 import re
 import socket
+import stat
 import time
 from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
-from . import io
+from . import interrupt, io
 from .grid import WAVELENGTHS_NM
 
 MANIFEST_NAME = "manifest.jsonl"
@@ -131,6 +157,182 @@ def _common_folder(paths: Sequence[pathlib.Path]) -> pathlib.Path:
 
 def _is_hidden(path: pathlib.Path) -> bool:
     return path.name.startswith(".")
+
+
+#: What a file that is neither a regular file nor a folder is, by its stat mode. Such a file is
+#: refused by what it is and never opened: opening a FIFO for reading blocks until a writer comes,
+#: a character device such as /dev/zero reads forever.
+_SPECIAL_FILES = (
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+)
+_EXPECTED_INPUT = "a cube file or a folder"
+
+_Identity = tuple[int, int]  # (st_dev, st_ino): one file or folder, however many names it has
+
+
+def _identity(st: os.stat_result) -> _Identity:
+    return (st.st_dev, st.st_ino)
+
+
+def _file_kind(mode: int) -> str:
+    """What a file that is not a regular file is: "a FIFO", "a socket", ..., "a folder"."""
+    for is_kind, what in _SPECIAL_FILES:
+        if is_kind(mode):
+            return what
+    return "a folder" if stat.S_ISDIR(mode) else "not a regular file"
+
+
+def _special_file_problem(path, mode: int) -> str:
+    """"PATH: is a FIFO (expected a cube file or a folder)" for a FIFO, socket or device."""
+    return str(io.SpherejaxFileError(path, f"is {_file_kind(mode)}", _EXPECTED_INPUT))
+
+
+def _stat_problem(path: pathlib.Path, error: OSError) -> str:
+    if isinstance(error, FileNotFoundError):
+        what = "is a symbolic link to nothing" if os.path.islink(path) else "no such file or folder"
+        return str(io.SpherejaxFileError(path, what, "an input to correct"))
+    if error.errno == errno.ELOOP:
+        return str(io.SpherejaxFileError(path, "is a loop of symbolic links", "an input to correct"))
+    return str(io.SpherejaxFileError(path, f"cannot be read: {error.strerror}", "an input to correct"))
+
+
+@dataclasses.dataclass
+class _Found:
+    """An input found by discovery, with the identities of its files (None: not all readable)."""
+
+    spec: InputSpec
+    files: tuple[_Identity, ...] | None = None
+
+
+class _Discovery:
+    """The inputs named by the paths given, each physical input once (module docstring, Inputs).
+
+    Folders are searched depth first; a folder already searched ((st_dev, st_ino) seen, through
+    whatever names) is not searched again, and a folder that holds the folder searched (one of
+    its ancestors, reached by a symbolic link such as ``self -> ..``, or a bind mount) is not entered:
+    following it would search outside the folder asked for, and loop. Each such folder gets one
+    warning line and is skipped rather than failing the batch: it holds no input of its own (its
+    inputs are found where they really are, or lie outside what was asked for), and an archive
+    with a stray link should still be corrected.
+    """
+
+    def __init__(self, root: pathlib.Path, out_root: pathlib.Path, warn: Callable[[str], None]):
+        self.root, self.warn = root, warn
+        try:
+            self.out = _identity(os.stat(out_root))
+        except OSError:
+            self.out = None  # OUT does not exist yet: nothing of it to skip
+        self.found: list[_Found] = []
+        self.searched: dict[_Identity, pathlib.Path] = {}
+
+    def _rel(self, path: pathlib.Path) -> str:
+        return path.relative_to(self.root).as_posix()
+
+    def _cube(self, path: pathlib.Path, identity: _Identity) -> None:
+        rel = path.relative_to(self.root)
+        spec = InputSpec(name=rel.with_suffix("").as_posix(), source=rel.as_posix(), files=(str(path),))
+        self.found.append(_Found(spec, (identity,)))
+
+    def _failing(self, path: pathlib.Path, problem: str) -> None:
+        rel = self._rel(path)
+        self.found.append(_Found(InputSpec(name=rel, source=rel, files=(str(path),), problem=problem)))
+
+    def given(self, path: pathlib.Path) -> None:
+        """One path of the command line: a file, a folder to search, or a bad input."""
+        try:
+            st = os.stat(path)  # follows links: what the name leads to
+        except OSError as error:
+            self._failing(path, _stat_problem(path, error))
+            return
+        if stat.S_ISDIR(st.st_mode):
+            ancestors = set()
+            for parent in pathlib.Path(os.path.realpath(path)).parents:
+                with contextlib.suppress(OSError):
+                    ancestors.add(_identity(os.stat(parent)))
+            self._folder(path, st, path, ancestors)
+        elif stat.S_ISREG(st.st_mode):
+            self._cube(path, _identity(st))
+        else:
+            self._failing(path, _special_file_problem(path, st.st_mode))
+
+    def _folder(self, folder: pathlib.Path, st: os.stat_result, top: pathlib.Path, ancestors: set) -> None:
+        key = _identity(st)
+        if key in ancestors:
+            self.warn(f"{folder}: leads to {os.path.realpath(folder)}, which holds {top}, the folder searched; "
+                      f"not followed (expected folders inside {top})")
+            return
+        if key in self.searched:
+            self.warn(f"{folder}: is {self.searched[key]} again, searched already; not searched twice")
+            return
+        self.searched[key] = folder
+        if (folder / io.MANIFEST_NAME).is_file():
+            self._session(folder)
+            return
+        try:
+            names = sorted(os.listdir(folder))
+        except OSError as error:
+            self._failing(folder, str(io.SpherejaxFileError(folder, f"cannot be listed: {error.strerror}", "a readable folder")))
+            return
+        files, folders = [], []
+        for name in names:
+            path = folder / name
+            if _is_hidden(path):
+                continue
+            try:
+                entry = os.stat(path)
+            except OSError:
+                continue  # a link to nothing, or a loop of links: no input (as other non-cubes)
+            if stat.S_ISDIR(entry.st_mode):
+                folders.append((path, entry))
+            elif stat.S_ISREG(entry.st_mode):
+                files.append((path, entry))
+            elif path.suffix.lower() in CUBE_SUFFIXES:
+                # Named like a cube but a FIFO, socket or device: refused by what it is. Special
+                # files with other names are ignored, as every file not named like a cube is.
+                self._failing(path, _special_file_problem(path, entry.st_mode))
+        identities = {path: _identity(entry) for path, entry in files}
+        groups, cubes = _band_groups(path for path, _ in files)
+        for prefix, members in sorted(groups.items()):
+            spec = _band_input(folder, prefix, members, self.root)
+            self.found.append(_Found(spec, tuple(identities[pathlib.Path(f)] for f in spec.files)))
+        for path in cubes:
+            self._cube(path, identities[path])
+        for path, entry in folders:
+            if _identity(entry) != self.out:  # OUT is never searched: its outputs are no inputs
+                self._folder(path, entry, top, ancestors)
+
+    def _session(self, folder: pathlib.Path) -> None:
+        for spec in _session_inputs(folder, self.root):
+            try:
+                files = tuple(_identity(os.stat(file)) for file in spec.files)
+            except OSError:
+                files = None  # the input fails when it is read, with that reason
+            self.found.append(_Found(spec, files if spec.problem is None else None))
+
+    def inputs(self) -> list[InputSpec]:
+        """Every input found, each physical input once: a file found under several names is
+        corrected under its first name that is not a symbolic link (else its first name), and
+        every other name gets one warning line."""
+        chosen: dict[tuple, _Found] = {}
+        for found in self.found:
+            if found.files is None:
+                continue
+            first = chosen.setdefault(found.files, found)
+            if os.path.islink(first.spec.files[0]) and not os.path.islink(found.spec.files[0]):
+                chosen[found.files] = found
+        inputs = []
+        for found in self.found:
+            winner = chosen.get(found.files) if found.files is not None else None
+            if winner is None or winner is found:
+                inputs.append(found.spec)
+            else:
+                self.warn(f"{found.spec.source}: is {winner.spec.source} again (the same file, given twice); "
+                          f"skipped: corrected once, as {winner.spec.source}")
+        return inputs
+
 
 
 def _session_inputs(folder: pathlib.Path, root: pathlib.Path) -> list[InputSpec]:
@@ -187,43 +389,21 @@ def _band_input(folder: pathlib.Path, prefix: str, members: list, root: pathlib.
     )
 
 
-def _search(folder: pathlib.Path, root: pathlib.Path, skip: pathlib.Path) -> list[InputSpec]:
-    if (folder / io.MANIFEST_NAME).is_file():
-        return _session_inputs(folder, root)
-    entries = sorted(p for p in folder.iterdir() if not _is_hidden(p))
-    groups, cubes = _band_groups(p for p in entries if p.is_file())
-    inputs = [_band_input(folder, prefix, members, root) for prefix, members in sorted(groups.items())]
-    for path in cubes:
-        rel = path.relative_to(root)
-        inputs.append(InputSpec(name=rel.with_suffix("").as_posix(), source=rel.as_posix(), files=(str(path),)))
-    for sub in entries:
-        if sub.is_dir() and sub.resolve() != skip:
-            inputs.extend(_search(sub, root, skip))
-    return inputs
+def discover_inputs(paths: Sequence, out_root, warn: Callable[[str], None] | None = None) -> list[InputSpec]:
+    """Every input named by `paths` (files, sessions, folders searched recursively), in order,
+    each physical input once (module docstring, Inputs).
 
-
-def discover_inputs(paths: Sequence, out_root) -> list[InputSpec]:
-    """Every input named by `paths` (files, sessions, folders searched recursively), in order.
-
-    A path that does not exist becomes an input that fails with that reason; OUT is never
-    searched (so a rerun does not take its own outputs for inputs).
+    A path that does not exist, or is a FIFO, socket or device, becomes an input that fails with
+    that reason; OUT is never searched (so a rerun does not take its own outputs for inputs).
+    `warn` gets one line per folder not followed and per input named again (skipped).
     """
     if not paths:
         raise ValueError("no INPUT given: name cube files, session folders or folders to search")
     given = [pathlib.Path(os.path.abspath(p)) for p in paths]
-    root = _common_folder(given)
-    skip = pathlib.Path(out_root).resolve()
-    inputs: list[InputSpec] = []
+    discovery = _Discovery(_common_folder(given), pathlib.Path(out_root), warn or (lambda line: None))
     for path in given:
-        rel = path.relative_to(root)
-        if path.is_dir():
-            inputs.extend(_search(path, root, skip))
-        elif path.is_file():
-            inputs.append(InputSpec(name=rel.with_suffix("").as_posix(), source=rel.as_posix(), files=(str(path),)))
-        else:
-            problem = str(io.SpherejaxFileError(path, "no such file or folder", "an input to correct"))
-            inputs.append(InputSpec(name=rel.as_posix(), source=rel.as_posix(), files=(str(path),), problem=problem))
-    return _refuse_repeated_names(inputs)
+        discovery.given(path)
+    return _refuse_repeated_names(discovery.inputs())
 
 
 def _refuse_repeated_names(inputs: list[InputSpec]) -> list[InputSpec]:
@@ -297,7 +477,14 @@ def input_checksum(spec: InputSpec) -> str:
     """SHA-256 (hex) over the bytes of the input's files, in order."""
     digest = hashlib.sha256()
     for file in spec.files:
-        with open(file, "rb") as handle:
+        # The first read of an input. O_NONBLOCK: should a FIFO have taken the file's place since
+        # discovery, the open returns at once instead of waiting for a writer; then it is refused
+        # by what it is, before any read.
+        fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
+        with open(fd, "rb") as handle:
+            mode = os.fstat(fd).st_mode
+            if not stat.S_ISREG(mode):
+                raise io.SpherejaxFileError(file, f"is {_file_kind(mode)}", "a cube file")
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)
     return digest.hexdigest()
@@ -420,6 +607,7 @@ def _correct_into(
     with contextlib.ExitStack() as stack:
         writers: dict[str, io.AtomicImageWriter] = {}
         for row0, arrays in correct_strips(cube, calibration, rows_per_strip=rows_per_strip):
+            interrupt.check()  # a safe point: leaving here removes the temporary files (ExitStack)
             if not writers:
                 # Opened once the first strip is corrected: an input that fails before (in its
                 # header, or its patch rows) leaves no file to abandon (libpng complains on
@@ -430,6 +618,8 @@ def _correct_into(
             writers["lab.exr"].write_rows(row0, arrays["lab"])
             writers["quality.png"].write_rows(row0, arrays["quality"][..., None])
             writers["preview.png"].write_rows(row0, srgb_preview(arrays["reflectance"]))
+        # The last safe point: from here the four outputs go into place together.
+        interrupt.check()
         try:
             for kind, writer in writers.items():
                 committed[kind] = (paths[kind], writer.commit())
@@ -438,6 +628,15 @@ def _correct_into(
                 path.unlink(missing_ok=True)
             raise
     return committed
+
+
+def _remove_empty_folders(created: list[pathlib.Path]) -> None:
+    """Remove the output folders an input created, deepest first, while they are empty."""
+    for folder in reversed(created):
+        try:
+            folder.rmdir()  # only if still empty: never another input's outputs
+        except OSError:
+            break
 
 
 def correct_input(
@@ -493,14 +692,16 @@ def correct_input(
             software_version=__version__, megapixels=height * width / 1e6,
             seconds=time.perf_counter() - start,
         )
+    except interrupt.Interrupted:
+        # Stopped at a safe point: the writers removed their temporary files and nothing was
+        # renamed into place; the folders this input created go too. Outputs an earlier run left
+        # stay as they are (the manifest says what they are): this run changed nothing of them.
+        _remove_empty_folders(created)
+        raise
     except Exception as error:  # noqa: BLE001 -- the batch boundary: one bad input never stops it
         if source.problem is None:  # (a repeated name's outputs are the other input's)
             _remove_outputs(out_root, source.name)
-        for folder in reversed(created):
-            try:
-                folder.rmdir()  # only if still empty: never another input's outputs
-            except OSError:
-                break
+        _remove_empty_folders(created)
         reason = " ".join(str(error).split()) or type(error).__name__
         if not isinstance(error, (io.SpherejaxFileError, OSError, ValueError)):
             reason = f"{type(error).__name__}: {reason}"
@@ -698,6 +899,7 @@ def run_batch(
     exr_compression: str = io.DEFAULT_EXR_COMPRESSION,
     on_start: Callable[[list[InputSpec]], None] | None = None,
     on_result: Callable[[InputSpec, FileResult | None], None] | None = None,
+    on_warning: Callable[[str], None] | None = None,
     executor=None,
 ) -> BatchSummary:
     """Correct every input into OUT, in process (`spherejax correct`).
@@ -711,14 +913,22 @@ def run_batch(
       exr_compression: of the EXR outputs (`io.EXR_COMPRESSIONS`, all lossless).
       on_start: called with the inputs found, before the first is corrected.
       on_result: called per input with its FileResult, or None when it was skipped.
+      on_warning: called with one line per folder not followed and per input named twice
+        (`discover_inputs`).
       executor: None corrects in this process; otherwise an object whose
         map(specs, out_root, calibration_path, **options) calls `correct_input` with those
         keyword options and yields (spec, FileResult) in any order, e.g.
         `spherejax.cluster.DaskExecutor`. Paths reach it absolute: a worker may run elsewhere.
+        When a stop is asked for (`spherejax.interrupt`) it stops submitting, yields the inputs
+        already under way as they finish and raises `interrupt.Interrupted`.
 
     Raises (before anything is written):
       CalibrationFileError: a calibration that cannot be read.
       BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked.
+    Raises (inside `interrupt.stop_requests()`, on SIGINT or SIGTERM):
+      interrupt.Interrupted: at the next safe point, with `done` (inputs finished, skipped or
+        failed) and `total`; the input under way has left nothing in OUT, the lock is released,
+        the manifest records every input finished.
     """
     # Absolute: workers started in other folders read and write these paths themselves.
     out_root = pathlib.Path(os.path.abspath(out_root))
@@ -733,7 +943,7 @@ def run_batch(
             out_root, f"already holds a batch ({MANIFEST_NAME})",
             "--resume to continue it, or a new OUT",
         )
-    specs = discover_inputs(inputs, out_root)
+    specs = discover_inputs(inputs, out_root, warn=on_warning)
     try:
         out_root.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -749,34 +959,48 @@ def run_batch(
         try:
             if on_start is not None:
                 on_start(specs)
-            pending = []
-            for spec in specs:
-                if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"]):
-                    summary.skipped += 1
-                    if on_result is not None:
-                        on_result(spec, None)
-                    continue
-                pending.append(spec)
-            options = {"illuminant": illuminant, "exr_compression": exr_compression}
-            if executor is None:
-                results = ((spec, correct_input(spec, out_root, calibration_path, **options)) for spec in pending)
-            else:
-                results = executor.map(pending, out_root, calibration_path, **options)
-            # The manifest is written here, by the one process that holds the lock, whoever
-            # corrected the input.
-            for spec, result in results:
-                manifest.append(result.to_json())
-                if result.status == "done":
-                    summary.corrected += 1
+            try:
+                pending = []
+                for spec in specs:
+                    interrupt.check()  # verifying what is done reads every output: a while
+                    if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"]):
+                        summary.skipped += 1
+                        if on_result is not None:
+                            on_result(spec, None)
+                        continue
+                    pending.append(spec)
+                options = {"illuminant": illuminant, "exr_compression": exr_compression}
+                if executor is None:
+                    results = _in_process(pending, out_root, calibration_path, options)
                 else:
-                    summary.failed.append(result)
-                if on_result is not None:
-                    on_result(spec, result)
+                    results = executor.map(pending, out_root, calibration_path, **options)
+                # The manifest is written here, by the one process that holds the lock, whoever
+                # corrected the input; an input is recorded only once its outputs are complete.
+                for spec, result in results:
+                    manifest.append(result.to_json())
+                    if result.status == "done":
+                        summary.corrected += 1
+                    else:
+                        summary.failed.append(result)
+                    if on_result is not None:
+                        on_result(spec, result)
+            except interrupt.Interrupted as stopped:
+                stopped.done = summary.corrected + summary.skipped + len(summary.failed)
+                stopped.total = len(specs)
+                raise
         finally:
             manifest.close()
     finally:
         lock.release()
     return summary
+
+
+def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_path: pathlib.Path, options: dict):
+    """(spec, FileResult) of each input corrected in this process, stopping at the safe point
+    before each input when a stop is asked for (`correct_input` has its own, inside)."""
+    for spec in pending:
+        interrupt.check()
+        yield spec, correct_input(spec, out_root, calibration_path, **options)
 
 
 __all__ = [

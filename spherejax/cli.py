@@ -18,6 +18,11 @@ Exit status 0 on success; on bad input a one-line message on stderr (no tracebac
 status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
 reason, and the run ends with a summary and exit status 1 if any failed. Everything is computed before the first byte is written, and
 every file is written to a temporary name and renamed into place.
+
+`correct` and `acquire` stop cleanly on SIGINT (Ctrl-C) or SIGTERM (spherejax.interrupt): at the
+next safe point, with what was finished kept and recorded, nothing half-written left and OUT's
+lock released, one line ("spherejax: interrupted after N of M inputs; run again with --resume")
+and exit status 130 (SIGINT) or 143 (SIGTERM).
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import pathlib
 import sys
 import time
 
+from . import interrupt
 from .allocator import keep_freed_memory
 
 EXIT_BAD_INPUT = 2
@@ -296,12 +302,18 @@ def cmd_correct(args) -> int:
 
         executor = cluster.DaskExecutor(workers=args.workers, scheduler=args.scheduler)
     progress = _BatchProgress(args.quiet)
+
+    def warn(line: str) -> None:
+        print(f"spherejax: warning: {line}", file=sys.stderr, flush=True)
+
     try:
-        with executor as running:
+        # SIGINT / SIGTERM stop the batch at its next safe point (spherejax.interrupt); `main`
+        # reports it. Outermost, so that the cluster's start and stop are covered too.
+        with interrupt.stop_requests(), executor as running:
             summary = archive.run_batch(
                 args.inputs, args.output, args.calibration, resume=args.resume,
                 illuminant=args.illuminant, exr_compression=args.exr_compression,
-                on_start=progress.start, on_result=progress.result, executor=running,
+                on_start=progress.start, on_result=progress.result, on_warning=warn, executor=running,
             )
     finally:
         progress.close()
@@ -343,10 +355,11 @@ def cmd_acquire(args) -> int:
 
     settings = acquire.Settings(log=log, progress=progress)
     try:
-        session = acquire.acquire(
-            args.profile, args.output, emulate=args.emulate, resume=args.resume,
-            operator=acquire.Operator(yes=args.yes), settings=settings,
-        )
+        with interrupt.stop_requests():  # SIGINT / SIGTERM: stop between band images (`main` reports)
+            session = acquire.acquire(
+                args.profile, args.output, emulate=args.emulate, resume=args.resume,
+                operator=acquire.Operator(yes=args.yes), settings=settings,
+            )
     except acquire.AcquisitionStopped as error:
         print(f"spherejax: {error}", file=sys.stderr)
         return 1
@@ -474,7 +487,17 @@ def main(argv=None) -> int:
     # (spherejax.allocator says why; about 2x on a 1-megapixel correction).
     keep_freed_memory()
     try:
+        # A mistyped switch (SPHEREJAX_FUSED=off) is refused up front, not per input of a batch.
+        from . import fused
+
+        fused.switch()
         return args.run(args)
+    except interrupt.Interrupted as stopped:
+        # A stop request honoured at a safe point (`correct`, `acquire`): what was finished is
+        # kept and recorded, what was under way removed; the exit status a shell gives a process
+        # killed by that signal, 130 for SIGINT, 143 for SIGTERM.
+        print(stopped.message(), file=sys.stderr, flush=True)
+        return stopped.exit_status
     except KeyboardInterrupt:
         print("spherejax: interrupted", file=sys.stderr)
         return 130

@@ -24,9 +24,9 @@ import os
 import pathlib
 from collections.abc import Iterator
 
-from distributed import Client, LocalCluster, WorkerPlugin, as_completed
+from distributed import Client, LocalCluster, WorkerPlugin, wait
 
-from . import archive
+from . import archive, interrupt
 from .allocator import keep_freed_memory
 
 #: Where workers keep compiled executables unless SPHEREJAX_COMPILATION_CACHE says otherwise.
@@ -96,17 +96,45 @@ class DaskExecutor:
 
     def map(self, specs: list, out_root, calibration_path, **options) -> Iterator[tuple[object, object]]:
         """Yield (spec, FileResult) as workers finish; a worker that dies yields a failure.
-        `options` are `archive.correct_input`'s keyword arguments."""
-        futures = {
-            self.client.submit(
-                archive.correct_input, spec, str(out_root), str(calibration_path),
-                pure=False, key=f"spherejax-correct-{k}", **options,
-            ): spec
-            for k, spec in enumerate(specs)
-        }
-        for future in as_completed(futures):
-            spec = futures[future]
-            try:
-                yield spec, future.result()
-            except Exception as error:  # noqa: BLE001 -- a lost worker fails its input, not the batch
-                yield spec, archive.failed_result(spec, f"worker failed: {' '.join(str(error).split())}")
+        `options` are `archive.correct_input`'s keyword arguments.
+
+        At most one input per worker thread is submitted at a time, so a stop request
+        (`spherejax.interrupt`) has little under way to wait for: submitting stops, the inputs
+        already on workers are let finish (a task cannot be stopped mid-write from here, and one
+        cancelled while running would go on writing into OUT after the lock is released) and
+        yielded, so the manifest records them, and then `interrupt.Interrupted` is raised.
+        """
+        waiting = list(enumerate(specs))
+        waiting.reverse()  # popped from the end: submitted in order
+        running: dict = {}
+        window = max(1, sum(self.client.nthreads().values()))
+        try:
+            while waiting or running:
+                stopping = interrupt.requested() is not None
+                while waiting and len(running) < window and not stopping:
+                    k, spec = waiting.pop()
+                    future = self.client.submit(
+                        archive.correct_input, spec, str(out_root), str(calibration_path),
+                        pure=False, key=f"spherejax-correct-{k}", **options,
+                    )
+                    running[future] = spec
+                if not running:
+                    break
+                # A short timeout, so a stop request is seen while every worker is busy.
+                try:
+                    finished = wait(list(running), timeout=0.2, return_when="FIRST_COMPLETED").done
+                except TimeoutError:
+                    finished = ()
+                for future in finished:
+                    spec = running.pop(future)
+                    try:
+                        result = future.result()
+                    except Exception as error:  # noqa: BLE001 -- a lost worker fails its input, not the batch
+                        result = archive.failed_result(spec, f"worker failed: {' '.join(str(error).split())}")
+                    yield spec, result
+            interrupt.check()
+        finally:
+            # Only when the caller stopped iterating early (an error of its own): nothing more
+            # of ours should land in OUT; inputs not started are dropped.
+            for future in running:
+                future.cancel()

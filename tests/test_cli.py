@@ -149,6 +149,14 @@ class TestCommands:
         assert (tmp_path / "demo" / "calibration.npz").exists()
         assert (tmp_path / "demo" / "evaluation" / "table6.csv").exists()
 
+    def test_an_undocumented_kernel_switch_is_refused(self, workspace, tmp_path, capsys, monkeypatch):
+        """SPHEREJAX_FUSED=off used to leave the fused kernel on, silently."""
+        monkeypatch.setenv("SPHEREJAX_FUSED", "off")
+        before = snapshot(tmp_path)
+        status, _, err = run(["correct", "-c", str(workspace / "cal.npz"), str(workspace / "session"), "-o", str(tmp_path / "out")], capsys)
+        assert_refused(status, err, "SPHEREJAX_FUSED", "'off'", "'portable'")
+        assert snapshot(tmp_path) == before
+
     def test_no_traceback_through_the_real_entry_point(self, tmp_path):
         result = subprocess.run(
             [sys.executable, "-m", "spherejax.cli", "calibrate", str(tmp_path / "nowhere"), "-o", str(tmp_path / "c.npz")],
