@@ -9,7 +9,7 @@ What it measures
       cold      no persistent cache;
       populate  with an empty persistent cache folder (JAX writes the executables);
       warm      with that folder (JAX loads them instead of compiling).
-    Targets (issue 7): cold under 2 s, warm under 0.5 s (reported PASS / FAIL). The second call
+    Targets (the project's speed goals, benchmarks/README.md): cold under 2 s, warm under 0.5 s (reported PASS / FAIL). The second call
     of each process must compile nothing (counted with jax.monitoring's backend-compile event):
     the exit status is 1 if it does.
 

@@ -18,7 +18,7 @@ Against what
     A further figure puts them in physical terms: the memory floor. The path must read the raw cube
     (uint16), the dark frame and the white standard (float32) and write reflectance, Lab (float32)
     and the quality mask (uint8), 297 bytes per pixel; at the machine's copy bandwidth, measured
-    in the same run, that takes `floor` seconds. DESIGN.md, "Performance model".
+    in the same run, that takes `floor` seconds. docs/design.md, "Performance model".
 
 Timing follows the optimistix / equinox benchmarks: the first call (trace + compile + run) is
 reported on its own, then each implementation is timed `--repeats` times, the two taking turns,
@@ -68,7 +68,7 @@ SATURATION = 16383.0  # 14-bit ADC full scale
 PATCH_SIZE = 35  # the paper's 35 x 35 pixel averaging region
 SEED = 20190816  # fixed so every run times the same cube
 
-# Bytes the path must move per pixel (DESIGN.md, "Performance model"): read raw uint16, dark and
+# Bytes the path must move per pixel (docs/design.md, "Performance model"): read raw uint16, dark and
 # white float32; write reflectance (31) and Lab (3) float32 and the uint8 quality mask.
 BYTES_PER_PIXEL = BANDS * 2 + BANDS * 4 * 2 + (31 + 3) * 4 + 1  # = 297
 

@@ -1,5 +1,5 @@
 """hw: control of the integrating-sphere multispectral instrument over pyserial, and emulated
-devices that follow the vendors' protocols (../shared/INSTRUMENT.md).
+devices that follow the vendors' protocols (docs/instrument.md).
 
     errors        HardwareError and its kinds: DeviceTimeout, ProtocolError, DeviceError, PortError
     serialline    the echo / value line / "> " prompt protocol both Thorlabs devices speak

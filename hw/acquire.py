@@ -1,4 +1,4 @@
-"""`spherejax acquire`: the acquisition protocol of INSTRUMENT.md, written as a session.
+"""`spherejax acquire`: the acquisition protocol of docs/instrument.md, written as a session.
 
     connect      wheels (*idn?, pcount? against the profile, sensors=0), shutter (id?, closed),
                  camera, lamp state; nothing moves before every check has passed
@@ -48,7 +48,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
-from spherejax import interrupt
+from spherejax import interrupt, jsontext
 
 from .camera import Camera, CameraError, open_camera
 from .errors import HardwareError
@@ -134,8 +134,10 @@ class Journal:
         records = []
         for line in self.path.read_bytes().split(b"\n"):
             try:
-                record = json.loads(line)
-            except ValueError:
+                # jsontext: a damaged line (not UTF-8, nested thousands deep) is skipped like a
+                # torn one; json.loads raised RecursionError on deep nesting.
+                record = jsontext.loads(line)
+            except jsontext.JSONTextError:
                 continue
             if isinstance(record, dict) and isinstance(record.get("event"), str):
                 records.append(record)
@@ -289,7 +291,7 @@ def _full_scale(camera: Camera) -> int:
 
 def choose_exposure(camera: Camera, settings, *, start_s: float) -> tuple[float, float]:
     """Exposure putting the `target_percentile` of a frame at `target_level` of full scale
-    with no saturated pixel (INSTRUMENT.md step 2). Returns (exposure_s, level reached)."""
+    with no saturated pixel (docs/instrument.md, "Acquisition protocol", step 2). Returns (exposure_s, level reached)."""
     low, high = camera.exposure_limits_s
     full = _full_scale(camera)
     exposure = float(np.clip(start_s, low, high))
@@ -313,7 +315,7 @@ def choose_exposure(camera: Camera, settings, *, start_s: float) -> tuple[float,
 
 
 def _warm_up(instrument: Instrument, exposures: dict[int, float] | None, settings: Settings, config) -> dict:
-    """Image the white standard until the lamp is stable (INSTRUMENT.md step 1)."""
+    """Image the white standard until the lamp is stable (docs/instrument.md, "Acquisition protocol", step 1)."""
     profile, camera = instrument.profile, instrument.camera
     band = profile.band_centres_nm[len(profile.band_centres_nm) // 2]
     instrument.bank.select(band)
@@ -451,9 +453,9 @@ def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
             return
         raise AcquisitionError(f"{partial}: holds no profile.json: not an acquisition spherejax can resume")
     try:
-        before = json.loads(saved.read_text())
-    except ValueError:
-        raise AcquisitionError(f"{saved}: is not JSON: not an acquisition spherejax can resume") from None
+        before = jsontext.loads(saved.read_bytes())
+    except jsontext.JSONTextError as error:
+        raise AcquisitionError(f"{saved}: {error.problem}: not an acquisition spherejax can resume") from None
     now = _profile_identity(profile)
     if before != now:
         changed = sorted(k for k in now if before.get(k) != now[k])

@@ -16,15 +16,20 @@ handed an exposure of NaN or a ROI off the sensor, and every backend reports the
 
 `open_camera("sim" | "pvcam", **options)` picks a backend by name; the backends' modules are
 imported lazily, so this module needs neither JAX (simulated camera) nor PyVCAM (PVCAM).
+`PROFILE_OPTIONS` declares, per backend, the options an instrument profile's `[camera]` table may
+pass to it, so that the profile is checked against them when it is read (`hw.profile`), without
+importing the backend, instead of failing with a TypeError once the devices are open.
 """
 
 from __future__ import annotations
 
 import abc
+import dataclasses
 import importlib
 import math
 import numbers
 import operator
+from collections.abc import Callable
 
 import numpy as np
 
@@ -251,4 +256,36 @@ def open_camera(backend: str, **options) -> Camera:
     return getattr(importlib.import_module(module), cls)(**options)
 
 
-__all__ = ["BACKENDS", "Camera", "CameraError", "open_camera"]
+@dataclasses.dataclass(frozen=True)
+class ProfileOption:
+    """A constructor keyword of a backend that a profile's `[camera]` table may set: its TOML
+    type(s), what to say it should be, and a check of the value (all one-line error material)."""
+
+    kinds: type | tuple[type, ...]
+    expected: str
+    check: Callable[[object], bool] | None = None
+
+
+def _is_shape(value) -> bool:
+    return len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in value)
+
+
+#: Backend name -> {keyword: ProfileOption}: what a profile may pass to each backend's constructor.
+#: Only values TOML can spell: the simulated camera's callables, InstrumentModel and
+#: ExperimentDesign are the acquisition's to pass. tests/hw/test_camera.py checks every name here
+#: against the backend's signature, so the table cannot drift from the constructors.
+PROFILE_OPTIONS: dict[str, dict[str, ProfileOption]] = {
+    "sim": {
+        # Both numpy's and JAX's generators take 0 .. 2**32 - 1 whatever JAX's x64 setting.
+        "seed": ProfileOption(int, "an integer 0..4294967295", lambda v: 0 <= v <= 2**32 - 1),
+        "image_shape": ProfileOption(list, "[height, width] in pixels, two integers >= 1", _is_shape),
+        "name": ProfileOption(str, "a non-empty string", bool),
+    },
+    "pvcam": {
+        "camera_name": ProfileOption(str, "a PVCAM camera name, a non-empty string", bool),
+        "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0", lambda v: v > 0),
+    },
+}
+
+
+__all__ = ["BACKENDS", "PROFILE_OPTIONS", "Camera", "CameraError", "ProfileOption", "open_camera"]

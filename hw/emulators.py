@@ -1,6 +1,6 @@
 """Emulated Thorlabs FW102C/FW212C filter wheels and SC10 shutters, served on pseudo-terminals.
 
-Three layers (../shared/INSTRUMENT.md, "Testing without hardware"):
+Three layers (docs/instrument.md, "Testing without hardware"):
 
 ``FilterWheelEmulator`` / ``ShutterEmulator``
     Pure protocol state machines, no I/O: ``receive(bytes)`` returns ``[(delay_s, bytes), ...]``,
@@ -24,7 +24,7 @@ Three layers (../shared/INSTRUMENT.md, "Testing without hardware"):
     records the exact bytes written and read, for golden-transcript tests (as pymeasure's
     ``expected_protocol``). Install it with ``monkeypatch.setattr(serial, "serial_for_url", ...)``.
 
-Interpretations of INSTRUMENT.md made here: ``stray_on_open`` goes out ahead of the first reply
+Interpretations of docs/instrument.md made here: ``stray_on_open`` goes out ahead of the first reply
 (a pty cannot tell the emulator when the driver opens it, and pyserial flushes the input queue on
 open, so bytes sent earlier would never be seen); an empty command (a bare ``\\r``) answers with its
 echo and the prompt; the SC10 emulator does not run the timed cycles of modes 2..5 and reports the
@@ -199,7 +199,7 @@ class FilterWheelEmulator(_PromptedEmulator):
 
         The wheel turns the short way round: ``MOVE_START_S`` plus a time per slot, which gives
         0.95 s to a neighbour and about 2.5 s for a typical 4-slot move at high speed, and 7 s for the
-        longest move (6 slots of an FW212C) in slow mode (INSTRUMENT.md's figures).
+        longest move (6 slots of an FW212C) in slow mode (docs/instrument.md's figures).
         """
         steps = abs(target - start)
         steps = min(steps, self.count - steps)

@@ -6,7 +6,7 @@ device said something, the raw reply. ``str(error)`` is always one line, e.g.::
 
     /dev/pts/3: 'pos=7': device error Command error CMD_ARG_INVALID (reply b'pos=7\\rCommand error CMD_ARG_INVALID\\n> ')
 
-The classes split failures by what a caller can do about them (see ../shared/INSTRUMENT.md for the
+The classes split failures by what a caller can do about them (see docs/instrument.md for the
 protocols): a ``DeviceTimeout`` may be retried, a ``ProtocolError`` means the wrong device or a
 garbled line, a ``DeviceError`` is the instrument refusing a command or failing to reach a slot, and a
 ``PortError`` means the serial port itself is gone.

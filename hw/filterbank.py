@@ -1,4 +1,4 @@
-"""Stacked filter wheels as one band selector (INSTRUMENT.md, "16 filters do not fit one wheel").
+"""Stacked filter wheels as one band selector (docs/instrument.md, "16 filters do not fit one wheel").
 
 Sixteen filters need two wheels (an FW212C holds 12, an FW102C 6), each with one open slot. To
 select a band, the wheel carrying its filter moves it into the light path and every other wheel

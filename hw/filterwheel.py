@@ -1,6 +1,6 @@
 """Driver for the Thorlabs FW102C (6 positions, 1" filters) and FW212C (12 positions, 1/2" filters).
 
-Protocol facts implemented here (../shared/INSTRUMENT.md, "Thorlabs FW102C / FW212C serial protocol";
+Protocol facts implemented here (docs/instrument.md, "Thorlabs FW102C / FW212C serial protocol";
 the echo / prompt framing lives in ``hw.serialline``):
 
 - 115200 baud 8N1 by default (``baud=0`` on the unit switches it to 9600: pass ``baudrate=9600``).

@@ -1,6 +1,6 @@
 """The xenon lamp, a manual device: switch-on time, warm-up and lamp hours kept in a state file.
 
-The 150 W xenon lamp's power supply has no public serial protocol (INSTRUMENT.md), so the operator
+The 150 W xenon lamp's power supply has no public serial protocol (docs/instrument.md), so the operator
 switches it by hand and the software records it: `switch_on` when the arc strikes, `switch_off`
 when it goes out. From those records `Lamp` answers how long the lamp has been warming up and how
 many hours it has burned (xenon arcs age with hours and ignitions; both are logged with every
@@ -102,17 +102,20 @@ class Lamp:
     def _read(self) -> dict:
         """The validated state: hours (float), on_since (datetime | None), ignitions (int),
         warmups (list of dicts)."""
+        # Imported here, not at the top: spherejax's package pulls in JAX, which reading the lamp
+        # does not otherwise need.
+        from spherejax import jsontext
+
         try:
-            text = self.state_file.read_text(encoding="utf-8")
+            data = self.state_file.read_bytes()
         except FileNotFoundError:
             return {"hours": 0.0, "on_since": None, "ignitions": 0, "warmups": []}
-        except UnicodeDecodeError as error:
-            raise LampStateError(f"{self.state_file}: lamp state is not UTF-8 text (byte {error.start}); expected a JSON object with \"hours\"") from None
         try:
-            raw = json.loads(text)
-        except ValueError as error:
-            detail = f"{error.msg} at line {error.lineno} column {error.colno}" if isinstance(error, json.JSONDecodeError) else str(error)
-            raise LampStateError(f"{self.state_file}: lamp state is not JSON ({detail}); expected an object with \"hours\"") from None
+            # The parser every file spherejax reads goes through: a file written here and then
+            # damaged (bad bytes, deep nesting, huge integers) is refused like any user file.
+            raw = jsontext.loads(data)
+        except jsontext.JSONTextError as error:
+            raise LampStateError(f"{self.state_file}: lamp state {error.problem}; expected a JSON object with \"hours\"") from None
         if not isinstance(raw, dict):
             raise LampStateError(f"{self.state_file}: lamp state is a JSON {type(raw).__name__}, expected an object with \"hours\"")
         unknown = sorted(set(raw) - set(_KEYS))

@@ -1,7 +1,7 @@
 """The instrument profile: which device sits on which port, and which band is which wheel slot.
 
-A TOML file (INSTRUMENT.md, "16 filters do not fit one wheel": the band -> (wheel, slot) mapping
-belongs in a profile, never in code):
+A TOML file (docs/instrument.md, "16 filters do not fit one wheel": the band -> (wheel, slot)
+mapping belongs in a profile, never in code):
 
     [instrument]
     id = "sphere-1"
@@ -18,7 +18,9 @@ belongs in a profile, never in code):
     port = "/dev/ttyUSB2"
     model = "SC10"
     [camera]
-    backend = "sim"           # "sim" or "pvcam"; other keys are passed to the backend
+    backend = "sim"           # "sim" or "pvcam"; the other keys are the backend's options:
+    seed = 0                  #   sim: seed, image_shape = [H, W], name; pvcam: camera_name,
+                              #   exposure_s (hw.camera.PROFILE_OPTIONS)
     [bands]                   # band centre in nm = [wheel, slot]
     400 = ["a", 1]
     ...
@@ -27,7 +29,7 @@ Optional sections (defaults in `AcquisitionSettings` and `Layout`):
 
     [acquisition]
     frames_averaged = 16      # frames averaged per white-standard and sample frame
-    dark_frames = 16          # frames averaged per dark frame (INSTRUMENT.md: 10-25)
+    dark_frames = 16          # frames averaged per dark frame (docs/instrument.md: 10-25)
     target_level = 0.8        # exposure: this fraction of full scale ...
     target_percentile = 99.5  # ... at this percentile of the white standard, nothing saturated
     warmup_drift_percent = 0.5
@@ -46,8 +48,9 @@ Optional sections (defaults in `AcquisitionSettings` and `Layout`):
 
 Everything is checked when the profile is read, before any device is opened, and a problem is
 one `ProfileError` line naming the file and the key: a missing key, an unknown key (a typo must not
-pass silently), two bands on one slot, a slot beyond the wheel's count or on its open slot, a band
-on a wheel the profile does not define, a path that leaves the profile's folder.
+pass silently, nor a camera option the backend does not take), two bands on one slot, a slot beyond
+the wheel's count or on its open slot, a band on a wheel the profile does not define, a path that
+leaves the profile's folder.
 """
 
 from __future__ import annotations
@@ -59,10 +62,12 @@ import re
 import tomllib
 from collections.abc import Mapping
 
+from .camera import PROFILE_OPTIONS
+
 #: Positions of each filter wheel model (Thorlabs: pcount accepts only 6 or 12).
 WHEEL_POSITIONS = {"FW102C": 6, "FW212C": 12}
 SHUTTER_MODELS = ("SC10",)
-CAMERA_BACKENDS = ("sim", "pvcam")
+CAMERA_BACKENDS = tuple(PROFILE_OPTIONS)
 SETS = ("training", "test")
 _SAFE_ID = re.compile(r"[A-Za-z0-9._-]+")
 
@@ -181,10 +186,10 @@ class _Table:
     def key(self, name: str) -> str:
         return f"{self.where}.{name}" if self.where else name
 
-    def only(self, allowed) -> None:
+    def only(self, allowed, *, expected: str | None = None) -> None:
         unknown = sorted(set(self.data) - set(allowed))
         if unknown:
-            raise ProfileError(self.path, self.key(unknown[0]), "is not a known key", f"one of {sorted(allowed)}")
+            raise ProfileError(self.path, self.key(unknown[0]), "is not a known key", expected or f"one of {sorted(allowed)}")
 
     def get(self, name: str, kind, expected: str, *, default=dataclasses.MISSING, check=None):
         if name not in self.data:
@@ -244,6 +249,25 @@ def _wheels(root: _Table) -> dict[str, WheelConfig]:
         ))
         wheels[name] = WheelConfig(name, port, model, open_slot, move_timeout_s)
     return wheels
+
+
+def _camera(root: _Table) -> CameraConfig:
+    """[camera]: the backend and the options passed to its constructor, each checked against
+    what that backend declares (hw.camera.PROFILE_OPTIONS), so that a typo or an option of
+    another backend is refused here, before any device is opened, not as a TypeError later."""
+    table = root.table("camera")
+    backend = table.get("backend", str, f"one of {list(CAMERA_BACKENDS)}", check=lambda b: b in CAMERA_BACKENDS)
+    declared = PROFILE_OPTIONS[backend]
+    table.only(
+        {"backend", *declared},
+        expected=f"an option of the {backend!r} backend: one of {sorted(declared)}" if declared
+        else f"no option: the {backend!r} backend takes none",
+    )
+    options = {
+        name: table.get(name, option.kinds, option.expected, check=option.check)
+        for name, option in declared.items() if name in table.data
+    }
+    return CameraConfig(backend, options)
 
 
 def _bands(root: _Table, wheels: Mapping[str, WheelConfig]) -> dict[int, tuple[str, int]]:
@@ -344,9 +368,8 @@ def load_profile(path) -> Profile:
         port=shutter_table.get("port", str, "a serial port path or pyserial URL", check=bool),
         model=shutter_table.get("model", str, f"one of {list(SHUTTER_MODELS)}", check=lambda m: m in SHUTTER_MODELS),
     )
-    camera_table = root.table("camera")
-    backend = camera_table.get("backend", str, f"one of {list(CAMERA_BACKENDS)}", check=lambda b: b in CAMERA_BACKENDS)
-    camera = CameraConfig(backend, {k: v for k, v in camera_table.data.items() if k != "backend"})
+    camera = _camera(root)
+    backend = camera.backend
     bands = _bands(root, wheels)
 
     layout_table = root.table("layout", required=False)

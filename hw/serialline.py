@@ -1,6 +1,6 @@
 """The echo / value line / prompt protocol shared by the Thorlabs FW102C/FW212C and SC10.
 
-Protocol facts (../shared/INSTRUMENT.md, "Thorlabs FW102C / FW212C serial protocol" and "SC10"):
+Protocol facts (docs/instrument.md, "Thorlabs FW102C / FW212C serial protocol" and "SC10"):
 
 - 8N1, no flow control; 115200 baud for the wheel, 9600 for the SC10.
 - A command is lower-case ASCII ending in ``\\r``. The unit echoes the command, then prints one value
@@ -61,7 +61,7 @@ POLL_S = 0.05
 #: the bare \r come back to back; 50 ms is ~48 characters at 9600 baud. Anything later is flushed
 #: before the next command or skipped as a stale line ahead of its echo.
 DRAIN_QUIET_S = 0.05
-#: Substrings that mark a line as a device error (INSTRUMENT.md: look for "Command error" / "CMD_").
+#: Substrings that mark a line as a device error (docs/instrument.md: look for "Command error" / "CMD_").
 ERROR_MARKERS = ("Command error", "CMD_")
 
 _LINE_BREAK = re.compile(r"[\r\n]")

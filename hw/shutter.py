@@ -1,6 +1,6 @@
 """Driver for the Thorlabs SC10 shutter controller.
 
-Protocol facts implemented here (../shared/INSTRUMENT.md, "Thorlabs SC10 shutter controller"; the
+Protocol facts implemented here (docs/instrument.md, "Thorlabs SC10 shutter controller"; the
 echo / prompt framing lives in ``hw.serialline``):
 
 - 9600 baud 8N1, the same echo / value line / ``> `` prompt and error strings as the filter wheel.

@@ -59,7 +59,7 @@ SENSOR_TEMPERATURE_C = -25.0
 FILTER_LEAK = 1.0e-4
 
 #: Lamp output just after ignition is short of its settled value by this fraction, relaxing with
-#: time constant WARMUP_TAU_S (s): a short-arc lamp settles over minutes (INSTRUMENT.md step 1).
+#: time constant WARMUP_TAU_S (s): a short-arc lamp settles over minutes (docs/instrument.md, acquisition step 1).
 WARMUP_DEFICIT = 0.05
 WARMUP_TAU_S = 300.0
 

@@ -46,7 +46,7 @@ def float_dtype(*arrays) -> jnp.dtype:
     """The floating dtype a computation on `arrays` runs in.
 
     float32 unless a floating input is float64 (integer camera counts, e.g. uint16, do not vote):
-    DESIGN.md, "float32 by default, float64 when the caller passes float64".
+    docs/design.md, "float32 by default, float64 when the caller passes float64".
     """
     floats = [a.dtype for a in arrays if jnp.issubdtype(a.dtype, jnp.floating)]
     if any(d == jnp.float64 for d in floats):

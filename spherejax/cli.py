@@ -1,4 +1,4 @@
-"""The `spherejax` command line (DESIGN.md, "The command line").
+"""The `spherejax` command line (docs/design.md, "The command line").
 
     spherejax demo [--out DIR] [--seed N]      simulate, calibrate, correct, evaluate
     spherejax simulate OUT [--seed N]          a synthetic session like the paper's experiment
@@ -327,7 +327,7 @@ def cmd_correct(args) -> int:
 
 
 def cmd_acquire(args) -> int:
-    # hw/ is the instrument package beside spherejax (DESIGN.md, top level); imported here so the
+    # hw/ is the instrument package beside spherejax (docs/design.md, "Top level"); imported here so the
     # other commands never load serial drivers.
     from hw import acquire
 

@@ -6,7 +6,7 @@ passes through the scheduler. The client keeps the lock and the manifest (`archi
 
 - `--workers N`: a LocalCluster of N single-threaded worker processes on loopback. Each worker is
   pinned to one core before JAX starts, because XLA sizes its CPU thread pool from the cores a
-  process may use and ignores the usual thread flags (DESIGN.md): one process per core with one
+  process may use and ignores the usual thread flags (docs/design.md, "Performance model"): one process per core with one
   XLA thread each, never N processes each spawning threads for all cores.
 - `--scheduler ADDRESS`: a running cluster. Its workers are used as they were started; run them
   with `--nworkers <cores> --nthreads 1` (or one worker with all cores), never both.

@@ -110,6 +110,7 @@ from typing import Any
 import numpy as np
 import OpenImageIO as oiio
 
+from . import jsontext
 from .grid import N_WAVELENGTHS
 from .pipeline import Calibration
 
@@ -1374,17 +1375,15 @@ def _parse_manifest(doc, *, manifest_path: pathlib.Path, root: pathlib.Path) -> 
 
 def _read_manifest(manifest_path: pathlib.Path):
     try:
-        text = manifest_path.read_text(encoding="utf-8")
+        data = manifest_path.read_bytes()
     except OSError as error:
         raise SessionError(manifest_path, f"cannot be read: {error.strerror}") from None
-    except UnicodeDecodeError as error:
-        raise SessionError(manifest_path, f"is not UTF-8 text: {error}", "JSON") from None
     try:
-        return json.loads(text)
-    except (ValueError, RecursionError) as error:
-        # Besides JSONDecodeError (a ValueError): an integer of more than 4300 digits raises
-        # ValueError, and arrays nested thousands deep RecursionError.
-        raise SessionError(manifest_path, f"is not valid JSON: {error}", "JSON") from None
+        # Not json.loads: jsontext also turns bad UTF-8, 4300-digit integers and deep nesting
+        # into the one-line problem.
+        return jsontext.loads(data)
+    except jsontext.JSONTextError as error:
+        raise SessionError(manifest_path, error.problem, "JSON") from None
 
 
 def _check_frame_file(session: Session, frame: FrameInfo) -> None:
@@ -1793,14 +1792,10 @@ def _decode_header(path, raw: np.ndarray | None) -> dict:
     try:
         # NaN and Infinity are not JSON (save_calibration never writes them), and the checksum,
         # computed over strict JSON, could not be verified with one in the header.
-        return json.loads(raw.tobytes().decode("utf-8"), parse_constant=_not_json)
-    except (ValueError, RecursionError) as error:  # as in _read_manifest; UnicodeDecodeError too
-        problem = f"has a header that is not UTF-8 JSON: {error}"
+        return jsontext.loads(raw.tobytes(), allow_nan=False)
+    except jsontext.JSONTextError as error:
+        problem = f"has a header that is not UTF-8 JSON: {error.detail}"
         raise CalibrationFileError(path, problem, expected) from None
-
-
-def _not_json(constant: str):
-    raise ValueError(f"{constant} is not a JSON value")
 
 
 def save_calibration(

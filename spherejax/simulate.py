@@ -53,11 +53,11 @@ class InstrumentModel:
       holder_height_m: 0.08, holder_width_m: 0.10 -- the paper's sphere (Section 5); they give
       its stated port fraction of 1.63 %.
     wall_reflectance_400nm: 0.95, wall_reflectance_700nm: 0.99 -- PTFE / BaSO4 coatings lose a
-      few percent in the violet and approach 0.99 in the red (DESIGN.md: 0.95-0.99).
+      few percent in the violet and approach 0.99 in the red (docs/design.md: 0.95-0.99).
     lamp_colour_temperature_k: 6000 -- xenon short arcs emit a near-continuum close to 6000 K.
     lamp_line_strength: 0.15 -- the Xe I line cluster at 450-500 nm rises ~15 % above it.
     lamp_drift_per_hour: -0.005 -- a warmed-up arc still drifts by tenths of a percent per hour.
-    lamp_fluctuation: 0.015 -- frame-to-frame arc flicker of 1-2 % (DESIGN.md).
+    lamp_fluctuation: 0.015 -- frame-to-frame arc flicker of 1-2 % (docs/design.md).
     stray_light_fraction: 0.03 -- veiling glare of lens + filter + window, a few % of the flux.
     stray_light_core_px: 8.0 -- the glare PSF's core radius; its tail falls as r^-3 (long-tailed).
     non_lambertian_spread: 0.25 -- first-bounce coupling 1 ± up to 25 % by material: woven and
@@ -68,7 +68,7 @@ class InstrumentModel:
     qe_peak: 0.77, qe_peak_nm: 560, qe_width_nm: 150 -- Sony ICX695 CCD (QImaging QI695).
     full_well_e: 17000, read_noise_e: 6, dark_current_e_per_s: 0.01, bias_dn: 100, adc_bits: 14
       -- the same sensor, cooled, 14-bit, with the usual ADC offset.
-    exposure_fill: 0.8 -- INSTRUMENT.md's protocol: the white standard at ~80 % of full scale.
+    exposure_fill: 0.8 -- docs/instrument.md's protocol: the white standard at ~80 % of full scale.
     peak_rate_e_per_s: 4e5 -- electrons per second at the brightest band's brightest pixel
       (sets the exposure times, tens of ms, of a 150 W lamp through 10 nm filters).
     white_standard_reflectance: 0.985 -- a PTFE (Spectralon-like) board.
@@ -78,7 +78,7 @@ class InstrumentModel:
       (Fig. 6 of the paper shows the peak near 440 nm).
     fluorescence_strength: 0.12 -- apparent reflectance they add at the peak, under xenon UV.
     frames_averaged_dark: 16, frames_averaged_white: 8, frames_averaged_sample: 4 -- averaging
-      of INSTRUMENT.md's protocol (10-25 for darks).
+      of docs/instrument.md's protocol (10-25 for darks).
     band_interval_s: 3.0 -- wheel move (~2.5 s) plus exposures, per band.
     """
 
@@ -714,7 +714,7 @@ def simulate_session(path, seed: int = 0, instrument: InstrumentModel | None = N
 
     Returns the loaded `spherejax.io.Session`.
     """
-    from . import io  # the maths never imports io at module level (STYLE.md)
+    from . import io  # the maths never imports io at module level (docs/design.md, "Conventions")
 
     experiment = simulate_experiment(seed, instrument, design)
     start = datetime.datetime(2026, 1, 1, 9, 0, 0, tzinfo=datetime.timezone.utc)

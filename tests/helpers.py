@@ -8,8 +8,10 @@ import numpy as np
 
 from spherejax.polynomial import PAPER_TABLE_2
 
-SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared"
-SHARMA_CSV = SHARED / "data" / "sharma2005_ciede2000.csv"
+#: Reference data kept in the repository, each file cited in tests/data/README.md.
+DATA = pathlib.Path(__file__).resolve().parent / "data"
+#: Sharma, Wu, Dalal (2005), Table 1, doi:10.1002/col.20070.
+SHARMA_CSV = DATA / "sharma2005_ciede2000.csv"
 
 #: Zou et al. (2019), Table 2, (16, 4) ordered c1..c4.
 TABLE_2 = np.asarray(PAPER_TABLE_2)

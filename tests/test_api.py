@@ -11,7 +11,7 @@ PUBLIC_FUNCTIONS = [
     name for name in sj.__all__ if inspect.isfunction(getattr(sj, name))
 ]
 
-# DESIGN.md's public API: acceptance checks call these names with these leading parameters.
+# docs/design.md's public API: acceptance checks call these names with these leading parameters.
 DESIGN_SIGNATURES = {
     "reflectance_to_xyz": ["refl", "illuminant"],
     "xyz_to_lab": ["xyz", "white_xyz"],
@@ -56,7 +56,7 @@ def test_documented(name):
 
 @pytest.mark.parametrize("name", PUBLIC_FUNCTIONS)
 def test_options_after_arrays_are_keyword_only_or_design_named(name):
-    """Options beyond those DESIGN.md lists positionally are keyword-only, so call sites read."""
+    """Options beyond those docs/design.md lists positionally are keyword-only, so call sites read."""
     signature = inspect.signature(getattr(sj, name))
     allowed_positional = set(DESIGN_SIGNATURES.get(name, [])) | {
         # Non-DESIGN functions: their positional parameters are arrays or the same illuminant.

@@ -59,7 +59,7 @@ class TestWeights:
         assert first.shape == (31, 3) and first.dtype == np.float64
 
     def test_astm_weights_differ_from_plain_sampling(self):
-        # DESIGN.md: multiplying 10 nm samples of CMFs and illuminant is not ASTM E308; make sure
+        # docs/design.md, "Conventions": multiplying 10 nm samples of CMFs and illuminant is not ASTM E308; make sure
         # the weights are really the folded E2022 ones (they differ, most at the range ends).
         cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
         plain = cmfs[WAVELENGTHS_NM.astype(float)] * colour.SDS_ILLUMINANTS["FL2"][WAVELENGTHS_NM.astype(float)][:, None]
@@ -110,7 +110,7 @@ class TestReflectanceToXYZ:
 class TestLab:
     @pytest.mark.parametrize("illuminant", ILLUMINANTS)
     def test_every_shipped_reflectance_float64(self, illuminant, shipped):
-        """DESIGN.md / issue 2: every reflectance colour-science ships, 1e-6 ΔE00 in float64."""
+        """docs/design.md, "Conventions": every reflectance colour-science ships, 1e-6 ΔE00 in float64."""
         ours = np.asarray(sj.reflectance_to_lab(shipped, illuminant))
         theirs = colour_lab(shipped, illuminant)
         de = colour.delta_E(ours, theirs, method="CIE 2000")

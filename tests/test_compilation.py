@@ -1,5 +1,5 @@
 """Compilation: `correct` compiles once per image shape and dtype, never per image, and strips of
-one height share one executable (DESIGN.md, "never compile per file")."""
+one height share one executable (docs/design.md, "never compile per file")."""
 
 from __future__ import annotations
 

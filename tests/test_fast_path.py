@@ -1,4 +1,4 @@
-"""The speed-ups of the per-pixel path (issue 7) against the plain forms they replace.
+"""The speed-ups of the per-pixel path (benchmarks/README.md, "Where the time of `correct` goes") against the plain forms they replace.
 
 Each fast form is checked against the straightforward one it stands for: the NaN-row projection
 against `where(good, v @ M, nan)` (values and gradients), the exp/log cube root against

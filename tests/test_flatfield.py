@@ -29,7 +29,7 @@ def random_frames(dtype=np.float64, seed=0):
 @pytest.fixture(scope="module")
 def sphere():
     rng = np.random.default_rng(42)
-    wall = rng.uniform(0.95, 0.99, B)  # spectral sphere wall reflectance (DESIGN.md)
+    wall = rng.uniform(0.95, 0.99, B)  # spectral sphere wall reflectance (docs/design.md)
     yy, xx = np.mgrid[0:H, 0:W]
     r2 = ((yy - H / 2) ** 2 + (xx - W / 2) ** 2) / (H**2 + W**2)
     beta = (1.0 - 0.6 * r2) * (1.0 + 0.05 * xx / W)  # vignetting and a gradient

@@ -29,7 +29,7 @@ REGIONS = [(8, 14, 4, 10), (8, 14, 14, 20), (16, 22, 24, 30)]
 P, J = len(REGIONS), 3
 #: (patch, background) pairs that were not measured.
 ABSENT = [(2, 1)]
-#: Relative tolerance of the finite-difference checks (issue 4).
+#: Relative tolerance of the finite-difference checks of the gradients.
 RTOL = 1e-5
 
 

@@ -302,3 +302,26 @@ def test_a_kill_after_the_session_is_written_leaves_no_partial_folder(tmp_path, 
     assert run_acquire(profile, out, resume=True) == out
     assert not any(p.name.startswith(".s.") for p in tmp_path.iterdir())
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+class TestDamagedStateFiles:
+    """Files acquire writes itself get the limits user files get (spherejax.jsontext): a line
+    nested 100 000 deep raised RecursionError from json.loads."""
+
+    def test_journal_line_nested_deeply_is_skipped(self, tmp_path):
+        journal = acquire.Journal(tmp_path)
+        journal.append({"event": "image", "capture": "dark", "band": 400, "file": "x.tif"})
+        with open(journal.path, "ab") as handle:
+            handle.write(b"[" * 100_000 + b"]" * 100_000 + b"\n" + b"\xff\xfe{not utf-8}\n")
+        records = journal.records()
+        assert [r["event"] for r in records] == ["image"]
+
+    @pytest.mark.parametrize("payload", [b"[" * 100_000 + b"]" * 100_000, b"\xff\xfe\x00{", b"{not json"])
+    def test_saved_profile_damaged_refuses_resume_in_one_line(self, tmp_path, payload):
+        partial = tmp_path / "session.partial"
+        partial.mkdir()
+        (partial / "profile.json").write_bytes(payload)
+        with pytest.raises(acquire.AcquisitionError) as refused:
+            acquire._check_resume(partial, None)
+        message = str(refused.value)
+        assert "\n" not in message and "profile.json" in message and "not an acquisition spherejax can resume" in message

@@ -4,13 +4,15 @@ and the PVCAM backend's behaviour without PyVCAM."""
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import inspect
 import math
 import sys
 
 import numpy as np
 import pytest
 
-from hw.camera import BACKENDS, Camera, CameraError, open_camera
+from hw.camera import BACKENDS, PROFILE_OPTIONS, Camera, CameraError, open_camera
 from hw.simcamera import FILTER_LEAK, SENSOR_TEMPERATURE_C, WARMUP_DEFICIT, SimulatedCamera
 from spherejax import simulate
 
@@ -195,6 +197,31 @@ def test_pvcam_without_pyvcam(monkeypatch):
             "camera 'pvcam': PyVCAM is not installed: pip install PyVCAM "
             "(Teledyne Photometrics PVCAM SDK required)"
         )
+
+
+#: Keywords of each backend's constructor that the acquisition passes, never a profile.
+SET_BY_ACQUIRE = {"sim": {"light_path", "shutter_open", "instrument", "design", "lamp_on_s", "clock"}, "pvcam": set()}
+
+
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
+def test_profile_options_are_the_constructor_keywords(backend):
+    """The option table profiles are checked against (hw.camera.PROFILE_OPTIONS) names exactly
+    the backend's keyword parameters, less those the acquisition supplies: an option added to a
+    constructor without the table, or a name in the table the constructor does not take, fails."""
+    module, cls = BACKENDS[backend]
+    parameters = inspect.signature(getattr(importlib.import_module(module), cls)).parameters
+    keywords = {name for name, p in parameters.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    assert not any(p.kind is p.VAR_KEYWORD for p in parameters.values())
+    assert set(PROFILE_OPTIONS[backend]) == keywords - SET_BY_ACQUIRE[backend]
+    assert SET_BY_ACQUIRE[backend] <= keywords
+
+
+def test_profile_options_open_the_simulated_camera():
+    """Values the profile accepts are values the simulated camera takes (TOML gives lists)."""
+    bench = Bench()
+    with open_camera("sim", light_path=lambda: bench.band, shutter_open=lambda: bench.shutter,
+                     seed=2**32 - 1, image_shape=[96, 136], name="bench") as camera:
+        assert camera.sensor_shape == (96, 136) and camera.name == "bench"
 
 
 # --- the simulated camera -----------------------------------------------------------------------

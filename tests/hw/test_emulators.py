@@ -1,6 +1,6 @@
 """The emulated FW102C/FW212C and SC10 state machines, and the pty server with its faults.
 
-State machines are checked byte for byte against the vendor protocol (INSTRUMENT.md); the server is
+State machines are checked byte for byte against the vendor protocol (docs/instrument.md); the server is
 checked with a bare ``serial.Serial`` (no driver), so its bytes, faults and cleanup are seen directly.
 """
 

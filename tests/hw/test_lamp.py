@@ -103,9 +103,9 @@ def test_hand_written_file_with_hours_only(tmp_path):
 @pytest.mark.parametrize(
     "text, expected",
     [
-        ("", "is not JSON (Expecting value at line 1 column 1)"),
+        ("", "is not valid JSON: Expecting value at line 1 column 1"),
         ("\xff\xfe{}", "is not UTF-8 text (byte 0)"),
-        ("{hours: 1}", "is not JSON"),
+        ("{hours: 1}", "is not valid JSON: Expecting property name enclosed in double quotes at line 1 column 2"),
         ("[1, 2]", "is a JSON list, expected an object"),
         ("{}", 'has no "hours"'),
         ('{"hours": -1}', "hours=-1, expected a finite number of hours >= 0"),
@@ -134,6 +134,31 @@ def test_malformed_state_file(tmp_path, text, expected):
         assert isinstance(error.value, ValueError)
         assert "\n" not in message and message.startswith(f"{path}: lamp state ") and expected in message
     assert path.read_bytes() == text.encode("latin-1")  # never overwritten
+
+
+@pytest.mark.parametrize(
+    "data, expected",
+    [
+        (b"[" * 100_000 + b"]" * 100_000, "is not valid JSON: nested deeper than the JSON parser can follow"),
+        (b'{"hours": ' + b"[" * 100_000 + b"]" * 100_000 + b"}", "is not valid JSON: nested deeper"),
+        (b'{"hours": ' + b"9" * 5000 + b"}", "is not valid JSON: Exceeds the limit (4300 digits)"),
+        (b'{"hours": 1, "x": "caf\xe9"}', "is not UTF-8 text (byte 22)"),
+        ("\ufeff{}".encode("utf-16"), "is not UTF-8 text (byte 0)"),  # json.loads would guess UTF-16
+    ],
+    ids=["nested-100000-deep", "nested-inside-hours", "integer-5000-digits", "latin-1", "utf-16"],
+)
+def test_damaged_state_file_is_one_line_not_a_crash(tmp_path, data, expected):
+    """A state file spherejax wrote, then damaged: the same one-line LampStateError as any
+    malformed file, never RecursionError (the parser is spherejax.jsontext's, as for every file)."""
+    path = tmp_path / "lamp.json"
+    path.write_bytes(data)
+    for action in (lambda: Lamp(path).is_on, lambda: Lamp(path).switch_on(at())):
+        with pytest.raises(LampStateError) as error:
+            action()
+        message = str(error.value)
+        assert message == f"{path}: lamp state {expected}{message.split(expected, 1)[1]}", message
+        assert "\n" not in message and message.endswith('expected a JSON object with "hours"'), message
+    assert path.read_bytes() == data  # never overwritten
 
 
 def test_atomic_write_leaves_no_temporary_files(tmp_path, monkeypatch):

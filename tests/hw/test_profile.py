@@ -200,7 +200,7 @@ def test_band_at(folder, positions, band):
 
 def test_optional_sections_parse(folder):
     data = example()
-    data["camera"] = {"backend": "sim", "seed": 3, "noise": 0.5}
+    data["camera"] = {"backend": "sim", "seed": 3, "image_shape": [96, 136], "name": "bench"}
     data["acquisition"] = {
         "frames_averaged": 4, "dark_frames": 20, "target_level": 0.7, "target_percentile": 99,
         "warmup_drift_percent": 1, "warmup_interval_s": 0, "warmup_checks": 2, "warmup_timeout_s": 60,
@@ -215,7 +215,7 @@ def test_optional_sections_parse(folder):
     ]
     profile = load_profile(write(folder, data))
 
-    assert profile.camera == CameraConfig("sim", {"seed": 3, "noise": 0.5})
+    assert profile.camera == CameraConfig("sim", {"seed": 3, "image_shape": [96, 136], "name": "bench"})
     assert profile.acquisition == AcquisitionSettings(
         frames_averaged=4, dark_frames=20, target_level=0.7, target_percentile=99.0,
         warmup_drift_percent=1.0, warmup_interval_s=0.0, warmup_checks=2, warmup_timeout_s=60.0,
@@ -240,12 +240,12 @@ def test_mixed_models_and_a_real_camera_with_layout(folder):
     data = example()
     data["wheels"]["b"] = {"port": "loop://", "model": "FW102C", "open_slot": 6, "move_timeout_s": 5}
     data["bands"] = {"400": ["a", 1], "420": ["b", 5], "440": ["b", 1]}
-    data["camera"] = {"backend": "pvcam", "name": "PMUSBCam00"}
+    data["camera"] = {"backend": "pvcam", "camera_name": "PMUSBCam00", "exposure_s": 0.1}
     data["layout"] = {"white_patch": [0, 5, 0, 5], "holder": [10, 100, 10, 100]}
     profile = load_profile(write(folder, data))
     assert profile.wheels["b"].positions == 6
     assert profile.positions_for(420) == {"a": 12, "b": 5}
-    assert profile.camera == CameraConfig("pvcam", {"name": "PMUSBCam00"})
+    assert profile.camera == CameraConfig("pvcam", {"camera_name": "PMUSBCam00", "exposure_s": 0.1})
 
 
 # -- the catalogue of bad profiles -----------------------------------------------------------------
@@ -401,6 +401,26 @@ BAD = [
     ("pvcam-without-layout", _set("camera", "backend", value="pvcam"), "layout", "white_patch and holder"),
     ("pvcam-half-layout", _all(_set("camera", "backend", value="pvcam"), _set("layout", "white_patch", value=[0, 1, 0, 1])),
      "layout", "white_patch and holder"),
+    # [camera] options: only those the backend's constructor takes (hw.camera.PROFILE_OPTIONS),
+    # each of the right type; before, these ended in a TypeError once the devices were open
+    ("camera-option-unknown", _set("camera", "noise", value=0.5), "camera.noise", "an option of the 'sim' backend: one of ['image_shape', 'name', 'seed']"),
+    ("camera-option-of-the-other-backend", _all(_set("camera", "backend", value="pvcam"), _set("camera", "seed", value=1)),
+     "camera.seed", "an option of the 'pvcam' backend: one of ['camera_name', 'exposure_s']"),
+    ("pvcam-name-not-camera_name", _all(_set("camera", "backend", value="pvcam"), _set("camera", "name", value="PMUSBCam00")),
+     "camera.name", "camera_name"),
+    ("sim-option-set-by-acquire", _set("camera", "light_path", value="a"), "camera.light_path", "one of ['image_shape', 'name', 'seed']"),
+    ("camera-seed-string", _set("camera", "seed", value="3"), "camera.seed", "an integer 0..4294967295"),
+    ("camera-seed-negative", _set("camera", "seed", value=-1), "camera.seed", "an integer 0..4294967295"),
+    ("camera-seed-bool", _set("camera", "seed", value=True), "camera.seed", "an integer"),
+    ("camera-image_shape-three", _set("camera", "image_shape", value=[96, 136, 1]), "camera.image_shape", "[height, width]"),
+    ("camera-image_shape-zero", _set("camera", "image_shape", value=[0, 136]), "camera.image_shape", "integers >= 1"),
+    ("camera-name-empty", _set("camera", "name", value=""), "camera.name", "a non-empty string"),
+    ("pvcam-exposure-zero", _all(_set("camera", "backend", value="pvcam"), _set("camera", "exposure_s", value=0)),
+     "camera.exposure_s", "seconds > 0"),
+    ("pvcam-exposure-nan", _all(_set("camera", "backend", value="pvcam"), _set("camera", "exposure_s", value=math.nan)),
+     "camera.exposure_s", "seconds > 0"),
+    ("pvcam-camera_name-int", _all(_set("camera", "backend", value="pvcam"), _set("camera", "camera_name", value=3)),
+     "camera.camera_name", "a PVCAM camera name"),
     # lamp.state_file must stay in the profile's folder
     ("lamp-parent", _set("lamp", "state_file", value="../x.json"), "lamp.state_file", "inside the profile's folder"),
     ("lamp-parent-inside", _set("lamp", "state_file", value="state/../../x.json"), "lamp.state_file", "inside the profile's folder"),
@@ -526,6 +546,7 @@ def test_relative_profile_path(folder, monkeypatch):
 CLI_CASES = [case for case in BAD if case[0] in {
     "missing-instrument.id", "missing-wheels.a.port", "typo-in-wheel", "two-bands-one-slot", "slot-13-on-FW212C",
     "port-is-int", "band-on-undefined-wheel", "lamp-parent", "sample-id-dark", "pvcam-without-layout",
+    "camera-option-unknown", "camera-option-of-the-other-backend", "camera-seed-string",
 }]
 
 
@@ -549,6 +570,41 @@ def test_cli_refuses_a_bad_profile_before_anything_is_created(tmp_path, folder, 
     assert "Traceback" not in err and out == ""
     assert not (tmp_path / "s").exists()
     assert not (tmp_path / "s.partial").exists()
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+@pytest.mark.parametrize("emulate", [True, False], ids=["emulate", "real-devices"])
+@pytest.mark.parametrize(
+    ("camera", "key", "expected"),
+    [
+        ({"backend": "pvcam", "exposure": 0.1}, "camera.exposure", "an option of the 'pvcam' backend"),
+        ({"backend": "sim", "noise": 0.5}, "camera.noise", "an option of the 'sim' backend"),
+        ({"backend": "sim", "shutter_open": True}, "camera.shutter_open", "an option of the 'sim' backend"),
+    ],
+    ids=["pvcam-unknown", "sim-unknown", "sim-set-by-acquire"],
+)
+def test_cli_refuses_a_camera_option_before_any_device_is_opened(tmp_path, folder, capsys, monkeypatch, emulate, camera, key, expected):
+    """A [camera] option the backend does not take: one line naming the key, exit status 2,
+    nothing opened or written (it used to end in a TypeError traceback from the constructor)."""
+    from hw import acquire
+    from spherejax import cli
+
+    def connect(*args, **kwargs):
+        raise AssertionError("a device was opened")
+
+    monkeypatch.setattr(acquire, "connect", connect)
+    data = example()
+    data["camera"] = camera
+    data["layout"] = {"white_patch": [0, 5, 0, 5], "holder": [10, 100, 10, 100]}
+    path = write(folder, data)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+
+    code = cli.main(["acquire", "--profile", str(path), "-o", str(tmp_path / "s"), "--yes", *(["--emulate"] if emulate else [])])
+
+    out, err = capsys.readouterr()
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err and out == ""
+    assert err.startswith(f"spherejax: error: {path}: {key}: is not a known key (expected {expected}"), err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 

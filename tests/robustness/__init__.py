@@ -1,1 +1,1 @@
-"""Issue 8: bad inputs, injected faults, properties and security, each asserted (README, "Reliability")."""
+"""Reliability: bad inputs, injected faults, properties and security, each asserted (README, "Reliability")."""

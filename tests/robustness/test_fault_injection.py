@@ -1,4 +1,4 @@
-"""Fault injection (issue 8, reliability): SIGKILL `spherejax correct` and `spherejax acquire` at
+"""Fault injection (README, "Reliability"): SIGKILL `spherejax correct` and `spherejax acquire` at
 random moments, resume each time, and check that nothing is lost, redone, duplicated or torn.
 
 The moments come from seeded generators and are spread over the whole run: during start-up

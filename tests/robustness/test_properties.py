@@ -1,4 +1,4 @@
-"""Property-based robustness tests (issue 8, "Reliability", item 3), with hypothesis.
+"""Property-based robustness tests (README, "Reliability", "Properties"), with hypothesis.
 
 Loaders: every file spherejax reads (batch manifest and lock file, session manifest, calibration
 .npz, instrument profile TOML, camera frames and cubes), fed arbitrary bytes, byte-level damage

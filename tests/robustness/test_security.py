@@ -1,4 +1,4 @@
-"""Security (issue 8, item 4): nothing read is unpickled or evaluated, paths from manifests and
+"""Security (README, "Reliability", "Security"): nothing read is unpickled or evaluated, paths from manifests and
 profiles stay in their folders, and the lock, the manifest and temporary files cannot be turned
 into writes outside OUT."""
 
