@@ -24,27 +24,17 @@ import sys
 import time
 
 import numpy as np
-import pytest
 
 from hw import acquire
 from spherejax import archive, io
 from tests.hw.test_acquire import BANDS as ACQUIRED_BANDS
 from tests.hw.test_acquire import SAMPLES, run_acquire, write_profile
-from tests.test_archive import NAMES, _holds_lock, _start, _wait_until, frame, make_calibration, outputs_of
+from tests.test_archive import NAMES, _holds_lock, _start, _wait_until, frame, outputs_of
 
 # ----------------------------------------------------------------------------- spherejax correct
 
 INPUTS = 16
 KILLS = 20
-
-
-@pytest.fixture(scope="module")
-def calibration_file(tmp_path_factory) -> pathlib.Path:
-    """The calibration of tests/test_archive.py (40 x 48 pixels, 16 bands) on disk."""
-    path = tmp_path_factory.mktemp("calibration") / "cal.npz"
-    calibration, bands, instrument = make_calibration(np.random.default_rng(0))
-    io.save_calibration(path, calibration, instrument_id=instrument, band_centres_nm=bands)
-    return path
 
 
 def _kill(process: subprocess.Popen) -> bool:
@@ -116,7 +106,7 @@ def _correct_kill_plan(rng: random.Random, lock_s: float, done_s: float) -> list
     return plan
 
 
-def test_twenty_kills_and_resumes_give_byte_identical_outputs(calibration_file, tmp_path):
+def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
     rng = np.random.default_rng(11)
     inputs = tmp_path / "in"
     inputs.mkdir()
@@ -124,7 +114,7 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(calibration_file, 
         io.write_frame(inputs / f"cube{index:02d}.tif", frame(rng), channel_names=NAMES)
     names = [f"in/cube{index:02d}" for index in range(INPUTS)]
     reference, killed = tmp_path / "reference", tmp_path / "killed"
-    argv = ["-c", str(calibration_file), str(inputs), "-o"]
+    argv = ["-c", str(cal), str(inputs), "-o"]
 
     started = time.perf_counter()
     process = _start([*argv, str(reference)])

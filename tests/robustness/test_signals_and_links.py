@@ -10,7 +10,6 @@ only), and --resume must then finish it with the bytes of an uninterrupted run.
 
 from __future__ import annotations
 
-import json
 import os
 import pathlib
 import re
@@ -18,7 +17,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -27,20 +25,11 @@ from hw import acquire
 from spherejax import archive, io
 from tests.hw.test_acquire import BANDS as ACQUIRED_BANDS
 from tests.hw.test_acquire import SAMPLES, run_acquire, write_profile
-from tests.test_archive import KINDS, NAMES, _holds_lock, _wait_until, frame, make_calibration, manifest_records, outputs_of, run
+from tests.test_archive import KINDS, NAMES, _holds_lock, _wait_until, frame, manifest_records, outputs_of, run
 
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
 IMAGES = (2 + len(SAMPLES)) * len(ACQUIRED_BANDS)  # dark, white and the samples, every band
 INTERRUPTED = re.compile(r"spherejax: interrupted after (\d+) of (\d+) (inputs|band images); run again with --resume")
-
-
-@pytest.fixture(scope="module")
-def cal(tmp_path_factory) -> pathlib.Path:
-    """The calibration of tests/test_archive.py (40 x 48 pixels, 16 bands) on disk."""
-    path = tmp_path_factory.mktemp("calibration") / "cal.npz"
-    calibration, bands, instrument = make_calibration(np.random.default_rng(0))
-    io.save_calibration(path, calibration, instrument_id=instrument, band_centres_nm=bands)
-    return path
 
 
 @pytest.fixture
