@@ -473,10 +473,19 @@ def load_calibration(path, illuminant: str | None = None) -> io.CalibrationFile:
     return _calibration(str(path), stamp, illuminant)
 
 
-def input_checksum(spec: InputSpec) -> str:
-    """SHA-256 (hex) over the bytes of the input's files, in order."""
+def input_checksum(spec: InputSpec, max_bytes: tuple[int, str] | None = None) -> str:
+    """SHA-256 (hex) over the bytes of the input's files, in order. A file larger than
+    `max_bytes` is refused before any read (a sparse file claiming a terabyte would be read for
+    hours). `max_bytes`: (the limit, the cube it is for, in words), `max_input_bytes`."""
     digest = hashlib.sha256()
     for file in spec.files:
+        if not _utf8_name(file):
+            # OpenImageIO takes paths as UTF-8 text only; refused here, before any read, in words
+            # rather than with its "incompatible function arguments".
+            raise io.SpherejaxFileError(
+                file, "has a name that is not UTF-8 text, which OpenImageIO cannot open",
+                "a cube file whose name is UTF-8: rename it",
+            )
         # The first read of an input. O_NONBLOCK: should a FIFO have taken the file's place since
         # discovery, the open returns at once instead of waiting for a writer; then it is refused
         # by what it is, before any read.
@@ -485,9 +494,31 @@ def input_checksum(spec: InputSpec) -> str:
             mode = os.fstat(fd).st_mode
             if not stat.S_ISREG(mode):
                 raise io.SpherejaxFileError(file, f"is {_file_kind(mode)}", "a cube file")
+            size = os.fstat(fd).st_size
+            if max_bytes is not None and size > max_bytes[0]:
+                raise io.SpherejaxFileError(
+                    file, f"is {size} bytes, more than {max_bytes[1]} can take ({max_bytes[0]} at most)", "a cube file"
+                )
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)
     return digest.hexdigest()
+
+
+def _utf8_name(path) -> bool:
+    """True if `path` is UTF-8 text (a name with other bytes reaches Python as lone surrogates)."""
+    try:
+        os.fsencode(path).decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def max_input_bytes(calibration: io.CalibrationFile) -> tuple[int, str]:
+    """The most bytes one input file may hold: the calibration's cube in 64-bit samples, twice
+    over (any layout, compression that grew the data, metadata), and 64 MiB to spare."""
+    height, width = calibration.image_shape
+    cube = f"a {height} x {width} x {calibration.bands} cube"
+    return 2 * height * width * calibration.bands * 8 + (64 << 20), cube
 
 
 def _open_input(spec: InputSpec, calibration: io.CalibrationFile) -> io.CubeReader:
@@ -669,7 +700,7 @@ def correct_input(
         calibration_checksum = calibration.header["checksum"]
         if source.problem is not None:
             raise ValueError(source.problem)
-        checksum = input_checksum(source)
+        checksum = input_checksum(source, max_input_bytes(calibration))
         with _open_input(source, calibration) as cube:
             attributes = {
                 "spherejax:calibration_checksum": calibration_checksum,
@@ -767,7 +798,10 @@ class Manifest:
 
     def append(self, record: dict) -> None:
         line = json.dumps(record, sort_keys=True, ensure_ascii=False, allow_nan=False) + "\n"
-        os.write(self.fd, line.encode("utf-8"))  # one write on O_APPEND: never interleaved
+        # A file name that is not UTF-8 reaches Python as lone surrogates (os.fsdecode), which
+        # UTF-8 cannot encode; backslashreplace writes each as the JSON escape "\udcXX", which
+        # reads back as the same name.
+        os.write(self.fd, line.encode("utf-8", errors="backslashreplace"))  # one write on O_APPEND: never interleaved
         os.fsync(self.fd)
 
     def close(self) -> None:

@@ -64,16 +64,31 @@ class _Progress:
 
 
 def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
-    """Write name -> bytes into out_dir, each through a temporary name and os.replace."""
+    """Write name -> bytes into out_dir, each through a temporary name and os.replace. When one
+    cannot be written (a full disk), the files this call added and the folder it created are
+    removed: no partial set of outputs is left."""
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
-    for name, payload in files.items():
-        target = out_dir / name
-        temporary = out_dir / f".{name}.tmp-{os.getpid()}"
-        try:
-            temporary.write_bytes(payload)
-            os.replace(temporary, target)
-        finally:
-            temporary.unlink(missing_ok=True)
+    added = []
+    try:
+        for name, payload in files.items():
+            target = out_dir / name
+            temporary = out_dir / f".{name}.tmp-{os.getpid()}"
+            new = not target.exists()
+            try:
+                temporary.write_bytes(payload)
+                os.replace(temporary, target)
+            finally:
+                temporary.unlink(missing_ok=True)
+            if new:
+                added.append(target)
+    except BaseException:
+        for target in added:
+            target.unlink(missing_ok=True)
+        if created:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()
+        raise
 
 
 def _figure_bytes(figure) -> bytes:
@@ -252,6 +267,14 @@ def cmd_study(args) -> int:
     return 0
 
 
+def _one_line(text: str) -> str:
+    """A name for a message line: a newline or other control character escaped (a file may be
+    named with one), bytes that are not UTF-8 shown as \\xNN, so that the line stays one line
+    and printable."""
+    text = text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    return "".join(c if c.isprintable() or c == " " else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 class _BatchProgress:
     """Progress of `correct`: a tqdm bar (files, MP/s) on a terminal, else one log line per input."""
 
@@ -276,7 +299,7 @@ class _BatchProgress:
             self.bar.set_postfix_str(f"{rate:.1f} MP/s", refresh=False)
             self.bar.update(1)
             if result is not None and result.status == "failed":
-                self.bar.write(f"spherejax: failed {spec.source}: {result.reason}", file=sys.stderr)
+                self.bar.write(f"spherejax: failed {_one_line(spec.source)}: {_one_line(result.reason)}", file=sys.stderr)
             return
         if self.quiet:
             return
@@ -286,7 +309,7 @@ class _BatchProgress:
             what = f"done ({result.megapixels:.2f} MP, {result.seconds:.2f} s)"
         else:
             what = f"failed: {result.reason}"
-        print(f"spherejax: [{self.index}/{self.total}] {spec.source}: {what}", file=sys.stderr, flush=True)
+        print(f"spherejax: [{self.index}/{self.total}] {_one_line(spec.source)}: {_one_line(what)}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -321,7 +344,7 @@ def cmd_correct(args) -> int:
         print(f"spherejax: took over the lock left by {summary.taken_over} (that run ended without releasing it)",
               file=sys.stderr)
     for failure in summary.failed:
-        print(f"spherejax: failed {failure.source}: {failure.reason}", file=sys.stderr)
+        print(f"spherejax: failed {_one_line(failure.source)}: {_one_line(failure.reason)}", file=sys.stderr)
     print(summary.line())
     return 1 if summary.failed else 0
 
@@ -502,7 +525,7 @@ def main(argv=None) -> int:
         print("spherejax: interrupted", file=sys.stderr)
         return 130
     except (ValueError, OSError) as error:
-        message = " ".join(str(error).split())
+        message = _one_line(" ".join(str(error).split()))
         print(f"spherejax: error: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

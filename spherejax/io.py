@@ -1904,6 +1904,14 @@ class CalibrationFile:
             if patch != dark[:2]:
                 raise ValueError(f"patch: expected shape {dark[:2]} (one entry per image pixel), got {patch}")
             self.image_shape, self.bands = dark[:2], dark[2]
+            for name in ("wiener", "wiener_offset"):
+                # Small arrays read whole: a NaN or infinity there makes every reflectance NaN.
+                bad = np.flatnonzero(~np.isfinite(np.asarray(self._value(name), np.float64)))
+                if bad.size:
+                    raise ValueError(
+                        f"{name}: {bad.size} entries are not finite (the first at flat index "
+                        f"{int(bad[0])}); expected finite numbers"
+                    )
             from .pipeline import patch_bounding_box
 
             self.patch_box = patch_bounding_box(self._value("patch"))

@@ -663,11 +663,16 @@ def fit_wiener(
             "fixed regularisers inside"
         )
     _check_determined(V, R, "a Wiener estimator")
+    # Fit in units where the responses' rms is about 1: responses of 1e30 (or 1e-30) would
+    # overflow (underflow) the squares of the fits in float32. A power of two, so that scaling is
+    # exact and responses near 1 (flat-fielded ones) give the same bits as unscaled.
+    scale = _unit_scale(V)
+    V = V / scale
     M = None
     if sensitivity is not None:
         M = _checks.as_array("sensitivity", sensitivity)
         _checks.require_shape("sensitivity", M, (V.shape[1], N_WAVELENGTHS), "bands of responses x 31 wavelengths")
-        M = M.astype(V.dtype)
+        M = M.astype(V.dtype) / scale
     labels, folds_text = fold_labels(R, groups, folds)
     weights = (labels[None, :] != np.unique(labels)[:, None]).astype(np.float64)
     ones = jnp.ones(V.shape[0], V.dtype)
@@ -684,7 +689,20 @@ def fit_wiener(
         ))
     ranked = sorted(candidates.values(), key=lambda item: item[0].spectral_rms)
     W, r0 = ranked[0][1]()
-    return WienerEstimator(W, r0, method=ranked[0][0].method, cross_validation=tuple(item[0] for item in ranked))
+    reports = tuple(_in_response_units(item[0], scale) for item in ranked)
+    return WienerEstimator(W / scale, r0, method=ranked[0][0].method, cross_validation=reports)
+
+
+def _unit_scale(V) -> float:
+    """The power of two nearest the rms of V (1 if V is all zero)."""
+    rms = float(np.sqrt(np.mean(np.square(np.asarray(V, np.float64)))))
+    return 1.0 if not rms > 0 else float(2.0 ** np.round(np.log2(rms)))
+
+
+def _in_response_units(report: CrossValidation, scale: float) -> CrossValidation:
+    """A report of a fit on responses / scale, with sigma^2 back in the caller's units."""
+    settings = tuple((k, v * scale**2 if k == "noise_variance" else v) for k, v in report.settings)
+    return dataclasses.replace(report, settings=settings)
 
 
 # ---------------------------------------------------------------------------------------------
