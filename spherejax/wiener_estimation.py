@@ -115,7 +115,8 @@ class CrossValidation:
 class WienerEstimator(eqx.Module):
     """An affine reflectance estimator r = W v + r0 (E1), a pytree.
 
-    matrix: W, (31, B). offset: r0, (31,). method: "training" or "model" (static).
+    matrix: W, (31, B). offset: r0, (31,). method: "training" or "model" ("matrix" for a plain
+    matrix taken by `as_estimator`) (static).
     cross_validation: the cross-validated errors of every method tried, the chosen one first
     (static; empty when the estimator was built with fixed regularisers).
     """
@@ -643,6 +644,10 @@ def fit_wiener(
     Returns:
       WienerEstimator: .matrix (31, B), .offset (31,), .method, .cross_validation (each method
       tried, the chosen one first, with its held-out spectral rms and mean ΔE00 under D65).
+
+    The fits run on the responses divided by the power of two nearest their rms (exact, so
+    flat-fielded responses give the same bits), which keeps responses in any units, 1e-30 to
+    1e30, inside float32's range; W and the reported sigma^2 are in the caller's units.
 
     Raises:
       ValueError: on shapes, non-finite data, or targets that do not vary (nothing to fit).
