@@ -189,6 +189,13 @@ def _check_training(responses, reflectances):
     return responses.astype(dtype), reflectances.astype(dtype)
 
 
+def _check_sensitivity(sensitivity, V):
+    """A known sensitivity M as an array (B, 31) in V's dtype, for responses V (n, B)."""
+    M = _checks.as_array("sensitivity", sensitivity)
+    _checks.require_shape("sensitivity", M, (V.shape[1], N_WAVELENGTHS), "bands of responses x 31 wavelengths")
+    return M.astype(V.dtype)
+
+
 def _check_noise_variance(noise_variance):
     if _checks.is_concrete(noise_variance) and not float(noise_variance) >= 0:
         raise ValueError(f"noise_variance: expected a value >= 0, got {noise_variance!r}")
@@ -411,11 +418,7 @@ def model_estimator(
         raise ValueError(f"shrinkage: expected a value in [0, 1], got {shrinkage!r}")
     if _checks.is_concrete(penalty_weight) and not float(penalty_weight) > 0.0:
         raise ValueError(f"penalty_weight: expected a value > 0, got {penalty_weight!r}")
-    M = None
-    if sensitivity is not None:
-        M = _checks.as_array("sensitivity", sensitivity)
-        _checks.require_shape("sensitivity", M, (V.shape[1], N_WAVELENGTHS), "bands of responses x 31 wavelengths")
-        M = M.astype(V.dtype)
+    M = None if sensitivity is None else _check_sensitivity(sensitivity, V)
     w = jnp.ones(V.shape[0], V.dtype)
     L = _penalty_root(penalty, V.dtype)
     W, r0 = _model_fit(V, R, w, jnp.asarray(penalty_weight, V.dtype), jnp.asarray(shrinkage, V.dtype), L, M)
@@ -492,6 +495,11 @@ def fold_labels(reflectances, groups=None, folds: int = DEFAULT_FOLDS) -> tuple[
 def fold_weights(reflectances, groups=None, folds: int = DEFAULT_FOLDS) -> np.ndarray:
     """Training weights (F, n) of the F folds of `fold_labels`: 0 where a target is held out."""
     labels, _ = fold_labels(reflectances, groups, folds)
+    return _weights_of(labels)
+
+
+def _weights_of(labels: np.ndarray) -> np.ndarray:
+    """(F, n) training weights, one row per distinct fold label: 0 where the target is held out."""
     return (labels[None, :] != np.unique(labels)[:, None]).astype(np.float64)
 
 
@@ -673,13 +681,9 @@ def fit_wiener(
     # exact and responses near 1 (flat-fielded ones) give the same bits as unscaled.
     scale = _unit_scale(V)
     V = V / scale
-    M = None
-    if sensitivity is not None:
-        M = _checks.as_array("sensitivity", sensitivity)
-        _checks.require_shape("sensitivity", M, (V.shape[1], N_WAVELENGTHS), "bands of responses x 31 wavelengths")
-        M = M.astype(V.dtype) / scale
+    M = None if sensitivity is None else _check_sensitivity(sensitivity, V) / scale
     labels, folds_text = fold_labels(R, groups, folds)
-    weights = (labels[None, :] != np.unique(labels)[:, None]).astype(np.float64)
+    weights = _weights_of(labels)
     ones = jnp.ones(V.shape[0], V.dtype)
 
     candidates = {}
