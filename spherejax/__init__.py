@@ -35,7 +35,11 @@ from .pipeline import (
     CorrectionResult as CorrectionResult,
     correct as correct,
     delta_e_map as delta_e_map,
+    patch_ratio as patch_ratio,
+    patch_ratio_u as patch_ratio_u,
 )
+from .measurement import Measurement as Measurement, measure as measure
+from .uncertainty import NoiseModel as NoiseModel
 from .polynomial import fit_stage2 as fit_stage2, identity_coeffs as identity_coeffs, stage2 as stage2
 from .wiener_estimation import (
     CrossValidation as CrossValidation,
@@ -48,6 +52,8 @@ from .wiener_estimation import (
     select_wiener_noise_variance as select_wiener_noise_variance,
     wiener as wiener,
     wiener_from_sensitivity as wiener_from_sensitivity,
+    EstimatorCovariance as EstimatorCovariance,
+    estimator_covariance as estimator_covariance,
 )
 
 __version__ = "0.1.0"
@@ -62,6 +68,8 @@ __all__ = [
     "QUALITY_WHITE_NOT_ABOVE_DARK",
     "Calibration",
     "CorrectionResult",
+    "Measurement",
+    "NoiseModel",
     "CrossValidation",
     "WienerEstimator",
     "correct",
@@ -72,9 +80,12 @@ __all__ = [
     "fit_wiener",
     "flat_field",
     "identity_coeffs",
+    "measure",
     "model_estimator",
     "pairwise_delta_e",
     "pairwise_spectral_rms",
+    "patch_ratio",
+    "patch_ratio_u",
     "reflectance_to_lab",
     "reflectance_to_xyz",
     "response_std",
@@ -89,4 +100,6 @@ __all__ = [
     "wiener_from_sensitivity",
     "wiener_from_system",
     "xyz_to_lab",
+    "EstimatorCovariance",
+    "estimator_covariance",
 ]

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks, colorimetry, fused
+from . import _checks, colorimetry, fused, uncertainty
 from .colorimetry import delta_e_2000, xyz_to_lab
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .grid import N_WAVELENGTHS
@@ -150,6 +150,12 @@ class CorrectionResult(eqx.Module):
       v: flat-fielded response (..., H, W, B) (Eq. 10), or None unless intermediates=True.
       v_stage1: Stage I response p v (Eq. 17), or None.
       v_stage2: Stage II response (Eq. 23), the input of the Wiener step, or None.
+      reflectance_u: standard uncertainty of `reflectance` (..., H, W, 31), or None unless
+        `correct` was given a noise model (`spherejax.uncertainty`).
+      lab_u: standard uncertainties of L*, a*, b* (..., H, W, 3), or None.
+      lab_covariance: the covariance of Lab (..., H, W, 3, 3) (L*, a* and b* are correlated: they
+        share X, Y and Z), or None.
+      p_u: standard uncertainty of p (..., B), or None.
     """
 
     reflectance: jax.Array
@@ -159,6 +165,10 @@ class CorrectionResult(eqx.Module):
     v: jax.Array | None = None
     v_stage1: jax.Array | None = None
     v_stage2: jax.Array | None = None
+    reflectance_u: jax.Array | None = None
+    lab_u: jax.Array | None = None
+    lab_covariance: jax.Array | None = None
+    p_u: jax.Array | None = None
 
     @property
     def valid(self) -> jax.Array:
@@ -168,6 +178,38 @@ class CorrectionResult(eqx.Module):
     def delta_e_map(self, reference):
         """ΔE00 of every pixel against `reference` (see `delta_e_map`)."""
         return delta_e_map(self.lab, reference)
+
+    def delta_e_u(self, reference, reference_covariance=None):
+        """Standard uncertainty of `delta_e_map(reference)`, (..., H, W), by first order
+        (`uncertainty.delta_e_uncertainty`); needs a result of `correct(..., noise=)`.
+
+        Args:
+          reference: one Lab colour (3,) or a Lab image of `lab`'s shape.
+          reference_covariance: the reference's covariance, (3, 3) or (..., H, W, 3, 3) (e.g.
+            another result's `lab_covariance`), or None for an exact reference.
+
+        0 where ΔE00 is 0, and an understatement near it: ΔE00 is a distance, whose spread about
+        0 is not what its first-order term says (docs/uncertainty.md).
+        """
+        if self.lab_covariance is None:
+            raise ValueError("delta_e_u: this result has no uncertainties; expected correct(raw, calibration, noise=NoiseModel(...))")
+        reference = _checks.as_array("reference", reference)
+        _checks.require_last_axis("reference", reference, 3, "one Lab colour or a Lab image")
+        if reference.ndim != 1:
+            _checks.require_shape("reference", reference, self.lab.shape, "one Lab colour (3,) or lab's shape")
+        if reference_covariance is not None:
+            reference_covariance = _checks.as_array("reference_covariance", reference_covariance)
+            if reference_covariance.shape not in ((3, 3), tuple(self.lab_covariance.shape)):
+                raise ValueError(
+                    f"reference_covariance: expected shape (3, 3) or {tuple(self.lab_covariance.shape)}, "
+                    f"got {tuple(reference_covariance.shape)}"
+                )
+        return _delta_e_u(self.lab, self.lab_covariance, reference, reference_covariance)
+
+
+@jax.jit
+def _delta_e_u(lab, lab_covariance, reference, reference_covariance):
+    return uncertainty.delta_e_uncertainty(lab, lab_covariance, reference, reference_covariance)
 
 
 def delta_e_map(lab, reference):
@@ -269,6 +311,13 @@ def _patch_ratio(raw, calibration: Calibration, box_origin, box_shape):
     one size share a compiled program, and `correct` traces this same function into its own:
     the ratio `correct` uses is the one `patch_ratio` returns, bit for bit (strips rely on it).
     """
+    raw_f, dark, white, weights = _patch_box_inputs(raw, calibration, box_origin, box_shape)
+    return patch_ratio_weighted(raw_f, dark, white, weights[..., None])
+
+
+def _patch_box_inputs(raw, calibration: Calibration, box_origin, box_shape):
+    """The inputs of Eq. 14-15 over the patch's box: raw (..., h, w, B), dark and white (h, w, B)
+    in the compute dtype, and the weights (..., h, w) with unusable pixels at 0."""
     height, width = box_shape
 
     def box(x, trailing: int):
@@ -284,7 +333,14 @@ def _patch_ratio(raw, calibration: Calibration, box_origin, box_shape):
     # One saturated or non-finite pixel in the patch must not shift p for the whole image.
     bad = _patch_flags(raw_box, raw_f, dark, white, _saturation_level(raw, calibration))
     weights = jnp.where(bad, 0.0, box(calibration.patch, 0).astype(dtype))
-    return patch_ratio_weighted(raw_f, dark, white, weights[..., None])
+    return raw_f, dark, white, weights
+
+
+@functools.partial(jax.jit, static_argnames=("box_shape",))
+def _patch_ratio_std(raw, calibration: Calibration, noise, box_origin, box_shape):
+    """u(p) (..., B) over the same pixels as `_patch_ratio` (`uncertainty.patch_ratio_std`)."""
+    raw_f, dark, white, weights = _patch_box_inputs(raw, calibration, box_origin, box_shape)
+    return uncertainty.patch_ratio_std(raw_f, dark, white, weights, noise)
 
 
 def _patch_box_arguments(raw, calibration: Calibration):
@@ -396,13 +452,33 @@ def _pixel_outputs(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, 
 # leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
 # call (6 % of a 256 x 256 correction).
 @functools.partial(jax.jit, static_argnames=("intermediates", "kernel_mode"))
-def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None):
+def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, noise=None, p_u=None):
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
     `kernel_mode` (static; `fused.mode`, decided by the caller so that the environment switch is
     part of the cache key): None for the jax.numpy path, else the fused CPU kernel's mode
-    (`spherejax.fused`).
+    (`spherejax.fused`). With a `NoiseModel` (and p's uncertainty p_u (..., B)) the result also
+    carries the uncertainties (`uncertainty.pixel_uncertainty`); None traces none of that.
     """
+    result = _correct_pixels_plain(raw, calibration, p, intermediates, kernel_mode)
+    if noise is None:
+        return result
+    dtype = _compute_dtype(raw, calibration)
+    weights = jnp.asarray(colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer), dtype)
+    p_u = p_u.astype(dtype)
+    reflectance_u, lab_covariance = uncertainty.pixel_uncertainty(
+        raw.astype(dtype), calibration.dark.astype(dtype), calibration.white.astype(dtype),
+        (result.quality == 0)[..., None], result.p, p_u, calibration.coeffs.astype(dtype),
+        calibration.wiener.astype(dtype), calibration.wiener_offset.astype(dtype), weights, noise,
+    )
+    lab_u = jnp.sqrt(jnp.diagonal(lab_covariance, axis1=-2, axis2=-1))
+    return dataclasses.replace(
+        result, reflectance_u=reflectance_u, lab_u=lab_u, lab_covariance=lab_covariance, p_u=p_u
+    )
+
+
+def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None):
+    """`_correct_pixels` without uncertainties (traced inside it)."""
     dtype = _compute_dtype(raw, calibration)
     weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
     arrays = (
@@ -427,14 +503,15 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
 
 
 @functools.partial(jax.jit, static_argnames=("box_shape", "intermediates", "kernel_mode"))
-def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None):
+def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None, noise=None):
     """`correct` of whole frames as one program: p over the patch's box, then every pixel.
 
     The same two steps as `patch_ratio` then `_correct_pixels`, traced together: one dispatch
     instead of two and no wait between them, 1.5-2.5 ms a call (benchmarks/README.md).
     """
     p = _patch_ratio(raw, calibration, box_origin, box_shape)
-    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode)
+    p_u = None if noise is None else _patch_ratio_std(raw, calibration, noise, box_origin, box_shape)
+    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u)
 
 
 def _check_calibration(calibration) -> None:
@@ -481,7 +558,22 @@ def patch_ratio(raw, calibration: Calibration) -> jax.Array:
     return _patch_ratio(raw, calibration, box_origin, box_shape)
 
 
-def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = False) -> CorrectionResult:
+def patch_ratio_u(raw, calibration: Calibration, noise) -> jax.Array:
+    """The standard uncertainty of `patch_ratio(raw, calibration)`, (..., B), under a
+    `NoiseModel` (`uncertainty.patch_ratio_std`): what `correct(strip, rows, p=, p_u=, noise=)`
+    needs for strips of an image."""
+    _check_calibration(calibration)
+    if calibration.patch is None:
+        raise ValueError("calibration: has no patch (rows of a calibration): u(p) needs the whole one")
+    raw = _check_raw(raw, calibration, "the calibration's H, W, B")
+    noise = uncertainty.check_noise(noise, calibration.bands)
+    if noise is None:
+        raise ValueError("noise: expected a spherejax.NoiseModel, got None")
+    box_origin, box_shape = _patch_box_arguments(raw, calibration)
+    return _patch_ratio_std(raw, calibration, noise, box_origin, box_shape)
+
+
+def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = False, noise=None, p_u=None) -> CorrectionResult:
     """Correct camera frames into reflectance and CIELAB (flat field -> Stage I -> Stage II ->
     Wiener -> Lab), jitted.
 
@@ -493,15 +585,23 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
       p: the white-patch ratio (B,) or (..., B) of the whole image(s) (`patch_ratio`); None =
         computed here from `raw`, which then must be whole frames.
       intermediates: also return v, v_stage1 and v_stage2 (costs three more (H, W, B) cubes).
+      noise: a `spherejax.NoiseModel`: the result then also carries reflectance_u, lab_u,
+        lab_covariance and p_u, standard uncertainties by first-order propagation through this
+        same path (`spherejax.uncertainty`; the sample's, dark and white frames' noise, p's, and
+        the model's systematic terms). None (default): nothing of it is computed.
+      p_u: with `p` and `noise`, the standard uncertainty of that p (`patch_ratio_u` of the
+        whole image).
 
     Returns:
       `CorrectionResult`: reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W),
-      p (..., B) and, if asked, the intermediates. float32 unless the calibration is float64.
+      p (..., B), if asked the intermediates, and with `noise` the uncertainties. float32 unless
+      the calibration is float64.
     """
     _check_calibration(calibration)
     what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
     raw = _check_raw(raw, calibration, what)
     intermediates = bool(intermediates)
+    noise = uncertainty.check_noise(noise, calibration.bands)
     kernel_mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands)
     if p is None:
         if calibration.patch is None:
@@ -509,16 +609,24 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
                 "p: expected the whole image's white-patch ratio with rows of a calibration "
                 "(patch_ratio of the whole image), got None"
             )
+        if p_u is not None:
+            raise ValueError("p_u: expected None without p (u(p) is computed with p from the patch)")
         box_origin, box_shape = _patch_box_arguments(raw, calibration)
         return _correct_image(
-            raw, calibration, box_origin, box_shape, intermediates=intermediates, kernel_mode=kernel_mode
+            raw, calibration, box_origin, box_shape, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise
         )
-    else:
-        p = _checks.as_array("p", p)
-        bands = calibration.bands
-        _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
-        _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
-    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode)
+    p = _checks.as_array("p", p)
+    bands = calibration.bands
+    _checks.require_last_axis("p", p, bands, f"one ratio per band, B = {bands}")
+    _checks.require_shape("p", p, (*raw.shape[:-3], bands), "one ratio per band of each image")
+    if noise is not None:
+        if p_u is None:
+            raise ValueError("p_u: expected u(p) (patch_ratio_u of the whole image) with p and noise, got None")
+        p_u = _checks.as_array("p_u", p_u)
+        _checks.require_shape("p_u", p_u, p.shape, "one standard uncertainty per ratio, like p")
+    elif p_u is not None:
+        raise ValueError("p_u: expected None without noise (u(p) is used only with a NoiseModel)")
+    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u)
 
 
 __all__ = [
@@ -530,6 +638,7 @@ __all__ = [
     "CorrectionResult",
     "correct",
     "patch_ratio",
+    "patch_ratio_u",
     "patch_bounding_box",
     "delta_e_map",
 ]

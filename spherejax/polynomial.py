@@ -140,10 +140,56 @@ def _robust_scale(residuals, usable, floor):
     return jnp.maximum(MAD_TO_SIGMA * mad, floor)
 
 
+def _inverse_normal_matrix(rows):
+    """(MᵀM)⁻¹ (4, 4) of one band's design M (n, 4), zero rows for dropped samples.
+
+    From the SVD M = U diag(s) Vᵀ as V diag(1/s²) Vᵀ: forming and inverting MᵀM would square the
+    condition number of M, whose columns p⊙v and v are nearly collinear (p ~ 1). A zero singular
+    value (an undetermined band, whose covariance is NaN anyway) gets a zero weight, as in a
+    pseudo-inverse, so that it cannot turn into inf inside vmap.
+    """
+    _, s, v_t = jnp.linalg.svd(rows, full_matrices=False)
+    cutoff = jnp.max(s) * jnp.finfo(rows.dtype).eps * max(rows.shape)
+    inverse_square = jnp.where(s > cutoff, 1.0 / jnp.where(s > cutoff, s, 1.0) ** 2, 0.0)
+    return (v_t.T * inverse_square) @ v_t
+
+
+def _psi(loss: str, u):
+    """The M-estimator's psi(u) = u w(u) for a scalar scaled residual u (u for "l2")."""
+    return u if loss == "l2" else u * _irls_weights(loss, u)
+
+
+def _coefficient_covariance(rows, residuals, usable, scale, loss: str):
+    """Estimated covariance (4, 4) of one band's c1..c4 at the solution; see `Stage2Fit`.
+
+    rows (n, 4) and residuals (n,) are zero where a sample is not usable; scale is the s of the
+    robust loss (ignored for "l2"). NaN when no degree of freedom is left (n_usable = 4).
+    """
+    n = jnp.sum(usable).astype(rows.dtype)
+    dof = n - MIN_SAMPLES
+    inverse = _inverse_normal_matrix(rows)
+    if loss == "l2":
+        factor = jnp.sum(residuals**2) / dof  # sigma^2 = RSS / (n - 4)
+    else:
+        u = jnp.where(usable, residuals / scale, 0.0)
+        # psi' by automatic differentiation of psi itself: one definition serves both, and the
+        # derivative follows any change of the weights (Huber's is 1 inside c and 0 beyond).
+        psi = jnp.where(usable, _psi(loss, u), 0.0)
+        dpsi = jnp.where(usable, jax.vmap(jax.grad(lambda x: _psi(loss, x)))(u), 0.0)
+        mean_dpsi = jnp.sum(dpsi) / n
+        var_dpsi = jnp.sum(jnp.where(usable, (dpsi - mean_dpsi) ** 2, 0.0)) / n
+        # Huber (1981), Sec. 7.6: K corrects the asymptotic formula for the p = 4 parameters
+        # at finite n; K = 1 for least squares, where psi' = 1.
+        k = 1.0 + (MIN_SAMPLES / n) * var_dpsi / mean_dpsi**2
+        factor = k**2 * (jnp.sum(psi**2) / dof) / mean_dpsi**2 * scale**2
+    covariance = factor * inverse
+    return jnp.where(dof > 0, covariance, jnp.nan)
+
+
 def _fit_band(v, p, target, scale, loss: str, max_steps: int):
     """One band: closed form, then (robust losses) IRLS as an optimistix fixed point.
 
-    Returns (coeffs (4,), status, steps, scale used, dropped samples).
+    Returns (coeffs (4,), status, steps, scale used, dropped samples, covariance (4, 4)).
     """
     usable = jnp.isfinite(v) & jnp.isfinite(p) & jnp.isfinite(target)
     dropped = jnp.sum(~usable).astype(jnp.int32)
@@ -195,7 +241,11 @@ def _fit_band(v, p, target, scale, loss: str, max_steps: int):
     finite = determined & jnp.all(jnp.isfinite(coeffs))
     status = jnp.where(finite, status, jnp.where(determined, NONFINITE, UNDETERMINED))
     coeffs = jnp.where(finite, coeffs, jnp.nan)
-    return coeffs, status, steps, used_scale, dropped
+    # Residuals of the usable samples at the solution (zero rows give zero residuals).
+    residuals = jnp.where(usable, target - rows @ jnp.where(finite, coeffs, 0.0), 0.0)
+    covariance = _coefficient_covariance(rows, residuals, usable, used_scale, loss)
+    covariance = jnp.where(finite, covariance, jnp.nan)
+    return coeffs, status, steps, used_scale, dropped, covariance
 
 
 class Stage2Fit(eqx.Module):
@@ -210,6 +260,26 @@ class Stage2Fit(eqx.Module):
       scale: (B,) residual scale s used by the robust loss (NaN for "l2").
       dropped: (B,) number of non-finite samples left out.
       loss: the loss name.
+      covariance: (B, 4, 4), the estimated covariance of each band's (c1, c2, c3, c4), in the
+        fit's dtype and in coefficient units (c1, c2 dimensionless; c3, c4 in response units,
+        so the entries are in the products of those units); NaN for a band whose status is
+        NONFINITE or UNDETERMINED, or that has exactly 4 usable samples (no degree of freedom
+        left to estimate the noise). For first-order (GUM, JCGM 100:2008) propagation of the
+        fit's uncertainty into the Stage II response. With M (n, 4) the design (p v, v, p, 1)
+        of Eq. 20 over the n usable samples and r_i their residuals at the solution:
+
+        "l2" (Eq. 22, ordinary least squares):
+            Cov = sigma^2 (MᵀM)⁻¹,  sigma^2 = Σ r_i² / (n - 4).
+        "huber", "cauchy", "tukey" (M-estimator asymptotic covariance with Huber's finite-n
+        correction; Huber, Robust Statistics, Wiley 1981, Sec. 7.6):
+            Cov = K² [Σ psi(u_i)² / (n - 4)] / [mean psi'(u_i)]² s² (MᵀM)⁻¹,
+            K = 1 + (4 / n) Var(psi') / mean(psi')²,
+        with u_i = r_i / s, s = `scale`, psi(u) = u w(u) (w the IRLS weight of the loss) and
+        psi' its derivative (by automatic differentiation). Both assume independent errors of
+        one variance across the samples. The robust form is asymptotic (checked by Monte Carlo
+        against refits at n = 90 to within a few per cent for Gaussian noise); it is not
+        finite where mean psi' = 0 (Tukey with every residual beyond c s).
+        (MᵀM)⁻¹ comes from the SVD of M, never by inverting MᵀM.
     """
 
     coeffs: jax.Array
@@ -218,6 +288,7 @@ class Stage2Fit(eqx.Module):
     scale: jax.Array
     dropped: jax.Array
     loss: str = eqx.field(static=True)
+    covariance: jax.Array
 
     @property
     def converged(self) -> jax.Array:
@@ -232,8 +303,8 @@ class Stage2Fit(eqx.Module):
 @eqx.filter_jit
 def _fit_all_bands(v, p, target, scale, loss: str, max_steps: int):
     fit = jax.vmap(lambda vb, pb, tb, sb: _fit_band(vb, pb, tb, sb, loss, max_steps), in_axes=(1, 1, 1, 0))
-    coeffs, status, steps, used_scale, dropped = fit(v, p, target, scale)
-    return Stage2Fit(coeffs, status, steps, used_scale, dropped, loss)
+    coeffs, status, steps, used_scale, dropped, covariance = fit(v, p, target, scale)
+    return Stage2Fit(coeffs, status, steps, used_scale, dropped, loss, covariance)
 
 
 def fit_stage2_detailed(v, p, target, loss: str = "l2", *, scale=None, max_steps: int = 100) -> Stage2Fit:
@@ -267,7 +338,8 @@ def fit_stage2_detailed(v, p, target, loss: str = "l2", *, scale=None, max_steps
       max_steps: IRLS iterations before a band is reported as MAX_STEPS.
 
     Returns:
-      `Stage2Fit`. Non-finite samples are dropped per band and counted in `dropped`.
+      `Stage2Fit`. Non-finite samples are dropped per band and counted in `dropped`; its
+      `covariance` (B, 4, 4) is the estimated covariance of each band's c1..c4.
     """
     if not isinstance(loss, str) or loss not in LOSSES:
         raise ValueError(f"loss: unknown loss {loss!r}; expected one of {list(LOSSES)}")

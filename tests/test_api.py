@@ -25,6 +25,9 @@ DESIGN_SIGNATURES = {
     "fit_wiener": ["responses", "reflectances"],
     "wiener": ["v", "W"],
     "correct": ["raw", "calibration"],
+    "measure": ["raw", "calibration", "mask", "noise"],
+    "patch_ratio": ["raw", "calibration"],
+    "patch_ratio_u": ["raw", "calibration", "noise"],
 }
 
 

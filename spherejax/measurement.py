@@ -1,0 +1,275 @@
+"""Measuring a region as a spectrophotometer does: its mean reflectance, Lab, and their
+uncertainties.
+
+A spectrophotometer averages the light of its aperture and computes colour from the mean
+spectrum. `measure` does the same over a region of the image: the mean of the per-pixel
+reflectances (the estimate is affine, so this is the estimate of the mean Stage II response),
+then Lab of that mean under an illuminant. With a `NoiseModel`, the first-order covariance of
+both (`spherejax.uncertainty`, N1-N7), source by source:
+
+    pixel sources (sample, dark and white frames' noise, N1-N3): independent between pixels, so
+      Cov(mean) = Σ_i w_i² J_i Σ_i J_iᵀ, which falls as 1 / (number of pixels);
+    common sources (the white-patch ratio, the white standard, Stage II, the estimator, N4-N7):
+      the same draw for every pixel, so the mean moves with the mean sensitivity,
+      Cov(mean) = J̄ Σ J̄ᵀ, which no region size averages away.
+
+The region's pixels are weighted equally; pixels `correct` flags (saturated, non-finite, no flat
+field) are left out and counted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks, colorimetry, uncertainty
+from .pipeline import Calibration, _check_calibration, _check_raw, _compute_dtype, correct, patch_ratio, patch_ratio_u
+from .uncertainty import COMMON_SOURCES, ESTIMATOR_SOURCE, PIXEL_SOURCES, NoiseModel
+
+_HIGHEST = jax.lax.Precision.HIGHEST
+
+
+@dataclasses.dataclass(frozen=True)
+class Measurement:
+    """One region's measurement (`measure`). NumPy arrays, float64.
+
+    Fields:
+      reflectance: (31,) mean reflectance, 400..700 nm step 10.
+      lab: (3,) L*, a*, b* of the mean reflectance under `illuminant`.
+      illuminant: "D65", "A" or "F2"; observer: the colour-matching functions.
+      pixels: pixels averaged; excluded: pixels of the region `correct` flagged (left out).
+      reflectance_spread: (31,) standard deviation of the per-pixel reflectances over the region
+        (the sample's non-uniformity plus pixel noise; not an uncertainty of the mean).
+      reflectance_covariance: (31, 31) covariance of `reflectance`, or None without a noise model.
+      lab_covariance: (3, 3) covariance of `lab`, or None.
+      reflectance_budget: {source: (31, 31)} each source's part of `reflectance_covariance`
+        (`uncertainty.SOURCES`); empty without a noise model.
+      lab_budget: {source: (3, 3)} the same for Lab.
+    """
+
+    reflectance: np.ndarray
+    lab: np.ndarray
+    illuminant: str
+    observer: str
+    pixels: int
+    excluded: int
+    reflectance_spread: np.ndarray
+    reflectance_covariance: np.ndarray | None = None
+    lab_covariance: np.ndarray | None = None
+    reflectance_budget: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    lab_budget: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    @property
+    def reflectance_u(self) -> np.ndarray | None:
+        """(31,) standard uncertainties of `reflectance`, or None."""
+        return None if self.reflectance_covariance is None else np.sqrt(np.diag(self.reflectance_covariance))
+
+    @property
+    def lab_u(self) -> np.ndarray | None:
+        """(3,) standard uncertainties of L*, a*, b*, or None."""
+        return None if self.lab_covariance is None else np.sqrt(np.diag(self.lab_covariance))
+
+    def under(self, illuminant: str) -> Measurement:
+        """This measurement with Lab (and its covariance) under another illuminant."""
+        lab, jacobian = _lab_and_jacobian(self.reflectance, illuminant, self.observer)
+        lab_budget = {name: jacobian @ cov @ jacobian.T for name, cov in self.reflectance_budget.items()}
+        return dataclasses.replace(
+            self, lab=lab, illuminant=illuminant,
+            lab_covariance=None if self.reflectance_covariance is None else jacobian @ self.reflectance_covariance @ jacobian.T,
+            lab_budget=lab_budget,
+        )
+
+    def delta_e(self, reference_lab, reference_covariance=None) -> tuple[float, float]:
+        """(ΔE00 against `reference_lab` (3,), its standard uncertainty).
+
+        Args:
+          reference_lab: the standard's L*, a*, b* (3,), or another `Measurement` (its Lab and
+            covariance are used, and the two are taken as independent: their common sources,
+            p of one image excepted, then count twice, which overstates u).
+          reference_covariance: (3, 3) of the reference, or None for an exact reference.
+
+        The uncertainty is NaN without a noise model; it is first order, so 0 at ΔE00 = 0 and an
+        understatement near it (docs/uncertainty.md).
+        """
+        if isinstance(reference_lab, Measurement):
+            if reference_covariance is None:
+                reference_covariance = reference_lab.lab_covariance
+            reference_lab = reference_lab.lab
+        reference = np.asarray(reference_lab, np.float64)
+        if reference.shape != (3,) or not np.all(np.isfinite(reference)):
+            raise ValueError(f"reference_lab: expected three finite numbers L*, a*, b*, got {reference.tolist()}")
+        if reference_covariance is not None:
+            reference_covariance = np.asarray(reference_covariance, np.float64)
+            if reference_covariance.shape != (3, 3):
+                raise ValueError(f"reference_covariance: expected shape (3, 3), got {reference_covariance.shape}")
+        value = float(colorimetry.delta_e_2000(jnp.asarray(self.lab), jnp.asarray(reference)))
+        if self.lab_covariance is None:
+            return value, float("nan")
+        u = uncertainty.delta_e_uncertainty(
+            jnp.asarray(self.lab), jnp.asarray(self.lab_covariance), jnp.asarray(reference),
+            None if reference_covariance is None else jnp.asarray(reference_covariance),
+        )
+        return value, float(u)
+
+    def to_dict(self) -> dict:
+        """Plain JSON: the values, standard uncertainties, covariances and the budget."""
+        def listed(x):
+            return None if x is None else np.asarray(x).tolist()
+
+        return {
+            "illuminant": self.illuminant,
+            "observer": self.observer,
+            "pixels": self.pixels,
+            "excluded_pixels": self.excluded,
+            "reflectance": listed(self.reflectance),
+            "reflectance_u": listed(self.reflectance_u),
+            "reflectance_spread": listed(self.reflectance_spread),
+            "reflectance_covariance": listed(self.reflectance_covariance),
+            "lab": listed(self.lab),
+            "lab_u": listed(self.lab_u),
+            "lab_covariance": listed(self.lab_covariance),
+            "lab_u_by_source": {name: listed(np.sqrt(np.diag(cov))) for name, cov in self.lab_budget.items()},
+        }
+
+
+def _lab_and_jacobian(reflectance, illuminant: str, observer: str):
+    """Lab (3,) of a reflectance (31,) and ∂Lab/∂reflectance (3, 31), by `jax.jacfwd`."""
+    def lab_of(r):
+        return colorimetry.reflectance_to_lab(r, illuminant, observer=observer)
+
+    r = jnp.asarray(reflectance, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    return np.asarray(lab_of(r), np.float64), np.asarray(jax.jacfwd(lab_of)(r), np.float64)
+
+
+@jax.jit
+def _region_statistics(raw_f, dark, white, weights, p, p_u, coeffs, wiener, wiener_offset, noise):
+    """The region's mean Stage II response and every source's covariance of it.
+
+    Args: raw_f (h, w, B), dark and white (h, w, B), weights (h, w) (1 on pixels averaged, 0
+    elsewhere), p and p_u (B,), coeffs (B, 4), wiener (31, B), wiener_offset (31,), all one float
+    dtype; noise: a `NoiseModel` or None.
+
+    Returns:
+      (mean reflectance (31,), spread (31,), {source: reflectance covariance (31, 31)}).
+    """
+    w = weights / jnp.sum(weights)
+    safe = weights[..., None] > 0
+    raw_safe = jnp.where(safe, raw_f, white)  # flagged pixels out of harm's way, as `correct`
+    j_reflectance, _ = uncertainty.linear_jacobians(wiener, wiener_offset, jnp.zeros((wiener.shape[0], 3), wiener.dtype))
+    p_pixel = p[None, None, :]
+    if noise is None:
+        from .flatfield import flat_field_unchecked
+        from .polynomial import stage2_unchecked
+
+        v_tilde = stage2_unchecked(flat_field_unchecked(raw_safe, dark, white), p_pixel, coeffs)
+        budget = {}
+    else:
+        v_tilde, tangents, coeff_jacobian = uncertainty.band_tangents(
+            raw_safe, dark, white, p_pixel, p_u[None, None, :], coeffs, noise
+        )
+        budget = {}
+        for name in PIXEL_SOURCES:  # independent pixels: Σ w_i² t_i²
+            variance = jnp.sum((w**2)[..., None] * jnp.where(safe, tangents[name], 0.0) ** 2, axis=(0, 1))
+            budget[name] = (j_reflectance * variance) @ j_reflectance.T
+        for name in ("white-patch ratio", "white standard"):
+            # One draw for every pixel: the mean moves by Σ w_i t_i in each band, and the bands'
+            # draws are independent (a diagonal, not an outer product of the tangents).
+            mean_tangent = jnp.sum(w[..., None] * jnp.where(safe, tangents[name], 0.0), axis=(0, 1))
+            budget[name] = (j_reflectance * mean_tangent**2) @ j_reflectance.T
+        if coeff_jacobian is not None:
+            mean_jacobian = jnp.sum(w[..., None, None] * jnp.where(safe[..., None], coeff_jacobian, 0.0), axis=(0, 1))
+            variance = uncertainty.coefficient_variance(mean_jacobian, noise.coeffs_covariance)
+            budget["Stage II coefficients"] = (j_reflectance * variance) @ j_reflectance.T
+    v_tilde = jnp.where(safe, v_tilde, 0.0)
+    mean_v_tilde = jnp.sum(w[..., None] * v_tilde, axis=(0, 1))
+    if noise is not None and noise.estimator_covariance is not None:
+        scale = uncertainty.estimator_scale(mean_v_tilde, noise.estimator_covariance)
+        budget[ESTIMATOR_SOURCE] = scale * noise.estimator_covariance.residual.astype(raw_f.dtype)
+    mean = jnp.matmul(wiener, mean_v_tilde, precision=_HIGHEST) + wiener_offset
+    pixel_reflectance = jnp.matmul(v_tilde, wiener.T, precision=_HIGHEST) + wiener_offset
+    spread = jnp.sqrt(jnp.sum(w[..., None] * (pixel_reflectance - mean) ** 2, axis=(0, 1)))
+    return mean, spread, budget
+
+
+def _check_mask(mask, image_shape) -> np.ndarray:
+    if not _checks.is_concrete(mask):
+        raise ValueError("mask: expected a concrete (H, W) boolean array, got a traced value")
+    mask = np.asarray(mask)
+    if mask.shape != tuple(image_shape):
+        raise ValueError(f"mask: expected shape {tuple(image_shape)} (the image's H, W), got {mask.shape}")
+    if mask.dtype != bool:
+        raise ValueError(f"mask: expected a boolean array, got dtype {mask.dtype}")
+    if not mask.any():
+        raise ValueError("mask: selects no pixel; expected at least one True entry")
+    return mask
+
+
+def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None, *, illuminant: str | None = None) -> Measurement:
+    """Measure a region of one image: mean reflectance and Lab, with their covariances.
+
+    Args:
+      raw: sample frames (H, W, B), uint16 counts or float, the calibration's size.
+      calibration: a `Calibration` with a patch.
+      mask: (H, W) bool, True on the region.
+      noise: a `NoiseModel`, or None for values without uncertainties.
+      illuminant: Lab's illuminant, "D65", "A" or "F2"; None = the calibration's.
+
+    Returns:
+      `Measurement`. ValueError when every pixel of the region is flagged by `correct`, or on
+      bad shapes, names or types (naming the argument).
+    """
+    _check_calibration(calibration)
+    raw = _check_raw(raw, calibration, "the calibration's H, W, B")
+    if raw.ndim != 3:
+        raise ValueError(f"raw: expected one image (H, W, B), got shape {tuple(raw.shape)}")
+    if calibration.patch is None:
+        raise ValueError("calibration: has no patch (rows of a calibration): measure needs the whole one")
+    mask = _check_mask(mask, calibration.image_shape)
+    noise = uncertainty.check_noise(noise, calibration.bands)
+    illuminant = calibration.illuminant if illuminant is None else illuminant
+    colorimetry.tristimulus_weights(illuminant, observer=calibration.observer)  # unknown names raise here
+
+    p = patch_ratio(raw, calibration)
+    p_u = patch_ratio_u(raw, calibration, noise) if noise is not None else jnp.zeros_like(p)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    box = dataclasses.replace(
+        calibration, dark=calibration.dark[r0:r1, c0:c1], white=calibration.white[r0:r1, c0:c1], patch=None
+    )
+    raw_box = raw[r0:r1, c0:c1]
+    quality = np.asarray(correct(raw_box, box, p=p).quality)
+    region = mask[r0:r1, c0:c1]
+    used = region & (quality == 0)
+    pixels, excluded = int(used.sum()), int(region.sum() - used.sum())
+    if pixels == 0:
+        raise ValueError(
+            f"mask: all {excluded} pixels of the region are flagged (saturated, not finite, white not "
+            "above dark, or an unusable white patch); expected at least one good pixel"
+        )
+    dtype = _compute_dtype(raw, calibration)
+    cast = lambda x: jnp.asarray(x).astype(dtype)  # noqa: E731
+    mean, spread, budget = _region_statistics(
+        cast(raw_box), cast(box.dark), cast(box.white), cast(used), cast(p), cast(p_u), cast(calibration.coeffs),
+        cast(calibration.wiener), cast(calibration.wiener_offset), noise,
+    )
+    reflectance = np.asarray(mean, np.float64)
+    lab, jacobian = _lab_and_jacobian(reflectance, illuminant, calibration.observer)
+    reflectance_budget = {name: np.asarray(cov, np.float64) for name, cov in budget.items()}
+    order = [name for name in uncertainty.SOURCES if name in reflectance_budget]
+    reflectance_budget = {name: reflectance_budget[name] for name in order}
+    covariance = sum(reflectance_budget.values()) if noise is not None else None
+    return Measurement(
+        reflectance=reflectance, lab=lab, illuminant=illuminant, observer=calibration.observer,
+        pixels=pixels, excluded=excluded, reflectance_spread=np.asarray(spread, np.float64),
+        reflectance_covariance=covariance,
+        lab_covariance=None if covariance is None else jacobian @ covariance @ jacobian.T,
+        reflectance_budget=reflectance_budget,
+        lab_budget={name: jacobian @ cov @ jacobian.T for name, cov in reflectance_budget.items()},
+    )
+
+
+__all__ = ["Measurement", "measure", "COMMON_SOURCES", "PIXEL_SOURCES"]
