@@ -20,6 +20,7 @@ field) are left out and counted.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 
 import jax
@@ -106,14 +107,9 @@ class Measurement:
             reference_covariance = np.asarray(reference_covariance, np.float64)
             if reference_covariance.shape != (3, 3):
                 raise ValueError(f"reference_covariance: expected shape (3, 3), got {reference_covariance.shape}")
-        value = float(colorimetry.delta_e_2000(jnp.asarray(self.lab), jnp.asarray(reference)))
-        if self.lab_covariance is None:
-            return value, float("nan")
-        u = uncertainty.delta_e_uncertainty(
-            jnp.asarray(self.lab), jnp.asarray(self.lab_covariance), jnp.asarray(reference),
-            None if reference_covariance is None else jnp.asarray(reference_covariance),
-        )
-        return value, float(u)
+        as_jax = lambda x: None if x is None else jnp.asarray(x, self.lab.dtype)  # noqa: E731
+        value, u = _delta_e_and_u(as_jax(self.lab), as_jax(self.lab_covariance), as_jax(reference), as_jax(reference_covariance))
+        return float(value), float(u)
 
     def to_dict(self) -> dict:
         """Plain JSON: the values, standard uncertainties, covariances and the budget."""
@@ -138,11 +134,27 @@ class Measurement:
 
 def _lab_and_jacobian(reflectance, illuminant: str, observer: str):
     """Lab (3,) of a reflectance (31,) and ∂Lab/∂reflectance (3, 31), by `jax.jacfwd`."""
+    r = jnp.asarray(reflectance, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    lab, jacobian = _lab_and_jacobian_compiled(r, illuminant, observer)
+    return np.asarray(lab, np.float64), np.asarray(jacobian, np.float64)
+
+
+@functools.partial(jax.jit, static_argnames=("illuminant", "observer"))
+def _lab_and_jacobian_compiled(reflectance, illuminant: str, observer: str):
     def lab_of(r):
         return colorimetry.reflectance_to_lab(r, illuminant, observer=observer)
 
-    r = jnp.asarray(reflectance, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-    return np.asarray(lab_of(r), np.float64), np.asarray(jax.jacfwd(lab_of)(r), np.float64)
+    return lab_of(reflectance), jax.jacfwd(lab_of)(reflectance)
+
+
+@jax.jit
+def _delta_e_and_u(lab, lab_covariance, reference, reference_covariance):
+    """ΔE00 and its first-order u for one colour (`uncertainty.delta_e_uncertainty`), compiled:
+    op by op, the gradient of ΔE00 takes seconds to dispatch."""
+    value = colorimetry.delta_e_2000(lab, reference)
+    if lab_covariance is None:
+        return value, jnp.full((), jnp.nan, value.dtype)
+    return value, uncertainty.delta_e_uncertainty(lab, lab_covariance, reference, reference_covariance)
 
 
 @jax.jit
