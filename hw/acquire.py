@@ -29,7 +29,13 @@ choices): the shutter is closed, the journal and SESSION.partial are kept for `-
 
 Per band image the metadata holds: band centre, every wheel's slot read back with pos?, the
 exposure, frames averaged, time stamp (UTC), sensor temperature, lamp hours and the count of
-saturated pixels. Averages are rounded to 16-bit counts for the session's frames.
+saturated pixels. Averages are rounded to 16-bit counts for the session's frames. Each session
+frame's metadata holds these per band ("bands") and, as a simulated session does, the frames
+averaged for the frame ("frames_averaged": dark_frames for the dark, frames_averaged for the
+white standard and samples; the fewest of its bands should a resumed run have changed them).
+The session's metadata "camera" holds the camera's gain ("gain_e_per_count") and read noise
+("read_noise_counts") when known, for calibrate's noise model: the camera's own (the simulated
+camera's model), else the profile's [noise]; and the profile's white_reflectance_u if given.
 """
 
 from __future__ import annotations
@@ -430,18 +436,44 @@ def _write_session(out: pathlib.Path, partial: pathlib.Path, journal: Journal, i
             "role": capture.role,
             "exposure_s": [float(exposures[band]) for band in bands],
             "timestamp": records[0]["metadata"]["timestamp"],
-            "metadata": {"bands": [record["metadata"] for record in records]},
+            "metadata": {
+                "bands": [record["metadata"] for record in records],
+                # The frame's own count, the key a simulated session has (the bands' counts agree
+                # unless a resumed run changed them: then the fewest, the noisiest).
+                "frames_averaged": min(int(record["metadata"]["frames_averaged"]) for record in records),
+            },
             **capture.fields,
         }
         frames.append((frame, np.concatenate(planes, axis=-1)))
     warmup = journal.last("warmup")
+    metadata = {"acquisition": {"profile": str(profile.path), "warmup": warmup and {k: v for k, v in warmup.items() if k != "event"},
+                                "camera": getattr(camera, "name", profile.camera.backend)}}
+    noise = _camera_noise(profile, camera)
+    if noise:
+        metadata["camera"] = noise
     return io.write_session(
         out, instrument_id=profile.instrument_id, band_centres_nm=bands,
         image_shape=list(camera.frame_shape), saturation=_full_scale(camera),
-        white_patch=white_patch, holder=holder, frames=frames,
-        metadata={"acquisition": {"profile": str(profile.path), "warmup": warmup and {k: v for k, v in warmup.items() if k != "event"},
-                                  "camera": getattr(camera, "name", profile.camera.backend)}},
+        white_patch=white_patch, holder=holder, frames=frames, metadata=metadata,
     )
+
+
+def _camera_noise(profile: Profile, camera: Camera) -> dict:
+    """The session's "camera" record (module docstring): gain and read noise from the camera
+    when it knows them, else from the profile's [noise]; the white standard's certificate
+    uncertainty from the profile. Empty when nothing is known."""
+    record = {}
+    known = getattr(camera, "noise_parameters", None)
+    if known is not None:
+        record.update(known, source=f"camera {camera.name!r}")
+    elif profile.noise.gain_e_per_count is not None:
+        record.update(
+            gain_e_per_count=profile.noise.gain_e_per_count, read_noise_counts=profile.noise.read_noise_counts,
+            source=f"profile {profile.path.name} [noise]",
+        )
+    if profile.noise.white_reflectance_u is not None:
+        record["white_reflectance_u"] = profile.noise.white_reflectance_u
+    return record
 
 
 def _check_resume(partial: pathlib.Path, profile: Profile) -> None:

@@ -112,6 +112,14 @@ class Camera(abc.ABC):
             raise CameraError(self._error("is closed"))
 
     @property
+    def noise_parameters(self) -> dict | None:
+        """{"gain_e_per_count": e- per count, "read_noise_counts": one frame's read noise in
+        counts rms} when the camera knows them (the simulated camera: its model's values), else
+        None (a real camera: the profile's [noise] gives them). Recorded in the session for
+        calibrate's noise model."""
+        return None
+
+    @property
     def saturation_dn(self) -> int:
         """The largest value a frame pixel can hold, 2**bit_depth - 1 (a saturated pixel)."""
         return 2 ** int(self.bit_depth) - 1

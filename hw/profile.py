@@ -45,12 +45,19 @@ Optional sections (defaults in `AcquisitionSettings` and `Layout`):
     id = "s001"
     set = "test"              # "training" or "test"
     background = "black velvet"
+    [noise]                   # the camera's noise, recorded in the session for calibrate's
+    gain_e_per_count = 1.04   #   noise model: electrons per count (> 0), and one frame's read
+    read_noise_counts = 5.8   #   noise in counts rms (>= 0); give both or neither (a camera
+                              #   that reports its own, the simulated one, overrides them)
+    white_reflectance_u = 0.003  # optional: relative standard uncertainty (>= 0) of the white
+                              #   standard's certified reflectance (0.003 = 0.3 %)
 
 Everything is checked when the profile is read, before any device is opened, and a problem is
 one `ProfileError` line naming the file and the key: a missing key, an unknown key (a typo must not
 pass silently, nor a camera option the backend does not take), two bands on one slot, a slot beyond
 the wheel's count or on its open slot, a band on a wheel the profile does not define, a path that
-leaves the profile's folder.
+leaves the profile's folder, a [noise] value out of range or one of gain_e_per_count and
+read_noise_counts without the other.
 """
 
 from __future__ import annotations
@@ -127,6 +134,16 @@ class Layout:
 
 
 @dataclasses.dataclass(frozen=True)
+class NoiseSettings:
+    """[noise]: the camera's gain (e-/count) and read noise (counts rms), both or neither, and
+    the white standard's relative certificate uncertainty; None where the profile gives none."""
+
+    gain_e_per_count: float | None = None
+    read_noise_counts: float | None = None
+    white_reflectance_u: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class SamplePlan:
     id: str
     set: str = "test"
@@ -148,6 +165,7 @@ class Profile:
     layout: Layout
     lamp_state_file: pathlib.Path
     samples: tuple[SamplePlan, ...]
+    noise: NoiseSettings = NoiseSettings()
 
     @property
     def band_centres_nm(self) -> list[int]:
@@ -323,6 +341,30 @@ def _acquisition(root: _Table) -> AcquisitionSettings:
     )
 
 
+def _noise(root: _Table) -> NoiseSettings:
+    table = root.table("noise", required=False)
+    table.only({f.name for f in dataclasses.fields(NoiseSettings)})
+
+    def number(name: str, expected: str, check):
+        value = table.get(name, (int, float), expected, default=None, check=check)
+        return None if value is None else float(value)
+
+    gain = number("gain_e_per_count", "electrons per count, a number > 0", lambda v: v > 0)
+    read_noise = number("read_noise_counts", "one frame's read noise in counts rms, a number >= 0", lambda v: v >= 0)
+    if (gain is None) != (read_noise is None):
+        given, missing = ("gain_e_per_count", "read_noise_counts") if read_noise is None else ("read_noise_counts", "gain_e_per_count")
+        raise ProfileError(
+            table.path, table.key(missing), f"is missing ({given} is given)",
+            "both gain_e_per_count and read_noise_counts, or neither",
+        )
+    return NoiseSettings(
+        gain_e_per_count=gain, read_noise_counts=read_noise,
+        white_reflectance_u=number(
+            "white_reflectance_u", "a relative standard uncertainty >= 0 (0.003 for 0.3 %)", lambda v: v >= 0
+        ),
+    )
+
+
 def _inside(path: pathlib.Path, key: str, value: str) -> pathlib.Path:
     """A path from the profile, relative to its folder and confined to it."""
     folder = path.resolve().parent
@@ -355,7 +397,7 @@ def load_profile(path) -> Profile:
         # digits, and arrays nested thousands deep raise RecursionError.
         raise ProfileError(path, None, f"is not valid TOML: {error}", "an instrument profile (TOML)") from None
     root = _Table(path, data, "")
-    root.only({"instrument", "wheels", "shutter", "camera", "bands", "acquisition", "layout", "lamp", "samples"})
+    root.only({"instrument", "wheels", "shutter", "camera", "bands", "acquisition", "layout", "lamp", "samples", "noise"})
 
     instrument = root.table("instrument")
     instrument.only({"id"})
@@ -405,7 +447,7 @@ def load_profile(path) -> Profile:
     return Profile(
         path=path, instrument_id=instrument_id, wheels=wheels, shutter=shutter, camera=camera,
         bands=bands, acquisition=_acquisition(root), layout=layout, lamp_state_file=lamp_state_file,
-        samples=tuple(samples),
+        samples=tuple(samples), noise=_noise(root),
     )
 
 
@@ -417,6 +459,7 @@ __all__ = [
     "CameraConfig",
     "AcquisitionSettings",
     "Layout",
+    "NoiseSettings",
     "SamplePlan",
     "Profile",
     "load_profile",

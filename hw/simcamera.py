@@ -176,6 +176,17 @@ class SimulatedCamera(Camera):
     def _read_temperature(self) -> float:
         return SENSOR_TEMPERATURE_C
 
+    @property
+    def noise_parameters(self) -> dict | None:
+        """The simulator's true gain (e-/count) and read noise (counts rms), as `_snap` exposes
+        frames: binning sums electrons before the one read, so neither depends on it. None when
+        the model's noise is switched off (frames without noise)."""
+        inst = self.instrument
+        if not inst.noise:
+            return None
+        gain = float(inst.gain_e_per_dn)
+        return {"gain_e_per_count": gain, "read_noise_counts": float(inst.read_noise_e) / gain}
+
     def _close(self) -> None:
         self._cache.clear()
 

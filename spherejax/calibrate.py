@@ -16,17 +16,25 @@ disagree about v, p or bad pixels:
    known reflectances (`fit_wiener`: the affine training-based or model-based Wiener estimator,
    method and regularisers chosen by cross-validation that holds out whole groups of targets,
    e.g. charts or materials, when a manifest field names them).
+5. The noise model (`spherejax.uncertainty.NoiseModel`) for per-pixel uncertainties, when the
+   camera's gain and read noise are known (arguments, or the session's metadata "camera"): the
+   frames averaged from the frames' metadata "frames_averaged", the Stage II coefficients'
+   covariance from the fit and the estimator's sampling covariance from its targets
+   (`estimator_covariance`).
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import math
 
 import numpy as np
 
 from .pipeline import Calibration, correct
 from .polynomial import MIN_SAMPLES, STATUS_NAMES, UNDETERMINED, fit_stage2_detailed, identity_coeffs, stage2, why_undetermined
-from .wiener_estimation import METHODS as WIENER_METHODS, fit_wiener
+from .uncertainty import NoiseModel
+from .wiener_estimation import METHODS as WIENER_METHODS, EstimatorCovariance, estimator_covariance, fit_wiener
 from .grid import N_WAVELENGTHS
 
 
@@ -213,9 +221,69 @@ class CalibrationReport:
     stage2_status: list[str]
     stage2_dropped_samples: list[int]
     unconverged_bands: list[int]
+    #: The calibration's noise model (`spherejax.NoiseModel`), None without gain and read noise.
+    noise_model: NoiseModel | None = None
+    #: How the noise model was made, or why there is none (one line each).
+    noise_notes: list[str] = dataclasses.field(default_factory=list)
 
     def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Plain JSON: the fields, with the noise model as `noise_model_summary` (its numbers
+        and which covariances it holds, not the arrays; the calibration file stores those)."""
+        out = dataclasses.asdict(dataclasses.replace(self, noise_model=None))
+        out["noise_model"] = noise_model_summary(self.noise_model)
+        return out
+
+
+def _plain(x):
+    """A NoiseModel field as JSON: a number (an integral one as int) or a list."""
+    value = np.asarray(x, np.float64)
+    if value.ndim == 0:
+        number = float(value)
+        return int(number) if number.is_integer() and abs(number) < 2**53 else number
+    return value.tolist()
+
+
+def noise_model_summary(model: NoiseModel | None) -> dict | None:
+    """A short JSON summary of a noise model (None for None): gain, read noise, frames averaged,
+    the white standard's uncertainty and whether each covariance is present."""
+    if model is None:
+        return None
+    return {
+        "gain_e_per_count": _plain(model.gain),
+        "read_noise_counts": _plain(model.read_noise),
+        "dark_frames": _plain(model.dark_frames),
+        "white_frames": _plain(model.white_frames),
+        "sample_frames": _plain(model.sample_frames),
+        "white_reflectance_u": _plain(model.white_reflectance_u),
+        "coeffs_covariance": model.coeffs_covariance is not None,
+        "estimator_covariance": model.estimator_covariance is not None,
+    }
+
+
+def noise_model_line(report: CalibrationReport) -> str:
+    """One line for the log: the noise model stored, or how to supply one."""
+    model = report.noise_model
+    if model is None:
+        return (
+            "noise model: none stored (the camera's gain and read noise are not both known from "
+            "the session; give them with --gain E_PER_COUNT --read-noise COUNTS)"
+        )
+
+    def shown(x, unit):
+        value = np.asarray(x, np.float64)
+        if value.ndim == 0:
+            return f"{float(value):.4g} {unit}"
+        return f"{float(value.mean()):.4g} {unit} (mean of {value.size} bands)"
+
+    covariances = [name for name, present in (
+        ("Stage II", model.coeffs_covariance is not None), ("estimator", model.estimator_covariance is not None),
+    ) if present]
+    frames = f"{_plain(model.dark_frames)} dark / {_plain(model.white_frames)} white / {_plain(model.sample_frames)} sample frames"
+    return (
+        f"noise model: gain {shown(model.gain, 'e-/count')}, read noise {shown(model.read_noise, 'counts')}, "
+        f"{frames}, white standard u {shown(model.white_reflectance_u, '(relative)')}, "
+        f"covariances: {', '.join(covariances) or 'none'}"
+    )
 
 
 #: `--wiener-groups` names that are frame fields rather than keys of a frame's metadata.
@@ -254,9 +322,167 @@ def _refuse_undetermined(session, bands, v, p, target) -> None:
         )
 
 
+#: The session metadata "camera" keys of a noise model: (key, argument, what, strictly positive).
+_CAMERA_KEYS = (
+    ("gain_e_per_count", "gain", "electrons per count", True),
+    ("read_noise_counts", "read_noise", "one frame's read noise in counts rms", False),
+    ("white_reflectance_u", "white_reflectance_u", "the white standard's relative standard uncertainty", False),
+)
+
+
+def _noise_value(value, bands: int, positive: bool):
+    """`value` as float32 (a number or one per band) if it is finite and > 0 (`positive`) or
+    >= 0, else None."""
+    if isinstance(value, bool) or (isinstance(value, (list, tuple)) and any(isinstance(v, bool) for v in value)):
+        return None
+    try:
+        array = np.asarray(value, np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    if array.dtype != np.float64 or array.ndim > 1 or (array.ndim == 1 and array.shape[0] != bands):
+        return None
+    if not np.all(np.isfinite(array)) or not np.all(array > 0 if positive else array >= 0):
+        return None
+    return array.astype(np.float32)
+
+
+def check_noise_arguments(bands: int, **values) -> None:
+    """Raise ValueError (one line, naming the argument) unless each of gain, read_noise and
+    white_reflectance_u given is a finite number (or one per band): gain > 0, the others >= 0."""
+    for _, name, what, positive in _CAMERA_KEYS:
+        value = values.get(name)
+        if value is not None and _noise_value(value, bands, positive) is None:
+            bound = "> 0" if positive else ">= 0"
+            raise ValueError(f"{name}: expected {what}, a finite number {bound} or one per band ({bands}), got {value!r}")
+
+
+def _frames_of(session, frame) -> float | None:
+    """The frame's metadata "frames_averaged" (None when absent); ValueError naming the manifest
+    and the frame when it is not a number >= 1."""
+    value = frame.metadata.get("frames_averaged")
+    if value is None:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 1
+    if not ok:
+        raise ValueError(
+            f"{session.manifest_path}: frame {frame.id!r} has metadata frames_averaged {value!r} "
+            "(expected the number of frames averaged, >= 1)"
+        )
+    return value
+
+
+def _camera_record(session, notes: list[str]) -> dict:
+    """The session's metadata "camera" object ({} when absent, or noted when not an object)."""
+    record = session.metadata.get("camera")
+    if record is None:
+        return {}
+    if not isinstance(record, dict):
+        notes.append(f"session metadata camera is {record!r}, not an object with gain_e_per_count and read_noise_counts: not used")
+        return {}
+    return record
+
+
+def build_noise_model(
+    session, fit, responses, reflectances, estimator, *, gain=None, read_noise=None, white_reflectance_u=None,
+) -> tuple[NoiseModel | None, list[str]]:
+    """The calibration's `NoiseModel` (module docstring, step 5) and notes on how it was made.
+
+    Args:
+      session: the session (its metadata "camera" and frames' "frames_averaged").
+      fit: the Stage II `Stage2Fit` (its covariance).
+      responses, reflectances: the estimator's training targets (n, B) and (n, 31).
+      estimator: the fitted `WienerEstimator`.
+      gain, read_noise, white_reflectance_u: override the session's metadata "camera".
+
+    Returns:
+      (model or None when gain or read noise is unknown, notes). All fields float32, like the
+      calibration's arrays.
+
+    Raises:
+      ValueError: an argument out of range (`check_noise_arguments`), or a session "camera"
+        value or frame "frames_averaged" that is used and invalid (naming the manifest).
+    """
+    bands = session.bands
+    check_noise_arguments(bands, gain=gain, read_noise=read_noise, white_reflectance_u=white_reflectance_u)
+    notes: list[str] = []
+    camera = _camera_record(session, notes)
+    given = {"gain": gain, "read_noise": read_noise, "white_reflectance_u": white_reflectance_u}
+    values = {}
+    for key, name, what, positive in _CAMERA_KEYS:
+        if given[name] is not None:
+            values[name] = _noise_value(given[name], bands, positive)
+        elif key in camera:
+            values[name] = _noise_value(camera[key], bands, positive)
+            if values[name] is None:
+                bound = "> 0" if positive else ">= 0"
+                raise ValueError(
+                    f"{session.manifest_path}: metadata camera.{key} is {camera[key]!r} (expected {what}, a finite "
+                    f"number {bound} or one per band ({bands}); or give {name}= to calibrate_session)"
+                )
+        else:
+            values[name] = None
+    if values["gain"] is None or values["read_noise"] is None:
+        missing = [name for name in ("gain", "read_noise") if values[name] is None]
+        notes.append(
+            f"no noise model: {' and '.join(missing)} unknown (the session's metadata camera has no "
+            f"{' or '.join(k for k, n, _, _ in _CAMERA_KEYS if n in missing)}); give gain= and read_noise= "
+            "(spherejax calibrate --gain E_PER_COUNT --read-noise COUNTS)"
+        )
+        return None, notes
+    if values["white_reflectance_u"] is None:
+        values["white_reflectance_u"] = np.float32(0.0)
+        notes.append("white standard's certificate uncertainty not given: taken as 0")
+
+    frames = {}
+    for role in ("dark", "white"):
+        frame = session.frames_with(role=role)[0]
+        count = _frames_of(session, frame)
+        if count is None:
+            notes.append(f"{role} frame {frame.id!r} records no frames_averaged: taken as 1")
+            count = 1
+        frames[role] = count
+    counts = [c for c in (_frames_of(session, f) for f in (*session.frames_with(role="sample"), *session.frames_with(role="target"))) if c is not None]
+    if counts:
+        tally = collections.Counter(counts)
+        most = max(tally.values())
+        frames["sample"] = min(c for c, n in tally.items() if n == most)  # a tie: the fewer frames
+        if len(tally) > 1:
+            notes.append(f"sample and target frames average {sorted(tally)} frames: sample_frames = {frames['sample']}, the most common")
+    else:
+        frames["sample"] = 1
+        notes.append("no sample or target frame records frames_averaged: sample_frames taken as 1")
+
+    coeffs_covariance = np.asarray(fit.covariance, np.float64)
+    if not np.all(np.isfinite(coeffs_covariance)):
+        bad = np.flatnonzero(~np.all(np.isfinite(coeffs_covariance), axis=(1, 2)))
+        notes.append(
+            f"Stage II covariance not finite in {len(bad)} band(s), first {int(session.band_centres_nm[bad[0]])} nm "
+            "(no degree of freedom left?): coefficients taken as exact"
+        )
+        coeffs_covariance = None
+    else:
+        coeffs_covariance = coeffs_covariance.astype(np.float32)
+    try:
+        covariance = estimator_covariance(responses, reflectances, estimator=estimator)
+        estimator_cov = EstimatorCovariance(
+            gram=np.asarray(covariance.gram, np.float32), residual=np.asarray(covariance.residual, np.float32)
+        )
+    except ValueError as error:
+        notes.append(f"no estimator covariance: {' '.join(str(error).split())}")
+        estimator_cov = None
+    model = NoiseModel(
+        gain=values["gain"], read_noise=values["read_noise"],
+        dark_frames=np.float32(frames["dark"]), white_frames=np.float32(frames["white"]),
+        sample_frames=np.float32(frames["sample"]), white_reflectance_u=values["white_reflectance_u"],
+        coeffs_covariance=coeffs_covariance, estimator_covariance=estimator_cov,
+    )
+    return model, notes
+
+
 def calibrate_session(
     session, *, reference: str | None = None, loss: str = "l2", illuminant: str = "D65",
     wiener_method: str = "auto", wiener_groups: str | None = None,
+    gain=None, read_noise=None, white_reflectance_u=None,
 ):
     """Fit Stage II and the reflectance estimator from a session's training and target captures.
 
@@ -271,10 +497,17 @@ def calibrate_session(
       wiener_method: "auto" (default), "training" or "model" (`fit_wiener`).
       wiener_groups: a manifest field naming each target capture's group (`target_groups`):
         cross-validation then holds out one group at a time; None: k folds of alike targets.
+      gain: the camera's electrons per count (a number or one per band), overriding the
+        session's metadata "camera" "gain_e_per_count".
+      read_noise: one frame's read noise in counts rms, overriding "read_noise_counts".
+      white_reflectance_u: the white standard's relative standard uncertainty, overriding
+        "white_reflectance_u" (default 0).
 
     Returns:
-      (Calibration, CalibrationReport).
+      (Calibration, CalibrationReport); report.noise_model is the `NoiseModel` when gain and read
+      noise are known (`build_noise_model`), else None, and report.noise_notes says how.
     """
+    check_noise_arguments(session.bands, gain=gain, read_noise=read_noise, white_reflectance_u=white_reflectance_u)
     check_session(session, reference, wiener_groups)
     base = base_calibration(session)
     _check_white_standard(session, base)
@@ -310,6 +543,10 @@ def calibrate_session(
         groups = [g for g, keep in zip(groups, usable) if keep]
         _check_groups(session, groups, wiener_groups)
     estimator = fit_wiener(responses[usable], reflectances[usable], method=wiener_method, groups=groups)
+    noise_model, noise_notes = build_noise_model(
+        session, fit, responses[usable], reflectances[usable], estimator,
+        gain=gain, read_noise=read_noise, white_reflectance_u=white_reflectance_u,
+    )
 
     calibration = Calibration(
         dark=base.dark, white=base.white, patch=base.patch,
@@ -330,6 +567,8 @@ def calibrate_session(
         stage2_status=[STATUS_NAMES[int(x)] for x in np.asarray(fit.status)],
         stage2_dropped_samples=[int(x) for x in np.asarray(fit.dropped)],
         unconverged_bands=sorted(fit.problems()),
+        noise_model=noise_model,
+        noise_notes=noise_notes,
     )
     return calibration, report
 
@@ -344,4 +583,8 @@ __all__ = [
     "stage2_training_data",
     "calibrate_session",
     "target_groups",
+    "build_noise_model",
+    "check_noise_arguments",
+    "noise_model_summary",
+    "noise_model_line",
 ]

@@ -2,7 +2,9 @@
 
     spherejax demo [--out DIR] [--seed N]      simulate, calibrate, correct, evaluate
     spherejax simulate OUT [--seed N]          a synthetic session like the paper's experiment
-    spherejax calibrate SESSION -o CAL         Stage II and Wiener from the training captures
+    spherejax calibrate SESSION -o CAL [--gain E_PER_COUNT --read-noise COUNTS]
+                                               Stage II and Wiener from the training captures,
+                                               and the noise model (spherejax.uncertainty)
     spherejax evaluate SESSION [-c CAL] [--out DIR]
                                                the paper's tables (text, CSV, JSON) and figures
     spherejax study SESSION [-c CAL] [--wiener] [--out DIR]
@@ -13,6 +15,11 @@
                                                (spherejax.archive)
     spherejax acquire --profile FILE -o SESSION [--yes] [--emulate] [--resume]
                                                drive the instrument (hw.acquire) into a session
+    spherejax measure -c CAL INPUT --region NAME=r0,r1,c0,c1 ... [--reference NAME|L,a,b]
+              [-o OUT] [--gain E --read-noise COUNTS --frames N]
+                                               regions of one cube as a spectrophotometer measures
+                                               them: Lab, reflectance, ± U (k = 2), ΔE00; a table,
+                                               OUT.csv and OUT.json (spherejax.measurement_files)
 
 Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
 status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
@@ -137,6 +144,9 @@ def _calibrate(session, args, progress):
     calibration, report = calibrate.calibrate_session(
         session, reference=args.reference_background, loss=args.loss, illuminant=args.illuminant,
         wiener_method=args.wiener_method, wiener_groups=args.wiener_groups,
+        # `calibrate` parses these (`_calibrate_noise_options`); the other commands have none.
+        gain=getattr(args, "gain", None), read_noise=getattr(args, "read_noise", None),
+        white_reflectance_u=getattr(args, "white_reflectance_u", None),
     )
     for band in report.unconverged_bands:
         print(
@@ -181,16 +191,44 @@ def _save_calibration(path, calibration, report, session) -> None:
     io.save_calibration(
         path, calibration, instrument_id=session.instrument_id,
         band_centres_nm=[int(b) for b in session.band_centres_nm], metadata=metadata,
+        noise_model=None if report is None else report.noise_model,
     )
 
 
-def cmd_calibrate(args) -> int:
-    from . import io
+def _calibrate_noise_options(args) -> None:
+    """--gain, --read-noise and --white-reflectance-u as numbers on `args` (None when not given);
+    ValueError (one line: exit status 2, nothing written) for a value that is not a finite number
+    in range."""
+    import math
 
+    for option, name, expected, ok in (
+        ("--gain", "gain", "electrons per count, a number > 0", lambda x: x > 0),
+        ("--read-noise", "read_noise", "one frame's read noise in counts rms, a number >= 0", lambda x: x >= 0),
+        ("--white-reflectance-u", "white_reflectance_u",
+         "the white standard's relative standard uncertainty, a number >= 0 (0.003 for 0.3 %)", lambda x: x >= 0),
+    ):
+        value = getattr(args, name)
+        if value is None:
+            continue
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number) or not ok(number):
+            raise ValueError(f"{option} {value!r}: expected {expected}")
+        setattr(args, name, number)
+
+
+def cmd_calibrate(args) -> int:
+    from . import calibrate, io
+
+    _calibrate_noise_options(args)  # before any work
     session = io.load_session(args.session)
     progress = _Progress(1, args.quiet)
     calibration, report = _calibrate(session, args, progress)
     _save_calibration(args.output, calibration, report, session)
+    if not args.quiet:
+        print(calibrate.noise_model_line(report))
     return 0
 
 
@@ -396,6 +434,201 @@ def cmd_acquire(args) -> int:
     return 0
 
 
+def _measure_regions(values, image_shape=None) -> list[tuple[str, tuple[int, int, int, int], str]]:
+    """--region NAME=r0,r1,c0,c1 values -> [(name, rect, as given)]; ValueError naming the option
+    and value. With `image_shape`, each rectangle must also lie inside the image."""
+    regions, names = [], set()
+    for given in values:
+        expected = "NAME=r0,r1,c0,c1: a name, then four integers, rows r0..r1-1 and columns c0..c1-1"
+        name, sep, numbers = given.partition("=")
+        name = name.strip()
+        parts = [part.strip() for part in numbers.split(",")]
+        if not sep or not name or len(parts) != 4:
+            raise ValueError(f"--region {given!r}: expected {expected}")
+        if not name.isprintable():
+            raise ValueError(f"--region {given!r}: the name holds a control character (expected a printable name)")
+        try:
+            rect = tuple(int(part) for part in parts)
+        except ValueError:
+            raise ValueError(f"--region {given!r}: the bounds are not integers (expected {expected})") from None
+        r0, r1, c0, c1 = rect
+        if not (r0 < r1 and c0 < c1):
+            raise ValueError(f"--region {given!r}: is empty (expected r0 < r1 and c0 < c1)")
+        if image_shape is not None:
+            height, width = image_shape
+            if not (0 <= r0 and r1 <= height and 0 <= c0 and c1 <= width):
+                raise ValueError(
+                    f"--region {given!r}: lies outside the {height} x {width} image (expected "
+                    f"0 <= r0 < r1 <= {height} and 0 <= c0 < c1 <= {width})"
+                )
+        if name in names:
+            raise ValueError(f"--region {given!r}: the name {name!r} is given twice (expected one name per region)")
+        names.add(name)
+        regions.append((name, rect, given))
+    return regions
+
+
+def _measure_reference(value: str | None, names):
+    """--reference: None, ("region", NAME) or ("lab", [L, a, b]); ValueError naming the value."""
+    import math
+
+    if value is None:
+        return None
+    if value in names:
+        return "region", value
+    parts = value.split(",")
+    if len(parts) == 3:
+        try:
+            lab = [float(part) for part in parts]
+        except ValueError:
+            lab = None
+        if lab is not None and all(math.isfinite(x) for x in lab):
+            return "lab", lab
+    known = ", ".join(repr(name) for name in names)
+    raise ValueError(
+        f"--reference {value!r}: expected the name of a --region ({known}) or three finite numbers L,a,b"
+    )
+
+
+def _measure_number(option: str, value: str | None, expected: str, ok, kind=float):
+    """The option's number, None if not given; ValueError naming option and value otherwise."""
+    import math
+
+    if value is None:
+        return None
+    try:
+        number = kind(value)
+    except ValueError:
+        number = None
+    if number is None or not math.isfinite(number) or not ok(number):
+        raise ValueError(f"{option} {value!r}: expected {expected}")
+    return number
+
+
+def _measure_noise(args, from_file):
+    """(noise model or None, where it came from, a note for stderr or None); ValueError on bad
+    options.
+
+    The calibration's model by default; --gain, --read-noise and --frames override its fields or,
+    both of the first two given, make one when the calibration has none."""
+    import numpy as np
+
+    from .uncertainty import NoiseModel
+
+    gain = _measure_number("--gain", args.gain, "electrons per count, a number > 0", lambda x: x > 0)
+    read = _measure_number("--read-noise", args.read_noise, "counts rms of one frame, a number >= 0", lambda x: x >= 0)
+    frames = _measure_number("--frames", args.frames, "the sample frames averaged, an integer >= 1",
+                             lambda x: x >= 1, kind=int)
+    options = gain is not None or read is not None or frames is not None
+    single = lambda x: np.float32(x)  # noqa: E731  the dtype a calibration file's model reads back in
+    if from_file is None:
+        if not options:
+            return None, None, (
+                "spherejax: note: no noise model (the calibration has none): values without "
+                "uncertainties; give --gain E_PER_COUNT and --read-noise COUNTS (and --frames N) for them"
+            )
+        missing = [name for name, value in (("--gain", gain), ("--read-noise", read)) if value is None]
+        if missing:
+            given = "--gain" if gain is not None else "--read-noise" if read is not None else "--frames"
+            raise ValueError(
+                f"{missing[0]}: missing; the calibration has no noise model, so {given} needs "
+                f"{' and '.join(missing)} too (expected --gain E_PER_COUNT and --read-noise COUNTS)"
+            )
+        note = ("spherejax: note: noise model from --gain and --read-noise (the calibration has none): "
+                "dark and white frames taken as single frames, Stage II and the estimator as exact")
+        model = NoiseModel(gain=single(gain), read_noise=single(read), sample_frames=single(1 if frames is None else frames))
+        return model, "options", note
+    if not options:
+        return from_file, "calibration", None
+    model = NoiseModel(
+        gain=from_file.gain if gain is None else single(gain),
+        read_noise=from_file.read_noise if read is None else single(read),
+        dark_frames=from_file.dark_frames, white_frames=from_file.white_frames,
+        sample_frames=from_file.sample_frames if frames is None else single(frames),
+        white_reflectance_u=from_file.white_reflectance_u, coeffs_covariance=from_file.coeffs_covariance,
+        estimator_covariance=from_file.estimator_covariance,
+    )
+    return model, "calibration, options", None
+
+
+def cmd_measure(args) -> int:
+    import numpy as np
+
+    from . import io, measurement_files
+    from .measurement import measure
+    from .uncertainty import NoiseModel
+
+    # Everything the arguments alone decide is refused before any file is read.
+    regions = _measure_regions(args.region)
+    reference = _measure_reference(args.reference, [name for name, _, _ in regions])
+    base = pathlib.Path(args.output) if args.output else measurement_files.default_base(args.input)
+    measurement_files.check_output_base(base)
+
+    calibration_file = io.open_calibration(args.calibration)
+    try:
+        header = calibration_file.header
+        noise = getattr(calibration_file, "noise_model", None)
+        if noise is None and header.get("noise_model") is not None:
+            try:
+                noise = NoiseModel.from_json(header["noise_model"])
+            except ValueError as error:
+                raise io.CalibrationFileError(args.calibration, f"has an invalid noise model: {error}") from None
+        regions = _measure_regions(args.region, calibration_file.image_shape)
+        noise, noise_source, note = _measure_noise(args, noise)
+        shape = (*calibration_file.image_shape, calibration_file.bands)
+        if noise is not None:
+            noise.check_bands(shape[2])
+        calibration = calibration_file.calibration()
+    finally:
+        calibration_file.close()
+    raw = io.read_cube(args.input, expected_shape=shape, band_centres_nm=header["band_centres_nm"])
+
+    results = {}
+    for name, rect, given in regions:
+        r0, r1, c0, c1 = rect
+        mask = np.zeros(shape[:2], bool)
+        mask[r0:r1, c0:c1] = True
+        try:
+            results[name] = measure(raw, calibration, mask, noise, illuminant=args.illuminant)
+        except ValueError as error:
+            raise ValueError(f"--region {given!r}: {str(error).removeprefix('mask: ')}") from None
+    rows, label, reference_doc = [], None, None
+    if reference is not None and reference[0] == "region":
+        against = results[reference[1]]
+        label = f"region {reference[1]!r} (its uncertainty included)"
+        reference_doc = {"region": reference[1], "lab": against.lab.tolist()}
+    elif reference is not None:
+        against = reference[1]
+        label = "L*a*b* = ({:g}, {:g}, {:g}) (exact)".format(*against)
+        reference_doc = {"lab": against}
+    for name, rect, _ in regions:
+        m = results[name]
+        delta_e = u = None
+        if reference is not None:
+            delta_e, u = m.delta_e(against)
+        rows.append(measurement_files.RegionResult(name, rect, m, delta_e, u))
+
+    illuminant = rows[0].measurement.illuminant
+    document = measurement_files.json_document(
+        rows, input_path=args.input, illuminant=illuminant, reference=reference_doc,
+        calibration={"path": str(args.calibration), "checksum": header.get("checksum"),
+                     "instrument_id": header.get("instrument_id")},
+        noise_model=measurement_files.noise_model_summary(noise, noise_source),
+    )
+    csv_path, json_path = measurement_files.output_paths(base)
+    files = {csv_path: measurement_files.csv_text(rows).encode(),
+             json_path: measurement_files.json_text(document).encode()}
+    # A stop request (SIGINT, SIGTERM) while the two files are written waits until both are in place.
+    with interrupt.stop_requests():
+        measurement_files.write_files(files)
+    if note is not None:
+        print(note, file=sys.stderr)
+    if not args.quiet:
+        print(measurement_files.format_table(rows, reference=label), end="")
+        print(f"written: {csv_path}, {json_path}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from . import io, simulate
 
@@ -465,6 +698,14 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("session", metavar="SESSION")
     calibrate.add_argument("-o", "--output", required=True, metavar="CAL", help="calibration file to write (.npz)")
     calibration_options(calibrate)
+    calibrate.add_argument("--gain", metavar="E_PER_COUNT",
+                           help="camera gain, electrons per count, for the stored noise model "
+                                "(default: the session's metadata camera, if it records one)")
+    calibrate.add_argument("--read-noise", metavar="COUNTS",
+                           help="read noise of one frame, counts rms (default: the session's, as --gain)")
+    calibrate.add_argument("--white-reflectance-u", metavar="REL",
+                           help="relative standard uncertainty of the white standard's certified "
+                                "reflectance, e.g. 0.003 (default: the session's, else 0)")
     calibrate.set_defaults(run=cmd_calibrate)
 
     evaluate = commands.add_parser("evaluate", help="the paper's tables and figures for a session")
@@ -501,6 +742,27 @@ def build_parser() -> argparse.ArgumentParser:
     acquire.add_argument("--resume", action="store_true",
                          help="complete an interrupted acquisition without retaking what it captured")
     acquire.set_defaults(run=cmd_acquire)
+
+    measure = commands.add_parser(
+        "measure", help="measure regions of one cube: Lab and reflectance with uncertainties (k = 2), ΔE00"
+    )
+    measure.add_argument("input", metavar="INPUT", help="cube file (16-bit TIFF, EXR) of the calibration's size and bands")
+    measure.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (.npz)")
+    measure.add_argument("--region", action="append", required=True, metavar="NAME=r0,r1,c0,c1",
+                         help="a region to measure: rows r0..r1-1, columns c0..c1-1 (repeatable, names unique)")
+    measure.add_argument("--reference", metavar="NAME|L,a,b",
+                         help="ΔE00 against the region NAME (its uncertainty included) or an exact L*,a*,b*")
+    measure.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
+                         help="illuminant for Lab (default: the calibration's)")
+    measure.add_argument("-o", "--output", metavar="OUT",
+                         help="writes OUT.csv and OUT.json (default: INPUT's stem + .measure, in this folder)")
+    measure.add_argument("--gain", metavar="E_PER_COUNT",
+                         help="camera gain, electrons per count: overrides the calibration's noise model, "
+                              "or with --read-noise supplies one")
+    measure.add_argument("--read-noise", metavar="COUNTS", help="read noise of one frame, counts rms (as --gain)")
+    measure.add_argument("--frames", metavar="N",
+                         help="sample frames averaged in INPUT (default: the noise model's, else 1)")
+    measure.set_defaults(run=cmd_measure)
     return parser
 
 

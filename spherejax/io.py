@@ -62,17 +62,17 @@ and a region is
 Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
 camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
 
-Calibration file (format "spherejax-calibration", version 2)
+Calibration file (format "spherejax-calibration", version 3)
 ------------------------------------------------------------
 An .npz archive (`numpy.savez`, no pickled objects) holding the arrays of a `Calibration`
     dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B),
     wiener_offset (31,)
 and "header", a uint8 array of UTF-8 JSON:
-    {"format": "spherejax-calibration", "format_version": 2, "software_version",
+    {"format": "spherejax-calibration", "format_version": 3, "software_version",
      "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
      "saturation": number or null, "created": UTC ISO 8601,
      "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
-     "metadata": {...}, "checksum": "sha256:<64 hex digits>"}
+     "metadata": {...}, "noise_model": {...} or null, "checksum": "sha256:<64 hex digits>"}
 Read the header with ``bytes(numpy.load(path)["header"]).decode()``. The checksum is SHA-256 over
 the header JSON without the "checksum" field, serialised with sorted keys, separators "," and ":"
 and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
@@ -82,9 +82,27 @@ layout does not matter. "metadata" is free JSON from the writer (`save_calibrati
 metadata=)`), e.g. how the Stage II and Wiener fits were made.
 
 The reflectance estimate is affine, r = W v_tilde + r0, with W the "wiener" array and r0 the
-"wiener_offset" array. Version 1 (before the offset existed) is the same without the member
-"wiener_offset", in the header's "arrays" and in the checksum; it is still read, with r0 = 0,
-which is what it meant.
+"wiener_offset" array.
+
+"noise_model" (optional; absent or null: none) is the camera's noise and the calibration's
+uncertainties for per-pixel uncertainties (`spherejax.uncertainty.NoiseModel`, as its
+`to_json()` writes it, numbers as float64 JSON, so that `CalibrationFile.noise_model` reads
+every value back exactly):
+    {"gain_e_per_count": number or [B numbers] > 0 (electrons per count),
+     "read_noise_counts": number or [B numbers] >= 0 (one frame's read noise, counts rms),
+     "dark_frames", "white_frames": frames averaged in the dark and white-standard frames (>= 1),
+     "sample_frames": frames averaged in the sample frames it corrects (>= 1),
+     "white_reflectance_u": number or [B numbers] >= 0, the relative standard uncertainty of
+       the white standard's certified reflectance,
+     "coeffs_covariance": [B][4][4] covariance of the Stage II coefficients c1..c4, or null,
+     "estimator_covariance": {"gram": [B + 1][B + 1], "residual": [31][31]} (the reflectance
+       estimator's sampling covariance, `spherejax.EstimatorCovariance`), or null}
+All numbers finite. Only "gain_e_per_count" and "read_noise_counts" are required inside it.
+
+Older versions are still read. Version 2 is version 3 without "noise_model" (no noise model;
+a null one is read as absent, any other is refused).
+Version 1 (before the offset existed) is version 2 without the member "wiener_offset", in the
+header's "arrays" and in the checksum; it is read with r0 = 0, which is what it meant.
 """
 
 from __future__ import annotations
@@ -113,12 +131,13 @@ import OpenImageIO as oiio
 from . import jsontext
 from .grid import N_WAVELENGTHS
 from .pipeline import Calibration
+from .uncertainty import NoiseModel
 
 SESSION_FORMAT = "spherejax-session"
 SESSION_FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 CALIBRATION_FORMAT = "spherejax-calibration"
-CALIBRATION_FORMAT_VERSION = 2
+CALIBRATION_FORMAT_VERSION = 3
 
 ROLES = ("dark", "white", "sample", "target")
 SETS = ("training", "test")
@@ -151,8 +170,10 @@ _FRAME_KEYS = frozenset(
 _REGION_KEYS = frozenset("name patch region reflectance".split())
 _CALIBRATION_KEYS = frozenset(
     ("format format_version software_version instrument_id band_centres_nm illuminant observer "
-     "saturation created arrays metadata checksum").split()
+     "saturation created arrays metadata noise_model checksum").split()
 )
+#: The calibration format version that added the header's "noise_model".
+_NOISE_MODEL_SINCE = 3
 
 
 # ----------------------------------------------------------------------------------------- errors
@@ -1605,6 +1626,48 @@ def _check_calibration_header(path, header) -> None:
         array.value("shape", "a list of integers >= 0", _is_shape)
         array.string("dtype")
         array.string("description")
+    noise_model_of(path, header)
+
+
+#: The shape of `EstimatorCovariance.residual`, which `NoiseModel.check_bands` does not check.
+_RESIDUAL_SHAPE = (N_WAVELENGTHS, N_WAVELENGTHS)
+
+
+def noise_model_of(path, header: Mapping) -> NoiseModel | None:
+    """The `NoiseModel` of a calibration header's "noise_model" (None when absent or null).
+
+    Raises CalibrationFileError naming the file, on one line, unless it is what
+    `NoiseModel.to_json()` writes for the header's bands (module docstring).
+    """
+    doc = header.get("noise_model")
+    if doc is None:
+        return None
+    version = header.get("format_version", CALIBRATION_FORMAT_VERSION)
+    if version < _NOISE_MODEL_SINCE:
+        # null there means what absent means; a model is not what that version's writer wrote.
+        raise CalibrationFileError(
+            path, f"header.noise_model holds a noise model in a format version {version} file",
+            f"null or absent before format version {_NOISE_MODEL_SINCE}, which added it",
+        )
+    expected = (
+        f"null or a noise model as spherejax.NoiseModel.to_json() writes it, for the "
+        f"{len(header['band_centres_nm'])} bands of band_centres_nm"
+    )
+    try:
+        model = NoiseModel.from_json(doc)
+        model.check_bands(len(header["band_centres_nm"]))
+        estimator = model.estimator_covariance
+        if estimator is not None and tuple(estimator.residual.shape) != _RESIDUAL_SHAPE:
+            raise ValueError(
+                f"estimator_covariance.residual has shape {tuple(estimator.residual.shape)}, expected {_RESIDUAL_SHAPE}"
+            )
+    except (ValueError, TypeError, OverflowError) as error:
+        # OverflowError: a JSON integer beyond float range.
+        problem = _one_line(error)
+        if len(problem) > 240:  # a value found may be a long list: the message stays readable
+            problem = problem[:237] + "..."
+        raise CalibrationFileError(path, f"header.noise_model is not valid: {problem}", expected) from None
+    return model
 
 
 def _is_sha256(value) -> bool:
@@ -1669,7 +1732,9 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
 #: (the dark frame and white standard of a big sensor) are read by rows when needed.
 IN_MEMORY_BYTES = 256 << 20
 _READ_BLOCK = 16 << 20
-_MAX_HEADER_BYTES = 16 << 20  # a header is a few kB of JSON: refuse to read gigabytes as one
+# A header is a few kB of JSON, some 40 kB with a noise model of 16 bands (its 31 x 31 residual
+# covariance, about 20 bytes a number): refuse to read gigabytes as one.
+_MAX_HEADER_BYTES = 16 << 20
 
 
 class _StoredArray:
@@ -1799,7 +1864,8 @@ def _decode_header(path, raw: np.ndarray | None) -> dict:
 
 
 def save_calibration(
-    path, calibration: Calibration, *, instrument_id: str, band_centres_nm, metadata=None
+    path, calibration: Calibration, *, instrument_id: str, band_centres_nm, metadata=None,
+    noise_model: NoiseModel | None = None,
 ) -> dict:
     """Write a calibration file (module docstring), atomically.
 
@@ -1811,14 +1877,19 @@ def save_calibration(
       band_centres_nm: (B,) integer band centres, B = calibration.bands.
       metadata: free JSON stored in the header's "metadata" (e.g. how the fit was made: the
         Wiener estimator's method and cross-validated errors); read back as header["metadata"].
+      noise_model: a `spherejax.NoiseModel` for per-pixel uncertainties (e.g.
+        `calibrate_session`'s report.noise_model), stored in the header's "noise_model" as its
+        `to_json()` (every number read back exactly: `CalibrationFile.noise_model`), or None
+        (stored as null).
 
     Returns:
       The header written, checksum included.
 
     Raises:
       CalibrationFileError: not a Calibration, a patch of weights rather than a boolean mask,
-        bands that do not match, metadata that is not JSON, or a failed write (the temporary
-        file is removed; an existing file is untouched).
+        bands that do not match, metadata that is not JSON, a noise model that is not a
+        NoiseModel or not for these bands, or a failed write (the temporary file is removed; an
+        existing file is untouched).
     """
     from . import __version__
 
@@ -1826,6 +1897,10 @@ def save_calibration(
     if not isinstance(calibration, Calibration):
         raise CalibrationFileError(
             path, f"cannot hold a {type(calibration).__name__}", "a spherejax.Calibration"
+        )
+    if noise_model is not None and not isinstance(noise_model, NoiseModel):
+        raise CalibrationFileError(
+            path, f"cannot hold a noise model of type {type(noise_model).__name__}", "a spherejax.NoiseModel or None"
         )
     arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS}
     header = {
@@ -1840,6 +1915,7 @@ def save_calibration(
         "created": _utc_now(),
         "arrays": {name: _array_entry(name, array) for name, array in arrays.items()},
         "metadata": {} if metadata is None else metadata,
+        "noise_model": None if noise_model is None else noise_model.to_json(),
     }
     # The checksum is over the header as it will read back from JSON.
     header = _json_value(path, header, CalibrationFileError, "the header")
@@ -1879,6 +1955,8 @@ class CalibrationFile:
     Attributes:
       path: the file. header: its header dict (checksum included).
       image_shape: (H, W). bands: B. patch_box: (row0, row1, col0, col1) bounding the patch.
+      noise_model: the stored `NoiseModel`, or None (none stored; always None in format
+        versions 1 and 2).
     """
 
     def __init__(
@@ -1918,6 +1996,7 @@ class CalibrationFile:
             if self.patch_box is None:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
             self._patch_calibration = self._crop(*self.patch_box)
+        self._noise_model = noise_model_of(path, header)
         self._fd = fd
 
     def _value(self, name: str) -> np.ndarray:
@@ -1938,6 +2017,11 @@ class CalibrationFile:
     def _small_arrays(self) -> dict[str, np.ndarray]:
         """The arrays every part of the calibration shares: coeffs, wiener and wiener_offset."""
         return {name: self._value(name) for name in ("coeffs", "wiener", "wiener_offset")}
+
+    @property
+    def noise_model(self) -> NoiseModel | None:
+        """The header's noise model (`spherejax.NoiseModel`), or None when the file stores none."""
+        return self._noise_model
 
     @property
     def patch_calibration(self) -> Calibration:
@@ -2051,13 +2135,16 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
 
     Returns:
       (calibration, header): the `Calibration` as saved (bit-identical arrays; float64 arrays stay
-      float64 only with jax x64 enabled) and the header dict.
+      float64 only with jax x64 enabled) and the header dict; header["noise_model"] is the
+      stored noise model's JSON or None (`NoiseModel.from_json` reads it, or use
+      `open_calibration(path).noise_model`; absent from format versions 1 and 2).
 
     Raises:
       CalibrationFileError: missing, not an .npz or truncated, missing arrays or header, another
         format, a newer format version, a checksum mismatch (tampered or corrupted), arrays that
-        disagree with the header, a patch that is not a boolean mask, other band centres than
-        `band_centres_nm`, or contents that are not a valid `Calibration`.
+        disagree with the header, a patch that is not a boolean mask, a "noise_model" that is
+        not a valid noise model for its bands, other band centres than `band_centres_nm`, or
+        contents that are not a valid `Calibration`.
     """
     with open_calibration(path, band_centres_nm=band_centres_nm) as opened:
         with _reraise_invalid(opened.path):
@@ -2097,4 +2184,5 @@ __all__ = [
     "CalibrationFile",
     "open_calibration",
     "load_calibration",
+    "noise_model_of",
 ]

@@ -107,7 +107,8 @@ class Measurement:
             reference_covariance = np.asarray(reference_covariance, np.float64)
             if reference_covariance.shape != (3, 3):
                 raise ValueError(f"reference_covariance: expected shape (3, 3), got {reference_covariance.shape}")
-        as_jax = lambda x: None if x is None else jnp.asarray(x, self.lab.dtype)  # noqa: E731
+        # float64 where x64 is on, float32 otherwise (no dtype request: that would warn).
+        as_jax = lambda x: None if x is None else jnp.asarray(np.asarray(x, np.float64))  # noqa: E731
         value, u = _delta_e_and_u(as_jax(self.lab), as_jax(self.lab_covariance), as_jax(reference), as_jax(reference_covariance))
         return float(value), float(u)
 

@@ -750,6 +750,11 @@ def simulate_session(path, seed: int = 0, instrument: InstrumentModel | None = N
             },
         }
     }
+    if experiment.instrument.noise:
+        # The camera's true noise, for calibrate's noise model (`spherejax.uncertainty`); with
+        # the model's noise switched off the frames have none, and no camera record claims any.
+        gain = float(experiment.instrument.gain_e_per_dn)
+        metadata["camera"] = {"gain_e_per_count": gain, "read_noise_counts": float(experiment.instrument.read_noise_e) / gain}
     return io.write_session(
         path,
         instrument_id="sim-sphere-1",

@@ -759,7 +759,8 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert loaded.illuminant == "A" and loaded.observer == calibration.observer
     assert loaded.saturation == saturation and type(loaded.saturation) is type(saturation)
 
-    assert header["format"] == "spherejax-calibration" and header["format_version"] == 2
+    assert header["format"] == "spherejax-calibration" and header["format_version"] == 3
+    assert header["noise_model"] is None  # none given (tests/test_noise_model_files.py: one given)
     assert header["software_version"] == sj.__version__
     assert header["instrument_id"] == "sim-sphere-1" and header["band_centres_nm"] == BANDS
     assert (header["illuminant"], header["saturation"]) == ("A", saturation)
@@ -956,11 +957,11 @@ def test_load_calibration_wrong_format(calibration_path):
 
 def test_load_calibration_newer_version(calibration_path):
     entries = npz_entries(calibration_path)
-    header = {**header_of(entries), "format_version": 3, "new_field": "whatever a newer one adds"}
+    header = {**header_of(entries), "format_version": 4, "new_field": "whatever a newer one adds"}
     rewrite_npz(calibration_path, entries, header)
     match = (
-        "is spherejax-calibration format version 3, newer than spherejax 0.1.0 reads "
-        r"\(expected format version 2 or older; upgrade spherejax"
+        "is spherejax-calibration format version 4, newer than spherejax 0.1.0 reads "
+        r"\(expected format version 3 or older; upgrade spherejax"
     )
     with refused(CalibrationFileError, calibration_path, match):
         io.load_calibration(calibration_path)

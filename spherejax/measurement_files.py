@@ -1,0 +1,381 @@
+"""The outputs of `spherejax measure`: its table, and its CSV and JSON files (formats below).
+
+`spherejax measure -c CAL INPUT --region NAME=r0,r1,c0,c1 ...` measures rectangles of one image
+as a spectrophotometer would (`spherejax.measurement.measure`): each region's mean reflectance,
+its L*, a*, b*, and, with a noise model, their uncertainties. This module turns those
+measurements into text and files; it computes nothing.
+
+Uncertainties follow the GUM (JCGM 100:2008): u is a standard uncertainty (one standard
+deviation, first order), U = k u the expanded uncertainty with coverage factor k = 2
+(`COVERAGE_FACTOR`; about 95 % coverage for a Gaussian). The table shows U, the CSV both u and U,
+the JSON u and covariances (U = 2 u). Without a noise model there are no uncertainties: the
+table shows "n/a", the CSV leaves those cells empty, the JSON has null.
+
+ΔE00 (CIEDE2000) is against a reference: another region of the same image (its covariance
+included, the two taken as independent) or L*, a*, b* typed in (exact). Its first-order
+uncertainty is 0 at ΔE00 = 0 and an understatement near it (`Measurement.delta_e`).
+
+CSV (OUT.csv)
+-------------
+UTF-8, a header row, then one row per region in the order given:
+
+    name, pixels, excluded_pixels, illuminant,
+    L, a, b,                        the region's L*, a*, b* under `illuminant`
+    u_L, u_a, u_b,                  their standard uncertainties
+    U_L, U_a, U_b,                  expanded uncertainties, k = 2
+    delta_e00, u_delta_e00, U_delta_e00,
+                                    ΔE00 against the reference, u and U (empty without one)
+    R400, R410, ..., R700           mean reflectance, 400..700 nm step 10 (31 columns)
+    u_R400, ..., u_R700             its standard uncertainties (31 columns)
+
+`pixels` is the number of pixels averaged; `excluded_pixels` those of the rectangle that
+`correct` flags (saturated, not finite, no usable flat field) and that were left out. Numbers
+are written in full precision (Python's shortest round-trip form); a cell without a value (no
+noise model, no reference) is empty.
+
+JSON (OUT.json)
+---------------
+    {
+      "format": "spherejax-measurement", "format_version": 1,
+      "software_version": "0.1.0",
+      "input": "path of the cube measured",
+      "calibration": {"path": ..., "checksum": "sha256:...", "instrument_id": ...},
+      "illuminant": "D65",
+      "coverage_factor": 2,
+      "noise_model": null, or {"source": "calibration" | "options" | "calibration, options",
+                     "gain_e_per_count", "read_noise_counts", "dark_frames", "white_frames",
+                     "sample_frames", "white_reflectance_u",
+                     "coeffs_covariance": true/false, "estimator_covariance": true/false},
+      "reference": null, {"region": NAME, "lab": [L, a, b]} or {"lab": [L, a, b]} (exact),
+      "regions": [
+        {"name": ..., "rect": [r0, r1, c0, c1],    rows r0..r1-1, columns c0..c1-1
+         "illuminant", "observer", "pixels", "excluded_pixels",
+         "reflectance": [31], "reflectance_u": [31] or null, "reflectance_spread": [31],
+         "reflectance_covariance": [31 x 31] or null,
+         "lab": [3], "lab_u": [3] or null, "lab_covariance": [3 x 3] or null,
+         "lab_u_by_source": {source: [3]},       each source's part of lab_u
+         "delta_e00": number or null, "u_delta_e00": number or null},
+        ...
+      ]
+    }
+
+The region fields are `Measurement.to_dict()`; "reflectance_spread" is the standard deviation of
+the per-pixel reflectances over the region (non-uniformity and pixel noise, not an uncertainty
+of the mean). All numbers are finite; what is not known is null.
+
+Both files are written together by `write_files`: each to a temporary name beside it, then
+renamed into place, so that on any failure neither file is left half-written and no new file is
+left at all.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io as _text_io
+import math
+import os
+import pathlib
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from .grid import N_WAVELENGTHS
+from .io import SpherejaxFileError, _readable_json, temp_sibling
+from .measurement import Measurement
+
+FORMAT = "spherejax-measurement"
+FORMAT_VERSION = 1
+#: k of the expanded uncertainty U = k u (GUM, Sec. 6).
+COVERAGE_FACTOR = 2
+#: 400..700 nm step 10, the wavelengths of a reflectance.
+WAVELENGTHS_NM = tuple(range(400, 400 + 10 * N_WAVELENGTHS, 10))
+#: The wavelengths the table shows.
+TABLE_WAVELENGTHS_NM = (450, 550, 650)
+#: What `default_base` appends to the input's stem.
+SUFFIX = ".measure"
+
+
+@dataclasses.dataclass(frozen=True)
+class RegionResult:
+    """One row of the outputs.
+
+    Fields:
+      name: the region's name; rect: (r0, r1, c0, c1), rows r0..r1-1, columns c0..c1-1.
+      measurement: its `Measurement`.
+      delta_e: ΔE00 against the reference, or None without one.
+      delta_e_u: its standard uncertainty (NaN or None without a noise model).
+    """
+
+    name: str
+    rect: tuple[int, int, int, int]
+    measurement: Measurement
+    delta_e: float | None = None
+    delta_e_u: float | None = None
+
+
+def _known(x) -> float | None:
+    """A float, or None for a value that is not known (None, NaN)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _listed(x):
+    """JSON of numbers, NaN and infinities as null."""
+    if x is None:
+        return None
+    if isinstance(x, Mapping):
+        return {k: _listed(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_listed(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
+    if isinstance(x, (float, np.floating)):
+        return _known(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+# ---------------------------------------------------------------------------------------- table
+
+
+def _value_u(value: float, u: float | None, digits: int) -> str:
+    """"value ± U" (U = k u), or "value ± n/a" without an uncertainty."""
+    text = f"{value:.{digits}f} ± "
+    if u is None or not math.isfinite(u):
+        return text + "n/a"
+    return text + f"{COVERAGE_FACTOR * u:.{digits}f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    """Columns right-aligned (the first left-aligned), two spaces between."""
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
+    lines = []
+    for row in [header, *rows]:
+        cells = [row[0].ljust(widths[0])] + [cell.rjust(width) for cell, width in zip(row[1:], widths[1:])]
+        lines.append("  ".join(cells).rstrip())
+    return lines
+
+
+def format_table(results: Sequence[RegionResult], *, reference: str | None = None) -> str:
+    """The table `spherejax measure` prints: per region the pixels, L*, a*, b* (and ΔE00) ± U,
+    then a second block of reflectance at 450, 550 and 650 nm ± U and its minimum and maximum.
+
+    Args:
+      results: the regions, in order.
+      reference: how the reference reads in the title ('region "white"', 'L*a*b* = (50, 0, 0)'),
+        or None without a reference (no ΔE00 column).
+    """
+    first = results[0].measurement
+    uncertain = any(r.measurement.lab_covariance is not None for r in results)
+    title = f"L*a*b* under {first.illuminant} ({first.observer})"
+    title += f"; ± U: expanded uncertainty, k = {COVERAGE_FACTOR}" if uncertain else "; no uncertainties (no noise model)"
+    lines = [title]
+    if reference is not None:
+        lines.append(f"ΔE00 against {reference}")
+    lines.append("")
+
+    excluded = any(r.measurement.excluded for r in results)
+    header = ["region", "pixels", *(["excluded"] if excluded else []), "L*", "a*", "b*"]
+    if reference is not None:
+        header.append("ΔE00")
+    rows = []
+    for r in results:
+        m = r.measurement
+        lab_u = m.lab_u if m.lab_u is not None else [None] * 3
+        row = [r.name, str(m.pixels), *([str(m.excluded)] if excluded else [])]
+        row += [_value_u(v, u, 2) for v, u in zip(m.lab.tolist(), lab_u)]
+        if reference is not None:
+            row.append(_value_u(r.delta_e, r.delta_e_u, 2))
+        rows.append(row)
+    lines += _table(header, rows)
+    lines.append("")
+
+    header = ["region", *(f"R{nm}" for nm in TABLE_WAVELENGTHS_NM), "min (nm)", "max (nm)"]
+    rows = []
+    for r in results:
+        m = r.measurement
+        u = m.reflectance_u if m.reflectance_u is not None else [None] * N_WAVELENGTHS
+        row = [r.name]
+        for nm in TABLE_WAVELENGTHS_NM:
+            i = WAVELENGTHS_NM.index(nm)
+            row.append(_value_u(float(m.reflectance[i]), None if u[i] is None else float(u[i]), 4))
+        low, high = int(np.argmin(m.reflectance)), int(np.argmax(m.reflectance))
+        row.append(f"{m.reflectance[low]:.4f} ({WAVELENGTHS_NM[low]})")
+        row.append(f"{m.reflectance[high]:.4f} ({WAVELENGTHS_NM[high]})")
+        rows.append(row)
+    lines += _table(header, rows)
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------ CSV
+
+
+def csv_header() -> list[str]:
+    """The CSV's columns (module docstring)."""
+    return [
+        "name", "pixels", "excluded_pixels", "illuminant",
+        "L", "a", "b", "u_L", "u_a", "u_b", "U_L", "U_a", "U_b",
+        "delta_e00", "u_delta_e00", "U_delta_e00",
+        *(f"R{nm}" for nm in WAVELENGTHS_NM), *(f"u_R{nm}" for nm in WAVELENGTHS_NM),
+    ]
+
+
+def _cell(x) -> str:
+    x = _known(x)
+    return "" if x is None else repr(x)
+
+
+def csv_text(results: Sequence[RegionResult]) -> str:
+    """The CSV file's text (module docstring)."""
+    buffer = _text_io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(csv_header())
+    for r in results:
+        m = r.measurement
+        lab_u = m.lab_u.tolist() if m.lab_u is not None else [None] * 3
+        refl_u = m.reflectance_u.tolist() if m.reflectance_u is not None else [None] * N_WAVELENGTHS
+        expanded = [None if u is None else COVERAGE_FACTOR * u for u in lab_u]
+        de_u = _known(r.delta_e_u)
+        writer.writerow([
+            r.name, m.pixels, m.excluded, m.illuminant,
+            *map(_cell, m.lab.tolist()), *map(_cell, lab_u), *map(_cell, expanded),
+            _cell(r.delta_e), _cell(de_u), _cell(None if de_u is None else COVERAGE_FACTOR * de_u),
+            *map(_cell, m.reflectance.tolist()), *map(_cell, refl_u),
+        ])
+    return buffer.getvalue()
+
+
+# ----------------------------------------------------------------------------------------- JSON
+
+
+def noise_model_summary(noise, source: str) -> dict | None:
+    """The JSON's "noise_model": where it came from and its scalar settings, or None."""
+    if noise is None:
+        return None
+    doc = noise.to_json()
+    summary = {"source": source}
+    for key in ("gain_e_per_count", "read_noise_counts", "dark_frames", "white_frames", "sample_frames",
+                "white_reflectance_u"):
+        summary[key] = doc[key]
+    summary["coeffs_covariance"] = doc["coeffs_covariance"] is not None
+    summary["estimator_covariance"] = doc["estimator_covariance"] is not None
+    return summary
+
+
+def json_document(
+    results: Sequence[RegionResult], *, input_path, calibration: Mapping, illuminant: str,
+    reference: Mapping | None, noise_model: Mapping | None,
+) -> dict:
+    """The JSON file's document (module docstring).
+
+    Args:
+      results: the regions. input_path: the cube measured.
+      calibration: {"path", "checksum", "instrument_id"} of the calibration file.
+      illuminant: Lab's illuminant. reference: the "reference" entry (or None).
+      noise_model: `noise_model_summary` (or None).
+    """
+    from . import __version__
+
+    regions = []
+    for r in results:
+        entry = {"name": r.name, "rect": [int(v) for v in r.rect], **r.measurement.to_dict()}
+        entry["delta_e00"] = _known(r.delta_e)
+        entry["u_delta_e00"] = _known(r.delta_e_u)
+        regions.append(entry)
+    return _listed({
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "software_version": __version__,
+        "input": str(input_path),
+        "calibration": dict(calibration),
+        "illuminant": illuminant,
+        "coverage_factor": COVERAGE_FACTOR,
+        "noise_model": None if noise_model is None else dict(noise_model),
+        "reference": None if reference is None else dict(reference),
+        "regions": regions,
+    })
+
+
+def json_text(document: Mapping) -> str:
+    """The document as text: one field per line, a list of numbers on one line."""
+    return _readable_json(_listed(document)) + "\n"
+
+
+# ---------------------------------------------------------------------------------------- files
+
+
+def default_base(input_path) -> pathlib.Path:
+    """OUT when -o is not given: the input's stem + ".measure", in the current folder."""
+    return pathlib.Path(pathlib.Path(input_path).stem + SUFFIX)
+
+
+def output_paths(base) -> tuple[pathlib.Path, pathlib.Path]:
+    """(OUT.csv, OUT.json): the suffixes are appended to the base path, never substituted."""
+    base = pathlib.Path(base)
+    return base.with_name(base.name + ".csv"), base.with_name(base.name + ".json")
+
+
+def check_output_base(base) -> None:
+    """SpherejaxFileError unless OUT is a base path (not a folder) in an existing folder."""
+    base = pathlib.Path(base)
+    if base.name in ("", ".", "..") or base.is_dir():
+        raise SpherejaxFileError(
+            base, "is a folder", "a base path: -o FOLDER/NAME writes FOLDER/NAME.csv and FOLDER/NAME.json"
+        )
+    if not base.parent.is_dir():
+        problem = "is in a folder that does not exist" if not base.parent.exists() else "is in something that is not a folder"
+        raise SpherejaxFileError(base, problem, "OUT in an existing folder (-o OUT writes OUT.csv and OUT.json)")
+
+
+def write_files(files: Mapping[pathlib.Path, bytes]) -> None:
+    """Write every path -> bytes: all to temporary names beside them first (flushed to disk),
+    then each renamed into place. On a failure, the temporary files are removed, and so are the
+    targets this call created; a failure between two renames (which need no space) leaves a
+    target it replaced replaced."""
+    temporaries, added = {}, []
+    try:
+        for path, payload in files.items():
+            temporary = temp_sibling(pathlib.Path(path))
+            temporaries[pathlib.Path(path)] = temporary
+            try:
+                with open(temporary, "xb") as handle:
+                    handle.write(payload)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+            except OSError as error:
+                raise SpherejaxFileError(path, f"could not be written: {error.strerror or error}") from None
+        for path, temporary in temporaries.items():
+            new = not os.path.lexists(path)
+            try:
+                os.replace(temporary, path)
+            except OSError as error:
+                raise SpherejaxFileError(path, f"could not be written: {error.strerror or error}") from None
+            if new:
+                added.append(path)
+    except BaseException:
+        for path in added:
+            path.unlink(missing_ok=True)
+        raise
+    finally:
+        for temporary in temporaries.values():
+            temporary.unlink(missing_ok=True)
+
+
+__all__ = [
+    "COVERAGE_FACTOR",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "RegionResult",
+    "check_output_base",
+    "csv_header",
+    "csv_text",
+    "default_base",
+    "format_table",
+    "json_document",
+    "json_text",
+    "noise_model_summary",
+    "output_paths",
+    "write_files",
+]

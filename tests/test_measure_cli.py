@@ -1,0 +1,352 @@
+"""`spherejax measure`: the table, OUT.csv and OUT.json against `measure` called in Python, the
+noise model's sources, and every bad argument (exit status 2, one line, nothing written).
+
+The calibration is built by hand (identity Stage II, a Wiener matrix that interpolates the 16
+bands to 31 wavelengths), so the module needs no simulated session.
+"""
+
+import csv
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+from spherejax import cli, io, measurement_files
+from spherejax.measurement import measure
+from spherejax.pipeline import Calibration
+from spherejax.uncertainty import NoiseModel
+
+H, W = 20, 24
+BANDS = list(range(400, 701, 20))
+WAVELENGTHS = np.arange(400, 701, 10)
+REGIONS = {"grey": (6, 12, 2, 10), "red": (6, 12, 12, 20)}  # one shape: one compilation
+F32 = np.float32  # a calibration file's noise model reads back in float32
+NOISE = NoiseModel(gain=F32(2), read_noise=F32(3), dark_frames=16, white_frames=16, white_reflectance_u=F32(0.002))
+SATURATED = [(7, 13), (8, 14)]  # two pixels of "red", left out
+
+
+def _calibration() -> Calibration:
+    rng = np.random.default_rng(0)
+    dark = (200 + rng.normal(0, 2, (H, W, len(BANDS)))).astype(np.float32)
+    rows, cols = np.mgrid[0:H, 0:W]
+    shading = 1.0 - 0.2 * ((rows - H / 2) ** 2 + (cols - W / 2) ** 2) / (H * H)
+    white = (dark + 30000 * shading[..., None] * np.linspace(0.7, 1.0, len(BANDS))).astype(np.float32)
+    patch = np.zeros((H, W), bool)
+    patch[0:4, 0:4] = True
+    coeffs = np.tile(np.array([0.0, 1.0, 0.0, 0.0], np.float32), (len(BANDS), 1))
+    wiener = np.stack([np.interp(WAVELENGTHS, BANDS, np.eye(len(BANDS))[b]) for b in range(len(BANDS))], axis=1)
+    return Calibration(dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener.astype(np.float32))
+
+
+def _raw(calibration: Calibration, shape=(H, W)) -> np.ndarray:
+    rng = np.random.default_rng(1)
+    dark, white = np.asarray(calibration.dark), np.asarray(calibration.white)
+    reflectance = np.full((H, W, len(BANDS)), 0.8)
+    r0, r1, c0, c1 = REGIONS["grey"]
+    reflectance[r0:r1, c0:c1] = 0.4
+    r0, r1, c0, c1 = REGIONS["red"]
+    reflectance[r0:r1, c0:c1] = np.linspace(0.05, 0.7, len(BANDS))
+    reflectance[0:4, 0:4] = 1.0
+    raw = dark + reflectance * (white - dark)
+    raw = raw + rng.normal(0, 1, raw.shape) * np.sqrt(raw / 2.0)
+    raw = np.clip(np.round(raw), 0, 65535).astype(np.uint16)
+    for r, c in SATURATED:
+        raw[r, c] = 65535
+    return raw[: shape[0], : shape[1]]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("measure")
+    calibration = _calibration()
+    common = dict(instrument_id="test-sphere", band_centres_nm=BANDS)
+    io.save_calibration(root / "cal.npz", calibration, noise_model=NOISE, **common)
+    io.save_calibration(root / "bare.npz", calibration, **common)
+    raw = _raw(calibration)
+    names = [f"{b}nm" for b in BANDS]
+    io.write_frame(root / "sample.tif", raw, channel_names=names)
+    io.write_frame(root / "small.tif", raw[:10], channel_names=names)
+    return {"root": root, "calibration": calibration, "raw": raw, "measured": {}}
+
+
+def run(argv, capsys):
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def region_args(regions=REGIONS):
+    return [arg for name, rect in regions.items() for arg in ("--region", f"{name}=" + ",".join(map(str, rect)))]
+
+
+def expected(files, noise, name, illuminant=None):
+    """`measure` in Python on the same data (remembered: the module's time goes to compiling)."""
+    key = (id(noise), name, illuminant)
+    if key not in files["measured"]:
+        r0, r1, c0, c1 = REGIONS[name]
+        mask = np.zeros((H, W), bool)
+        mask[r0:r1, c0:c1] = True
+        files["measured"][key] = noise, measure(files["raw"], files["calibration"], mask, noise, illuminant=illuminant)
+    return files["measured"][key][1]
+
+
+def read_outputs(base: pathlib.Path):
+    with open(base.with_name(base.name + ".csv"), newline="", encoding="utf-8") as handle:
+        rows = {row["name"]: row for row in csv.DictReader(handle)}
+    document = json.loads(base.with_name(base.name + ".json").read_text(encoding="utf-8"))
+    return rows, document
+
+
+def numbers(row, keys):
+    return np.array([float(row[k]) for k in keys])
+
+
+def close(actual, wanted):
+    np.testing.assert_allclose(actual, wanted, rtol=1e-9, atol=1e-12)
+
+
+LAB, U_LAB, EXPANDED = ["L", "a", "b"], ["u_L", "u_a", "u_b"], ["U_L", "U_a", "U_b"]
+R_COLUMNS = [f"R{nm}" for nm in WAVELENGTHS]
+U_R_COLUMNS = [f"u_R{nm}" for nm in WAVELENGTHS]
+
+
+class TestOutputs:
+    def test_two_regions_against_a_region(self, files, tmp_path, capsys, monkeypatch):
+        root = files["root"]
+        monkeypatch.chdir(tmp_path)
+        status, out, err = run(["measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"),
+                                *region_args(), "--reference", "grey"], capsys)
+        assert status == 0, err
+        assert err == ""
+        base = tmp_path / "sample.measure"  # the default: INPUT's stem + .measure, here
+        rows, document = read_outputs(base)
+        assert list(rows) == ["grey", "red"]
+        assert document["format"] == "spherejax-measurement" and document["format_version"] == 1
+        assert document["coverage_factor"] == 2 and document["illuminant"] == "D65"
+        assert document["reference"]["region"] == "grey"
+        assert document["noise_model"]["source"] == "calibration"
+        reference = expected(files, NOISE, "grey")
+        for entry in document["regions"]:
+            name = entry["name"]
+            m = expected(files, NOISE, name)
+            row = rows[name]
+            delta_e, u = m.delta_e(reference)
+            assert entry["rect"] == list(REGIONS[name])
+            assert int(row["pixels"]) == m.pixels == entry["pixels"]
+            assert int(row["excluded_pixels"]) == m.excluded == entry["excluded_pixels"]
+            assert row["illuminant"] == "D65"
+            close(numbers(row, LAB), m.lab)
+            close(numbers(row, U_LAB), m.lab_u)
+            close(numbers(row, EXPANDED), 2 * m.lab_u)
+            close(numbers(row, R_COLUMNS), m.reflectance)
+            close(numbers(row, U_R_COLUMNS), m.reflectance_u)
+            close(numbers(row, ["delta_e00", "u_delta_e00", "U_delta_e00"]), [delta_e, u, 2 * u])
+            close(entry["lab"], m.lab)
+            close(entry["lab_covariance"], m.lab_covariance)
+            close(entry["reflectance_covariance"], m.reflectance_covariance)
+            close([entry["delta_e00"], entry["u_delta_e00"]], [delta_e, u])
+            assert set(entry["lab_u_by_source"]) == set(m.lab_budget)
+        assert rows["red"]["excluded_pixels"] == str(len(SATURATED))
+        assert float(rows["grey"]["delta_e00"]) == 0.0
+        # the table: one line per region with L*, a*, b*, ΔE00 ± U, then the reflectance block
+        lines = out.splitlines()
+        assert all(len(line) <= 100 for line in lines), out
+        assert "k = 2" in lines[0] and "region 'grey'" in lines[1]
+        red = expected(files, NOISE, "red")
+        row = next(line for line in lines if line.startswith("red") and "±" in line and "(" not in line)
+        for value, u in zip(red.lab, red.lab_u):
+            assert f"{value:.2f} ± {2 * u:.2f}" in row
+        delta_e, u = red.delta_e(reference)
+        assert f"{delta_e:.2f} ± {2 * u:.2f}" in row
+        reflectance_row = next(line for line in lines if line.startswith("red") and "(" in line)
+        assert f"{red.reflectance[15]:.4f} ± {2 * red.reflectance_u[15]:.4f}" in reflectance_row  # 550 nm
+        assert "excluded" in out
+        assert "sample.measure.csv" in lines[-1] and "sample.measure.json" in lines[-1]
+
+    def test_exact_reference_illuminant_and_output_base(self, files, tmp_path, capsys):
+        root = files["root"]
+        base = tmp_path / "out" / "result"
+        base.parent.mkdir()
+        status, out, err = run(["-q", "measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"),
+                                *region_args(), "--reference", "50,-2.5,10", "--illuminant", "A", "-o", str(base)],
+                               capsys)
+        assert status == 0 and out == "" and err == ""
+        assert sorted(p.name for p in base.parent.iterdir()) == ["result.csv", "result.json"]
+        rows, document = read_outputs(base)
+        assert document["reference"] == {"lab": [50.0, -2.5, 10.0]} and document["illuminant"] == "A"
+        for name, row in rows.items():
+            m = expected(files, NOISE, name, illuminant="A")
+            delta_e, u = m.delta_e([50.0, -2.5, 10.0])
+            assert row["illuminant"] == "A"
+            close(numbers(row, LAB), m.lab)
+            close(numbers(row, ["delta_e00", "u_delta_e00", "U_delta_e00"]), [delta_e, u, 2 * u])
+
+    def test_no_reference_no_delta_e(self, files, tmp_path, capsys):
+        root = files["root"]
+        status, out, _ = run(["measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"),
+                              *region_args(), "-o", str(tmp_path / "r")], capsys)
+        assert status == 0 and "ΔE00" not in out
+        rows, document = read_outputs(tmp_path / "r")
+        assert document["reference"] is None
+        assert all(row[k] == "" for row in rows.values() for k in ("delta_e00", "u_delta_e00", "U_delta_e00"))
+        assert all(entry["delta_e00"] is None and entry["u_delta_e00"] is None for entry in document["regions"])
+
+    def test_options_override_the_calibrations_noise_model(self, files, tmp_path, capsys):
+        root = files["root"]
+        status, _, err = run(["measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"), *region_args(),
+                              "--gain", "0.5", "--frames", "4", "-o", str(tmp_path / "r")], capsys)
+        assert status == 0 and err == ""
+        rows, document = read_outputs(tmp_path / "r")
+        noise = NoiseModel(gain=F32(0.5), read_noise=F32(3), dark_frames=16, white_frames=16, sample_frames=4,
+                           white_reflectance_u=F32(0.002))
+        assert document["noise_model"]["source"] == "calibration, options"
+        assert document["noise_model"]["dark_frames"] == 16 and document["noise_model"]["sample_frames"] == 4
+        for name, row in rows.items():
+            m = expected(files, noise, name)
+            close(numbers(row, U_LAB), m.lab_u)
+            close(numbers(row, U_R_COLUMNS), m.reflectance_u)
+            assert not np.allclose(numbers(row, U_LAB), expected(files, NOISE, name).lab_u)
+
+    def test_options_supply_a_noise_model(self, files, tmp_path, capsys):
+        root = files["root"]
+        status, _, err = run(["measure", "-c", str(root / "bare.npz"), str(root / "sample.tif"), *region_args(),
+                              "--gain", "2", "--read-noise", "3", "-o", str(tmp_path / "r")], capsys)
+        assert status == 0
+        assert len(err.splitlines()) == 1 and err.startswith("spherejax: note: ") and "single frames" in err
+        rows, document = read_outputs(tmp_path / "r")
+        assert document["noise_model"]["source"] == "options"
+        noise = NoiseModel(gain=F32(2), read_noise=F32(3))
+        for name, row in rows.items():
+            close(numbers(row, U_LAB), expected(files, noise, name).lab_u)
+
+    def test_no_noise_model_gives_values_without_uncertainties(self, files, tmp_path, capsys):
+        root = files["root"]
+        status, out, err = run(["measure", "-c", str(root / "bare.npz"), str(root / "sample.tif"), *region_args(),
+                                "--reference", "grey", "-o", str(tmp_path / "r")], capsys)
+        assert status == 0
+        assert len(err.splitlines()) == 1 and err.startswith("spherejax: note: no noise model") and "--gain" in err
+        assert "n/a" in out and "Traceback" not in err
+        rows, document = read_outputs(tmp_path / "r")
+        for name, row in rows.items():
+            m = expected(files, None, name)
+            close(numbers(row, LAB), m.lab)
+            close(numbers(row, R_COLUMNS), m.reflectance)
+            close(float(row["delta_e00"]), m.delta_e(expected(files, None, "grey"))[0])
+            assert all(row[k] == "" for k in [*U_LAB, *EXPANDED, *U_R_COLUMNS, "u_delta_e00", "U_delta_e00"])
+        entry = document["regions"][1]
+        assert entry["lab_u"] is None and entry["lab_covariance"] is None and entry["u_delta_e00"] is None
+        assert document["noise_model"] is None
+
+
+class TestRefused:
+    @pytest.fixture
+    def setup(self, files, tmp_path, monkeypatch):
+        monkeypatch.chdir(tmp_path)
+        return files["root"], tmp_path
+
+    def refuse(self, argv, capsys, folder, *fragments):
+        before = sorted(folder.rglob("*"))
+        status, out, err = run(argv, capsys)
+        assert status == cli.EXIT_BAD_INPUT
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, err
+        assert lines[0].startswith("spherejax: error: ") and "Traceback" not in err
+        for fragment in fragments:
+            assert fragment in lines[0], (fragment, lines[0])
+        assert sorted(folder.rglob("*")) == before
+        assert out == ""
+
+    def base_args(self, root, cal="cal.npz", sample="sample.tif"):
+        return ["measure", "-c", str(root / cal), str(root / sample)]
+
+    @pytest.mark.parametrize("region, fragment", [
+        ("a=0,21,0,5", "outside the 20 x 24 image"),
+        ("a=0,5,-1,5", "outside"),
+        ("a=3,3,0,5", "is empty"),
+        ("a=0,5,6,2", "is empty"),
+        ("a=0,5,0", "NAME=r0,r1,c0,c1"),
+        ("0,5,0,5", "NAME=r0,r1,c0,c1"),
+        ("=0,5,0,5", "NAME=r0,r1,c0,c1"),
+        ("a=0,5,0,x", "not integers"),
+        ("a=0,5.5,0,5", "not integers"),
+        ("a\tb=0,5,0,5", "control character"),
+    ])
+    def test_bad_region(self, setup, capsys, region, fragment):
+        root, folder = setup
+        self.refuse([*self.base_args(root), "--region", region], capsys, folder, "--region", repr(region), fragment)
+
+    def test_duplicate_region_name(self, setup, capsys):
+        root, folder = setup
+        argv = [*self.base_args(root), "--region", "a=0,5,0,5", "--region", "a=6,8,0,5"]
+        self.refuse(argv, capsys, folder, "--region 'a=6,8,0,5'", "given twice")
+
+    @pytest.mark.parametrize("reference, fragment", [
+        ("white", "'white'"), ("50,0", "'50,0'"), ("50,0,x", "three finite numbers"), ("50,0,nan", "L,a,b"),
+    ])
+    def test_bad_reference(self, setup, capsys, reference, fragment):
+        root, folder = setup
+        argv = [*self.base_args(root), *region_args(), "--reference", reference]
+        self.refuse(argv, capsys, folder, "--reference", fragment, "'grey'")
+
+    @pytest.mark.parametrize("options, fragment", [
+        (["--gain", "0"], "--gain '0'"),
+        (["--gain", "x"], "--gain 'x'"),
+        (["--read-noise", "-1"], "--read-noise '-1'"),
+        (["--frames", "1.5"], "--frames '1.5'"),
+        (["--frames", "0"], "--frames '0'"),
+    ])
+    def test_bad_noise_options(self, setup, capsys, options, fragment):
+        root, folder = setup
+        self.refuse([*self.base_args(root), *region_args(), *options], capsys, folder, fragment)
+
+    def test_gain_without_read_noise_and_no_model(self, setup, capsys):
+        root, folder = setup
+        argv = [*self.base_args(root, cal="bare.npz"), *region_args(), "--gain", "2"]
+        self.refuse(argv, capsys, folder, "--read-noise", "no noise model")
+
+    def test_missing_input(self, setup, capsys):
+        root, folder = setup
+        self.refuse([*self.base_args(root, sample="nothing.tif"), *region_args()], capsys, folder, "nothing.tif", "no such file")
+
+    def test_input_of_the_wrong_shape(self, setup, capsys):
+        root, folder = setup
+        self.refuse([*self.base_args(root, sample="small.tif"), *region_args()], capsys, folder, "small.tif")
+
+    def test_missing_calibration(self, setup, capsys):
+        root, folder = setup
+        self.refuse([*self.base_args(root, cal="none.npz"), *region_args()], capsys, folder, "none.npz")
+
+    def test_output_folder_missing(self, setup, capsys):
+        root, folder = setup
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "missing" / "r")]
+        self.refuse(argv, capsys, folder, "missing", "does not exist")
+
+    def test_output_base_is_a_folder(self, setup, capsys):
+        root, folder = setup
+        (folder / "results").mkdir()
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "results")]
+        self.refuse(argv, capsys, folder, "results", "is a folder")
+
+    def test_region_with_every_pixel_flagged(self, setup, capsys):
+        root, folder = setup
+        r, c = SATURATED[0]
+        argv = [*self.base_args(root), "--region", f"s={r},{r + 1},{c},{c + 1}"]
+        self.refuse(argv, capsys, folder, "--region", "flagged")
+
+    def test_failed_write_leaves_nothing(self, setup, capsys):
+        """OUT.json cannot be written (a folder is in the way): OUT.csv is not left either."""
+        root, folder = setup
+        (folder / "r.json").mkdir()
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "r")]
+        self.refuse(argv, capsys, folder, "r.json")
+
+
+def test_output_paths_append_the_suffixes():
+    assert measurement_files.output_paths("a/b.v2") == (pathlib.Path("a/b.v2.csv"), pathlib.Path("a/b.v2.json"))
+    assert measurement_files.default_base("/data/x/sample.tif") == pathlib.Path("sample.measure")
+    assert measurement_files.csv_header()[:16] == [
+        "name", "pixels", "excluded_pixels", "illuminant", "L", "a", "b", "u_L", "u_a", "u_b",
+        "U_L", "U_a", "U_b", "delta_e00", "u_delta_e00", "U_delta_e00",
+    ]
+    assert len(measurement_files.csv_header()) == 16 + 2 * 31
