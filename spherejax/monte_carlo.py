@@ -159,6 +159,38 @@ def noise_scene(block: int = 6, *, instrument: InstrumentModel | None = None, la
     )
 
 
+def simulated_scene(experiment, frame_id: str, *, coeffs, wiener, wiener_offset) -> NoiseScene:
+    """A scene from the physical simulator (`simulate.simulate_experiment` of an instrument with
+    `noise=False`): its dark, white-standard and `frame_id` captures as the true means, so that
+    Monte Carlo runs on the sphere's own images (glare, vignetting, non-Lambertian samples,
+    patterned backgrounds), with the given Stage II coefficients and estimator.
+
+    Pixels below 5 % of the white standard's signal count as dark, the rest as chart.
+    """
+    instrument = experiment.instrument
+    if instrument.noise:
+        raise ValueError("experiment: expected one simulated with InstrumentModel(noise=False), whose frames are the means")
+    frames = {frame.id: frame for frame in experiment.frames}
+    if frame_id not in frames:
+        raise ValueError(f"frame_id: {frame_id!r} is not a frame of the experiment")
+    bias = float(instrument.bias_dn)
+    white_counts = frames["white"].pixels.astype(np.float64) - bias
+    sample_counts = frames[frame_id].pixels.astype(np.float64) - bias
+    r0, r1, c0, c1 = experiment.white_patch
+    patch = np.zeros(experiment.image_shape, bool)
+    patch[r0:r1, c0:c1] = True
+    dark = np.min(sample_counts / np.maximum(white_counts, 1.0), axis=-1) < 0.05
+    kind = np.where(patch, KIND_PATCH, np.where(dark, KIND_DARK, KIND_CHART))
+    return NoiseScene(
+        white_counts=white_counts, sample_counts=sample_counts, bias=bias, patch=patch, kind=kind,
+        coeffs=np.asarray(coeffs, np.float64), wiener=np.asarray(wiener, np.float64),
+        wiener_offset=np.asarray(wiener_offset, np.float64), gain=instrument.gain_e_per_dn,
+        read_noise=instrument.read_noise_e / instrument.gain_e_per_dn,
+        frames={"dark": instrument.frames_averaged_dark, "white": instrument.frames_averaged_white, "sample": instrument.frames_averaged_sample},
+        saturation=instrument.saturation_dn,
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class MonteCarloRun:
     """Trials of the path on one scene.
@@ -214,6 +246,7 @@ __all__ = [
     "draw_frame",
     "NoiseScene",
     "noise_scene",
+    "simulated_scene",
     "MonteCarloRun",
     "run",
 ]

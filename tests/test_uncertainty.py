@@ -19,7 +19,7 @@ import pytest
 
 import spherejax as sj
 from spherejax import monte_carlo as mc
-from spherejax import uncertainty
+from spherejax import simulate, uncertainty
 from spherejax.polynomial import PAPER_TABLE_2
 
 GAIN, READ, FRAMES = 1.2, 5.0, {"dark": 16, "white": 8, "sample": 4}
@@ -390,3 +390,27 @@ def test_measure_excludes_flagged_pixels_and_refuses_bad_regions(scene):
         sj.measure(raw, calibration, _rect(scene.patch.shape, 5, 7, 5, 7))
     with pytest.raises(ValueError, match="reference_lab: expected three finite numbers"):
         m.delta_e([1.0, 2.0])
+
+
+def test_coverage_on_the_physical_simulator():
+    """Monte Carlo on the sphere simulator's own image (a test sample on a patterned background,
+    glare, vignetting, lamp change): the noise-free capture is the mean, frames are drawn around
+    it, and the k = 2 intervals cover the noise-free path's Lab about 95 % of the time."""
+    design = simulate.ExperimentDesign(training_backgrounds=2, training_patches=2, test_backgrounds=1, test_patches=3, targets=4)
+    experiment = simulate.simulate_experiment(seed=2, instrument=simulate.InstrumentModel(noise=False), design=design)
+    test_frame = next(frame for frame in experiment.frames if frame.set == "test")
+    estimator = mc.noise_scene(block=1)  # the estimator and Stage II of the chart scene
+    scene = mc.simulated_scene(experiment, test_frame.id, coeffs=estimator.coeffs, wiener=estimator.wiener,
+                               wiener_offset=estimator.wiener_offset)
+    # The corner holding the white patch (rows 8:32, columns 244:268), one test patch (78:113,
+    # 174:209) and the patterned background around it: a quarter of the frame, for speed.
+    window = (slice(0, 120), slice(160, 272))
+    scene = dataclasses.replace(scene, **{name: getattr(scene, name)[window] for name in ("white_counts", "sample_counts", "patch", "kind")})
+    assert scene.patch.sum() == 24 * 24
+    run = mc.run(scene, scene.noise_model(), trials=100, seed=3)
+    good = np.all(np.isfinite(run.lab), axis=(0, -1)) & (scene.kind != mc.KIND_PATCH)
+    assert good.sum() > 0.9 * good.size - scene.patch.sum()
+    coverage = (np.abs(run.lab - run.true_lab)[:, good] <= 2 * run.lab_u[:, good]).mean(axis=(0, 1))
+    assert np.all(np.abs(coverage - 0.9545) < 0.015), coverage
+    ratio = np.median(np.median(run.lab_u, axis=0)[good] / np.std(run.lab, axis=0, ddof=1)[good], axis=0)
+    assert np.all(np.abs(ratio - 1) < 0.05), ratio
