@@ -241,6 +241,175 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
   }
 }
 
+#if defined(__x86_64__) && defined(__GNUC__)
+#define SPHEREJAX_AVX2 1
+#define SPHEREJAX_AVX2_TARGET __attribute__((target("avx2,fma")))
+
+// 16 bands on AVX2 (x86-64-v3), written with intrinsics: the generic code above, compiled for
+// this target, keeps its 16-float vectors as pairs of ymm registers that GCC spills to the stack
+// around every FMA (measured: 4x slower than the jax.numpy path on a 2-core AVX2 EPYC). The same
+// arithmetic, in the same order (FMAs into even- and odd-band accumulators, the even ones
+// starting at the bias), in 12 ymm accumulators that stay in registers.
+//
+// Stores: a block's reflectance (32 pixels x 31 floats = 124 whole ymm), Lab (12 ymm) and
+// quality (one ymm) are contiguous and 32-byte aligned when the block starts at a multiple of 32
+// pixels of an aligned buffer, so they are written with non-temporal stores: the outputs are
+// written whole and never read back here, and ordinary stores would first read every cache line
+// they overwrite (a read of 136 bytes a pixel that the path does not need). Other blocks (the
+// last, partial one) take ordinary stores.
+template <typename Raw>
+SPHEREJAX_AVX2_TARGET inline uint8_t pixel_stage2_16_avx2(const Problem& pr, const Raw* r, const float* d,
+                                                          const float* w, const float* a, const float* c,
+                                                          float* tilde) {
+  const __m256 zero = _mm256_setzero_ps();
+  const __m256 saturation = _mm256_set1_ps(pr.saturation);
+  int saturated = 0, nonfinite = 0, no_flat_field = 0;
+  for (int half = 0; half < 2; ++half) {
+    const int64_t o = 8 * half;
+    __m256 value;
+    if constexpr (std::is_same_v<Raw, uint16_t>) {
+      const __m128i counts = _mm_loadu_si128(reinterpret_cast<const __m128i*>(r + o));
+      value = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(counts));
+    } else {
+      value = _mm256_loadu_ps(r + o);
+    }
+    const __m256 dark = _mm256_loadu_ps(d + o);
+    const __m256 signal = _mm256_sub_ps(_mm256_loadu_ps(w + o), dark);
+    // x - x == 0 exactly when x is finite.
+    const __m256 value_finite = _mm256_cmp_ps(_mm256_sub_ps(value, value), zero, _CMP_EQ_OQ);
+    const __m256 at_or_above = _mm256_and_ps(value_finite, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ));
+    const __m256 flat_field_ok = _mm256_and_ps(_mm256_cmp_ps(signal, zero, _CMP_GT_OQ),
+                                               _mm256_cmp_ps(_mm256_sub_ps(signal, signal), zero, _CMP_EQ_OQ));
+    saturated |= _mm256_movemask_ps(at_or_above);
+    nonfinite |= _mm256_movemask_ps(value_finite) ^ 0xFF;
+    no_flat_field |= _mm256_movemask_ps(flat_field_ok) ^ 0xFF;
+    const __m256 v = _mm256_div_ps(_mm256_sub_ps(value, dark), signal);
+    _mm256_store_ps(tilde + o, _mm256_fmadd_ps(_mm256_loadu_ps(a + o), v, _mm256_loadu_ps(c + o)));
+  }
+  return static_cast<uint8_t>((saturated != 0) | ((nonfinite != 0) << 1) | ((no_flat_field != 0) << 2));
+}
+
+// lab_f of 8 values: the scalar `lab_f` (cube root by an exponent-dividing guess and two Halley
+// steps) in ymm registers.
+SPHEREJAX_AVX2_TARGET inline __m256 lab_f_avx2(__m256 t) {
+  const __m256 above = _mm256_cmp_ps(t, _mm256_set1_ps(kLabEpsilon), _CMP_GT_OQ);
+  const __m256 x = _mm256_blendv_ps(_mm256_set1_ps(1.0f), t, above);
+  // bits / 3 + magic, as unsigned 32-bit integers: (bits * 0xAAAAAAAB) >> 33 divides by 3.
+  const __m256i bits = _mm256_castps_si256(x);
+  const __m256i even = _mm256_srli_epi64(_mm256_mul_epu32(bits, _mm256_set1_epi32(static_cast<int>(0xAAAAAAABu))), 33);
+  const __m256i odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(bits, 32), _mm256_set1_epi32(static_cast<int>(0xAAAAAAABu))), 33);
+  const __m256i third = _mm256_blend_epi32(even, _mm256_slli_epi64(odd, 32), 0xAA);
+  __m256 y = _mm256_castsi256_ps(_mm256_add_epi32(third, _mm256_set1_epi32(0x2a5137a0)));
+  const __m256 two = _mm256_set1_ps(2.0f);
+  for (int step = 0; step < 2; ++step) {
+    const __m256 y3 = _mm256_mul_ps(_mm256_mul_ps(y, y), y);
+    y = _mm256_div_ps(_mm256_mul_ps(y, _mm256_fmadd_ps(two, x, y3)), _mm256_fmadd_ps(two, y3, x));
+  }
+  const __m256 linear = _mm256_fmadd_ps(_mm256_set1_ps(kLabKappa / 116.0f), t, _mm256_set1_ps(16.0f / 116.0f));
+  return _mm256_blendv_ps(linear, y, above);
+}
+
+template <typename Raw>
+SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64_t first, int64_t count) {
+  const Raw* raw = static_cast<const Raw*>(pr.raw);
+  constexpr int64_t B = kLanes;
+  alignas(32) float reflectance[kBlock * kReflectance];
+  alignas(32) float xyz[3][kBlock];
+  alignas(32) float tilde[B];
+  alignas(32) uint8_t quality[kBlock];
+  const float* projection = reinterpret_cast<const float*>(pr.projection);  // (B, 48)
+  const float* bias = reinterpret_cast<const float*>(pr.bias);              // (48,)
+  int64_t image = first / pr.pixels, pixel = first - image * pr.pixels;
+  const int64_t first_image = image, first_pixel = pixel;
+  for (int64_t i = 0; i < kBlock; ++i) {
+    if (i == count) image = first_image, pixel = first_pixel;  // padding repeats the first pixel
+    const int64_t flat = image * pr.pixels + pixel;
+    uint8_t q = pixel_stage2_16_avx2<Raw>(pr, raw + flat * B, pr.dark + pixel * B, pr.white + pixel * B,
+                                          pr.gain + image * B, pr.offset + image * B, tilde);
+    q |= pr.image_bad[image] * 8;
+    quality[i] = q;
+    if (q) std::fill(tilde, tilde + B, NAN);
+    // Columns 0..39 of the 48: 31 reflectances, X, Y, Z and padding; 40..47 are padding only.
+    __m256 e0 = _mm256_load_ps(bias), e1 = _mm256_load_ps(bias + 8), e2 = _mm256_load_ps(bias + 16),
+           e3 = _mm256_load_ps(bias + 24), e4 = _mm256_load_ps(bias + 32);
+    __m256 o0 = _mm256_setzero_ps(), o1 = o0, o2 = o0, o3 = o0, o4 = o0;
+#pragma GCC unroll 8
+    for (int64_t b = 0; b < B; b += 2) {
+      const float* m = projection + b * kPadded;
+      const __m256 s = _mm256_broadcast_ss(tilde + b), t = _mm256_broadcast_ss(tilde + b + 1);
+      e0 = _mm256_fmadd_ps(s, _mm256_load_ps(m), e0);
+      e1 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 8), e1);
+      e2 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 16), e2);
+      e3 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 24), e3);
+      e4 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 32), e4);
+      o0 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded), o0);
+      o1 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 8), o1);
+      o2 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 16), o2);
+      o3 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 24), o3);
+      o4 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 32), o4);
+    }
+    float* out = reflectance + i * kReflectance;
+    _mm256_storeu_ps(out, _mm256_add_ps(e0, o0));
+    _mm256_storeu_ps(out + 8, _mm256_add_ps(e1, o1));
+    _mm256_storeu_ps(out + 16, _mm256_add_ps(e2, o2));
+    // Floats 24..39: reflectances 24..30, then X, Y, Z.
+    alignas(32) float tail[16];
+    _mm256_store_ps(tail, _mm256_add_ps(e3, o3));
+    _mm256_store_ps(tail + 8, _mm256_add_ps(e4, o4));
+    std::memcpy(out + 24, tail, 7 * sizeof(float));
+    xyz[0][i] = tail[7];
+    xyz[1][i] = tail[8];
+    xyz[2][i] = tail[9];
+    if (i < count && ++pixel == pr.pixels) pixel = 0, ++image;
+  }
+  alignas(32) float lab[kBlock * 3];
+  for (int64_t i = 0; i < kBlock; i += 8) {
+    const __m256 fx = lab_f_avx2(_mm256_mul_ps(_mm256_load_ps(xyz[0] + i), _mm256_set1_ps(pr.inverse_white[0])));
+    const __m256 fy = lab_f_avx2(_mm256_mul_ps(_mm256_load_ps(xyz[1] + i), _mm256_set1_ps(pr.inverse_white[1])));
+    const __m256 fz = lab_f_avx2(_mm256_mul_ps(_mm256_load_ps(xyz[2] + i), _mm256_set1_ps(pr.inverse_white[2])));
+    alignas(32) float l[8], a[8], b[8];
+    _mm256_store_ps(l, _mm256_fmsub_ps(_mm256_set1_ps(116.0f), fy, _mm256_set1_ps(16.0f)));
+    _mm256_store_ps(a, _mm256_mul_ps(_mm256_set1_ps(500.0f), _mm256_sub_ps(fx, fy)));
+    _mm256_store_ps(b, _mm256_mul_ps(_mm256_set1_ps(200.0f), _mm256_sub_ps(fy, fz)));
+    for (int64_t k = 0; k < 8; ++k) {
+      lab[3 * (i + k) + 0] = l[k];
+      lab[3 * (i + k) + 1] = a[k];
+      lab[3 * (i + k) + 2] = b[k];
+    }
+  }
+  float* reflectance_out = pr.reflectance + first * kReflectance;
+  float* lab_out = pr.lab + first * 3;
+  uint8_t* quality_out = pr.quality + first;
+  const bool streamable = count == kBlock && (reinterpret_cast<uintptr_t>(reflectance_out) % 32 == 0) &&
+                          (reinterpret_cast<uintptr_t>(lab_out) % 32 == 0) &&
+                          (reinterpret_cast<uintptr_t>(quality_out) % 32 == 0);
+  if (streamable) {
+    for (int64_t k = 0; k < kBlock * kReflectance; k += 8) {
+      _mm256_stream_ps(reflectance_out + k, _mm256_load_ps(reflectance + k));
+    }
+    for (int64_t k = 0; k < kBlock * 3; k += 8) _mm256_stream_ps(lab_out + k, _mm256_load_ps(lab + k));
+    _mm256_stream_si256(reinterpret_cast<__m256i*>(quality_out), _mm256_load_si256(reinterpret_cast<const __m256i*>(quality)));
+  } else {
+    std::memcpy(reflectance_out, reflectance, count * kReflectance * sizeof(float));
+    std::memcpy(lab_out, lab, count * 3 * sizeof(float));
+    std::memcpy(quality_out, quality, count);
+  }
+}
+
+SPHEREJAX_AVX2_TARGET __attribute__((flatten)) void correct_range_16_avx2_u16(const Problem& pr, int64_t first, int64_t last) {
+  for (int64_t block = first; block < last; block += kBlock) {
+    correct_block_avx2_16<uint16_t>(pr, block, std::min(kBlock, last - block));
+  }
+  _mm_sfence();  // the non-temporal stores are visible before the chunk is counted as finished
+}
+SPHEREJAX_AVX2_TARGET __attribute__((flatten)) void correct_range_16_avx2_f32(const Problem& pr, int64_t first, int64_t last) {
+  for (int64_t block = first; block < last; block += kBlock) {
+    correct_block_avx2_16<float>(pr, block, std::min(kBlock, last - block));
+  }
+  _mm_sfence();
+}
+#endif
+
 template <typename Raw, bool kAvx512>
 SPHEREJAX_INLINE void correct_range_body(const Problem& pr, int64_t first, int64_t last) {
   for (int64_t block = first; block < last; block += kBlock) {
@@ -274,6 +443,13 @@ void correct_range(const Problem& pr, int64_t first, int64_t last) {
   if (avx512 && pr.bands == kLanes && !pr.portable) {
     return pr.raw_is_u16 ? correct_range_16_avx512_u16(pr, first, last)
                          : correct_range_16_avx512_f32(pr, first, last);
+  }
+#endif
+#if SPHEREJAX_AVX2
+  static const bool avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  if (avx2 && pr.bands == kLanes) {
+    return pr.raw_is_u16 ? correct_range_16_avx2_u16(pr, first, last)
+                         : correct_range_16_avx2_f32(pr, first, last);
   }
 #endif
   return pr.raw_is_u16 ? correct_range_u16(pr, first, last) : correct_range_f32(pr, first, last);
