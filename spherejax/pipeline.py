@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks, colorimetry, fused, uncertainty
+from . import _checks, buffers, colorimetry, fused, uncertainty
 from .colorimetry import delta_e_2000, xyz_to_lab
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .grid import N_WAVELENGTHS
@@ -514,6 +515,78 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
     return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u)
 
 
+# keep_unused: jit would otherwise drop the unused donated arguments from the program, and their
+# memory with them.
+@functools.partial(
+    jax.jit, static_argnames=("box_shape", "kernel_mode"), donate_argnames=("out_reflectance", "out_lab", "out_quality"),
+    keep_unused=True,
+)
+def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, *, box_shape, kernel_mode: str):
+    """`_correct_image` with the memory of three donated arrays of the outputs' shapes and dtypes
+    (dropped outputs of earlier calls, `spherejax.buffers`): they are not read, and XLA's buffer
+    assignment gives their memory to the outputs of the same shapes. The same program otherwise,
+    and the same numbers."""
+    del out_reflectance, out_lab, out_quality  # donated: their memory becomes the outputs'
+    return _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+
+
+#: Compiled `_correct_image_into` per signature (raw, calibration's structure and shapes, patch
+#: box, kernel mode): compiled ahead, with the first large image of a signature, so that later
+#: calls never compile (tests/test_compilation.py).
+_into_executables: dict = {}
+_into_lock = threading.Lock()
+
+
+def _signature(raw, calibration: Calibration, box_shape, kernel_mode):
+    leaves, structure = jax.tree_util.tree_flatten(calibration)
+    return (
+        tuple(raw.shape), str(raw.dtype), structure,
+        tuple((tuple(x.shape), str(x.dtype), getattr(x, "weak_type", False)) for x in leaves), box_shape, kernel_mode,
+    )
+
+
+def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, kernel_mode: str) -> CorrectionResult:
+    """`_correct_image` for large images on CPU, reusing the memory of outputs the caller has
+    dropped (`spherejax.buffers`); the same numbers bit for bit (tested)."""
+    outputs_shape = tuple(raw.shape[:-1])
+    signature = _signature(raw, calibration, box_shape, kernel_mode)
+    with _into_lock:
+        executable = _into_executables.get(signature)
+        if executable is None:
+            out_types = (
+                jax.ShapeDtypeStruct((*outputs_shape, N_WAVELENGTHS), jnp.float32),
+                jax.ShapeDtypeStruct((*outputs_shape, 3), jnp.float32),
+                jax.ShapeDtypeStruct(outputs_shape, jnp.uint8),
+            )
+            executable = _correct_image_into.lower(
+                raw, calibration, box_origin, *out_types, box_shape=box_shape, kernel_mode=kernel_mode
+            ).compile()
+            _into_executables[signature] = executable
+    out = buffers.take(outputs_shape)
+    if out is None:
+        result = _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+    else:
+        result = executable(raw, calibration, box_origin, *out)
+    buffers.give(outputs_shape, (result.reflectance, result.lab, result.quality))
+    return result
+
+
+def _recyclable(raw, calibration: Calibration) -> bool:
+    """True when `correct` may reuse dropped outputs' memory (`spherejax.buffers`): concrete
+    arrays, all on one CPU device, outputs of at least `buffers.MIN_BYTES`."""
+    pixels = int(np.prod(raw.shape[:-1], dtype=np.int64))
+    if pixels * (4 * (N_WAVELENGTHS + 3) + 1) < buffers.MIN_BYTES:
+        return False
+    arrays = (raw, *jax.tree_util.tree_leaves(calibration))
+    if not all(_checks.is_concrete(x) for x in arrays):
+        return False
+    try:
+        devices = set().union(*(x.devices() for x in arrays))
+    except AttributeError:  # not a jax.Array
+        return False
+    return len(devices) == 1 and next(iter(devices)).platform == "cpu"
+
+
 def _check_calibration(calibration) -> None:
     if not isinstance(calibration, Calibration):
         raise ValueError(
@@ -599,6 +672,8 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
     """
     _check_calibration(calibration)
     what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
+    if buffers.stageable(raw) and raw.shape[-3:] == (*calibration.image_shape, calibration.bands):
+        raw = buffers.stage(raw)  # NumPy frames into reused, aligned memory (`spherejax.buffers`)
     raw = _check_raw(raw, calibration, what)
     intermediates = bool(intermediates)
     noise = uncertainty.check_noise(noise, calibration.bands)
@@ -612,6 +687,8 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
         if p_u is not None:
             raise ValueError("p_u: expected None without p (u(p) is computed with p from the patch)")
         box_origin, box_shape = _patch_box_arguments(raw, calibration)
+        if noise is None and not intermediates and kernel_mode is not None and _recyclable(raw, calibration):
+            return _correct_recycling(raw, calibration, box_origin, box_shape, kernel_mode)
         return _correct_image(
             raw, calibration, box_origin, box_shape, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise
         )

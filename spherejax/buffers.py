@@ -1,0 +1,168 @@
+"""Reuse of `correct`'s output memory from one call to the next, owned by spherejax.
+
+Why. A 1-megapixel `correct` writes 136 MB of outputs (reflectance, Lab, quality). XLA allocates
+them with malloc, and glibc serves blocks that large with fresh mmap()s and returns them to the
+kernel with munmap() when they are freed: every call then page-faults 33,000 new, zeroed pages,
+which took longer than the correction itself (benchmarks/README.md: 200 ms against 38 ms a
+megapixel on the 2-core reference machine). `allocator.keep_freed_memory()` fixes that by
+changing glibc's settings for the whole process, which spherejax must not do behind a user's back.
+
+What instead. `correct` keeps, for each output shape, the output arrays of its last two calls
+(`RECENT`). When a new call finds among them a set that nobody but this pool refers to any more
+(the user dropped that result: its arrays' reference counts are the pool's alone), it donates
+that memory to the kernel, which writes the new outputs into it (`fused.correct_pixels(out=)`,
+XLA's input-output aliasing). A plain loop,
+
+    for raw in frames:
+        result = sj.correct(raw, calibration)
+
+then faults its output pages in the first two calls only. An output the user still holds, or
+any view of it (`numpy.asarray(result.lab)` refers to the array too), is never touched.
+
+Confined: only large outputs (at least `MIN_BYTES`) of `correct` called on concrete arrays on
+CPU with the fused kernel; nothing process-wide changes. The cost: up to two unreferenced sets of
+outputs of each of the last `SHAPES` shapes stay allocated until reused or `release()`d (272 MB
+for 1-megapixel images).
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+import threading
+
+import jax
+import numpy as np
+
+#: Output sets kept per shape: a loop's previous result is still bound to its variable while the
+#: next call runs, so the one before it is the one that is free.
+RECENT = 2
+
+#: Output shapes kept (the most recently used).
+SHAPES = 2
+
+#: Smaller outputs are not kept: glibc reuses their memory without faults anyway (below its
+#: mmap threshold), and keeping them would only hold memory.
+MIN_BYTES = 8 << 20
+
+_lock = threading.Lock()
+_pool: collections.OrderedDict = collections.OrderedDict()  # key -> deque of output tuples
+
+
+def _unreferenced(arrays: tuple) -> bool:
+    """True when only the pool's tuple refers to each array (and none was deleted, e.g. donated
+    elsewhere). sys.getrefcount counts the tuple's reference and its own argument: 2."""
+    return all(sys.getrefcount(arrays[k]) == 2 and not arrays[k].is_deleted() for k in range(len(arrays)))
+
+
+def take(key) -> tuple | None:
+    """A set of outputs of shape `key` that nobody refers to any more, removed from the pool, or
+    None."""
+    with _lock:
+        kept = _pool.get(key)
+        if not kept:
+            return None
+        for index in range(len(kept)):
+            if _unreferenced(kept[index]):
+                arrays = kept[index]
+                del kept[index]
+                return arrays
+    return None
+
+
+def give(key, arrays: tuple) -> None:
+    """Keep `arrays` (the outputs just returned to the caller) for reuse once they are dropped."""
+    with _lock:
+        kept = _pool.setdefault(key, collections.deque(maxlen=RECENT))
+        kept.appendleft(arrays)
+        _pool.move_to_end(key)
+        while len(_pool) > SHAPES:
+            _pool.popitem(last=False)
+
+
+def release() -> None:
+    """Drop every kept output set and staging buffer (their memory goes back to the allocator)."""
+    with _lock:
+        _pool.clear()
+        _staging.clear()
+
+
+# ------------------------------------------------------------------------------ the raw frames
+
+#: Staging buffers for raw frames given as NumPy arrays, per (shape, dtype): the most recent
+#: `RECENT` of each of the last `SHAPES` kinds.
+_staging: collections.OrderedDict = collections.OrderedDict()
+
+#: XLA's CPU buffers must start on this boundary to be used in place (jax.device_put(may_alias=)).
+ALIGNMENT = 64
+
+
+def _aligned_empty(shape, dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data start on an `ALIGNMENT`-byte boundary
+    (NumPy aligns to 16 only)."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    block = np.empty(nbytes + ALIGNMENT, np.uint8)
+    start = (-block.ctypes.data) % ALIGNMENT
+    return block[start:start + nbytes].view(dtype).reshape(shape)
+
+
+def stage(raw: np.ndarray):
+    """`raw` as a jax.Array on the CPU, through a staging buffer that spherejax reuses.
+
+    jnp.asarray copies a NumPy array into new XLA memory on every call (NumPy aligns its data to
+    16 bytes; XLA uses memory in place only on a 64-byte boundary), and those fresh pages fault:
+    32 MB a megapixel of uint16 frames. Here the frames are copied into an aligned buffer kept
+    from an earlier call, whose last user (a computation of that call) is done, and handed to
+    XLA in place. The caller's array is never touched.
+    """
+    key = (tuple(raw.shape), raw.dtype.str)
+    entry = None
+    with _lock:
+        kept = _staging.get(key)
+        if kept:
+            for index in range(len(kept)):
+                if _staging_free(kept[index]):
+                    entry = kept[index]
+                    del kept[index]
+                    break
+    if entry is None:
+        view = _aligned_empty(raw.shape, raw.dtype)
+        entry = (view, view.base)
+    np.copyto(entry[0], raw, casting="no")
+    staged = jax.device_put(entry[0], jax.devices("cpu")[0], may_alias=True)
+    with _lock:
+        kept = _staging.setdefault(key, collections.deque(maxlen=RECENT))
+        kept.appendleft(entry)
+        _staging.move_to_end(key)
+        while len(_staging) > SHAPES:
+            _staging.popitem(last=False)
+    return staged
+
+
+def _staging_free(entry: tuple) -> bool:
+    """True when nothing but the pool refers to a staging buffer (view, the block it views).
+
+    XLA, while a jax.Array or a computation uses the memory in place, holds a reference to the
+    block that owns it (measured; not to the view): free means the block's references are the
+    view's base, the entry's and getrefcount's argument (3), and the view's the entry's and the
+    argument (2)."""
+    return sys.getrefcount(entry[0]) == 2 and sys.getrefcount(entry[1]) == 3
+
+
+def stageable(raw) -> bool:
+    """True for a NumPy array large enough to be worth staging (`stage`), when JAX's default
+    backend is the CPU."""
+    return (
+        isinstance(raw, np.ndarray) and raw.dtype.kind in "uif" and raw.nbytes >= MIN_BYTES // 4
+        and jax.default_backend() == "cpu"
+    )
+
+
+def kept() -> int:
+    """The number of output sets kept now (for tests and diagnostics)."""
+    with _lock:
+        return sum(len(v) for v in _pool.values())
+
+
+__all__ = ["RECENT", "SHAPES", "MIN_BYTES", "ALIGNMENT", "take", "give", "release", "kept", "stage", "stageable"]

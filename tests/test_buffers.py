@@ -1,0 +1,145 @@
+"""spherejax.buffers: `correct` reuses the memory of outputs the caller dropped, and of its own
+staging of NumPy frames, and never of anything still in use.
+
+Outputs of 256 x 256 pixels (9 MB) are above `buffers.MIN_BYTES`, so they take this path.
+"""
+
+import threading
+
+import jax
+import numpy as np
+import pytest
+
+import spherejax as sj
+from spherejax import buffers, fused, pipeline
+
+SIZE, BANDS = 256, 16
+
+pytestmark = pytest.mark.skipif(not fused.enabled(), reason="the reuse is part of the fused CPU kernel's path")
+
+
+@pytest.fixture(autouse=True)
+def empty_pool():
+    buffers.release()
+    yield
+    buffers.release()
+
+
+@pytest.fixture(scope="module")
+def calibration():
+    rng = np.random.default_rng(0)
+    dark = (100.0 + rng.normal(0, 2, (SIZE, SIZE, BANDS))).astype(np.float32)
+    white = (dark + rng.uniform(9000, 11000, (SIZE, SIZE, BANDS))).astype(np.float32)
+    patch = np.zeros((SIZE, SIZE), bool)
+    patch[4:20, 4:20] = True
+    return sj.Calibration(
+        dark=dark, white=white, patch=patch, coeffs=np.asarray(sj.identity_coeffs(BANDS, np.float32)),
+        wiener=rng.uniform(0, 0.1, (31, BANDS)).astype(np.float32), saturation=16383.0,
+    )
+
+
+def _frames(count, seed=1):
+    rng = np.random.default_rng(seed)
+    frames = rng.integers(200, 12000, (count, SIZE, SIZE, BANDS)).astype(np.uint16)
+    frames[:, 7, 9, 3] = 16383  # a saturated pixel in each
+    return list(frames)
+
+
+def _reference(raw, calibration):
+    """The same program without any reuse."""
+    box_origin, box_shape = pipeline._patch_box_arguments(raw, calibration)
+    kernel_mode = fused.mode(raw.dtype, np.float32, BANDS)
+    result = pipeline._correct_image(jax.numpy.asarray(raw), calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+    return {name: np.array(getattr(result, name)) for name in ("reflectance", "lab", "quality", "p")}
+
+
+def _same(result, reference):
+    for name, want in reference.items():
+        np.testing.assert_array_equal(np.asarray(getattr(result, name)), want, err_msg=name)
+
+
+def test_a_plain_loop_reuses_memory_and_gives_the_same_bits(calibration):
+    frames = _frames(5)
+    pointers = []
+    for raw in frames:
+        result = sj.correct(raw, calibration)
+        _same(result, _reference(raw, calibration))
+        pointers.append(result.reflectance.unsafe_buffer_pointer())
+    # From the third call on, the outputs of the call before the last are reused.
+    assert pointers[2] == pointers[0] and pointers[3] == pointers[1] and pointers[4] == pointers[2]
+    assert buffers.kept() == 2
+
+
+def test_results_the_caller_keeps_are_never_overwritten(calibration):
+    frames = _frames(5, seed=2)
+    results = [sj.correct(raw, calibration) for raw in frames]
+    for raw, result in zip(frames, results):
+        _same(result, _reference(raw, calibration))
+    assert len({r.reflectance.unsafe_buffer_pointer() for r in results}) == 5
+
+
+def test_views_and_single_outputs_that_are_kept_are_not_reused(calibration):
+    frames = _frames(6, seed=3)
+    lab_view = np.asarray(sj.correct(frames[0], calibration).lab)  # the result is dropped, a view kept
+    reflectance = sj.correct(frames[1], calibration).reflectance  # one output kept
+    lab_copy, reflectance_copy = lab_view.copy(), np.array(reflectance)
+    for raw in frames[2:]:
+        sj.correct(raw, calibration)
+    np.testing.assert_array_equal(lab_view, lab_copy)
+    np.testing.assert_array_equal(np.asarray(reflectance), reflectance_copy)
+
+
+def test_the_callers_frames_are_copied_not_shared(calibration):
+    raw = _frames(1, seed=4)[0]
+    before = raw.copy()
+    result = sj.correct(raw, calibration)
+    np.testing.assert_array_equal(raw, before)
+    raw[:] = 0  # the caller reuses its array: the result must not change
+    _same(result, _reference(before, calibration))
+
+
+def test_calls_in_flight_and_threads(calibration):
+    frames = _frames(8, seed=5)
+    # Dispatched without waiting: each call's staged frames and outputs are in use until done.
+    results = [sj.correct(raw, calibration) for raw in frames[:4]]
+    for raw, result in zip(frames[:4], results):
+        _same(result, _reference(raw, calibration))
+    del results
+    errors = []
+
+    def work(indices):
+        try:
+            for i in indices:
+                for _ in range(2):
+                    result = sj.correct(frames[i], calibration)
+                    _same(result, _reference(frames[i], calibration))
+        except AssertionError as error:  # pragma: no cover - the failure is reported below
+            errors.append(error)
+
+    threads = [threading.Thread(target=work, args=(range(k, 8, 2),)) for k in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors, errors[0]
+
+
+def test_small_images_and_traced_calls_keep_nothing(calibration):
+    small = sj.Calibration(
+        dark=np.asarray(calibration.dark)[:32, :32], white=np.asarray(calibration.white)[:32, :32],
+        patch=np.asarray(calibration.patch)[:32, :32], coeffs=calibration.coeffs, wiener=calibration.wiener,
+        saturation=16383.0,
+    )
+    sj.correct(_frames(1)[0][:32, :32], small)
+    assert buffers.kept() == 0
+    jax.jit(lambda r: sj.correct(r, calibration).lab)(_frames(1)[0])
+    assert buffers.kept() == 0
+    sj.correct(_frames(1)[0], calibration)
+    assert buffers.kept() == 1
+    buffers.release()
+    assert buffers.kept() == 0
+
+
+def test_aligned_staging():
+    array = buffers._aligned_empty((3, 5, 7), np.uint16)
+    assert array.ctypes.data % buffers.ALIGNMENT == 0 and array.shape == (3, 5, 7) and array.flags.c_contiguous
