@@ -457,9 +457,10 @@ def print_report(summary: dict, agreement: dict, info: dict, size: int, repeats:
 def add_allocator_argument(parser: argparse.ArgumentParser) -> None:
     """--allocator reuse|default, shared by the benchmarks that time repeated calls."""
     parser.add_argument(
-        "--allocator", choices=("reuse", "default"), default="reuse",
-        help="reuse: glibc keeps freed blocks (spherejax.allocator.keep_freed_memory, what the "
-             "command line does), for both implementations; default: glibc as it comes",
+        "--allocator", choices=("reuse", "default"), default="default",
+        help="default: glibc as it comes, what a user's script gets (spherejax reuses its own "
+             "outputs' memory, spherejax.buffers); reuse: glibc keeps freed blocks "
+             "(spherejax.allocator.keep_freed_memory, what the command line does), for both implementations",
     )
 
 
