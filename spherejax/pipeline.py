@@ -521,7 +521,7 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
     jax.jit, static_argnames=("box_shape", "kernel_mode"), donate_argnames=("out_reflectance", "out_lab", "out_quality"),
     keep_unused=True,
 )
-def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, *, box_shape, kernel_mode: str):
+def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, *, box_shape, kernel_mode: str | None):
     """`_correct_image` with the memory of three donated arrays of the outputs' shapes and dtypes
     (dropped outputs of earlier calls, `spherejax.buffers`): they are not read, and XLA's buffer
     assignment gives their memory to the outputs of the same shapes. The same program otherwise,
@@ -545,29 +545,31 @@ def _signature(raw, calibration: Calibration, box_shape, kernel_mode):
     )
 
 
-def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, kernel_mode: str) -> CorrectionResult:
+def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, kernel_mode: str | None) -> CorrectionResult:
     """`_correct_image` for large images on CPU, reusing the memory of outputs the caller has
     dropped (`spherejax.buffers`); the same numbers bit for bit (tested)."""
     outputs_shape = tuple(raw.shape[:-1])
+    dtype = _compute_dtype(raw, calibration)  # float32, or float64 on the jax.numpy path
     signature = _signature(raw, calibration, box_shape, kernel_mode)
     with _into_lock:
         executable = _into_executables.get(signature)
         if executable is None:
             out_types = (
-                jax.ShapeDtypeStruct((*outputs_shape, N_WAVELENGTHS), jnp.float32),
-                jax.ShapeDtypeStruct((*outputs_shape, 3), jnp.float32),
+                jax.ShapeDtypeStruct((*outputs_shape, N_WAVELENGTHS), dtype),
+                jax.ShapeDtypeStruct((*outputs_shape, 3), dtype),
                 jax.ShapeDtypeStruct(outputs_shape, jnp.uint8),
             )
             executable = _correct_image_into.lower(
                 raw, calibration, box_origin, *out_types, box_shape=box_shape, kernel_mode=kernel_mode
             ).compile()
             _into_executables[signature] = executable
-    out = buffers.take(outputs_shape)
+    key = (outputs_shape, str(dtype))
+    out = buffers.take(key)
     if out is None:
         result = _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
     else:
         result = executable(raw, calibration, box_origin, *out)
-    buffers.give(outputs_shape, (result.reflectance, result.lab, result.quality))
+    buffers.give(key, (result.reflectance, result.lab, result.quality))
     return result
 
 
@@ -687,7 +689,7 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
         if p_u is not None:
             raise ValueError("p_u: expected None without p (u(p) is computed with p from the patch)")
         box_origin, box_shape = _patch_box_arguments(raw, calibration)
-        if noise is None and not intermediates and kernel_mode is not None and _recyclable(raw, calibration):
+        if noise is None and not intermediates and _recyclable(raw, calibration):
             return _correct_recycling(raw, calibration, box_origin, box_shape, kernel_mode)
         return _correct_image(
             raw, calibration, box_origin, box_shape, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise

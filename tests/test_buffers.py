@@ -66,8 +66,32 @@ def test_a_plain_loop_reuses_memory_and_gives_the_same_bits(calibration):
         _same(result, _reference(raw, calibration))
         pointers.append(result.reflectance.unsafe_buffer_pointer())
     # From the third call on, the outputs of the call before the last are reused.
-    assert pointers[2] == pointers[0] and pointers[3] == pointers[1] and pointers[4] == pointers[2]
+    assert pointers[2] == pointers[0] and pointers[3] == pointers[1] and pointers[3] == pointers[1] and pointers[4] == pointers[2]
     assert buffers.kept() == 2
+
+
+@pytest.mark.parametrize("switch", ["0", "portable"])
+def test_the_jax_numpy_path_and_float64_reuse_too(calibration, monkeypatch, switch):
+    monkeypatch.setenv(fused.SWITCH, switch)
+    frames = _frames(4, seed=6)
+    kernel_mode = fused.mode(np.uint16, np.float32, BANDS)
+    for raw in frames:
+        result = sj.correct(raw, calibration)
+        box_origin, box_shape = pipeline._patch_box_arguments(raw, calibration)
+        plain = pipeline._correct_image(jax.numpy.asarray(raw), calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+        for name in ("reflectance", "lab", "quality"):
+            np.testing.assert_array_equal(np.asarray(getattr(result, name)), np.asarray(getattr(plain, name)), err_msg=name)
+    calibration64 = sj.Calibration(
+        dark=np.asarray(calibration.dark, np.float64), white=np.asarray(calibration.white, np.float64),
+        patch=calibration.patch, coeffs=np.asarray(calibration.coeffs, np.float64),
+        wiener=np.asarray(calibration.wiener, np.float64), saturation=16383.0,
+    )
+    pointers = []
+    for raw in frames:
+        result = sj.correct(raw, calibration64)
+        assert result.reflectance.dtype == np.float64
+        pointers.append(result.reflectance.unsafe_buffer_pointer())
+    assert pointers[2] == pointers[0] and pointers[3] == pointers[1]
 
 
 def test_results_the_caller_keeps_are_never_overwritten(calibration):
