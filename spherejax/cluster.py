@@ -32,6 +32,9 @@ from .allocator import keep_freed_memory
 #: Where workers keep compiled executables unless SPHEREJAX_COMPILATION_CACHE says otherwise.
 DEFAULT_CACHE = pathlib.Path.home() / ".cache" / "spherejax" / "jax-compilation"
 
+#: How long `--scheduler ADDRESS` keeps trying to reach the scheduler before giving up.
+SCHEDULER_TIMEOUT_S = 20.0
+
 
 class JaxWorkerSetup(WorkerPlugin):
     """Runs in every worker before its first task: optional pinning to one core, glibc keeping
@@ -62,14 +65,17 @@ def cache_dir() -> str:
 
 class DaskExecutor:
     """Maps `archive.correct_input` over inputs on a dask cluster; a context manager that starts
-    (and stops) a LocalCluster for `workers`, or connects to `scheduler`."""
+    (and stops) a LocalCluster for `workers`, or connects to `scheduler`, trying for
+    `connect_timeout_s` seconds (default `SCHEDULER_TIMEOUT_S`)."""
 
-    def __init__(self, *, workers: int | None = None, scheduler: str | None = None):
+    def __init__(self, *, workers: int | None = None, scheduler: str | None = None,
+                 connect_timeout_s: float | None = None):
         if (workers is None) == (scheduler is None):
             raise ValueError("DaskExecutor: give exactly one of workers (a local cluster) or scheduler (an address)")
         if workers is not None and workers < 1:
             raise ValueError(f"--workers: expected a positive number of worker processes, got {workers}")
         self.workers, self.scheduler = workers, scheduler
+        self.connect_timeout_s = SCHEDULER_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
         self.cluster = self.client = None
 
     def __enter__(self):
@@ -81,7 +87,7 @@ class DaskExecutor:
             self.client = Client(self.cluster)
         else:
             try:
-                self.client = Client(self.scheduler, timeout="20s")
+                self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
             except (OSError, TimeoutError) as error:
                 raise ValueError(f"--scheduler: cannot reach the dask scheduler at {self.scheduler} ({error})") from None
         self.client.register_plugin(JaxWorkerSetup(cache_dir(), pin=self.workers is not None), name="spherejax-jax")

@@ -45,9 +45,13 @@ def test_executor_arguments():
         cluster.DaskExecutor()
     with pytest.raises(ValueError, match="--workers: expected a positive number of worker processes, got 0"):
         cluster.DaskExecutor(workers=0)
+    assert cluster.DaskExecutor(scheduler="tcp://127.0.0.1:9").connect_timeout_s == cluster.SCHEDULER_TIMEOUT_S == 20.0
+    assert cluster.DaskExecutor(scheduler="tcp://127.0.0.1:9", connect_timeout_s=2.5).connect_timeout_s == 2.5
 
 
-def test_unreachable_scheduler_is_one_line(batch, tmp_path, capsys):
+def test_unreachable_scheduler_is_one_line(batch, tmp_path, capsys, monkeypatch):
+    # Nothing listens on port 9: a short connect timeout instead of the default 20 s.
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT_S", 1.0)
     status, _, err = run(["correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "o"),
                           "--scheduler", "tcp://127.0.0.1:9"], capsys)
     assert status == 2 and len(err.strip().splitlines()) == 1 and "--scheduler" in err

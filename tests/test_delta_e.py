@@ -158,15 +158,20 @@ GRADIENT_CASES = {
 }
 
 
+#: Jitted once at module level, so that all cases of one dtype share one compilation (a jax.jit
+#: made inside the test would be a new function, compiled again, for every case).
+_grad_delta_e = jax.jit(jax.grad(sj.delta_e_2000, argnums=(0, 1)))
+_jacrev_delta_e = jax.jit(jax.jacrev(sj.delta_e_2000))
+
+
 class TestGradients:
     @pytest.mark.parametrize("case", list(GRADIENT_CASES))
     def test_grad_and_jacrev_finite(self, case, dtype):
         lab1, lab2 = (jnp.asarray(x, dtype=dtype) for x in GRADIENT_CASES[case])
-        # Jitted so that all cases of one dtype share one compilation.
-        g1, g2 = jax.jit(jax.grad(sj.delta_e_2000, argnums=(0, 1)))(lab1, lab2)
+        g1, g2 = _grad_delta_e(lab1, lab2)
         assert np.all(np.isfinite(np.asarray(g1))) and np.all(np.isfinite(np.asarray(g2)))
         batch1, batch2 = jnp.stack([lab1, lab2]), jnp.stack([lab2, lab1])
-        jac = jax.jit(jax.jacrev(sj.delta_e_2000))(batch1, batch2)
+        jac = _jacrev_delta_e(batch1, batch2)
         assert jac.shape == (2, 2, 3) and np.all(np.isfinite(np.asarray(jac)))
 
     def test_gradient_matches_finite_differences(self):
