@@ -19,10 +19,10 @@ XLA's input-output aliasing). A plain loop,
 then faults its output pages in the first two calls only. An output the user still holds, or
 any view of it (`numpy.asarray(result.lab)` refers to the array too), is never touched.
 
-Confined: only large outputs (at least `MIN_BYTES`) of `correct` called on concrete arrays on
-CPU with the fused kernel; nothing process-wide changes. The cost: up to two unreferenced sets of
-outputs of each of the last `SHAPES` shapes stay allocated until reused or `release()`d (272 MB
-for 1-megapixel images).
+Confined: only large outputs (at least `MIN_BYTES`) of whole frames given to `correct` as
+concrete arrays on the CPU; nothing process-wide changes. The cost: up to two unreferenced sets
+of outputs of each of the last `SHAPES` shapes, at most `MAX_BYTES` in all, stay allocated until
+reused or `release()`d (272 MB for 1-megapixel images).
 """
 
 from __future__ import annotations
@@ -44,6 +44,10 @@ SHAPES = 2
 #: Smaller outputs are not kept: glibc reuses their memory without faults anyway (below its
 #: mmap threshold), and keeping them would only hold memory.
 MIN_BYTES = 8 << 20
+
+#: At most this much output memory is kept (the oldest sets go first): a loop over 16-megapixel
+#: images (2.3 GB of outputs each) is not made to hold two more sets than it asked for.
+MAX_BYTES = 2 << 30
 
 _lock = threading.Lock()
 _pool: collections.OrderedDict = collections.OrderedDict()  # key -> deque of output tuples
@@ -70,14 +74,26 @@ def take(key) -> tuple | None:
     return None
 
 
+def _nbytes(arrays: tuple) -> int:
+    return sum(int(a.size) * a.dtype.itemsize for a in arrays)
+
+
 def give(key, arrays: tuple) -> None:
-    """Keep `arrays` (the outputs just returned to the caller) for reuse once they are dropped."""
+    """Keep `arrays` (the outputs just returned to the caller) for reuse once they are dropped,
+    within `RECENT` per shape, `SHAPES` shapes and `MAX_BYTES` in all (the oldest go first)."""
+    if _nbytes(arrays) > MAX_BYTES:
+        return
     with _lock:
         kept = _pool.setdefault(key, collections.deque(maxlen=RECENT))
         kept.appendleft(arrays)
         _pool.move_to_end(key)
         while len(_pool) > SHAPES:
             _pool.popitem(last=False)
+        while sum(_nbytes(entry) for entries in _pool.values() for entry in entries) > MAX_BYTES:
+            oldest_key = next(iter(_pool))
+            _pool[oldest_key].pop()  # the oldest set of the least recently used shape
+            if not _pool[oldest_key]:
+                del _pool[oldest_key]
 
 
 def release() -> None:
@@ -165,4 +181,4 @@ def kept() -> int:
         return sum(len(v) for v in _pool.values())
 
 
-__all__ = ["RECENT", "SHAPES", "MIN_BYTES", "ALIGNMENT", "take", "give", "release", "kept", "stage", "stageable"]
+__all__ = ["RECENT", "SHAPES", "MIN_BYTES", "MAX_BYTES", "ALIGNMENT", "take", "give", "release", "kept", "stage", "stageable"]

@@ -167,3 +167,17 @@ def test_small_images_and_traced_calls_keep_nothing(calibration):
 def test_aligned_staging():
     array = buffers._aligned_empty((3, 5, 7), np.uint16)
     assert array.ctypes.data % buffers.ALIGNMENT == 0 and array.shape == (3, 5, 7) and array.flags.c_contiguous
+
+
+def test_kept_memory_is_bounded(calibration, monkeypatch):
+    one_set = SIZE * SIZE * (4 * 34 + 1)
+    monkeypatch.setattr(buffers, "MAX_BYTES", int(1.5 * one_set))
+    frames = _frames(3, seed=7)
+    results = [sj.correct(raw, calibration) for raw in frames]
+    assert buffers.kept() == 1  # the newest set only: two would exceed MAX_BYTES
+    monkeypatch.setattr(buffers, "MAX_BYTES", one_set - 1)
+    buffers.release()
+    results.append(sj.correct(frames[0], calibration))
+    assert buffers.kept() == 0  # a set larger than MAX_BYTES is not kept at all
+    for raw, result in zip(frames + [frames[0]], results):
+        _same(result, _reference(raw, calibration))
