@@ -59,19 +59,34 @@ def _unreferenced(arrays: tuple) -> bool:
     return all(sys.getrefcount(arrays[k]) == 2 and not arrays[k].is_deleted() for k in range(len(arrays)))
 
 
+def _take_free(pool: collections.OrderedDict, key, is_free) -> tuple | None:
+    """Remove and return the first entry of pool[key] that `is_free` accepts, or None. Call with
+    `_lock` held. `is_free` gets the entry straight from the deque, so that the reference counts
+    it reads are the deque's and its argument's only."""
+    kept = pool.get(key)
+    for index in range(len(kept) if kept else 0):
+        if is_free(kept[index]):
+            entry = kept[index]
+            del kept[index]
+            return entry
+    return None
+
+
+def _keep(pool: collections.OrderedDict, key, entry: tuple) -> None:
+    """Put `entry` first in pool[key] (at most `RECENT`), pool's most recent shape, and drop the
+    least recent shapes beyond `SHAPES`. Call with `_lock` held."""
+    kept = pool.setdefault(key, collections.deque(maxlen=RECENT))
+    kept.appendleft(entry)
+    pool.move_to_end(key)
+    while len(pool) > SHAPES:
+        pool.popitem(last=False)
+
+
 def take(key) -> tuple | None:
     """A set of outputs of shape `key` that nobody refers to any more, removed from the pool, or
     None."""
     with _lock:
-        kept = _pool.get(key)
-        if not kept:
-            return None
-        for index in range(len(kept)):
-            if _unreferenced(kept[index]):
-                arrays = kept[index]
-                del kept[index]
-                return arrays
-    return None
+        return _take_free(_pool, key, _unreferenced)
 
 
 def _nbytes(arrays: tuple) -> int:
@@ -84,11 +99,7 @@ def give(key, arrays: tuple) -> None:
     if _nbytes(arrays) > MAX_BYTES:
         return
     with _lock:
-        kept = _pool.setdefault(key, collections.deque(maxlen=RECENT))
-        kept.appendleft(arrays)
-        _pool.move_to_end(key)
-        while len(_pool) > SHAPES:
-            _pool.popitem(last=False)
+        _keep(_pool, key, arrays)
         while sum(_nbytes(entry) for entries in _pool.values() for entry in entries) > MAX_BYTES:
             oldest_key = next(iter(_pool))
             _pool[oldest_key].pop()  # the oldest set of the least recently used shape
@@ -133,26 +144,15 @@ def stage(raw: np.ndarray):
     XLA in place. The caller's array is never touched.
     """
     key = (tuple(raw.shape), raw.dtype.str)
-    entry = None
     with _lock:
-        kept = _staging.get(key)
-        if kept:
-            for index in range(len(kept)):
-                if _staging_free(kept[index]):
-                    entry = kept[index]
-                    del kept[index]
-                    break
+        entry = _take_free(_staging, key, _staging_free)
     if entry is None:
         view = _aligned_empty(raw.shape, raw.dtype)
         entry = (view, view.base)
     np.copyto(entry[0], raw, casting="no")
     staged = jax.device_put(entry[0], jax.devices("cpu")[0], may_alias=True)
     with _lock:
-        kept = _staging.setdefault(key, collections.deque(maxlen=RECENT))
-        kept.appendleft(entry)
-        _staging.move_to_end(key)
-        while len(_staging) > SHAPES:
-            _staging.popitem(last=False)
+        _keep(_staging, key, entry)
     return staged
 
 

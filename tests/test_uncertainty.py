@@ -97,6 +97,7 @@ def test_patch_ratio_uncertainty_equals_dense_jacobian(tiny):
     np.testing.assert_allclose(np.asarray(sj.patch_ratio_u(raw, calibration, noise)), np.sqrt(np.asarray(expected)), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_systematic_terms_equal_dense_jacobians(tiny):
     """Stage II coefficients (N6), the estimator (N7) and the white standard (N5), each alone."""
     raw, calibration = tiny
@@ -305,6 +306,7 @@ def test_delta_e_uncertainty_matches_monte_carlo_away_from_zero(scene, monte_car
     assert np.mean(de0) > 3 * np.std(de0) * 0.5 and np.all(np.isfinite(u0))
 
 
+@pytest.mark.slow
 def test_delta_e_u_of_a_result_matches_the_kernel(scene):
     raw, calibration = scene.draw(np.random.default_rng(6))
     result = sj.correct(raw, calibration, noise=scene.noise_model())
@@ -392,6 +394,7 @@ def test_measure_excludes_flagged_pixels_and_refuses_bad_regions(scene):
         m.delta_e([1.0, 2.0])
 
 
+@pytest.mark.slow
 def test_coverage_on_the_physical_simulator():
     """Monte Carlo on the sphere simulator's own image (a test sample on a patterned background,
     glare, vignetting, lamp change): the noise-free capture is the mean, frames are drawn around
@@ -414,3 +417,19 @@ def test_coverage_on_the_physical_simulator():
     assert np.all(np.abs(coverage - 0.9545) < 0.015), coverage
     ratio = np.median(np.median(run.lab_u, axis=0)[good] / np.std(run.lab, axis=0, ddof=1)[good], axis=0)
     assert np.all(np.abs(ratio - 1) < 0.05), ratio
+
+
+def test_p_u_and_patch_ratio_u_refuse_what_they_cannot_use(scene):
+    raw, calibration = scene.draw(np.random.default_rng(10))
+    noise = scene.noise_model()
+    p, p_u = sj.patch_ratio(raw, calibration), sj.patch_ratio_u(raw, calibration, noise)
+    with pytest.raises(ValueError, match="p_u: expected None without p"):
+        sj.correct(raw, calibration, p_u=p_u, noise=noise)
+    with pytest.raises(ValueError, match="p_u: expected None without noise"):
+        sj.correct(raw, calibration, p=p, p_u=p_u)
+    with pytest.raises(ValueError, match="p_u: expected shape"):
+        sj.correct(raw, calibration, p=p, p_u=p_u[:3], noise=noise)
+    with pytest.raises(ValueError, match="noise: expected a spherejax.NoiseModel, got None"):
+        sj.patch_ratio_u(raw, calibration, None)
+    with pytest.raises(ValueError, match="calibration: has no patch"):
+        sj.patch_ratio_u(raw[:10], calibration.rows(0, 10), noise)
