@@ -71,3 +71,12 @@ def lambertian_sphere_frames(
     u_r = holder_standard * b * gamma_phi0 / (1.0 - k_r * rho_wall)  # Eq. 7 and 12
     u_s = holder_sample * b * gamma_phi0 * lamp_change / (1.0 - k_s * rho_wall)  # Eq. 8 and 13
     return u_r + dark, u_s + dark
+
+
+def no_compilation_cache_writes(env: dict[str, str]) -> dict[str, str]:
+    """`env` for a child process that may be cut short in the middle of a write (SIGKILL, a
+    file-size limit): it still loads programs from the test run's shared persistent compilation
+    cache (tests/conftest.py) but writes none, so it can never leave a torn cache entry behind
+    for the other processes. (JAX writes an entry only when compiling it took at least this many
+    seconds.)"""
+    return {**env, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "inf"}

@@ -21,6 +21,8 @@ import spherejax
 from spherejax import archive, cli, io
 from spherejax.grid import BAND_CENTRES_NM, WAVELENGTHS_NM
 
+from .helpers import no_compilation_cache_writes
+
 H, W, B = 40, 48, 16
 BANDS = [int(b) for b in BAND_CENTRES_NM]
 NAMES = [f"{b}nm" for b in BANDS]
@@ -421,9 +423,14 @@ def test_resume_ignores_a_torn_manifest_line_and_stale_temporaries(cal, tmp_path
 # ------------------------------------------------------------------------------ kill and resume
 
 
-def _start(argv) -> subprocess.Popen:
+def _start(argv, *, may_be_killed: bool = True) -> subprocess.Popen:
+    """`spherejax correct` in a child process. One that may be killed reads the shared
+    compilation cache but writes none (`helpers.no_compilation_cache_writes`); an uninterrupted
+    reference run fills it for the others."""
     command = [sys.executable, "-m", "spherejax.cli", "correct", *argv]
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    if may_be_killed:
+        env = no_compilation_cache_writes(env)
     return subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
@@ -446,6 +453,7 @@ def _holds_lock(process: subprocess.Popen, out: pathlib.Path):
     return condition
 
 
+@pytest.mark.slow
 def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
     rng = np.random.default_rng(7)
     inputs = tmp_path / "in"
@@ -453,7 +461,7 @@ def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
     for index in range(12):
         io.write_frame(inputs / f"cube{index:02d}.tif", frame(rng), channel_names=NAMES)
     reference, killed = tmp_path / "reference", tmp_path / "killed"
-    process = _start(["-c", str(cal), str(inputs), "-o", str(reference)])
+    process = _start(["-c", str(cal), str(inputs), "-o", str(reference)], may_be_killed=False)
     _, err = process.communicate(timeout=120)
     assert process.returncode == 0, err.decode()
 

@@ -5,12 +5,10 @@ traceback, and nothing new on disk.
 """
 
 import json
-import os
 import pathlib
 import shutil
 import subprocess
 import sys
-import zipfile
 
 import numpy as np
 import pytest
@@ -20,13 +18,8 @@ from spherejax import cli, io, simulate
 SMALL = simulate.ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=16)
 
 
-@pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    """A small simulated session and its calibration file, made once for the module."""
-    root = tmp_path_factory.mktemp("cli")
-    simulate.simulate_session(root / "session", seed=5, design=SMALL)
-    assert cli.main(["-q", "calibrate", str(root / "session"), "-o", str(root / "cal.npz")]) == 0
-    return root
+# `workspace` (tests/conftest.py): a small simulated session of the SMALL design and its
+# calibration file, made once for the run.
 
 
 def run(argv, capsys):

@@ -26,6 +26,7 @@ def batch(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_two_local_workers_match_the_in_process_run(batch, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("SPHEREJAX_COMPILATION_CACHE", str(tmp_path / "jax-cache"))
     status, out, _ = run(["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "serial")], capsys)

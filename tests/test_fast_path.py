@@ -188,6 +188,7 @@ FAULTS_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings are Linux-only")
 def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting():
     """A 768 x 768 correction writes blocks above glibc's mmap threshold (32 MiB; the reflectance

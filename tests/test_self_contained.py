@@ -84,8 +84,9 @@ def test_a_copy_with_nothing_beside_it_passes_the_reference_data_tests(tmp_path)
     assert pathlib.Path(module).is_relative_to(copy) and pathlib.Path(csv).is_relative_to(copy), where.stdout
 
     run = subprocess.run(
-        # The tests that read the Sharma table (the rest of the file reads no data, and takes minutes).
-        [sys.executable, "-m", "pytest", "tests/test_delta_e.py::TestSharma2005", "-q", "-p", "no:cacheprovider"],
+        # The tests that read the Sharma table (the rest of the file reads no data, and takes minutes),
+        # in that one process (-n 0: no pytest-xdist workers for five tests).
+        [sys.executable, "-m", "pytest", "tests/test_delta_e.py::TestSharma2005", "-q", "-p", "no:cacheprovider", "-n", "0"],
         cwd=copy, env=env, capture_output=True, text=True, timeout=300,
     )
     assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]

@@ -20,6 +20,7 @@ def closed_form(session):
     return calibrate.calibrate_session(session)[0]
 
 
+@pytest.mark.slow
 def test_study_lowers_its_training_objective_from_the_closed_form(session, closed_form):
     result = study.study_session(session, closed_form, response_weight=0.0, max_steps=300)
     assert result.objective_end < 0.9 * result.objective_start
@@ -33,6 +34,7 @@ def test_study_lowers_its_training_objective_from_the_closed_form(session, close
     assert after < before
 
 
+@pytest.mark.slow
 def test_study_with_the_wiener_matrix(session, closed_form):
     result = study.study_session(session, closed_form, fit_wiener=True, max_steps=30)
     assert result.objective_end < result.objective_start
@@ -43,6 +45,7 @@ def test_study_with_the_wiener_matrix(session, closed_form):
     assert not np.array_equal(offset, np.asarray(closed_form.wiener_offset))
 
 
+@pytest.mark.slow
 def test_comparison_table_and_verdict(session, closed_form):
     result = study.study_session(session, closed_form, max_steps=20)
     closed = evaluate.evaluate_session(session, closed_form)

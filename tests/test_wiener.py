@@ -284,6 +284,7 @@ def held_out_family_table(families):
 
 
 class TestAcrossMaterials:
+    @pytest.mark.slow
     def test_held_out_families(self, families):
         """Each material family held out in turn (ColorChecker, TCS/CQS, TM-30 CES, RAW to ACES):
         the default estimator does at least as well as the first release's training form and
@@ -292,6 +293,7 @@ class TestAcrossMaterials:
             assert auto <= first_release, (family, auto, first_release)
             assert auto <= 1.10 * oracle, (family, auto, oracle)
 
+    @pytest.mark.slow
     def test_train_on_one_family_apply_to_each(self, families):
         """The acceptance protocol's shape: fit on one family with the defaults, apply to every
         family; the default is never worse than the first release's form, and within 10 % of the

@@ -16,6 +16,7 @@ import pytest
 
 from hw import acquire
 from spherejax import cli, io
+from tests.helpers import no_compilation_cache_writes
 
 BANDS = list(range(400, 701, 20))
 SAMPLES = ("train-bg00-g0", "test-bg01-g1")
@@ -215,6 +216,7 @@ def test_wheel_count_mismatch_refused_before_anything_moves(tmp_path, monkeypatc
 # ------------------------------------------------------------------------------- kill and resume
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
     profile = write_profile(tmp_path)
     out = tmp_path / "s"
@@ -222,7 +224,8 @@ def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
     rng = np.random.default_rng(3)
     for attempt in range(3):
         argv = command + (["--resume"] if (tmp_path / "s.partial").exists() else [])
-        process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   env=no_compilation_cache_writes(dict(os.environ)))
         time.sleep(float(rng.uniform(4.0, 9.0)))
         process.send_signal(signal.SIGKILL)
         process.wait()

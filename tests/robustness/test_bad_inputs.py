@@ -33,6 +33,7 @@ import pytest
 import spherejax as sj
 from hw import profile as hw_profile
 from spherejax import archive, cli, io
+from tests.helpers import no_compilation_cache_writes
 from tests.hw.test_acquire import write_profile
 from tests.test_archive import NAMES, frame
 from tests.test_io import write_with_oiio
@@ -374,12 +375,21 @@ def _run_child(argv: list[str], limit: int) -> tuple[int, str]:
         f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit})); "
         "os.execv(sys.executable, [sys.executable, '-m', 'spherejax.cli', '-q', *sys.argv[1:]])"
     )
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    # Under the limit a write of the shared compilation cache would be cut short: read it only.
+    env = no_compilation_cache_writes({**os.environ, "JAX_PLATFORMS": "cpu"})
     result = subprocess.run([sys.executable, "-c", launcher, *argv], capture_output=True, text=True, env=env, timeout=600)
     return result.returncode, result.stderr
 
 
-@pytest.mark.parametrize("case", CATALOGUE, ids=[case.id for case in CATALOGUE])
+def parameters(cases: list[Case], slow: set[str]) -> list:
+    """`cases` as parameters named by their ids, those in `slow` (over about 10 s on a 2-core
+    machine: a whole calibrate, evaluate or simulate) marked so."""
+    assert slow <= {case.id for case in cases}, slow
+    return [pytest.param(case, id=case.id, marks=[pytest.mark.slow] if case.id in slow else []) for case in cases]
+
+
+@pytest.mark.parametrize("case", parameters(CATALOGUE, slow={"simulate-full-disk", "calibrate-full-disk",
+                                                             "evaluate-into-read-only-folder"}))
 def test_bad_input(case: Case, workspace, cal, tmp_path, capsys):
     f = Folder(tmp_path / "case", workspace, tmp_path / "cube-cal.npz")
     f.tmp.mkdir()

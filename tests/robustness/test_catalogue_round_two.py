@@ -241,7 +241,8 @@ ROUND_TWO: list[Case] = [
 ]
 
 
-@pytest.mark.parametrize("case", ROUND_TWO, ids=[case.id for case in ROUND_TWO])
+@pytest.mark.parametrize("case", catalogue.parameters(ROUND_TWO, slow={
+    "calibrate-full-disk-at-once", "calibrate-full-disk-over-an-existing-file", "evaluate-full-disk"}))
 def test_bad_input_round_two(case: Case, workspace, cal, tmp_path, capsys):
     catalogue.test_bad_input(case, workspace, cal, tmp_path, capsys)
 
@@ -292,6 +293,7 @@ def test_a_second_correct_on_a_locked_out_is_refused(second, cal, long_batch, tm
     assert not (out / archive.LOCK_NAME).exists()
 
 
+@pytest.mark.slow
 def test_two_calibrates_writing_one_file_leave_a_whole_file(workspace, tmp_path):
     target = tmp_path / "cal.npz"
     runs = [_start("calibrate", workspace / "session", "-o", target) for _ in range(2)]

@@ -24,9 +24,11 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from hw import acquire
 from spherejax import archive, io
+from tests.helpers import no_compilation_cache_writes
 from tests.hw.test_acquire import BANDS as ACQUIRED_BANDS
 from tests.hw.test_acquire import SAMPLES, run_acquire, write_profile
 from tests.test_archive import NAMES, _holds_lock, _start, _wait_until, frame, outputs_of
@@ -106,6 +108,7 @@ def _correct_kill_plan(rng: random.Random, lock_s: float, done_s: float) -> list
     return plan
 
 
+@pytest.mark.slow
 def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
     rng = np.random.default_rng(11)
     inputs = tmp_path / "in"
@@ -117,7 +120,7 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
     argv = ["-c", str(cal), str(inputs), "-o"]
 
     started = time.perf_counter()
-    process = _start([*argv, str(reference)])
+    process = _start([*argv, str(reference)], may_be_killed=False)
     lock_s = _wait_until(process, _holds_lock(process, reference)) - started
     done_s = _wait_until(process, lambda: len(_done(reference)) == INPUTS) - started
     _, err = process.communicate(timeout=120)
@@ -220,7 +223,7 @@ IMAGES = (2 + len(SAMPLES)) * len(ACQUIRED_BANDS)  # dark, white and the samples
 
 def _start_acquire(profile: pathlib.Path, out: pathlib.Path, *, resume: bool) -> subprocess.Popen:
     command = [sys.executable, "-m", "spherejax.cli", "acquire", "--profile", str(profile), "-o", str(out), "--emulate", "--yes"]
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env = no_compilation_cache_writes({**os.environ, "JAX_PLATFORMS": "cpu"})  # every run may be killed
     return subprocess.Popen(command + (["--resume"] if resume else []), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
@@ -245,6 +248,7 @@ def _acquire_kill_plan(rng: random.Random) -> list[tuple[str, float | int]]:
     return plan + [("session", 0)]
 
 
+@pytest.mark.slow
 def test_kills_during_acquisition_lose_and_duplicate_no_capture(tmp_path):
     profile = write_profile(tmp_path)
     out, partial = tmp_path / "s", tmp_path / "s.partial"

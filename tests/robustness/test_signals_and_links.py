@@ -236,6 +236,7 @@ def _check_stopped(process: subprocess.Popen, signum: int, out: pathlib.Path, un
     return len(records)
 
 
+@pytest.mark.slow
 def test_sigint_and_sigterm_stop_correct_cleanly_and_resume_finishes_it(cal, tmp_path, rng):
     _batch(tmp_path / "in", rng)
     reference, out = tmp_path / "reference", tmp_path / "out"
@@ -278,6 +279,7 @@ def test_sigint_and_sigterm_stop_correct_cleanly_and_resume_finishes_it(cal, tmp
     assert sorted(lines) == sorted(line for line in (reference / archive.MANIFEST_NAME).read_bytes().split(b"\n") if line)
 
 
+@pytest.mark.slow
 def test_sigterm_stops_a_dask_batch_cleanly(cal, tmp_path, rng):
     psutil = pytest.importorskip("psutil")
     _batch(tmp_path / "in", rng)
@@ -341,6 +343,7 @@ def test_sigterm_during_acquire_closes_the_shutter_and_keeps_the_journal(tmp_pat
     assert sorted(os.listdir(tmp_path)) == ["s", "sphere.toml"]
 
 
+@pytest.mark.slow
 def test_sigint_stops_the_acquire_command_and_resume_completes_it(tmp_path):
     profile = write_profile(tmp_path)
     out, partial = tmp_path / "s", tmp_path / "s.partial"
