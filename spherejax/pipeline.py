@@ -449,19 +449,94 @@ def _pixel_outputs(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, 
     return reflectance, lab, quality, v_out, v_out * p_pixel, v_stage2_out
 
 
+#: Pixels per block of the jax.numpy path on CPU (`_pixel_outputs_in_blocks`): a block's
+#: intermediates (16 + 34 channels of float32, about 3.5 MB) stay in the L2/L3 caches.
+CPU_BLOCK_PIXELS = 16384
+
+
+def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, *, saturation, out=None,
+                             block_pixels=CPU_BLOCK_PIXELS):
+    """`_pixel_outputs` (without intermediates) over blocks of `CPU_BLOCK_PIXELS` pixels in one
+    XLA loop: the jax.numpy path as it runs on CPU.
+
+    Why. XLA on CPU does not fuse the Wiener projection (a matmul) with the elementwise steps
+    around it, so on a whole image the Stage II cube (64 MB a megapixel) and the projections
+    before their offset (136 MB) are written to memory and read back, and XLA allocates those
+    temporaries afresh on every call, from pages the kernel must fault and zero (glibc maps
+    blocks that large). Block by block the same steps stay in cache and the temporaries are a
+    few MB, which malloc reuses.
+
+    Each block runs `_pixel_outputs` on (N, 1, S, B) rows of pixels: the same equations on
+    every pixel, and the same numbers as the whole image up to the matmul's rounding (tested).
+
+    Args: as `_pixel_outputs`, raw (..., H, W, B); out: None, or arrays of the outputs' shapes
+    and dtypes whose memory the outputs take (donated; their values are never read). Without
+    them the outputs start as zeros (one write pass). block_pixels: pixels per block, over all
+    images of a batch (each block takes the same rows of every image).
+
+    Returns (reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W)).
+    """
+    *batch, height, width, bands = raw.shape
+    pixels = height * width
+    images = int(np.prod(batch, dtype=np.int64))
+    block = max(1, block_pixels // max(images, 1))
+    plain = functools.partial(_pixel_outputs, saturation=saturation, intermediates=False)
+    if block >= pixels or images == 0:
+        return plain(raw, dark, white, p, coeffs, wiener, wiener_offset, weights)
+    dtype = dark.dtype
+    raw_rows = raw.reshape(images, pixels, bands)
+    dark_rows, white_rows = dark.reshape(pixels, bands), white.reshape(pixels, bands)
+    p_rows = jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands)
+
+    def outputs_of(start, size):
+        def rows(x, axis):
+            return jax.lax.dynamic_slice_in_dim(x, start, size, axis=axis)
+
+        reflectance, lab, quality = plain(
+            rows(raw_rows, 1)[:, None], rows(dark_rows, 0)[None], rows(white_rows, 0)[None], p_rows, coeffs,
+            wiener, wiener_offset, weights,
+        )
+        return reflectance[:, 0], lab[:, 0], quality[:, 0]
+
+    def put(outputs, start, size):
+        return tuple(
+            jax.lax.dynamic_update_slice_in_dim(o, x, start, axis=1) for o, x in zip(outputs, outputs_of(start, size))
+        )
+
+    if out is None:
+        out = (
+            jnp.zeros((images, pixels, N_WAVELENGTHS), dtype), jnp.zeros((images, pixels, 3), dtype),
+            jnp.zeros((images, pixels), jnp.uint8),
+        )
+    else:
+        out = tuple(o.reshape(images, pixels, *o.shape[len(batch) + 2:]) for o in out)
+    whole_blocks, rest = divmod(pixels, block)
+    out = jax.lax.fori_loop(0, whole_blocks, lambda k, o: put(o, k * block, block), out)
+    if rest:
+        out = put(out, whole_blocks * block, rest)
+    reflectance, lab, quality = out
+    return (
+        reflectance.reshape(*batch, height, width, N_WAVELENGTHS), lab.reshape(*batch, height, width, 3),
+        quality.reshape(*batch, height, width),
+    )
+
+
 # jax.jit rather than eqx.filter_jit, here and for _patch_ratio: every array in a Calibration is a
 # leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
 # call (6 % of a 256 x 256 correction).
 @functools.partial(jax.jit, static_argnames=("intermediates", "kernel_mode"))
-def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, noise=None, p_u=None):
+def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, noise=None, p_u=None, out=None):
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
     `kernel_mode` (static; `fused.mode`, decided by the caller so that the environment switch is
     part of the cache key): None for the jax.numpy path, else the fused CPU kernel's mode
     (`spherejax.fused`). With a `NoiseModel` (and p's uncertainty p_u (..., B)) the result also
-    carries the uncertainties (`uncertainty.pixel_uncertainty`); None traces none of that.
+    carries the uncertainties (`uncertainty.pixel_uncertainty`); None traces none of that. `out`:
+    None, or donated arrays of the three outputs' shapes whose memory the jax.numpy path's
+    outputs take on CPU (`_pixel_outputs_in_blocks`; the kernel's take it through XLA's buffer
+    assignment).
     """
-    result = _correct_pixels_plain(raw, calibration, p, intermediates, kernel_mode)
+    result = _correct_pixels_plain(raw, calibration, p, intermediates, kernel_mode, out)
     if noise is None:
         return result
     dtype = _compute_dtype(raw, calibration)
@@ -478,7 +553,7 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
     )
 
 
-def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None):
+def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, out=None):
     """`_correct_pixels` without uncertainties (traced inside it)."""
     dtype = _compute_dtype(raw, calibration)
     weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
@@ -499,12 +574,19 @@ def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool,
             # forms come from the jax.numpy path, whose reflectance and Lab XLA drops as unused.
             _, _, _, *cubes = plain(*arrays)
         return CorrectionResult(reflectance, lab, quality, p, *cubes)
-    reflectance, lab, quality, *cubes = plain(*arrays)
-    return CorrectionResult(reflectance, lab, quality, p, *cubes)
+    if intermediates:
+        reflectance, lab, quality, *cubes = plain(*arrays)
+        return CorrectionResult(reflectance, lab, quality, p, *cubes)
+
+    def on_cpu(*arrays):
+        return _pixel_outputs_in_blocks(*arrays, saturation=saturation, out=out)
+
+    reflectance, lab, quality = jax.lax.platform_dependent(*arrays, cpu=on_cpu, default=plain)
+    return CorrectionResult(reflectance, lab, quality, p)
 
 
 @functools.partial(jax.jit, static_argnames=("box_shape", "intermediates", "kernel_mode"))
-def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None, noise=None):
+def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None, noise=None, out=None):
     """`correct` of whole frames as one program: p over the patch's box, then every pixel.
 
     The same two steps as `patch_ratio` then `_correct_pixels`, traced together: one dispatch
@@ -512,7 +594,9 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
     """
     p = _patch_ratio(raw, calibration, box_origin, box_shape)
     p_u = None if noise is None else _patch_ratio_std(raw, calibration, noise, box_origin, box_shape)
-    return _correct_pixels(raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u)
+    return _correct_pixels(
+        raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u, out=out
+    )
 
 
 # keep_unused: jit would otherwise drop the unused donated arguments from the program, and their
@@ -523,11 +607,12 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
 )
 def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, *, box_shape, kernel_mode: str | None):
     """`_correct_image` with the memory of three donated arrays of the outputs' shapes and dtypes
-    (dropped outputs of earlier calls, `spherejax.buffers`): they are not read, and XLA's buffer
-    assignment gives their memory to the outputs of the same shapes. The same program otherwise,
-    and the same numbers."""
-    del out_reflectance, out_lab, out_quality  # donated: their memory becomes the outputs'
-    return _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+    (dropped outputs of earlier calls, `spherejax.buffers`): their values are not read, and
+    their memory becomes the outputs' (XLA's buffer assignment gives it to the kernel's outputs
+    of the same shapes; the jax.numpy path's loop writes its blocks into them). The same program
+    otherwise, and the same numbers."""
+    out = (out_reflectance, out_lab, out_quality)
+    return _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode, out=out)
 
 
 #: Compiled `_correct_image_into` per signature (raw, calibration's structure and shapes, patch

@@ -7,6 +7,8 @@ against the path written out plainly from the equations. The allocator setting i
 what it is for: page faults of a repeated correction.
 """
 
+import functools
+import os
 import subprocess
 import sys
 import textwrap
@@ -17,7 +19,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import allocator, colorimetry, pipeline
+from spherejax import allocator, colorimetry, fused, pipeline
 from spherejax.flatfield import white_signal_usable
 
 HIGHEST = jax.lax.Precision.HIGHEST
@@ -188,7 +190,6 @@ FAULTS_SCRIPT = textwrap.dedent("""
 """)
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings are Linux-only")
 def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting():
     """A 768 x 768 correction writes blocks above glibc's mmap threshold (32 MiB; the reflectance
@@ -211,6 +212,137 @@ def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting(
     assert faults["reuse", "release"] < 500, faults
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="page-fault counts from getrusage on Linux")
+@pytest.mark.parametrize("dtype_name", ["float32", "float64"])
+def test_the_jax_numpy_path_does_not_page_fault_by_default(dtype_name):
+    """The jax.numpy path (kernel off, or float64) on CPU runs in blocks of pixels
+    (`pipeline._pixel_outputs_in_blocks`): its temporaries are a few MB that malloc reuses, and
+    its outputs take the memory of dropped ones. On the whole image its Stage II cube (38 MB)
+    and its projections were allocated, and faulted, on every call."""
+    script = FAULTS_SCRIPT.replace("np.float32", f"np.{dtype_name}")
+    env = {**os.environ, fused.SWITCH: "0", "JAX_ENABLE_X64": "1"}
+    out = subprocess.run([sys.executable, "-c", script, "default", "keep"], capture_output=True, text=True, check=True, env=env)
+    applied, count = out.stdout.split()
+    assert applied == "False"
+    assert int(count) < 500, count
+
+
 def test_keep_freed_memory_is_idempotent():
     first = allocator.keep_freed_memory()
     assert allocator.keep_freed_memory() is first
+
+
+class TestBlocks:
+    """`pipeline._pixel_outputs_in_blocks`, the jax.numpy path as it runs on CPU, against the
+    whole-image `_pixel_outputs` it loops over: every pixel, a last block shorter than the
+    others, batches, bad pixels of every kind, donated outputs, and derivatives."""
+
+    @staticmethod
+    def inputs(dtype, batch=(), height=130, width=170, bands=16, raw_dtype=np.uint16, seed=0):
+        rng = np.random.default_rng(seed)
+        dark = rng.uniform(95, 105, (height, width, bands))
+        white = dark + rng.uniform(8000, 12000, (height, width, bands))
+        raw = np.rint(dark + (white - dark) * rng.uniform(0.05, 0.95, (*batch, height, width, bands)))
+        raw[..., 3, 4, 5] = 16383.0
+        white[10, 11, 2] = dark[10, 11, 2]  # no flat field
+        if raw_dtype == np.float32:
+            raw[..., 6, 7, 0] = np.nan
+            raw[..., 120, 160, 9] = np.inf
+        p = rng.uniform(0.9, 1.1, (*batch, bands))
+        coeffs = np.asarray(sj.identity_coeffs(bands, np.float64)) + rng.normal(0, 0.02, (bands, 4))
+        wiener = rng.normal(0, 0.3, (31, bands))
+        offset = rng.uniform(-0.05, 0.05, 31)
+        weights = np.asarray(colorimetry.tristimulus_weights("D65"))
+        floats = (dark, white, p, coeffs, wiener, offset, weights)
+        return (jnp.asarray(raw.astype(raw_dtype)), *(jnp.asarray(x, dtype) for x in floats))
+
+    @staticmethod
+    def assert_same(blocked, whole, dtype):
+        tolerance = 1e-6 if dtype == np.float32 else 1e-13
+        names = ("reflectance", "lab", "quality")
+        for name, got, want in zip(names, blocked, whole):
+            got, want = np.asarray(got), np.asarray(want)
+            assert got.shape == want.shape and got.dtype == want.dtype, name
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(want), err_msg=name)
+            np.testing.assert_allclose(got, want, rtol=tolerance, atol=tolerance, err_msg=name)
+
+    @pytest.mark.parametrize("batch", [(), (3,)], ids=["image", "batch"])
+    @pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+    def test_equals_the_whole_image(self, dtype, batch, raw_dtype):
+        arrays = self.inputs(dtype, batch, raw_dtype=raw_dtype)
+        whole = jax.jit(lambda *a: pipeline._pixel_outputs(*a, saturation=16383.0))(*arrays)
+        # 22 100 pixels an image: 5 blocks of 4 096 and one of 1 620 (3 images: 1 365 rows each).
+        blocked = jax.jit(lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=4096))(*arrays)
+        self.assert_same(blocked, whole, dtype)
+        quality = np.asarray(blocked[2])
+        assert (quality != 0).sum() == (4 if raw_dtype == np.float32 else 2) * max(1, int(np.prod(batch)))
+        assert np.isfinite(np.asarray(blocked[0])[quality == 0]).all()
+
+    def test_donated_outputs_are_written_whatever_they_held(self, dtype):
+        arrays = self.inputs(dtype)
+        whole = jax.jit(lambda *a: pipeline._pixel_outputs(*a, saturation=16383.0))(*arrays)
+        garbage = tuple(jnp.full_like(x, 7) for x in whole)
+        pointers = [x.unsafe_buffer_pointer() for x in garbage]
+        into = jax.jit(
+            lambda out, *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, out=out, block_pixels=4096),
+            donate_argnums=0,
+        )
+        blocked = into(garbage, *arrays)
+        self.assert_same(blocked, whole, dtype)
+        assert [x.unsafe_buffer_pointer() for x in blocked] == pointers  # written in place
+        assert all(x.is_deleted() for x in garbage)
+
+    def test_small_images_take_the_whole_image_path(self):
+        arrays = self.inputs(np.float32, height=20, width=30)
+        program = jax.jit(lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=4096))
+        assert "while" not in program.lower(*arrays).as_text()
+        assert "while" in jax.jit(
+            lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=64)
+        ).lower(*arrays).as_text()
+
+    def test_derivatives_equal_the_whole_images(self):
+        arrays = self.inputs(np.float64, height=40, width=50)
+        raw, dark, white, p, coeffs, wiener, offset, weights = arrays
+
+        def loss(outputs_of, coeffs, wiener, p):
+            reflectance, lab, quality = outputs_of(raw, dark, white, p, coeffs, wiener, offset, weights, saturation=16383.0)
+            good = (quality == 0)[..., None]
+            return jnp.sum(jnp.where(good, lab, 0.0) ** 2) + jnp.sum(jnp.where(good, reflectance, 0.0))
+
+        blocked = functools.partial(pipeline._pixel_outputs_in_blocks, block_pixels=300)
+        grad = jax.jit(jax.grad(loss, argnums=(1, 2, 3)), static_argnums=0)
+        for got, want in zip(grad(blocked, coeffs, wiener, p), grad(pipeline._pixel_outputs, coeffs, wiener, p)):
+            assert np.all(np.isfinite(got))
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-9)
+        forward = jax.jit(lambda c: jax.jvp(lambda c: blocked(*arrays[:4], c, *arrays[5:], saturation=16383.0)[1], (c,), (jnp.ones_like(c),))[1])
+        plain = jax.jit(lambda c: jax.jvp(lambda c: pipeline._pixel_outputs(*arrays[:4], c, *arrays[5:], saturation=16383.0)[1], (c,), (jnp.ones_like(c),))[1])
+        np.testing.assert_allclose(forward(coeffs), plain(coeffs), rtol=1e-10, atol=1e-9)
+
+    def test_correct_runs_in_blocks_on_cpu_and_agrees_with_the_kernel(self, monkeypatch):
+        """An image above CPU_BLOCK_PIXELS through `correct` with the kernel off, against the kernel."""
+        rng = np.random.default_rng(4)
+        height, width, bands = 160, 128, 16  # 20 480 pixels: one whole block and a short one
+        assert height * width > pipeline.CPU_BLOCK_PIXELS
+        dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
+        white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
+        raw = np.rint(dark + (white - dark) * rng.uniform(0.05, 0.95, (height, width, bands))).astype(np.uint16)
+        raw[100, 120, 3] = 16383
+        patch = np.zeros((height, width), bool)
+        patch[4:20, 4:20] = True
+        calibration = sj.Calibration(
+            dark=dark, white=white, patch=patch, coeffs=np.asarray(sj.identity_coeffs(bands, np.float32)),
+            wiener=rng.uniform(0, 0.1, (31, bands)).astype(np.float32), saturation=16383.0,
+            wiener_offset=rng.uniform(-0.02, 0.02, 31).astype(np.float32),
+        )
+        kernel = sj.correct(raw, calibration)
+        monkeypatch.setenv(fused.SWITCH, "0")
+        lowered = pipeline._correct_image.lower(
+            jnp.asarray(raw), calibration, *pipeline._patch_box_arguments(raw, calibration), intermediates=False,
+            kernel_mode=None,
+        )
+        assert "while" in lowered.as_text()
+        numpy_path = sj.correct(raw, calibration)
+        np.testing.assert_array_equal(np.asarray(numpy_path.quality), np.asarray(kernel.quality))
+        assert np.asarray(kernel.quality)[100, 120] == sj.QUALITY_SATURATED
+        np.testing.assert_allclose(np.asarray(numpy_path.reflectance), np.asarray(kernel.reflectance), rtol=2e-5, atol=2e-6)
+        np.testing.assert_allclose(np.asarray(numpy_path.lab), np.asarray(kernel.lab), rtol=2e-5, atol=2e-4)
