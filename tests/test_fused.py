@@ -313,3 +313,31 @@ def test_lowered_for_a_gpu_the_jax_numpy_path_runs(monkeypatch):
     text = exported.mlir_module()
     assert "spherejax_fused_correct" not in text
     assert "dot_general" in text  # the jax.numpy path's two products
+
+
+@pytestmark_kernel
+def test_kernel_under_vmap_over_frames_is_one_call_on_the_stack():
+    """Frames mapped over one calibration are more images of one kernel call (the batching rule
+    of `fused._kernel_call`), not one call per frame in an XLA loop that copies each frame out."""
+    raw, calibration = make_case(24, 28, 16, images=(3,), offset=True)
+    mapped = jax.jit(jax.vmap(lambda r: sj.correct(r, calibration)))
+    text = mapped.lower(jnp.asarray(raw)).as_text()
+    assert text.count("spherejax_fused_correct") == 1 and "while" not in text
+    got, want = mapped(raw), sj.correct(raw, calibration)
+    np.testing.assert_array_equal(np.asarray(got.quality), np.asarray(want.quality))
+    # Under jit XLA folds the closed-over calibration's constant products: float32 rounding.
+    np.testing.assert_allclose(np.asarray(got.lab), np.asarray(want.lab), rtol=2e-5, atol=2e-3)
+    np.testing.assert_allclose(np.asarray(got.reflectance), np.asarray(want.reflectance), rtol=2e-5, atol=2e-6)
+    # Mapped over calibrations as well as frames: one call per element, the same numbers.
+    scales = jnp.asarray([0.5, 2.0, 1.0], jnp.float32)
+
+    def lab_for(frame, scale):
+        cal = sj.Calibration(
+            dark=calibration.dark, white=calibration.white, patch=calibration.patch, coeffs=calibration.coeffs,
+            wiener=calibration.wiener * scale, saturation=SATURATION, wiener_offset=calibration.wiener_offset * scale,
+        )
+        return sj.correct(frame, cal).lab
+
+    both = jax.vmap(lab_for)(jnp.asarray(raw), scales)
+    looped = np.stack([np.asarray(lab_for(frame, scale)) for frame, scale in zip(raw, scales)])
+    np.testing.assert_allclose(np.asarray(both), looped, rtol=2e-5, atol=3e-3)
