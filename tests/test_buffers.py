@@ -212,7 +212,14 @@ def test_derivatives_with_respect_to_frames_are_unchanged_by_the_mapping(calibra
     """`correct` of traced frames and a concrete calibration goes through a custom_vmap, which
     has no transpose; its custom_jvp must keep `jax.grad` with respect to the frames, alone and
     under vmap, equal to that of the plain program."""
-    frames = np.stack(_frames(2, seed=9)).astype(np.float32)
+    # 64 x 64 frames: the mapping applies whatever the size (a traced call keeps nothing).
+    size = 64
+    calibration = sj.Calibration(
+        dark=np.asarray(calibration.dark)[:size, :size], white=np.asarray(calibration.white)[:size, :size],
+        patch=np.asarray(calibration.patch)[:size, :size], coeffs=calibration.coeffs, wiener=calibration.wiener,
+        saturation=16383.0,
+    )
+    frames = np.stack(_frames(2, seed=9))[:, :size, :size].astype(np.float32)
     box_origin, box_shape = pipeline._patch_box_arguments(frames[0], calibration)
     kernel_mode = fused.mode(np.float32, np.float32, BANDS)
 

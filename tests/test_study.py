@@ -20,8 +20,15 @@ def closed_form(session):
     return calibrate.calibrate_session(session)[0]
 
 
+@pytest.fixture(scope="module")
+def closed_form_evaluation(session, closed_form):
+    """The closed form's evaluation, which two tests compare a study with (made once: it is the
+    same for both, and a whole evaluate of the session). Read-only."""
+    return evaluate.evaluate_session(session, closed_form)
+
+
 @pytest.mark.slow
-def test_study_lowers_its_training_objective_from_the_closed_form(session, closed_form):
+def test_study_lowers_its_training_objective_from_the_closed_form(session, closed_form, closed_form_evaluation):
     result = study.study_session(session, closed_form, response_weight=0.0, max_steps=300)
     assert result.objective_end < 0.9 * result.objective_start
     assert np.isfinite(np.asarray(result.calibration.coeffs)).all()
@@ -29,7 +36,7 @@ def test_study_lowers_its_training_objective_from_the_closed_form(session, close
     # Without fit_wiener the estimator's offset r0 is held too.
     np.testing.assert_array_equal(np.asarray(result.calibration.wiener_offset), np.asarray(closed_form.wiener_offset))
     # The training patches' colours really are more consistent with their reference colours.
-    before = evaluate.evaluate_session(session, closed_form).metrics["training"]["stage2"]["delta_e00_D65"]
+    before = closed_form_evaluation.metrics["training"]["stage2"]["delta_e00_D65"]
     after = evaluate.evaluate_session(session, result.calibration).metrics["training"]["stage2"]["delta_e00_D65"]
     assert after < before
 
@@ -46,9 +53,9 @@ def test_study_with_the_wiener_matrix(session, closed_form):
 
 
 @pytest.mark.slow
-def test_comparison_table_and_verdict(session, closed_form):
+def test_comparison_table_and_verdict(session, closed_form, closed_form_evaluation):
     result = study.study_session(session, closed_form, max_steps=20)
-    closed = evaluate.evaluate_session(session, closed_form)
+    closed = closed_form_evaluation
     studied = evaluate.evaluate_session(session, result.calibration)
     header, rows = study.comparison(closed, studied)
     assert header[1:4] == ["Response std. dev.", "Spectral rms", "ΔE00 (D65)"]
