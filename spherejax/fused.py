@@ -135,14 +135,13 @@ def _batched_kernel_call(call, axis_size: int, in_batched, raw, dark, white, p, 
     mapped axis first, of length `axis_size`.
 
     Why not the custom call's own `vmap_method="sequential"`: that runs the kernel once per
-    element in an XLA loop, slicing raw into a fresh buffer for each, 3.5 times slower per pixel
-    than `correct` on the same stack (benchmarks/bench_batch.py). Images mapped over one
-    calibration are what `correct` takes as a stack of shape (M, N, P, B) -> (M N, P, B): one
-    call, the same numbers. A mapped calibration (dark, white, Stage II or the estimator) keeps
-    one call per element, as derivatives through `correct` never batch the kernel itself (its
-    JVP is the jax.numpy path's).
+    element in an XLA loop, copying each element's raw out into a buffer of its own first.
+    Images mapped over one calibration are what `correct` takes as a stack, (M, N, P, B) ->
+    (M N, P, B): one call, the same numbers (benchmarks/bench_batch.py times both). A mapped
+    calibration (dark, white, Stage II or the estimator) keeps one call per element: the kernel
+    takes one calibration a call.
     """
-    raw_batched, dark_batched, white_batched, p_batched, *constants_batched = in_batched
+    _, dark_batched, white_batched, _, *constants_batched = in_batched
     if dark_batched or white_batched or any(constants_batched):
         arrays = (raw, dark, white, p, *constants)
         axes = tuple(0 if batched else None for batched in in_batched)
