@@ -672,9 +672,9 @@ def _correct_mappable(raw, calibration: Calibration, box_origin, box_shape, kern
     Why. `jax.vmap(lambda r: sj.correct(r, calibration).lab)(frames)` runs `correct` on tracers,
     so `_correct_recycling` cannot apply and every call writes its outputs into fresh pages: 3.5
     times slower per pixel than `correct(frames, calibration)` (benchmarks/bench_batch.py). Here
-    the frames' mapping rule (`jax.custom_batching.custom_vmap`) sees the stacked frames; without
-    an enclosing `jit` they are concrete and go to `_correct_recycling` as one stack. Under `jit`
-    the rule maps `_correct_image` as before (XLA then owns the memory).
+    the frames' mapping rule (`jax.custom_batching.custom_vmap`) sees the stacked frames and
+    corrects them as one stack (`_correct_frames`): without an enclosing `jit` they are concrete
+    and reuse memory; under `jit` they are traced and XLA owns the memory.
 
     Derivatives: `custom_vmap` has no transpose, so the whole sits in a `custom_jvp` whose JVP is
     `_correct_image`'s: `jax.grad` and `jax.jvp` with respect to raw see what they saw before.
@@ -692,10 +692,7 @@ def _correct_mappable(raw, calibration: Calibration, box_origin, box_shape, kern
         del axis_size, in_batched  # the only argument, so mapped, with the mapped axis first
         if buffers.stageable(frames):  # vmap hands NumPy frames on as they are
             frames = buffers.stage(frames)
-        if _recyclable(frames, calibration):
-            result = _correct_recycling(frames, calibration, box_origin, box_shape, kernel_mode)
-        else:
-            result = jax.vmap(image)(frames)
+        result = _correct_frames(frames, calibration, box_origin, box_shape, kernel_mode)
         return result, jax.tree_util.tree_map(lambda _: True, result)
 
     @jax.custom_jvp
@@ -707,6 +704,14 @@ def _correct_mappable(raw, calibration: Calibration, box_origin, box_shape, kern
         return jax.jvp(image, primals, tangents)
 
     return differentiable(raw)
+
+
+def _correct_frames(raw, calibration: Calibration, box_origin, box_shape, kernel_mode: str | None) -> CorrectionResult:
+    """Whole frames (..., H, W, B), no noise, no intermediates: into the memory of dropped outputs
+    where `_recyclable`, else `_correct_image`."""
+    if _recyclable(raw, calibration):
+        return _correct_recycling(raw, calibration, box_origin, box_shape, kernel_mode)
+    return _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
 
 
 def _recyclable(raw, calibration: Calibration) -> bool:
@@ -825,10 +830,10 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
         if p_u is not None:
             raise ValueError("p_u: expected None without p (u(p) is computed with p from the patch)")
         box_origin, box_shape = _patch_box_arguments(raw, calibration)
-        if noise is None and not intermediates and _recyclable(raw, calibration):
-            return _correct_recycling(raw, calibration, box_origin, box_shape, kernel_mode)
-        if noise is None and not intermediates and _mapped_over_frames(raw, calibration):
-            return _correct_mappable(raw, calibration, box_origin, box_shape, kernel_mode)
+        if noise is None and not intermediates:
+            if _mapped_over_frames(raw, calibration):
+                return _correct_mappable(raw, calibration, box_origin, box_shape, kernel_mode)
+            return _correct_frames(raw, calibration, box_origin, box_shape, kernel_mode)
         return _correct_image(
             raw, calibration, box_origin, box_shape, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise
         )
