@@ -90,7 +90,8 @@ struct Problem {
 };
 
 // x^(1/3) for x > 0: an exponent-dividing first guess (within 4 %), then two Halley steps
-// y <- y (y^3 + 2x) / (2 y^3 + x), each cubing the relative error: 1 ulp or so in float32.
+// y <- y (y^3 + 2x) / (2 y^3 + x), each cubing the relative error: within 3 ulp in float32
+// (tests/test_fused.py).
 // Written out because libm's cbrtf does not vectorise.
 SPHEREJAX_INLINE float cube_root_positive(float x) {
   uint32_t bits;
@@ -248,8 +249,96 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
 // 16 bands on AVX2 (x86-64-v3), written with intrinsics: the generic code above, compiled for
 // this target, keeps its 16-float vectors as pairs of ymm registers that GCC spills to the stack
 // around every FMA (measured: 4x slower than the jax.numpy path on a 2-core AVX2 EPYC). The same
-// arithmetic, in the same order (FMAs into even- and odd-band accumulators, the even ones
-// starting at the bias), in 12 ymm accumulators that stay in registers.
+// equations; the sums run in another order than the generic code's (see correct_block_avx2_16).
+template <typename Raw>
+SPHEREJAX_AVX2_TARGET inline uint8_t pixel_stage2_16_avx2(const Problem& pr, const Raw* r, const float* d,
+                                                          const float* w, const float* a, const float* c,
+                                                          float* tilde) {
+  const __m256 zero = _mm256_setzero_ps();
+  const __m256 saturation = _mm256_set1_ps(pr.saturation);
+  const __m256 infinity = _mm256_set1_ps(INFINITY);
+  // The flags of both halves as lane masks, turned into bits once.
+  __m256 saturated = zero, value_finite = _mm256_cmp_ps(zero, zero, _CMP_EQ_OQ), flat_field_ok = value_finite;
+  for (int half = 0; half < 2; ++half) {
+    const int64_t o = 8 * half;
+    __m256 value;
+    if constexpr (std::is_same_v<Raw, uint16_t>) {
+      const __m128i counts = _mm_loadu_si128(reinterpret_cast<const __m128i*>(r + o));
+      value = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(counts));
+      // A count is finite: no check.
+      saturated = _mm256_or_ps(saturated, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ));
+    } else {
+      value = _mm256_loadu_ps(r + o);
+      // x - x == 0 exactly when x is finite.
+      const __m256 finite = _mm256_cmp_ps(_mm256_sub_ps(value, value), zero, _CMP_EQ_OQ);
+      value_finite = _mm256_and_ps(value_finite, finite);
+      saturated = _mm256_or_ps(saturated, _mm256_and_ps(finite, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ)));
+    }
+    const __m256 dark = _mm256_loadu_ps(d + o);
+    const __m256 signal = _mm256_sub_ps(_mm256_loadu_ps(w + o), dark);
+    // 0 < signal < inf: positive and finite (NaN fails both).
+    flat_field_ok = _mm256_and_ps(flat_field_ok, _mm256_and_ps(_mm256_cmp_ps(signal, zero, _CMP_GT_OQ),
+                                                               _mm256_cmp_ps(signal, infinity, _CMP_LT_OQ)));
+    const __m256 v = _mm256_div_ps(_mm256_sub_ps(value, dark), signal);
+    _mm256_store_ps(tilde + o, _mm256_fmadd_ps(_mm256_loadu_ps(a + o), v, _mm256_loadu_ps(c + o)));
+  }
+  return static_cast<uint8_t>((_mm256_movemask_ps(saturated) != 0) | ((_mm256_movemask_ps(value_finite) != 0xFF) << 1) |
+                              ((_mm256_movemask_ps(flat_field_ok) != 0xFF) << 2));
+}
+
+// lab_f of 8 values, without a division: the cube root of x as x y^2, where y = x^(-1/3) comes
+// from an exponent-dividing first guess (within 3.5 %: magic - bits / 3, the bits divided in
+// float, exact enough for a guess) and two Newton steps y <- y (4 - x y^3) / 3, then one Newton
+// step on the root itself, c <- c + (x - c^3) y^2 / 3 (y^2 ~ 1 / c^2). Within 1 ulp of the
+// correctly rounded cube root over Lab's range (checked against float64 in
+// tests/test_fused.py). The scalar `lab_f` divides (two Halley steps); here the divisions were
+// most of the Lab step's time on CPUs whose divider is slow and not pipelined.
+SPHEREJAX_AVX2_TARGET inline __m256 lab_f_avx2(__m256 t) {
+  const __m256 above = _mm256_cmp_ps(t, _mm256_set1_ps(kLabEpsilon), _CMP_GT_OQ);
+  const __m256 x = _mm256_blendv_ps(_mm256_set1_ps(1.0f), t, above);
+  const __m256 third = _mm256_set1_ps(1.0f / 3.0f);
+  const __m256i bits_third = _mm256_cvtps_epi32(_mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_castps_si256(x)), third));
+  __m256 y = _mm256_castsi256_ps(_mm256_sub_epi32(_mm256_set1_epi32(0x54a232a0), bits_third));
+  for (int step = 0; step < 2; ++step) {
+    const __m256 y3 = _mm256_mul_ps(_mm256_mul_ps(y, y), y);
+    y = _mm256_mul_ps(_mm256_mul_ps(y, third), _mm256_fnmadd_ps(x, y3, _mm256_set1_ps(4.0f)));
+  }
+  const __m256 y2 = _mm256_mul_ps(y, y);
+  __m256 root = _mm256_mul_ps(x, y2);
+  const __m256 residual = _mm256_fnmadd_ps(_mm256_mul_ps(root, root), root, x);
+  root = _mm256_fmadd_ps(_mm256_mul_ps(residual, y2), third, root);
+  const __m256 linear = _mm256_fmadd_ps(_mm256_set1_ps(kLabKappa / 116.0f), t, _mm256_set1_ps(16.0f / 116.0f));
+  return _mm256_blendv_ps(linear, root, above);
+}
+
+// An aligned load into a register, which the compiler may not fold into the instructions that
+// use it: GCC otherwise turns each of the two FMAs sharing a matrix row into an FMA with a
+// memory operand, loading the row twice and undoing the sharing (measured: the loads then bound
+// the projection).
+SPHEREJAX_AVX2_TARGET inline __m256 load_once(const float* p) {
+  __m256 v = _mm256_load_ps(p);
+  __asm__("" : "+x"(v));
+  return v;
+}
+
+// Lane 7 of a ymm register as a scalar.
+SPHEREJAX_AVX2_TARGET inline float lane7(__m256 v) {
+  return _mm_cvtss_f32(_mm_permute_ps(_mm256_extractf128_ps(v, 1), 3));
+}
+
+// One block of 32 pixels in three passes: quality and v_tilde of every pixel; the projection,
+// two pixels at a time; Lab, eight at a time.
+// (On a 2-core first-generation EPYC, whose ymm operations are two 128-bit halves: 83 -> 60-65
+// ns a pixel on one thread against the one-pixel loop with the Halley root, which this replaced.)
+//
+// The projection of a pixel is 16 broadcasts of its v_tilde times the matrix rows, into 34
+// accumulator lanes: four ymm (reflectance 0..30, X) and one xmm (Y, Z, padding), 9 register
+// FMAs a band where five ymm took 10. Two pixels share each row load (10 accumulators, 3
+// temporaries: 13 of the 16 ymm registers), halving the loads, which bound the one-pixel loop
+// (80 row loads and 16 broadcasts against 80 FMAs a pixel). Each accumulator starts at the bias
+// (the estimator's offset): a zero bias gives the bits of a zero start. The sums' order depends
+// only on the pixel, never on its partner or place in the block, so strips give the bits of the
+// whole image.
 //
 // Stores: a block's reflectance (32 pixels x 31 floats = 124 whole ymm), Lab (12 ymm) and
 // quality (one ymm) are contiguous and 32-byte aligned when the block starts at a multiple of 32
@@ -258,124 +347,86 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
 // they overwrite (a read of 136 bytes a pixel that the path does not need). Other blocks (the
 // last, partial one) take ordinary stores.
 template <typename Raw>
-SPHEREJAX_AVX2_TARGET inline uint8_t pixel_stage2_16_avx2(const Problem& pr, const Raw* r, const float* d,
-                                                          const float* w, const float* a, const float* c,
-                                                          float* tilde) {
-  const __m256 zero = _mm256_setzero_ps();
-  const __m256 saturation = _mm256_set1_ps(pr.saturation);
-  int saturated = 0, nonfinite = 0, no_flat_field = 0;
-  for (int half = 0; half < 2; ++half) {
-    const int64_t o = 8 * half;
-    __m256 value;
-    if constexpr (std::is_same_v<Raw, uint16_t>) {
-      const __m128i counts = _mm_loadu_si128(reinterpret_cast<const __m128i*>(r + o));
-      value = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(counts));
-    } else {
-      value = _mm256_loadu_ps(r + o);
-    }
-    const __m256 dark = _mm256_loadu_ps(d + o);
-    const __m256 signal = _mm256_sub_ps(_mm256_loadu_ps(w + o), dark);
-    // x - x == 0 exactly when x is finite.
-    const __m256 value_finite = _mm256_cmp_ps(_mm256_sub_ps(value, value), zero, _CMP_EQ_OQ);
-    const __m256 at_or_above = _mm256_and_ps(value_finite, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ));
-    const __m256 flat_field_ok = _mm256_and_ps(_mm256_cmp_ps(signal, zero, _CMP_GT_OQ),
-                                               _mm256_cmp_ps(_mm256_sub_ps(signal, signal), zero, _CMP_EQ_OQ));
-    saturated |= _mm256_movemask_ps(at_or_above);
-    nonfinite |= _mm256_movemask_ps(value_finite) ^ 0xFF;
-    no_flat_field |= _mm256_movemask_ps(flat_field_ok) ^ 0xFF;
-    const __m256 v = _mm256_div_ps(_mm256_sub_ps(value, dark), signal);
-    _mm256_store_ps(tilde + o, _mm256_fmadd_ps(_mm256_loadu_ps(a + o), v, _mm256_loadu_ps(c + o)));
-  }
-  return static_cast<uint8_t>((saturated != 0) | ((nonfinite != 0) << 1) | ((no_flat_field != 0) << 2));
-}
-
-// lab_f of 8 values: the scalar `lab_f` (cube root by an exponent-dividing guess and two Halley
-// steps) in ymm registers.
-SPHEREJAX_AVX2_TARGET inline __m256 lab_f_avx2(__m256 t) {
-  const __m256 above = _mm256_cmp_ps(t, _mm256_set1_ps(kLabEpsilon), _CMP_GT_OQ);
-  const __m256 x = _mm256_blendv_ps(_mm256_set1_ps(1.0f), t, above);
-  // bits / 3 + magic, as unsigned 32-bit integers: (bits * 0xAAAAAAAB) >> 33 divides by 3.
-  const __m256i bits = _mm256_castps_si256(x);
-  const __m256i even = _mm256_srli_epi64(_mm256_mul_epu32(bits, _mm256_set1_epi32(static_cast<int>(0xAAAAAAABu))), 33);
-  const __m256i odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(bits, 32), _mm256_set1_epi32(static_cast<int>(0xAAAAAAABu))), 33);
-  const __m256i third = _mm256_blend_epi32(even, _mm256_slli_epi64(odd, 32), 0xAA);
-  __m256 y = _mm256_castsi256_ps(_mm256_add_epi32(third, _mm256_set1_epi32(0x2a5137a0)));
-  const __m256 two = _mm256_set1_ps(2.0f);
-  for (int step = 0; step < 2; ++step) {
-    const __m256 y3 = _mm256_mul_ps(_mm256_mul_ps(y, y), y);
-    y = _mm256_div_ps(_mm256_mul_ps(y, _mm256_fmadd_ps(two, x, y3)), _mm256_fmadd_ps(two, y3, x));
-  }
-  const __m256 linear = _mm256_fmadd_ps(_mm256_set1_ps(kLabKappa / 116.0f), t, _mm256_set1_ps(16.0f / 116.0f));
-  return _mm256_blendv_ps(linear, y, above);
-}
-
-template <typename Raw>
 SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64_t first, int64_t count) {
   const Raw* raw = static_cast<const Raw*>(pr.raw);
   constexpr int64_t B = kLanes;
-  alignas(32) float reflectance[kBlock * kReflectance];
+  // One float beyond the block: pixel i's 32-float store spills its X into pixel i + 1's first
+  // slot, which pixel i + 1 then overwrites; the last pixel's lands here.
+  alignas(32) float reflectance[kBlock * kReflectance + 8];
   alignas(32) float xyz[3][kBlock];
-  alignas(32) float tilde[B];
+  alignas(32) float tilde[kBlock][B];
   alignas(32) uint8_t quality[kBlock];
-  const float* projection = reinterpret_cast<const float*>(pr.projection);  // (B, 48)
-  const float* bias = reinterpret_cast<const float*>(pr.bias);              // (48,)
   int64_t image = first / pr.pixels, pixel = first - image * pr.pixels;
   const int64_t first_image = image, first_pixel = pixel;
   for (int64_t i = 0; i < kBlock; ++i) {
     if (i == count) image = first_image, pixel = first_pixel;  // padding repeats the first pixel
     const int64_t flat = image * pr.pixels + pixel;
     uint8_t q = pixel_stage2_16_avx2<Raw>(pr, raw + flat * B, pr.dark + pixel * B, pr.white + pixel * B,
-                                          pr.gain + image * B, pr.offset + image * B, tilde);
+                                          pr.gain + image * B, pr.offset + image * B, tilde[i]);
     q |= pr.image_bad[image] * 8;
     quality[i] = q;
-    if (q) std::fill(tilde, tilde + B, NAN);
-    // Columns 0..39 of the 48: 31 reflectances, X, Y, Z and padding; 40..47 are padding only.
-    __m256 e0 = _mm256_load_ps(bias), e1 = _mm256_load_ps(bias + 8), e2 = _mm256_load_ps(bias + 16),
-           e3 = _mm256_load_ps(bias + 24), e4 = _mm256_load_ps(bias + 32);
-    __m256 o0 = _mm256_setzero_ps(), o1 = o0, o2 = o0, o3 = o0, o4 = o0;
-#pragma GCC unroll 8
-    for (int64_t b = 0; b < B; b += 2) {
+    // A bad pixel goes on as NaN, which NaN x anything carries into every output.
+    if (q) std::fill(tilde[i], tilde[i] + B, NAN);
+    if (i < count && ++pixel == pr.pixels) pixel = 0, ++image;
+  }
+  // Columns 0..35 of the (B, 48) matrix and bias: 31 reflectances, X, Y, Z, padding.
+  const float* projection = reinterpret_cast<const float*>(pr.projection);
+  const float* bias = reinterpret_cast<const float*>(pr.bias);
+  for (int64_t i = 0; i < kBlock; i += 2) {
+    __m256 a0 = _mm256_load_ps(bias), a1 = _mm256_load_ps(bias + 8), a2 = _mm256_load_ps(bias + 16),
+           a3 = _mm256_load_ps(bias + 24);
+    __m128 a4 = _mm_load_ps(bias + 32);
+    __m256 b0 = a0, b1 = a1, b2 = a2, b3 = a3;
+    __m128 b4 = a4;
+#pragma GCC unroll 16
+    for (int64_t b = 0; b < B; ++b) {
       const float* m = projection + b * kPadded;
-      const __m256 s = _mm256_broadcast_ss(tilde + b), t = _mm256_broadcast_ss(tilde + b + 1);
-      e0 = _mm256_fmadd_ps(s, _mm256_load_ps(m), e0);
-      e1 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 8), e1);
-      e2 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 16), e2);
-      e3 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 24), e3);
-      e4 = _mm256_fmadd_ps(s, _mm256_load_ps(m + 32), e4);
-      o0 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded), o0);
-      o1 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 8), o1);
-      o2 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 16), o2);
-      o3 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 24), o3);
-      o4 = _mm256_fmadd_ps(t, _mm256_load_ps(m + kPadded + 32), o4);
+      const __m256 s = _mm256_broadcast_ss(&tilde[i][b]), t = _mm256_broadcast_ss(&tilde[i + 1][b]);
+      __m256 row = load_once(m);
+      a0 = _mm256_fmadd_ps(s, row, a0), b0 = _mm256_fmadd_ps(t, row, b0);
+      row = load_once(m + 8);
+      a1 = _mm256_fmadd_ps(s, row, a1), b1 = _mm256_fmadd_ps(t, row, b1);
+      row = load_once(m + 16);
+      a2 = _mm256_fmadd_ps(s, row, a2), b2 = _mm256_fmadd_ps(t, row, b2);
+      row = load_once(m + 24);
+      a3 = _mm256_fmadd_ps(s, row, a3), b3 = _mm256_fmadd_ps(t, row, b3);
+      __m128 tail = _mm_load_ps(m + 32);
+      __asm__("" : "+x"(tail));
+      a4 = _mm_fmadd_ps(_mm256_castps256_ps128(s), tail, a4);
+      b4 = _mm_fmadd_ps(_mm256_castps256_ps128(t), tail, b4);
     }
     float* out = reflectance + i * kReflectance;
-    _mm256_storeu_ps(out, _mm256_add_ps(e0, o0));
-    _mm256_storeu_ps(out + 8, _mm256_add_ps(e1, o1));
-    _mm256_storeu_ps(out + 16, _mm256_add_ps(e2, o2));
-    // Floats 24..39: reflectances 24..30, then X, Y, Z.
-    alignas(32) float tail[16];
-    _mm256_store_ps(tail, _mm256_add_ps(e3, o3));
-    _mm256_store_ps(tail + 8, _mm256_add_ps(e4, o4));
-    std::memcpy(out + 24, tail, 7 * sizeof(float));
-    xyz[0][i] = tail[7];
-    xyz[1][i] = tail[8];
-    xyz[2][i] = tail[9];
-    if (i < count && ++pixel == pr.pixels) pixel = 0, ++image;
+    _mm256_storeu_ps(out, a0), _mm256_storeu_ps(out + 8, a1), _mm256_storeu_ps(out + 16, a2);
+    _mm256_storeu_ps(out + 24, a3);  // lane 7, X, is overwritten by the next pixel's first store
+    _mm256_storeu_ps(out + kReflectance, b0), _mm256_storeu_ps(out + kReflectance + 8, b1);
+    _mm256_storeu_ps(out + kReflectance + 16, b2), _mm256_storeu_ps(out + kReflectance + 24, b3);
+    xyz[0][i] = lane7(a3), xyz[0][i + 1] = lane7(b3);
+    xyz[1][i] = _mm_cvtss_f32(a4), xyz[1][i + 1] = _mm_cvtss_f32(b4);
+    xyz[2][i] = _mm_cvtss_f32(_mm_movehdup_ps(a4)), xyz[2][i + 1] = _mm_cvtss_f32(_mm_movehdup_ps(b4));
   }
   alignas(32) float lab[kBlock * 3];
   for (int64_t i = 0; i < kBlock; i += 8) {
     const __m256 fx = lab_f_avx2(_mm256_mul_ps(_mm256_load_ps(xyz[0] + i), _mm256_set1_ps(pr.inverse_white[0])));
     const __m256 fy = lab_f_avx2(_mm256_mul_ps(_mm256_load_ps(xyz[1] + i), _mm256_set1_ps(pr.inverse_white[1])));
     const __m256 fz = lab_f_avx2(_mm256_mul_ps(_mm256_load_ps(xyz[2] + i), _mm256_set1_ps(pr.inverse_white[2])));
-    alignas(32) float l[8], a[8], b[8];
-    _mm256_store_ps(l, _mm256_fmsub_ps(_mm256_set1_ps(116.0f), fy, _mm256_set1_ps(16.0f)));
-    _mm256_store_ps(a, _mm256_mul_ps(_mm256_set1_ps(500.0f), _mm256_sub_ps(fx, fy)));
-    _mm256_store_ps(b, _mm256_mul_ps(_mm256_set1_ps(200.0f), _mm256_sub_ps(fy, fz)));
-    for (int64_t k = 0; k < 8; ++k) {
-      lab[3 * (i + k) + 0] = l[k];
-      lab[3 * (i + k) + 1] = a[k];
-      lab[3 * (i + k) + 2] = b[k];
-    }
+    const __m256 l = _mm256_fmsub_ps(_mm256_set1_ps(116.0f), fy, _mm256_set1_ps(16.0f));
+    const __m256 a = _mm256_mul_ps(_mm256_set1_ps(500.0f), _mm256_sub_ps(fx, fy));
+    const __m256 b = _mm256_mul_ps(_mm256_set1_ps(200.0f), _mm256_sub_ps(fy, fz));
+    // Interleave to L a b L a b ... in each 128-bit lane (pixels i..i+3, then i+4..i+7): in-lane
+    // shuffles only, which cost one operation a lane on every AVX2 CPU.
+    const __m256 la_lo = _mm256_unpacklo_ps(l, a), la_hi = _mm256_unpackhi_ps(l, a);  // L0 a0 L1 a1 | L2 a2 L3 a3
+    const __m256 bl_lo = _mm256_unpacklo_ps(b, l), bl_hi = _mm256_unpackhi_ps(b, l);  // b0 L0 b1 L1 | b2 L2 b3 L3
+    const __m256 ab_lo = _mm256_unpacklo_ps(a, b), ab_hi = _mm256_unpackhi_ps(a, b);  // a0 b0 a1 b1 | a2 b2 a3 b3
+    const __m256 first4 = _mm256_shuffle_ps(la_lo, bl_lo, _MM_SHUFFLE(3, 0, 1, 0));   // L0 a0 b0 L1
+    const __m256 middle4 = _mm256_shuffle_ps(ab_lo, la_hi, _MM_SHUFFLE(1, 0, 3, 2));  // a1 b1 L2 a2
+    const __m256 last4 = _mm256_shuffle_ps(bl_hi, ab_hi, _MM_SHUFFLE(3, 2, 3, 0));    // b2 L3 a3 b3
+    float* out = lab + 3 * i;
+    _mm_store_ps(out, _mm256_castps256_ps128(first4));
+    _mm_store_ps(out + 4, _mm256_castps256_ps128(middle4));
+    _mm_store_ps(out + 8, _mm256_castps256_ps128(last4));
+    _mm_store_ps(out + 12, _mm256_extractf128_ps(first4, 1));
+    _mm_store_ps(out + 16, _mm256_extractf128_ps(middle4, 1));
+    _mm_store_ps(out + 20, _mm256_extractf128_ps(last4, 1));
   }
   float* reflectance_out = pr.reflectance + first * kReflectance;
   float* lab_out = pr.lab + first * 3;

@@ -178,6 +178,54 @@ def test_kernel_without_a_saturation_level(monkeypatch, raw_dtype):
     assert np.asarray(kernel.quality)[5, 6] == expected
 
 
+def _cpu_has_avx2() -> bool:
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            return any(line.startswith("flags") and " avx2 " in line + " " and " fma " in line for line in cpuinfo)
+    except OSError:
+        return False
+
+
+@pytestmark_kernel
+@pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
+@pytest.mark.parametrize("bands", [16, 7])
+def test_kernel_cube_root_against_float64(bands, kernel_mode):
+    """L* of exact Y: the kernel's cube root within 3 ulp of float64's (two Halley steps, as the
+    AVX-512 code and the generic loop take it), within 1 ulp on the AVX2 code's division-free
+    Newton iteration (16 bands, portable, on an AVX2 CPU), and the linear branch below
+    (6/29)^3 within 1 ulp; a part block of pixels.
+
+    The problem is made so that the kernel's XYZ are its raw values exactly: dark 0, white 1,
+    Stage II gain 1 and offset 0, and a projection that copies bands 0, 1, 2 to X, Y, Z.
+    """
+    pixels = 4 * 1024 + 7
+    rng = np.random.default_rng(3)
+    xyz = np.exp(rng.uniform(np.log(1e-4), np.log(1.5), (pixels, 3))).astype(np.float32)
+    raw = np.zeros((1, pixels, bands), np.float32)
+    raw[0, :, :3] = xyz
+    coeffs = np.tile(np.float32([0.0, 1.0, 0.0, 0.0]), (bands, 1))  # v_tilde = v
+    projection = np.zeros((bands, 34), np.float32)
+    projection[0, 31] = projection[1, 32] = projection[2, 33] = 1.0
+    white_xyz = np.float32([0.95, 1.0, 1.09])
+    call = jax.jit(fused._kernel_call, static_argnames=("saturation", "kernel_mode"))
+    _, lab, quality = call(
+        raw, np.zeros((pixels, bands), np.float32), np.ones((pixels, bands), np.float32), np.ones((1, bands), np.float32),
+        coeffs, projection, np.zeros(34, np.float32), white_xyz, saturation=None, kernel_mode=kernel_mode,
+    )
+    assert not np.asarray(quality).any()
+    lightness = np.asarray(lab, np.float64)[0, :, 0]
+    t = xyz[:, 1].astype(np.float64)  # Y / Yn, Yn = 1
+    root = t > 216 / 24389
+    assert root.any() and (~root).any()
+    f = np.where(root, np.cbrt(t), (24389 / 27 * t + 16) / 116)
+    # f back from L* = 116 f - 16, which float32 rounds once: half an ulp of L*.
+    error = np.abs((lightness + 16) / 116 - f) - np.spacing(lightness.astype(np.float32)).astype(np.float64) / 2 / 116
+    ulps = error / np.spacing(f.astype(np.float32)).astype(np.float64)
+    newton = bands == 16 and kernel_mode == fused.PORTABLE and _cpu_has_avx2()
+    assert ulps[root].max() <= (1.0 if newton else 3.0), ulps[root].max()
+    assert ulps[~root].max() <= 1.0, ulps[~root].max()
+
+
 @pytestmark_kernel
 @pytest.mark.parametrize("offset", [False, True], ids=["r0=0", "r0"])
 @pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
