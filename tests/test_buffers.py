@@ -169,6 +169,21 @@ def test_aligned_staging():
     assert array.ctypes.data % buffers.ALIGNMENT == 0 and array.shape == (3, 5, 7) and array.flags.c_contiguous
 
 
+@pytest.mark.parametrize("cpus", [1, 2, 3, 8])
+@pytest.mark.parametrize("shape", [(1021, 1033, 4), (3, 5 << 20), (1, 9 << 20), (5 << 20,)])
+def test_staging_copies_in_parts_whole(monkeypatch, cpus, shape):
+    """The staging copy, split among threads over the first axis, copies every element, for
+    first axes that the parts do not divide, shorter than the number of parts, or 1-D."""
+    monkeypatch.setattr(buffers, "_cpus", lambda: cpus)
+    source = np.random.default_rng(cpus).integers(0, 1 << 16, shape, dtype=np.uint16)
+    destination = np.zeros_like(source)
+    monkeypatch.setattr(buffers, "_copiers", None)
+    buffers._copy_in_parts(destination, source)
+    np.testing.assert_array_equal(destination, source)
+    split = cpus > 1 and shape[0] > 1 and source.nbytes >= 2 * buffers.COPY_PART_BYTES
+    assert (buffers._copiers is not None) == split
+
+
 def test_kept_memory_is_bounded(calibration, monkeypatch):
     one_set = SIZE * SIZE * (4 * 34 + 1)
     monkeypatch.setattr(buffers, "MAX_BYTES", int(1.5 * one_set))
