@@ -144,6 +144,17 @@ _copiers_lock = threading.Lock()
 COPY_PART_BYTES = 4 << 20
 
 
+def _forget_copiers_after_fork() -> None:
+    """A forked child has none of its parent's threads: a copy handed to the parent's executor
+    would wait forever, so the child makes its own on first use."""
+    global _copiers
+    _copiers = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_copiers_after_fork)
+
+
 def _cpus() -> int:
     try:
         return len(os.sched_getaffinity(0))

@@ -4,7 +4,11 @@ staging of NumPy frames, and never of anything still in use.
 Outputs of 256 x 256 pixels (9 MB) are above `buffers.MIN_BYTES`, so they take this path.
 """
 
+import os
+import select
+import signal
 import threading
+import warnings
 
 import jax
 import numpy as np
@@ -182,6 +186,38 @@ def test_staging_copies_in_parts_whole(monkeypatch, cpus, shape):
     np.testing.assert_array_equal(destination, source)
     split = cpus > 1 and shape[0] > 1 and source.nbytes >= 2 * buffers.COPY_PART_BYTES
     assert (buffers._copiers is not None) == split
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_forked_child_stages_with_threads_of_its_own():
+    """After fork the parent's copying threads do not exist in the child: a child that stages
+    a frame must not wait on them (it would hang; the parent's pool is made first here)."""
+    source = np.arange(3 * buffers.COPY_PART_BYTES, dtype=np.uint8).reshape(6, -1)
+    buffers._copy_in_parts(np.empty_like(source), source)
+    read, write = os.pipe()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fork() with threads running (Python's, JAX's warning): the point here
+        pid = os.fork()
+    if pid == 0:  # the child: copy, report, and leave without running the parent's atexit hooks
+        os.close(read)
+        ok = False
+        try:
+            destination = np.empty_like(source)
+            buffers._copy_in_parts(destination, source)
+            ok = bool(np.array_equal(destination, source))
+        finally:
+            os.write(write, b"1" if ok else b"0")
+            os._exit(0)
+    os.close(write)
+    ready, _, _ = select.select([read], [], [], 30)
+    try:
+        assert ready, "the forked child's staging copy did not finish within 30 s"
+        assert os.read(read, 1) == b"1"
+    finally:
+        os.close(read)
+        if not ready:
+            os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
 
 
 def test_kept_memory_is_bounded(calibration, monkeypatch):
