@@ -327,12 +327,12 @@ SPHEREJAX_AVX2_TARGET inline void lab_f_avx2(__m256 (&t)[N]) {
   }
 }
 
-// An aligned load into a register, which the compiler may not fold into the instructions that
-// use it: GCC otherwise turns each of the two FMAs sharing a matrix row into an FMA with a
-// memory operand, loading the row twice and undoing the sharing (measured: the loads then bound
-// the projection).
-SPHEREJAX_AVX2_TARGET inline __m256 load_once(const float* p) {
-  __m256 v = _mm256_load_ps(p);
+// A value the compiler must keep in a register, not fold into the instructions that use it:
+// for a matrix row loaded once and shared by two FMAs, which GCC otherwise turns into two FMAs
+// with a memory operand each, loading the row twice and undoing the sharing (measured: the
+// loads then bound the projection).
+template <typename V>
+SPHEREJAX_AVX2_TARGET inline V in_register(V v) {
   __asm__("" : "+x"(v));
   return v;
 }
@@ -398,16 +398,15 @@ SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64
     for (int64_t b = 0; b < B; ++b) {
       const float* m = projection + b * kPadded;
       const __m256 s = _mm256_broadcast_ss(&tilde[i][b]), t = _mm256_broadcast_ss(&tilde[i + 1][b]);
-      __m256 row = load_once(m);
+      __m256 row = in_register(_mm256_load_ps(m));
       a0 = _mm256_fmadd_ps(s, row, a0), b0 = _mm256_fmadd_ps(t, row, b0);
-      row = load_once(m + 8);
+      row = in_register(_mm256_load_ps(m + 8));
       a1 = _mm256_fmadd_ps(s, row, a1), b1 = _mm256_fmadd_ps(t, row, b1);
-      row = load_once(m + 16);
+      row = in_register(_mm256_load_ps(m + 16));
       a2 = _mm256_fmadd_ps(s, row, a2), b2 = _mm256_fmadd_ps(t, row, b2);
-      row = load_once(m + 24);
+      row = in_register(_mm256_load_ps(m + 24));
       a3 = _mm256_fmadd_ps(s, row, a3), b3 = _mm256_fmadd_ps(t, row, b3);
-      __m128 tail = _mm_load_ps(m + 32);
-      __asm__("" : "+x"(tail));
+      const __m128 tail = in_register(_mm_load_ps(m + 32));
       a4 = _mm_fmadd_ps(_mm256_castps256_ps128(s), tail, a4);
       b4 = _mm_fmadd_ps(_mm256_castps256_ps128(t), tail, b4);
     }
