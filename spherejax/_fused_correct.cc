@@ -37,10 +37,14 @@
 #include <cmath>
 #include <condition_variable>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <memory>
 #include <mutex>
+#include <new>
+#include <thread>
 #include <type_traits>
+#include <vector>
 
 #include "xla/ffi/api/ffi.h"
 
@@ -553,6 +557,90 @@ struct Shared {
   }
 };
 
+// One call's Problem and the arrays it points to besides the caller's: the per-image gains,
+// offsets and flags, and the projection and bias padded to whole vectors. Layouts as in the
+// header of this file.
+struct FreeAligned {
+  void operator()(float* p) const { std::free(p); }
+};
+// `count` vectors on a 64-byte boundary. (Not std::make_unique<Vec[]>: a template argument drops
+// Vec's alignment attribute, and new[] then aligns to 16 bytes only.)
+std::unique_ptr<float[], FreeAligned> aligned_vectors(int64_t count) {
+  return std::unique_ptr<float[], FreeAligned>(
+      static_cast<float*>(std::aligned_alloc(64, std::max<int64_t>(count, 1) * sizeof(Vec))));
+}
+
+struct Prepared {
+  std::shared_ptr<Shared> shared = std::make_shared<Shared>();
+  std::unique_ptr<float[]> gain, offset;
+  std::unique_ptr<uint8_t[]> image_bad;
+  std::unique_ptr<float[], FreeAligned> padded, padded_bias;
+};
+
+std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, const float* white,
+                                  const float* ratio, const float* c, const float* m,
+                                  const float* offsets, const float* wxyz, int64_t images, int64_t pixels,
+                                  int64_t bands, float saturation, bool portable, float* reflectance,
+                                  float* lab, uint8_t* quality) {
+  auto prepared = std::make_unique<Prepared>();
+  prepared->gain = std::make_unique<float[]>(images * bands);
+  prepared->offset = std::make_unique<float[]>(images * bands);
+  prepared->image_bad = std::make_unique<uint8_t[]>(images);
+  prepared->padded = aligned_vectors(3 * bands);
+  prepared->padded_bias = aligned_vectors(3);
+  if (!prepared->padded || !prepared->padded_bias) throw std::bad_alloc();
+  float* gain = prepared->gain.get();
+  float* offset = prepared->offset.get();
+  for (int64_t n = 0; n < images; ++n) {
+    bool bad = false;
+    for (int64_t b = 0; b < bands; ++b) {
+      const float pb = ratio[n * bands + b];
+      bad |= !std::isfinite(pb);
+      gain[n * bands + b] = c[4 * b + 0] * pb + c[4 * b + 1];
+      offset[n * bands + b] = c[4 * b + 2] * pb + c[4 * b + 3];
+    }
+    prepared->image_bad[n] = bad;
+  }
+  for (int64_t b = 0; b < bands; ++b) {
+    float* row = prepared->padded.get() + 3 * kLanes * b;
+    for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? m[b * kOutputs + k] : 0.0f;
+  }
+  float* bias_row = prepared->padded_bias.get();
+  for (int64_t k = 0; k < kPadded; ++k) bias_row[k] = k < kOutputs ? offsets[k] : 0.0f;
+
+  Problem& pr = prepared->shared->problem;
+  pr.raw = raw;
+  pr.raw_is_u16 = u16;
+  pr.dark = dark;
+  pr.white = white;
+  pr.images = images;
+  pr.pixels = pixels;
+  pr.bands = bands;
+  pr.saturation = saturation;
+  pr.portable = portable;
+  pr.gain = gain;
+  pr.offset = offset;
+  pr.image_bad = prepared->image_bad.get();
+  pr.projection = reinterpret_cast<const Vec*>(prepared->padded.get());
+  pr.bias = reinterpret_cast<const Vec*>(prepared->padded_bias.get());
+  for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
+  pr.reflectance = reflectance;
+  pr.lab = lab;
+  pr.quality = quality;
+  prepared->shared->chunks = (images * pixels + kChunk - 1) / kChunk;
+  return prepared;
+}
+
+// Runs the chunks on the calling thread and whatever helpers `schedule` started, then waits for
+// the last chunk.
+template <typename Schedule>
+void run(Shared& shared, Schedule schedule) {
+  schedule();
+  shared.work();
+  std::unique_lock<std::mutex> lock(shared.mutex);
+  shared.all_done.wait(lock, [&] { return shared.finished.load() == shared.chunks; });
+}
+
 ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F32> dark,
                    ffi::Buffer<ffi::F32> white, ffi::Buffer<ffi::F32> p,
                    ffi::Buffer<ffi::F32> coeffs, ffi::Buffer<ffi::F32> projection,
@@ -573,62 +661,20 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
       white_xyz.element_count() != 3) {
     return ffi::Error::InvalidArgument("inputs: shapes do not match raw (N, P, B)");
   }
-
-  auto shared = std::make_shared<Shared>();
-  auto gain = std::make_unique<float[]>(images * bands);
-  auto offset = std::make_unique<float[]>(images * bands);
-  auto image_bad = std::make_unique<uint8_t[]>(images);
-  auto padded = std::make_unique<Vec[]>(3 * bands);  // new[] of an over-aligned type aligns it
-  auto padded_bias = std::make_unique<Vec[]>(3);
-  const float* c = coeffs.typed_data();
-  const float* ratio = p.typed_data();
-  for (int64_t n = 0; n < images; ++n) {
-    bool bad = false;
-    for (int64_t b = 0; b < bands; ++b) {
-      const float pb = ratio[n * bands + b];
-      bad |= !std::isfinite(pb);
-      gain[n * bands + b] = c[4 * b + 0] * pb + c[4 * b + 1];
-      offset[n * bands + b] = c[4 * b + 2] * pb + c[4 * b + 3];
-    }
-    image_bad[n] = bad;
+  std::unique_ptr<Prepared> prepared;
+  try {
+    prepared = prepare(raw.untyped_data(), u16, dark.typed_data(), white.typed_data(), p.typed_data(),
+                          coeffs.typed_data(), projection.typed_data(), bias.typed_data(), white_xyz.typed_data(),
+                          images, pixels, bands, saturation, portable != 0, reflectance->typed_data(),
+                          lab->typed_data(), quality->typed_data());
+  } catch (const std::bad_alloc&) {
+    return ffi::Error(ffi::ErrorCode::kResourceExhausted, "out of memory");
   }
-  const float* m = projection.typed_data();
-  for (int64_t b = 0; b < bands; ++b) {
-    float* row = reinterpret_cast<float*>(&padded[3 * b]);
-    for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? m[b * kOutputs + k] : 0.0f;
-  }
-  const float* offsets = bias.typed_data();
-  float* bias_row = reinterpret_cast<float*>(padded_bias.get());
-  for (int64_t k = 0; k < kPadded; ++k) bias_row[k] = k < kOutputs ? offsets[k] : 0.0f;
-  const float* wxyz = white_xyz.typed_data();
-
-  Problem& pr = shared->problem;
-  pr.raw = raw.untyped_data();
-  pr.raw_is_u16 = u16;
-  pr.dark = dark.typed_data();
-  pr.white = white.typed_data();
-  pr.images = images;
-  pr.pixels = pixels;
-  pr.bands = bands;
-  pr.saturation = saturation;
-  pr.portable = portable != 0;
-  pr.gain = gain.get();
-  pr.offset = offset.get();
-  pr.image_bad = image_bad.get();
-  pr.projection = padded.get();
-  pr.bias = padded_bias.get();
-  for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
-  pr.reflectance = reflectance->typed_data();
-  pr.lab = lab->typed_data();
-  pr.quality = quality->typed_data();
-
-  const int64_t total = images * pixels;
-  shared->chunks = (total + kChunk - 1) / kChunk;
-  const int64_t helpers = std::min<int64_t>(pool.num_threads(), shared->chunks - 1);
-  for (int64_t t = 0; t < helpers; ++t) pool.Schedule([shared] { shared->work(); });
-  shared->work();
-  std::unique_lock<std::mutex> lock(shared->mutex);
-  shared->all_done.wait(lock, [&] { return shared->finished.load() == shared->chunks; });
+  std::shared_ptr<Shared> shared = prepared->shared;
+  run(*shared, [&] {
+    const int64_t helpers = std::min<int64_t>(pool.num_threads(), shared->chunks - 1);
+    for (int64_t t = 0; t < helpers; ++t) pool.Schedule([shared] { shared->work(); });
+  });
   return ffi::Error::Success();
 }
 
@@ -657,8 +703,69 @@ static PyObject* handler(PyObject*, PyObject*) {
   return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxFusedCorrect), nullptr, nullptr);
 }
 
+// correct_arrays(raw, raw_is_u16, dark, white, p, coeffs, projection, bias, white_xyz, images,
+// pixels, bands, saturation, portable, threads, reflectance, lab, quality): the same kernel on
+// C-contiguous buffers from Python, run by the calling thread and threads - 1 helpers, without
+// XLA. spherejax.fused.correct_arrays checks dtypes; this checks each buffer's byte size, so
+// that nothing is read or written outside a buffer. Releases the GIL while it runs.
+static PyObject* correct_arrays(PyObject*, PyObject* args) {
+  Py_buffer in[8] = {}, out[3] = {};
+  int u16 = 0, portable = 0;
+  long long images = 0, pixels = 0, bands = 0;
+  float saturation = 0.0f;
+  Py_ssize_t threads = 1;
+  if (!PyArg_ParseTuple(args, "y*py*y*y*y*y*y*y*LLLfpnw*w*w*", &in[0], &u16, &in[1], &in[2], &in[3], &in[4],
+                        &in[5], &in[6], &in[7], &images, &pixels, &bands, &saturation, &portable, &threads,
+                        &out[0], &out[1], &out[2])) {
+    return nullptr;  // PyArg_ParseTuple releases what it had taken
+  }
+  const long long expected_in[8] = {images * pixels * bands * (u16 ? 2 : 4), pixels * bands * 4,
+                                    pixels * bands * 4, images * bands * 4, bands * 4 * 4,
+                                    bands * kOutputs * 4, kOutputs * 4, 3 * 4};
+  const long long expected_out[3] = {images * pixels * kReflectance * 4, images * pixels * 3 * 4, images * pixels};
+  bool sizes_match = images >= 0 && pixels >= 0 && bands >= 1 && bands <= kMaxBands && threads >= 1;
+  for (int k = 0; k < 8; ++k) sizes_match &= in[k].len == expected_in[k];
+  for (int k = 0; k < 3; ++k) sizes_match &= out[k].len == expected_out[k];
+  std::unique_ptr<Prepared> prepared;
+  if (sizes_match && images * pixels > 0) {
+    try {
+      prepared = prepare(
+        in[0].buf, u16 != 0, static_cast<const float*>(in[1].buf), static_cast<const float*>(in[2].buf),
+        static_cast<const float*>(in[3].buf), static_cast<const float*>(in[4].buf),
+        static_cast<const float*>(in[5].buf), static_cast<const float*>(in[6].buf),
+        static_cast<const float*>(in[7].buf), images, pixels, bands, saturation, portable != 0,
+        static_cast<float*>(out[0].buf), static_cast<float*>(out[1].buf), static_cast<uint8_t*>(out[2].buf));
+    } catch (const std::bad_alloc&) {
+      for (auto& buffer : in) PyBuffer_Release(&buffer);
+      for (auto& buffer : out) PyBuffer_Release(&buffer);
+      return PyErr_NoMemory();
+    }
+    Shared& shared = *prepared->shared;
+    std::vector<std::thread> helpers;
+    Py_BEGIN_ALLOW_THREADS
+    run(shared, [&] {
+      const int64_t count = std::min<int64_t>(threads - 1, shared.chunks - 1);
+      try {
+        for (int64_t t = 0; t < count; ++t) helpers.emplace_back([&shared] { shared.work(); });
+      } catch (...) {  // std::system_error or bad_alloc: no more threads to be had
+        // The threads started and this one do all the chunks.
+      }
+    });
+    for (auto& helper : helpers) helper.join();
+    Py_END_ALLOW_THREADS
+  }
+  for (auto& buffer : in) PyBuffer_Release(&buffer);
+  for (auto& buffer : out) PyBuffer_Release(&buffer);
+  if (!sizes_match) {
+    PyErr_SetString(PyExc_ValueError, "correct_arrays: buffer sizes do not match images, pixels and bands");
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"handler", handler, METH_NOARGS, "The XLA FFI handler of the fused correction, as a capsule."},
+    {"correct_arrays", correct_arrays, METH_VARARGS, "The fused correction on C-contiguous buffers, without XLA."},
     {nullptr, nullptr, 0, nullptr},
 };
 

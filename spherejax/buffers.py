@@ -19,6 +19,10 @@ XLA's input-output aliasing). A plain loop,
 then faults its output pages in the first two calls only. An output the user still holds, or
 any view of it (`numpy.asarray(result.lab)` refers to the array too), is never touched.
 
+NumPy frames whose outputs the kernel writes directly (`pipeline._correct_directly`) get their
+output memory here too, as NumPy blocks handed to XLA without a copy (`take_host`): the same
+reuse rule, keyed ("host", shape).
+
 Confined: only large outputs (at least `MIN_BYTES`) of whole frames given to `correct` as
 concrete arrays on the CPU; nothing process-wide changes. The cost: up to two unreferenced sets
 of outputs of each of the last `SHAPES` shapes, at most `MAX_BYTES` in all, stay allocated until
@@ -91,8 +95,9 @@ def take(key) -> tuple | None:
         return _take_free(_pool, key, _unreferenced)
 
 
-def _nbytes(arrays: tuple) -> int:
-    return sum(int(a.size) * a.dtype.itemsize for a in arrays)
+def _nbytes(entry: tuple) -> int:
+    """Bytes of an output set: jax.Arrays, or (view, block) pairs of NumPy memory."""
+    return sum(int(x[0].nbytes) if isinstance(x, tuple) else int(x.size) * x.dtype.itemsize for x in entry)
 
 
 def give(key, arrays: tuple) -> None:
@@ -107,6 +112,20 @@ def give(key, arrays: tuple) -> None:
             _pool[oldest_key].pop()  # the oldest set of the least recently used shape
             if not _pool[oldest_key]:
                 del _pool[oldest_key]
+
+
+def take_host(key, shapes: tuple) -> tuple:
+    """NumPy output memory for `correct`'s direct path (`fused.correct_arrays`): one (view, block)
+    pair per (shape, dtype) of `shapes`, each view C-contiguous on an `ALIGNMENT`-byte boundary,
+    so that `jax.device_put(view, may_alias=True)` hands it to XLA without a copy. A set of
+    `key` whose views nobody uses any more (the jax.Arrays made of them were dropped: XLA holds a
+    reference to the block while one lives) is reused, else new memory is allocated. Give the
+    set back with `give(("host", key), pairs)` once its views are wrapped."""
+    with _lock:
+        entry = _take_free(_pool, ("host", key), lambda pairs: all(_staging_free(pair) for pair in pairs))
+    if entry is None:
+        entry = tuple((view, view.base) for view in (_aligned_empty(shape, dtype) for shape, dtype in shapes))
+    return entry
 
 
 def release() -> None:
@@ -155,7 +174,8 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_copiers_after_fork)
 
 
-def _cpus() -> int:
+def cpus() -> int:
+    """The CPUs this process may run on."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
@@ -169,7 +189,7 @@ def _copy_in_parts(destination: np.ndarray, source: np.ndarray) -> None:
     the GIL, so the parts run at once): a 1-megapixel uint16 cube, 32 MB, took 6.2 ms on one
     thread and 4.8 on two on a 2-core EPYC, a tenth of what `correct` then costs.
     """
-    parts = min(_cpus(), 4, source.nbytes // COPY_PART_BYTES, source.shape[0] if source.ndim else 1)
+    parts = min(cpus(), 4, source.nbytes // COPY_PART_BYTES, source.shape[0] if source.ndim else 1)
     if parts < 2:
         np.copyto(destination, source, casting="no")
         return
@@ -236,4 +256,7 @@ def kept() -> int:
         return sum(len(v) for v in _pool.values())
 
 
-__all__ = ["RECENT", "SHAPES", "MIN_BYTES", "MAX_BYTES", "ALIGNMENT", "take", "give", "release", "kept", "stage", "stageable"]
+__all__ = [
+    "RECENT", "SHAPES", "MIN_BYTES", "MAX_BYTES", "ALIGNMENT", "take", "take_host", "give", "release", "kept", "stage",
+    "stageable",
+]

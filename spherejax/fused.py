@@ -24,6 +24,12 @@ CPUs without AVX-512 run, can be tested and timed on a machine that has it; "0":
 path. Any other value is refused (`switch`), so that a typo such as "off" cannot leave the
 kernel on.
 
+NumPy frames given to `correct` (whole frames, concrete calibration, nothing but the main outputs
+asked for) go to the kernel without XLA (`correct_arrays`, from `pipeline._correct_directly`): XLA
+takes its inputs only in memory of its own, on a 64-byte boundary, so a NumPy frame had to be
+copied first (32 MB a megapixel of uint16, a tenth of the call); the kernel reads it where it
+lies. The same kernel, the same constants and p: the same bits (tests/test_buffers.py).
+
 Derivatives: the kernel's outputs carry a custom JVP that is the JVP of the jax.numpy path, so
 `jax.grad` and `jax.jacfwd` through `correct` give what they gave before the kernel existed.
 Batches of images given as leading axes of `raw` go to the kernel in one call, and so do frames
@@ -172,6 +178,59 @@ def _ffi_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, *, satur
     return call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation=level, portable=portable)
 
 
+def kernel_constants(wiener, wiener_offset, weights):
+    """What the kernel takes of the estimator and the illuminant: projection (B, 34) = [W^T | W^T
+    weights], bias (34,) = [r0 | r0 weights] and white_xyz (3,), the column sums of weights.
+
+    XYZ = reflectance weights = v_tilde (W^T weights) + r0 weights: the (31, 3) weights folded
+    into the Wiener matrix, so that one (B, 34) product gives reflectance and XYZ.
+    """
+    hi = jax.lax.Precision.HIGHEST
+    projection = jnp.concatenate([wiener.T, jnp.matmul(wiener.T, weights, precision=hi)], axis=1)
+    bias = jnp.concatenate([wiener_offset, jnp.matmul(wiener_offset, weights, precision=hi)])
+    return projection, bias, jnp.sum(weights, axis=0)
+
+
+def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.ndarray, coeffs: np.ndarray,
+                   projection: np.ndarray, bias: np.ndarray, white_xyz: np.ndarray, saturation: float | None,
+                   kernel_mode: str, out: tuple[np.ndarray, np.ndarray, np.ndarray], threads: int) -> None:
+    """The kernel on NumPy arrays, called directly rather than from XLA: the caller's frames are
+    read where they lie (no copy into XLA's memory) and the outputs written into `out`.
+
+    Args:
+      raw: (N, P, B) uint16 or float32, C-contiguous (any alignment).
+      dark, white: (P, B) float32; p: (N, B) float32; coeffs: (B, 4) float32; projection (B, 34),
+        bias (34,), white_xyz (3,) float32 (`kernel_constants`).
+      saturation: the saturation level, or None for no check.
+      kernel_mode: AUTO or PORTABLE (`mode`).
+      out: reflectance (N, P, 31) float32, lab (N, P, 3) float32, quality (N, P) uint8,
+        C-contiguous and writable.
+      threads: how many threads share the work (the calling one and threads - 1 more).
+
+    Raises:
+      ValueError: a dtype, shape or layout the kernel does not take.
+    """
+    images, pixels, bands = raw.shape
+    expected = {
+        "raw": (raw, raw.dtype if raw.dtype in RAW_DTYPES else RAW_DTYPES[0], (images, pixels, bands)),
+        "dark": (dark, np.float32, (pixels, bands)), "white": (white, np.float32, (pixels, bands)),
+        "p": (p, np.float32, (images, bands)), "coeffs": (coeffs, np.float32, (bands, 4)),
+        "projection": (projection, np.float32, (bands, 34)), "bias": (bias, np.float32, (34,)),
+        "white_xyz": (white_xyz, np.float32, (3,)),
+        "reflectance": (out[0], np.float32, (images, pixels, 31)), "lab": (out[1], np.float32, (images, pixels, 3)),
+        "quality": (out[2], np.uint8, (images, pixels)),
+    }
+    for name, (array, dtype, shape) in expected.items():
+        if array.dtype != dtype or array.shape != shape or not array.flags.c_contiguous:
+            raise ValueError(f"{name}: expected a C-contiguous {np.dtype(dtype)} array of shape {shape}, "
+                             f"got {array.dtype} {array.shape}")
+    level = np.float32(np.nan if saturation is None else saturation)  # NaN: no check
+    _fused_correct.correct_arrays(
+        raw, raw.dtype == np.uint16, dark, white, p, coeffs, projection, bias, white_xyz, images, pixels, bands,
+        float(level), kernel_mode == PORTABLE, int(threads), *out,
+    )
+
+
 def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_offset, weights, saturation,
                    kernel_mode=AUTO):
     """reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W): the kernel on CPU,
@@ -205,14 +264,11 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
         height, width, bands = raw.shape[-3:]
         batch = raw.shape[:-3]
         images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
-        hi = jax.lax.Precision.HIGHEST
-        projection = jnp.concatenate([wiener.T, jnp.matmul(wiener.T, weights, precision=hi)], axis=1)
-        # The same regrouping for the offset: XYZ = v_tilde (W^T weights) + r0 weights.
-        bias = jnp.concatenate([wiener_offset, jnp.matmul(wiener_offset, weights, precision=hi)])
+        projection, bias, white_xyz = kernel_constants(wiener, wiener_offset, weights)
         reflectance, lab, quality = _kernel_call(
             raw.reshape(images, pixels, bands), dark.reshape(pixels, bands),
             white.reshape(pixels, bands), jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands),
-            coeffs, projection, bias, jnp.sum(weights, axis=0), saturation, kernel_mode,
+            coeffs, projection, bias, white_xyz, saturation, kernel_mode,
         )
         return (
             reflectance.reshape(*batch, height, width, 31),
@@ -225,5 +281,5 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
 
 __all__ = [
     "TARGET", "MAX_BANDS", "SWITCH", "SWITCH_VALUES", "AUTO", "PORTABLE", "built", "enabled", "mode", "switch",
-    "correct_pixels",
+    "correct_pixels", "correct_arrays", "kernel_constants",
 ]

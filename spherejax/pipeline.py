@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import threading
+import weakref
 
 import equinox as eqx
 import jax
@@ -292,11 +293,27 @@ def patch_bounding_box(patch) -> tuple[int, int, int, int] | None:
     """
     if not _checks.is_concrete(patch):
         return None
+    if isinstance(patch, jax.Array):  # immutable: its box is worked out once
+        with _boxes_lock:
+            known = _boxes.get(id(patch))
+            if known is not None and known[0]() is patch:
+                return known[1]
     mask = np.asarray(patch) != 0
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return None
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    box = None if rows.size == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+    if isinstance(patch, jax.Array):
+        with _boxes_lock:
+            _boxes[id(patch)] = (weakref.ref(patch), box)
+            while len(_boxes) > 8:
+                del _boxes[next(iter(_boxes))]
+    return box
+
+
+#: Boxes of the last few patches (jax.Arrays), by id, with a weak reference that tells whether
+#: the id is still that array's: finding the box reads the whole mask, about 0.9 ms a megapixel,
+#: which `correct` needs on every call.
+_boxes: dict[int, tuple[weakref.ref, tuple[int, int, int, int] | None]] = {}
+_boxes_lock = threading.Lock()
 
 
 def _patch_flags(raw, raw_f, dark, white, saturation):
@@ -304,21 +321,23 @@ def _patch_flags(raw, raw_f, dark, white, saturation):
     return saturated | nonfinite | no_flat_field
 
 
-@functools.partial(jax.jit, static_argnames=("box_shape",))
-def _patch_ratio(raw, calibration: Calibration, box_origin, box_shape):
+@functools.partial(jax.jit, static_argnames=("box_shape", "raw_is_box"))
+def _patch_ratio(raw, calibration: Calibration, box_origin, box_shape, raw_is_box: bool = False):
     """Eq. 14-15 over the usable pixels of the patch's box: p (..., B) in the compute dtype.
 
     The box is cut here, with its origin (2,) an argument and its shape static, so that patches of
     one size share a compiled program, and `correct` traces this same function into its own:
     the ratio `correct` uses is the one `patch_ratio` returns, bit for bit (strips rely on it).
+    raw_is_box: raw is already the box of the frames, (..., h, w, B) (`_correct_directly`).
     """
-    raw_f, dark, white, weights = _patch_box_inputs(raw, calibration, box_origin, box_shape)
+    raw_f, dark, white, weights = _patch_box_inputs(raw, calibration, box_origin, box_shape, raw_is_box)
     return patch_ratio_weighted(raw_f, dark, white, weights[..., None])
 
 
-def _patch_box_inputs(raw, calibration: Calibration, box_origin, box_shape):
+def _patch_box_inputs(raw, calibration: Calibration, box_origin, box_shape, raw_is_box: bool = False):
     """The inputs of Eq. 14-15 over the patch's box: raw (..., h, w, B), dark and white (h, w, B)
-    in the compute dtype, and the weights (..., h, w) with unusable pixels at 0."""
+    in the compute dtype, and the weights (..., h, w) with unusable pixels at 0. `raw_is_box`: raw
+    is that box already."""
     height, width = box_shape
 
     def box(x, trailing: int):
@@ -328,7 +347,7 @@ def _patch_box_inputs(raw, calibration: Calibration, box_origin, box_shape):
         return jax.lax.dynamic_slice(x, start, (*x.shape[:lead], height, width, *x.shape[lead + 2:]))
 
     dtype = _compute_dtype(raw, calibration)
-    raw_box = box(raw, 1)
+    raw_box = raw if raw_is_box else box(raw, 1)
     raw_f = raw_box.astype(dtype)
     dark, white = box(calibration.dark, 1).astype(dtype), box(calibration.white, 1).astype(dtype)
     # One saturated or non-finite pixel in the patch must not shift p for the whole image.
@@ -658,6 +677,68 @@ def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, ker
     return result
 
 
+def _direct(raw, calibration: Calibration, kernel_mode: str | None) -> bool:
+    """True when `_correct_directly` applies: NumPy frames the kernel reads as they are (uint16
+    or float32, C-contiguous), whole frames of a concrete float32 calibration on the CPU, the
+    kernel on, outputs large enough to be worth keeping (`buffers.MIN_BYTES`)."""
+    return (
+        kernel_mode is not None and isinstance(raw, np.ndarray) and buffers.stageable(raw)
+        and raw.dtype in fused.RAW_DTYPES and raw.flags.c_contiguous and raw.ndim >= 3
+        and raw.shape[-3:] == (*calibration.image_shape, calibration.bands)
+        and calibration.patch_box is not None
+        and calibration.dark.dtype == np.float32 and calibration.white.dtype == np.float32
+        and _concrete_on_one_cpu(jax.tree_util.tree_leaves(calibration))
+        and int(np.prod(raw.shape[:-1], dtype=np.int64)) * (4 * (N_WAVELENGTHS + 3) + 1) >= buffers.MIN_BYTES
+    )
+
+
+@jax.jit
+def _kernel_constants(calibration: Calibration):
+    """coeffs (B, 4), projection (B, 34), bias (34,) and white_xyz (3,) in float32, as
+    `fused.correct_pixels` gives them to the kernel (`fused.kernel_constants`)."""
+    f32 = jnp.float32
+    weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
+    constants = fused.kernel_constants(
+        calibration.wiener.astype(f32), calibration.wiener_offset.astype(f32), jnp.asarray(weights, f32)
+    )
+    return calibration.coeffs.astype(f32), *constants
+
+
+def _correct_directly(raw: np.ndarray, calibration: Calibration, box_origin, box_shape, kernel_mode: str) -> CorrectionResult:
+    """`correct` of NumPy frames (..., H, W, B) by the fused kernel called directly
+    (`fused.correct_arrays`), without XLA: the same numbers as `_correct_image` bit for bit
+    (tested), without its copy of the frames into XLA's memory (32 MB a megapixel of uint16) and
+    into reused output memory (`buffers.take_host`), handed to JAX without a copy.
+
+    p comes from `_patch_ratio` on the patch's box of the frames (a small copy), the kernel's
+    constants from `_kernel_constants`: the programs `_correct_image` traces into its own.
+    """
+    (r0, c0), (h, w) = box_origin, box_shape
+    p = _patch_ratio(raw[..., r0:r0 + h, c0:c0 + w, :], calibration, box_origin, box_shape, raw_is_box=True)
+    coeffs, projection, bias, white_xyz = (np.asarray(x) for x in _kernel_constants(calibration))
+    *batch, height, width, bands = raw.shape
+    images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
+    pairs = buffers.take_host(
+        tuple(raw.shape[:-1]),
+        (((*batch, height, width, N_WAVELENGTHS), np.float32), ((*batch, height, width, 3), np.float32),
+         ((*batch, height, width), np.uint8)),
+    )
+    (reflectance, _), (lab, _), (quality, _) = pairs
+    fused.correct_arrays(
+        raw.reshape(images, pixels, bands), np.asarray(calibration.dark).reshape(pixels, bands),
+        np.asarray(calibration.white).reshape(pixels, bands), np.asarray(p).reshape(images, bands), coeffs,
+        projection, bias, white_xyz, _saturation_level(raw, calibration), kernel_mode,
+        (reflectance.reshape(images, pixels, N_WAVELENGTHS), lab.reshape(images, pixels, 3),
+         quality.reshape(images, pixels)),
+        threads=buffers.cpus(),
+    )
+    cpu = jax.devices("cpu")[0]
+    outputs = tuple(jax.device_put(view, cpu, may_alias=True) for view, _ in pairs)
+    del reflectance, lab, quality  # only the pool and the jax.Arrays refer to the memory now
+    buffers.give(("host", tuple(raw.shape[:-1])), pairs)
+    return CorrectionResult(*outputs, p)
+
+
 def _mapped_over_frames(raw, calibration: Calibration) -> bool:
     """True when `raw` is traced and the calibration is not: possibly `jax.vmap` over frames of
     one calibration (`_correct_mappable`); or `jit` or a derivative with respect to raw, which
@@ -720,7 +801,11 @@ def _recyclable(raw, calibration: Calibration) -> bool:
     pixels = int(np.prod(raw.shape[:-1], dtype=np.int64))
     if pixels * (4 * (N_WAVELENGTHS + 3) + 1) < buffers.MIN_BYTES:
         return False
-    arrays = (raw, *jax.tree_util.tree_leaves(calibration))
+    return _concrete_on_one_cpu((raw, *jax.tree_util.tree_leaves(calibration)))
+
+
+def _concrete_on_one_cpu(arrays) -> bool:
+    """True when every array is a concrete jax.Array and all are on one CPU device."""
     if not all(_checks.is_concrete(x) for x in arrays):
         return False
     try:
@@ -815,6 +900,10 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
     """
     _check_calibration(calibration)
     what = "the calibration's H, W, B" if calibration.patch is not None else "the calibration rows' H, W, B"
+    if p is None and noise is None and not intermediates and p_u is None:
+        kernel_mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands) if isinstance(raw, np.ndarray) else None
+        if _direct(raw, calibration, kernel_mode):  # NumPy frames: the kernel reads them in place
+            return _correct_directly(raw, calibration, *_patch_box_arguments(raw, calibration), kernel_mode)
     if buffers.stageable(raw) and raw.shape[-3:] == (*calibration.image_shape, calibration.bands):
         raw = buffers.stage(raw)  # NumPy frames into reused, aligned memory (`spherejax.buffers`)
     raw = _check_raw(raw, calibration, what)

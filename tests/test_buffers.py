@@ -1,5 +1,6 @@
 """spherejax.buffers: `correct` reuses the memory of outputs the caller dropped, and of its own
-staging of NumPy frames, and never of anything still in use.
+staging of NumPy frames, and never of anything still in use; NumPy frames go to the fused kernel
+directly (`pipeline._correct_directly`), with the bits of the XLA path.
 
 Outputs of 256 x 256 pixels (9 MB) are above `buffers.MIN_BYTES`, so they take this path.
 """
@@ -117,7 +118,7 @@ def test_views_and_single_outputs_that_are_kept_are_not_reused(calibration):
     np.testing.assert_array_equal(np.asarray(reflectance), reflectance_copy)
 
 
-def test_the_callers_frames_are_copied_not_shared(calibration):
+def test_the_callers_frames_are_read_not_kept(calibration):
     raw = _frames(1, seed=4)[0]
     before = raw.copy()
     result = sj.correct(raw, calibration)
@@ -178,7 +179,7 @@ def test_aligned_staging():
 def test_staging_copies_in_parts_whole(monkeypatch, cpus, shape):
     """The staging copy, split among threads over the first axis, copies every element, for
     first axes that the parts do not divide, shorter than the number of parts, or 1-D."""
-    monkeypatch.setattr(buffers, "_cpus", lambda: cpus)
+    monkeypatch.setattr(buffers, "cpus", lambda: cpus)
     source = np.random.default_rng(cpus).integers(0, 1 << 16, shape, dtype=np.uint16)
     destination = np.zeros_like(source)
     monkeypatch.setattr(buffers, "_copiers", None)
@@ -290,3 +291,96 @@ def test_derivatives_with_respect_to_frames_are_unchanged_by_the_mapping(calibra
         got, want = np.asarray(got), np.asarray(want)
         assert np.isfinite(got).all() and np.abs(got).max() > 0
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------ the direct path
+
+
+def _calls_of(monkeypatch, module, name):
+    """Counts the calls of module.name (still calling it)."""
+    calls = []
+    original = getattr(module, name)
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, counted)
+    return calls
+
+
+@pytest.mark.parametrize("mode", ["auto", "portable"])
+@pytest.mark.parametrize("batch", [(), (2,)], ids=["image", "batch"])
+@pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+def test_numpy_frames_go_to_the_kernel_directly_with_the_bits_of_the_xla_path(calibration, monkeypatch, mode, batch, raw_dtype):
+    """NumPy frames are read in place by the kernel (`fused.correct_arrays`), never staged into
+    XLA's memory, and give what the same frames as a jax.Array give through XLA, bit for bit:
+    saturated, non-finite and patch pixels included."""
+    monkeypatch.setenv(fused.SWITCH, mode)
+    rng = np.random.default_rng(11)
+    raw = rng.integers(200, 12000, (*batch, SIZE, SIZE, BANDS)).astype(raw_dtype)
+    raw[..., 7, 9, 3] = 16383  # saturated
+    raw[..., 5, 5, 2] = 16383  # saturated, in the patch: left out of p
+    if raw_dtype == np.float32:
+        raw[..., 30, 40, 0] = np.nan
+        raw[..., 31, 41, 5] = np.inf
+    direct = _calls_of(monkeypatch, fused, "correct_arrays")
+    staged = _calls_of(monkeypatch, buffers, "stage")
+    result = sj.correct(raw, calibration)
+    assert len(direct) == 1 and not staged
+    through_xla = sj.correct(jax.numpy.asarray(raw), calibration)
+    assert len(direct) == 1
+    for name in ("reflectance", "lab", "quality", "p"):
+        got, want = np.asarray(getattr(result, name)), np.asarray(getattr(through_xla, name))
+        assert got.shape == want.shape and got.dtype == want.dtype, name
+        np.testing.assert_array_equal(got, want, err_msg=name)
+    quality = np.asarray(result.quality)
+    # The two saturated pixels (one of them in the patch: left out of p, flagged all the same),
+    # and with floats the NaN and the inf.
+    assert (quality != 0).sum() == (4 if raw_dtype == np.float32 else 2) * max(1, int(np.prod(batch)))
+
+
+def test_frames_the_kernel_cannot_read_in_place_take_the_xla_path(calibration, monkeypatch):
+    """A strided view, a dtype the kernel does not read, a float64 calibration: not direct, and
+    the strided view gives the contiguous frames' numbers."""
+    frames = np.stack(_frames(2, seed=12), axis=0)
+    direct = _calls_of(monkeypatch, fused, "correct_arrays")
+    wide = np.zeros((SIZE, SIZE, 2 * BANDS), np.uint16)
+    wide[..., ::2] = frames[0]
+    strided = wide[..., ::2]  # image 0 as an (H, W, B) view that is not C-contiguous
+    assert not strided.flags.c_contiguous
+    _same(sj.correct(strided, calibration), _reference(np.ascontiguousarray(strided), calibration))
+    sj.correct(frames[0].astype(np.int32), calibration)
+    calibration64 = sj.Calibration(
+        dark=np.asarray(calibration.dark, np.float64), white=np.asarray(calibration.white, np.float64),
+        patch=calibration.patch, coeffs=calibration.coeffs, wiener=calibration.wiener, saturation=16383.0,
+    )
+    sj.correct(frames[0], calibration64)
+    assert not direct
+    sj.correct(frames[0], calibration)
+    assert len(direct) == 1
+
+
+def test_the_direct_kernel_refuses_what_it_cannot_read():
+    """dtypes and shapes are checked before the kernel runs; the extension checks every buffer's
+    size itself, so that a wrong call cannot read or write past a buffer."""
+    images, pixels, bands = 1, 64, BANDS
+    good = dict(
+        raw=np.zeros((images, pixels, bands), np.uint16), dark=np.zeros((pixels, bands), np.float32),
+        white=np.ones((pixels, bands), np.float32), p=np.ones((images, bands), np.float32),
+        coeffs=np.zeros((bands, 4), np.float32), projection=np.zeros((bands, 34), np.float32),
+        bias=np.zeros(34, np.float32), white_xyz=np.ones(3, np.float32),
+    )
+    out = (np.empty((images, pixels, 31), np.float32), np.empty((images, pixels, 3), np.float32),
+           np.empty((images, pixels), np.uint8))
+    fused.correct_arrays(**good, saturation=None, kernel_mode="auto", out=out, threads=2)
+    assert (out[2] == 0).all() and np.isfinite(out[0]).all()
+    with pytest.raises(ValueError, match=r"dark: expected a C-contiguous float32 array of shape \(64, 16\), got float64"):
+        fused.correct_arrays(**{**good, "dark": good["dark"].astype(np.float64)}, saturation=None, kernel_mode="auto", out=out, threads=2)
+    with pytest.raises(ValueError, match=r"lab: expected a C-contiguous float32 array of shape \(1, 64, 3\)"):
+        fused.correct_arrays(**good, saturation=None, kernel_mode="auto", out=(out[0], out[1][:, :32], out[2]), threads=2)
+    arguments = [good["raw"], True, *(good[k] for k in ("dark", "white", "p", "coeffs", "projection", "bias", "white_xyz")),
+                 images, pixels, bands, float("nan"), False, 2, *out]
+    arguments[9] = 2 * pixels  # pixels the buffers do not hold
+    with pytest.raises(ValueError, match="buffer sizes do not match"):
+        fused._fused_correct.correct_arrays(*arguments)
