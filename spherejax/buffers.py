@@ -44,7 +44,7 @@ import numpy as np
 #: next call runs, so the one before it is the one that is free.
 RECENT = 2
 
-#: Output shapes kept (the most recently used).
+#: Output shapes kept (the most recently used), of each kind (`_keep`).
 SHAPES = 2
 
 #: Smaller outputs are not kept: glibc reuses their memory without faults anyway (below its
@@ -78,14 +78,24 @@ def _take_free(pool: collections.OrderedDict, key, is_free) -> tuple | None:
     return None
 
 
+def _is_host(key) -> bool:
+    """True for the keys of NumPy output memory (`take_host`): ("host", shape)."""
+    return isinstance(key, tuple) and len(key) == 2 and key[0] == "host"
+
+
 def _keep(pool: collections.OrderedDict, key, entry: tuple) -> None:
     """Put `entry` first in pool[key] (at most `RECENT`), pool's most recent shape, and drop the
-    least recent shapes beyond `SHAPES`. Call with `_lock` held."""
+    least recent shapes of key's kind beyond `SHAPES`. Call with `_lock` held.
+
+    Kinds: XLA's outputs and NumPy output memory (`_is_host`) count their shapes apart, so that
+    a program alternating between NumPy frames and jax.Arrays (or `vmap`) of two shapes keeps
+    both kinds of both (bench_batch.py: they evicted one another, and every call faulted)."""
     kept = pool.setdefault(key, collections.deque(maxlen=RECENT))
     kept.appendleft(entry)
     pool.move_to_end(key)
-    while len(pool) > SHAPES:
-        pool.popitem(last=False)
+    same_kind = [k for k in pool if _is_host(k) == _is_host(key)]
+    for oldest in same_kind[:max(0, len(same_kind) - SHAPES)]:
+        del pool[oldest]
 
 
 def take(key) -> tuple | None:

@@ -384,3 +384,21 @@ def test_the_direct_kernel_refuses_what_it_cannot_read():
     arguments[9] = 2 * pixels  # pixels the buffers do not hold
     with pytest.raises(ValueError, match="buffer sizes do not match"):
         fused._fused_correct.correct_arrays(*arguments)
+
+
+def test_numpy_and_jax_frames_of_two_shapes_in_turn_all_reuse_memory(calibration):
+    """NumPy output memory (the direct path) and XLA's outputs count their shapes apart: a loop
+    over a NumPy frame, the same frame as a jax.Array and a NumPy stack of two used to keep three
+    shapes in a pool of two, each evicting another, so that no call reused anything."""
+    frames = _frames(2, seed=13)
+    single, as_jax, stack = frames[0], jax.numpy.asarray(frames[1]), np.stack(frames)
+    pointers = {"single": [], "jax": [], "stack": []}
+    for _ in range(4):
+        for name, raw in (("single", single), ("jax", as_jax), ("stack", stack)):
+            result = sj.correct(raw, calibration)
+            pointers[name].append(result.reflectance.unsafe_buffer_pointer())
+            del result
+    for name, seen in pointers.items():
+        # Each call's outputs are dropped before the next call of its kind: the memory of the
+        # call before comes back from the second call on, or at the latest from the third.
+        assert seen[2] in seen[:2] and seen[3] in seen[:2], name
