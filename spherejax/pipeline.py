@@ -707,8 +707,9 @@ def _kernel_constants(calibration: Calibration):
 def _correct_directly(raw: np.ndarray, calibration: Calibration, box_origin, box_shape, kernel_mode: str) -> CorrectionResult:
     """`correct` of NumPy frames (..., H, W, B) by the fused kernel called directly
     (`fused.correct_arrays`), without XLA: the same numbers as `_correct_image` bit for bit
-    (tested), without its copy of the frames into XLA's memory (32 MB a megapixel of uint16) and
-    into reused output memory (`buffers.take_host`), handed to JAX without a copy.
+    (tested), but the kernel reads the frames where they lie, where `_correct_image` needs them
+    copied into XLA's memory first (32 MB a megapixel of uint16). The outputs are written into
+    reused NumPy memory (`buffers.take_host`) and handed to JAX without a copy.
 
     p comes from `_patch_ratio` on the patch's box of the frames (a small copy), the kernel's
     constants from `_kernel_constants`: the programs `_correct_image` traces into its own.
