@@ -563,8 +563,9 @@ struct Shared {
 struct FreeAligned {
   void operator()(float* p) const { std::free(p); }
 };
-// `count` vectors on a 64-byte boundary. (Not std::make_unique<Vec[]>: a template argument drops
-// Vec's alignment attribute, and new[] then aligns to 16 bytes only.)
+// `count` vectors on a 64-byte boundary, which the aligned loads of the projection rows need.
+// (Not std::unique_ptr<Vec[]> members: GCC warns that a template argument drops Vec's alignment
+// attribute; an explicit aligned_alloc does not depend on what the compiler keeps of it.)
 std::unique_ptr<float[], FreeAligned> aligned_vectors(int64_t count) {
   return std::unique_ptr<float[], FreeAligned>(
       static_cast<float*>(std::aligned_alloc(64, std::max<int64_t>(count, 1) * sizeof(Vec))));
