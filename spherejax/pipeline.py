@@ -517,10 +517,11 @@ def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset,
         )
         return reflectance[:, 0], lab[:, 0], quality[:, 0]
 
+    def put_computed(outputs, start, computed):
+        return tuple(jax.lax.dynamic_update_slice_in_dim(o, x, start, axis=1) for o, x in zip(outputs, computed))
+
     def put(outputs, start, size):
-        return tuple(
-            jax.lax.dynamic_update_slice_in_dim(o, x, start, axis=1) for o, x in zip(outputs, outputs_of(start, size))
-        )
+        return put_computed(outputs, start, outputs_of(start, size))
 
     if out is None:
         out = (
@@ -529,8 +530,23 @@ def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset,
         )
     else:
         out = tuple(o.reshape(images, pixels, *o.shape[len(batch) + 2:]) for o in out)
+    # Each turn of the loop corrects one block of each half of the pixels: two chains of steps
+    # that depend on nothing of each other, which XLA's executor hands to its two threads
+    # whole. With one block a turn the second thread joined only inside each step (a matmul's
+    # or a fusion's parallel parts), hundreds of times a call, and after a pause of 0.1 s or
+    # more (a frame read from disk) it joined late for most of them: on 2 Zen 5 cores the first
+    # call after a pause took 47-51 ms a megapixel, now 35-39, and back to back 34, now 32
+    # (benchmarks/README.md, seventh speed session). The blocks are the same, so the numbers are.
     whole_blocks, rest = divmod(pixels, block)
-    out = jax.lax.fori_loop(0, whole_blocks, lambda k, o: put(o, k * block, block), out)
+    per_half = whole_blocks // 2
+
+    def two_blocks(k, outputs):
+        first, second = outputs_of(k * block, block), outputs_of((per_half + k) * block, block)
+        return put_computed(put_computed(outputs, k * block, first), (per_half + k) * block, second)
+
+    out = jax.lax.fori_loop(0, per_half, two_blocks, out)
+    for k in range(2 * per_half, whole_blocks):  # an odd block out
+        out = put(out, k * block, block)
     if rest:
         out = put(out, whole_blocks * block, rest)
     reflectance, lab, quality = out

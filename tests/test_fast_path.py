@@ -277,7 +277,8 @@ class TestBlocks:
     def test_equals_the_whole_image(self, dtype, batch, raw_dtype):
         arrays = self.inputs(dtype, batch, raw_dtype=raw_dtype)
         whole = jax.jit(lambda *a: pipeline._pixel_outputs(*a, saturation=16383.0))(*arrays)
-        # 22 100 pixels an image: 5 blocks of 4 096 and one of 1 620 (3 images: 1 365 rows each).
+        # 22 100 pixels an image: 5 blocks of 4 096 (two a turn of the loop, the odd one after it)
+        # and one of 1 620; 3 images: 16 blocks of 1 365 rows each (8 turns) and one of 260.
         blocked = jax.jit(lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=4096))(*arrays)
         self.assert_same(blocked, whole, dtype)
         quality = np.asarray(blocked[2])
@@ -327,8 +328,8 @@ class TestBlocks:
     def test_correct_runs_in_blocks_on_cpu_and_agrees_with_the_kernel(self, monkeypatch):
         """An image above CPU_BLOCK_PIXELS through `correct` with the kernel off, against the kernel."""
         rng = np.random.default_rng(4)
-        height, width, bands = 160, 128, 16  # 20 480 pixels: one whole block and a short one
-        assert height * width > pipeline.CPU_BLOCK_PIXELS
+        height, width, bands = 288, 128, 16  # 36 864 pixels: two whole blocks (one loop turn) and a short one
+        assert height * width > 2 * pipeline.CPU_BLOCK_PIXELS
         dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
         white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
         raw = np.rint(dark + (white - dark) * rng.uniform(0.05, 0.95, (height, width, bands))).astype(np.uint16)
