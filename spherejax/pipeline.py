@@ -248,11 +248,12 @@ def _saturation_level(raw, calibration: Calibration):
     return None
 
 
-def _pixel_flags(raw, raw_f, dark, white, saturation):
+def _pixel_flags(raw, raw_f, dark, white, saturation, no_flat_field=None):
     """Per-pixel (saturated, non-finite, no flat field) flags, each (..., H, W) bool.
 
     A pixel is flagged if any band is: reflectance mixes all bands. +inf counts as non-finite,
-    not as saturated, so the bits say what went wrong.
+    not as saturated, so the bits say what went wrong. no_flat_field: `_no_flat_field(dark,
+    white)` when the caller already has it (`_flat_field_mask`), else None.
     """
     pixel_shape = jnp.broadcast_shapes(raw.shape, dark.shape)[:-1]
     if jnp.issubdtype(raw.dtype, jnp.integer):
@@ -263,8 +264,9 @@ def _pixel_flags(raw, raw_f, dark, white, saturation):
         saturated = jnp.zeros(pixel_shape, dtype=bool)
     else:
         saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= saturation), axis=-1)
-    no_flat_field = jnp.broadcast_to(_no_flat_field(dark, white), pixel_shape)
-    return saturated, nonfinite, no_flat_field
+    if no_flat_field is None:
+        no_flat_field = _no_flat_field(dark, white)
+    return saturated, nonfinite, jnp.broadcast_to(no_flat_field, pixel_shape)
 
 
 def _no_flat_field(dark, white):
@@ -314,6 +316,41 @@ def patch_bounding_box(patch) -> tuple[int, int, int, int] | None:
 #: which `correct` needs on every call.
 _boxes: dict[int, tuple[weakref.ref, tuple[int, int, int, int] | None]] = {}
 _boxes_lock = threading.Lock()
+
+
+@functools.partial(jax.jit, static_argnames="dtype")
+def _no_flat_field_program(dark, white, dtype):
+    return _no_flat_field(dark.astype(dtype), white.astype(dtype))
+
+
+def _flat_field_mask(calibration: Calibration, dtype) -> jax.Array:
+    """(H, W) bool `_no_flat_field` of a concrete calibration's dark and white frames in the
+    compute dtype (as `_correct_pixels` casts them), worked out once for each pair of arrays and
+    dtype (jax.Arrays are immutable: the same ids, while both are alive, are the same values).
+
+    Why. Working it out takes a reduction over the bands of white - dark, which XLA on CPU runs
+    as a fusion of its own that reads both frames (128 bytes a pixel in float32) besides the one
+    that flat-fields: a fifth of the jax.numpy path's CPU time (12 of 60 ms a megapixel on 2 Zen
+    5 cores). Read from here it is one byte a pixel, and the same flags.
+    """
+    dark, white = calibration.dark, calibration.white
+    key = (id(dark), id(white), np.dtype(dtype).name)
+    with _masks_lock:
+        known = _masks.get(key)
+        if known is not None and known[0]() is dark and known[1]() is white:
+            return known[2]
+    mask = _no_flat_field_program(dark, white, np.dtype(dtype))
+    with _masks_lock:
+        _masks[key] = (weakref.ref(dark), weakref.ref(white), mask)
+        while len(_masks) > 4:
+            del _masks[next(iter(_masks))]
+    return mask
+
+
+#: `_flat_field_mask` of the last few calibrations, by the ids of their dark and white frames and
+#: the dtype, with weak references that tell whether the ids are still those arrays'.
+_masks: dict[tuple[int, int, str], tuple[weakref.ref, weakref.ref, jax.Array]] = {}
+_masks_lock = threading.Lock()
 
 
 def _patch_flags(raw, raw_f, dark, white, saturation):
@@ -415,9 +452,9 @@ def _project_good_pixels_jvp(primals, tangents):
     return out, jnp.where(good, out_dot, 0.0)
 
 
-def _quality(raw, raw_f, dark, white, p, saturation):
-    """(..., H, W) uint8 bit mask of the QUALITY_* flags."""
-    saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation)
+def _quality(raw, raw_f, dark, white, p, saturation, no_flat_field=None):
+    """(..., H, W) uint8 bit mask of the QUALITY_* flags (no_flat_field: see `_pixel_flags`)."""
+    saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation, no_flat_field)
     patch_unusable = jnp.any(~jnp.isfinite(p), axis=-1)  # (...,)
     return (
         saturated.astype(jnp.uint8) * QUALITY_SATURATED
@@ -428,11 +465,13 @@ def _quality(raw, raw_f, dark, white, p, saturation):
     )
 
 
-def _pixel_outputs(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, *, saturation, intermediates=False):
+def _pixel_outputs(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, *, saturation, intermediates=False,
+                   no_flat_field=None):
     """The per-pixel path in jax.numpy: the definition the fused CPU kernel is tested against.
 
     Args: raw (..., H, W, B); dark, white (H, W, B); p (..., B); coeffs (B, 4); wiener W (31, B);
     wiener_offset r0 (31,); weights (31, 3) tristimulus weights; all but raw in the compute dtype.
+    no_flat_field: None, or the (H, W) bool `_no_flat_field(dark, white)` (`_flat_field_mask`).
 
     reflectance = v_tilde W^T + r0 and XYZ = v_tilde (W^T weights) + r0 weights, the latter
     being reflectance @ weights (ASTM E308) regrouped so that the 31-channel cube is not read
@@ -442,7 +481,7 @@ def _pixel_outputs(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, 
     """
     dtype = dark.dtype
     raw_f = raw.astype(dtype)
-    quality = _quality(raw, raw_f, dark, white, p, saturation)
+    quality = _quality(raw, raw_f, dark, white, p, saturation, no_flat_field)
     good = (quality == 0)[..., None]
 
     p_pixel = p[..., None, None, :]
@@ -474,7 +513,7 @@ CPU_BLOCK_PIXELS = 16384
 
 
 def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, *, saturation, out=None,
-                             block_pixels=CPU_BLOCK_PIXELS):
+                             block_pixels=CPU_BLOCK_PIXELS, no_flat_field=None):
     """`_pixel_outputs` (without intermediates) over blocks of `CPU_BLOCK_PIXELS` pixels in one
     XLA loop: the jax.numpy path as it runs on CPU.
 
@@ -491,7 +530,8 @@ def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset,
     Args: as `_pixel_outputs`, raw (..., H, W, B); out: None, or arrays of the outputs' shapes
     and dtypes whose memory the outputs take (donated; their values are never read). Without
     them the outputs start as zeros (one write pass). block_pixels: pixels per block, over all
-    images of a batch (each block takes the same rows of every image).
+    images of a batch (each block takes the same rows of every image). no_flat_field: as
+    `_pixel_outputs`.
 
     Returns (reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W)).
     """
@@ -501,11 +541,12 @@ def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset,
     block = max(1, block_pixels // max(images, 1))
     plain = functools.partial(_pixel_outputs, saturation=saturation, intermediates=False)
     if block >= pixels or images == 0:
-        return plain(raw, dark, white, p, coeffs, wiener, wiener_offset, weights)
+        return plain(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, no_flat_field=no_flat_field)
     dtype = dark.dtype
     raw_rows = raw.reshape(images, pixels, bands)
     dark_rows, white_rows = dark.reshape(pixels, bands), white.reshape(pixels, bands)
     p_rows = jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands)
+    mask_rows = None if no_flat_field is None else no_flat_field.reshape(pixels)
 
     def outputs_of(start, size):
         def rows(x, axis):
@@ -513,7 +554,7 @@ def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset,
 
         reflectance, lab, quality = plain(
             rows(raw_rows, 1)[:, None], rows(dark_rows, 0)[None], rows(white_rows, 0)[None], p_rows, coeffs,
-            wiener, wiener_offset, weights,
+            wiener, wiener_offset, weights, no_flat_field=None if mask_rows is None else rows(mask_rows, 0)[None],
         )
         return reflectance[:, 0], lab[:, 0], quality[:, 0]
 
@@ -560,7 +601,8 @@ def _pixel_outputs_in_blocks(raw, dark, white, p, coeffs, wiener, wiener_offset,
 # leaf and everything else static, so plain jit applies, and its C++ dispatch saves about 0.3 ms a
 # call (6 % of a 256 x 256 correction).
 @functools.partial(jax.jit, static_argnames=("intermediates", "kernel_mode"))
-def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, noise=None, p_u=None, out=None):
+def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, noise=None, p_u=None, out=None,
+                    no_flat_field=None):
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
     `kernel_mode` (static; `fused.mode`, decided by the caller so that the environment switch is
@@ -569,9 +611,10 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
     carries the uncertainties (`uncertainty.pixel_uncertainty`); None traces none of that. `out`:
     None, or donated arrays of the three outputs' shapes whose memory the jax.numpy path's
     outputs take on CPU (`_pixel_outputs_in_blocks`; the kernel's take it through XLA's buffer
-    assignment).
+    assignment). no_flat_field: None, or the calibration's (H, W) `_flat_field_mask`, which the
+    jax.numpy path then reads instead of working it out from dark and white again.
     """
-    result = _correct_pixels_plain(raw, calibration, p, intermediates, kernel_mode, out)
+    result = _correct_pixels_plain(raw, calibration, p, intermediates, kernel_mode, out, no_flat_field)
     if noise is None:
         return result
     dtype = _compute_dtype(raw, calibration)
@@ -588,7 +631,8 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
     )
 
 
-def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, out=None):
+def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool, kernel_mode: str | None, out=None,
+                          no_flat_field=None):
     """`_correct_pixels` without uncertainties (traced inside it)."""
     dtype = _compute_dtype(raw, calibration)
     weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
@@ -598,7 +642,9 @@ def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool,
         calibration.wiener_offset.astype(dtype), jnp.asarray(weights, dtype),
     )
     saturation = _saturation_level(raw, calibration)
-    plain = functools.partial(_pixel_outputs, saturation=saturation, intermediates=intermediates)
+    plain = functools.partial(
+        _pixel_outputs, saturation=saturation, intermediates=intermediates, no_flat_field=no_flat_field
+    )
     p = arrays[3]
     if kernel_mode is not None:
         main = functools.partial(_pixel_outputs, saturation=saturation, intermediates=False)
@@ -614,14 +660,15 @@ def _correct_pixels_plain(raw, calibration: Calibration, p, intermediates: bool,
         return CorrectionResult(reflectance, lab, quality, p, *cubes)
 
     def on_cpu(*arrays):
-        return _pixel_outputs_in_blocks(*arrays, saturation=saturation, out=out)
+        return _pixel_outputs_in_blocks(*arrays, saturation=saturation, out=out, no_flat_field=no_flat_field)
 
     reflectance, lab, quality = jax.lax.platform_dependent(*arrays, cpu=on_cpu, default=plain)
     return CorrectionResult(reflectance, lab, quality, p)
 
 
 @functools.partial(jax.jit, static_argnames=("box_shape", "intermediates", "kernel_mode"))
-def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None, noise=None, out=None):
+def _correct_image(raw, calibration: Calibration, box_origin, box_shape, intermediates: bool, kernel_mode: str | None, noise=None, out=None,
+                   no_flat_field=None):
     """`correct` of whole frames as one program: p over the patch's box, then every pixel.
 
     The same two steps as `patch_ratio` then `_correct_pixels`, traced together: one dispatch
@@ -630,7 +677,8 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
     p = _patch_ratio(raw, calibration, box_origin, box_shape)
     p_u = None if noise is None else _patch_ratio_std(raw, calibration, noise, box_origin, box_shape)
     return _correct_pixels(
-        raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u, out=out
+        raw, calibration, p, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise, p_u=p_u, out=out,
+        no_flat_field=no_flat_field,
     )
 
 
@@ -640,14 +688,17 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
     jax.jit, static_argnames=("box_shape", "kernel_mode"), donate_argnames=("out_reflectance", "out_lab", "out_quality"),
     keep_unused=True,
 )
-def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, *, box_shape, kernel_mode: str | None):
+def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, no_flat_field=None, *, box_shape, kernel_mode: str | None):
     """`_correct_image` with the memory of three donated arrays of the outputs' shapes and dtypes
     (dropped outputs of earlier calls, `spherejax.buffers`): their values are not read, and
     their memory becomes the outputs' (XLA's buffer assignment gives it to the kernel's outputs
     of the same shapes; the jax.numpy path's loop writes its blocks into them). The same program
-    otherwise, and the same numbers."""
+    otherwise, and the same numbers. no_flat_field: as `_correct_pixels`."""
     out = (out_reflectance, out_lab, out_quality)
-    return _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode, out=out)
+    return _correct_image(
+        raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode, out=out,
+        no_flat_field=no_flat_field,
+    )
 
 
 #: Compiled `_correct_image_into` per signature (raw, calibration's structure and shapes, patch
@@ -667,9 +718,11 @@ def _signature(raw, calibration: Calibration, box_shape, kernel_mode):
 
 def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, kernel_mode: str | None) -> CorrectionResult:
     """`_correct_image` for large images on CPU, reusing the memory of outputs the caller has
-    dropped (`spherejax.buffers`); the same numbers bit for bit (tested)."""
+    dropped (`spherejax.buffers`); the same numbers bit for bit (tested). The jax.numpy path
+    (kernel_mode None) reads the calibration's `_flat_field_mask`."""
     outputs_shape = tuple(raw.shape[:-1])
     dtype = _compute_dtype(raw, calibration)  # float32, or float64 on the jax.numpy path
+    mask = _flat_field_mask(calibration, dtype) if kernel_mode is None else None
     signature = _signature(raw, calibration, box_shape, kernel_mode)
     with _into_lock:
         executable = _into_executables.get(signature)
@@ -680,15 +733,17 @@ def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, ker
                 jax.ShapeDtypeStruct(outputs_shape, jnp.uint8),
             )
             executable = _correct_image_into.lower(
-                raw, calibration, box_origin, *out_types, box_shape=box_shape, kernel_mode=kernel_mode
+                raw, calibration, box_origin, *out_types, mask, box_shape=box_shape, kernel_mode=kernel_mode
             ).compile()
             _into_executables[signature] = executable
     key = (outputs_shape, str(dtype))
     out = buffers.take(key)
     if out is None:
-        result = _correct_image(raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+        result = _correct_image(
+            raw, calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode, no_flat_field=mask
+        )
     else:
-        result = executable(raw, calibration, box_origin, *out)
+        result = executable(raw, calibration, box_origin, *out, mask)
     buffers.give(key, (result.reflectance, result.lab, result.quality))
     return result
 

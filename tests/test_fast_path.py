@@ -108,6 +108,46 @@ class TestNoFlatField:
         np.testing.assert_array_equal(fast, plain)
         assert 0 < fast.sum() < 64
 
+    def test_correct_remembers_each_calibrations_flags(self, monkeypatch):
+        """The jax.numpy path of `correct` on large frames reads the no-flat-field flags from
+        `pipeline._flat_field_mask`, worked out once for each pair of dark and white frames: two
+        calibrations that share their dark frame, used in turn, each get their own flags, and
+        the same bits as the program that works the flags out itself."""
+        rng = np.random.default_rng(8)
+        height, width, bands = 256, 256, 16  # outputs of 9 MB: `correct` reuses their memory
+        dark_frame = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
+        whites = [dark_frame + rng.uniform(8000, 12000, dark_frame.shape).astype(np.float32) for _ in range(2)]
+        whites[0][10, 20, 3] = dark_frame[10, 20, 3]  # white == dark
+        whites[1][200, 30, 15] = dark_frame[200, 30, 15] - 1.0
+        whites[1][40, 250, 0] = np.nan
+        dark = jnp.asarray(dark_frame)
+        expected = [{(10, 20)}, {(200, 30), (40, 250)}]
+        patch = np.zeros((height, width), bool)
+        patch[100:120, 100:120] = True
+        coeffs = np.asarray(sj.identity_coeffs(bands, np.float32))
+        wiener = rng.uniform(0, 0.1, (31, bands)).astype(np.float32)
+        calibrations = [
+            sj.Calibration(dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=16383.0)
+            for white in whites
+        ]
+        assert calibrations[0].dark is calibrations[1].dark
+        raw = np.rint(dark_frame + 5000 * rng.uniform(0.05, 0.95, dark.shape)).astype(np.uint16)
+        monkeypatch.setenv(fused.SWITCH, "0")
+        for turn in range(4):
+            calibration, bad = calibrations[turn % 2], expected[turn % 2]
+            result = sj.correct(raw, calibration)
+            flagged = np.argwhere(np.asarray(result.quality) & sj.QUALITY_WHITE_NOT_ABOVE_DARK)
+            assert set(map(tuple, flagged.tolist())) == bad
+            inline = pipeline._correct_image(
+                jnp.asarray(raw), calibration, *pipeline._patch_box_arguments(raw, calibration),
+                intermediates=False, kernel_mode=None,
+            )
+            for name in ("reflectance", "lab", "quality"):
+                np.testing.assert_array_equal(np.asarray(getattr(result, name)), np.asarray(getattr(inline, name)), err_msg=name)
+        remembered = pipeline._flat_field_mask(calibrations[0], np.float32)
+        assert pipeline._flat_field_mask(calibrations[0], np.float32) is remembered
+        assert pipeline._flat_field_mask(calibrations[1], np.float32) is not remembered
+
 
 def plain_correct(raw, calibration, p):
     """The per-pixel path as the equations read, with one `where` per output (no fast forms)."""
