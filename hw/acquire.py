@@ -477,11 +477,13 @@ def _camera_noise(profile: Profile, camera: Camera) -> dict:
 
 
 def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
+    from spherejax.io import atomic
+
     saved = partial / "profile.json"
     if not saved.is_file():
         # A run killed between creating the folder and renaming profile.json into place left
         # nothing to keep (at most the temporary, half written): the resumed run starts afresh.
-        if {entry.name for entry in partial.iterdir()} <= {".profile.json.tmp"}:
+        if all(atomic.is_temp_sibling(entry.name, "profile.json") for entry in partial.iterdir()):
             return
         raise AcquisitionError(f"{partial}: holds no profile.json: not an acquisition spherejax can resume")
     try:
@@ -554,6 +556,8 @@ def acquire(
       AcquisitionError: a device check failed (before anything moved), or a fault stopped the
         run (what was captured stays in SESSION.partial for --resume).
     """
+    from spherejax.io import atomic
+
     settings = settings or Settings()
     profile = load_profile(profile_path)
     out = pathlib.Path(out)
@@ -584,10 +588,7 @@ def acquire(
         _layout(profile, instrument.camera)
         partial.mkdir(parents=True, exist_ok=True)
         # Atomic: a kill while writing it must not leave a folder --resume refuses to read.
-        identity = partial / "profile.json"
-        temp = partial / ".profile.json.tmp"
-        temp.write_text(json.dumps(_profile_identity(profile), sort_keys=True))
-        os.replace(temp, identity)
+        atomic.write_atomic(partial / "profile.json", json.dumps(_profile_identity(profile), sort_keys=True))
         journal = Journal(partial)
         if emulate:
             # An emulated lamp is switched on when the run starts and needs no waiting.

@@ -28,7 +28,6 @@ import json
 import math
 import os
 import pathlib
-import tempfile
 from typing import Callable
 
 FORMAT = "hw.lamp/1"
@@ -156,27 +155,10 @@ class Lamp:
             "warmups": state["warmups"][-MAX_WARMUPS:],
         }
         text = json.dumps(record, indent=2) + "\n"
-        folder = self.state_file.parent
-        fd, temporary = tempfile.mkstemp(dir=folder, prefix=f".{self.state_file.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                handle.write(text)
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(temporary, self.state_file)
-        except BaseException:
-            try:
-                os.unlink(temporary)
-            except FileNotFoundError:
-                pass
-            raise
-        if os.name == "posix":
-            # The rename itself is durable only once the folder's entry is on disk.
-            directory = os.open(folder, os.O_RDONLY)
-            try:
-                os.fsync(directory)
-            finally:
-                os.close(directory)
+        # Imported here: the lamp's readers need nothing of JAX, which spherejax.io brings.
+        from spherejax.io import atomic
+
+        atomic.write_atomic(self.state_file, text)
 
     # --- records -------------------------------------------------------------------------------
 

@@ -38,7 +38,6 @@ import argparse
 import contextlib
 import io as _bytes_io
 import json
-import os
 import pathlib
 import sys
 import time
@@ -71,22 +70,19 @@ class _Progress:
 
 
 def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
-    """Write name -> bytes into out_dir, each through a temporary name and os.replace. When one
+    """Write name -> bytes into out_dir, each atomically (`spherejax.io.atomic`). When one
     cannot be written (a full disk), the files this call added and the folder it created are
     removed: no partial set of outputs is left."""
+    from .io import atomic  # here, not at the top: --help imports nothing of JAX
+
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     added = []
     try:
         for name, payload in files.items():
             target = out_dir / name
-            temporary = out_dir / f".{name}.tmp-{os.getpid()}"
             new = not target.exists()
-            try:
-                temporary.write_bytes(payload)
-                os.replace(temporary, target)
-            finally:
-                temporary.unlink(missing_ok=True)
+            atomic.write_atomic(target, payload)
             if new:
                 added.append(target)
     except BaseException:

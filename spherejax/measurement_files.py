@@ -81,7 +81,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .grid import N_WAVELENGTHS
-from .io import SpherejaxFileError, _readable_json, temp_sibling
+from .io import SpherejaxFileError, _readable_json
+from .io.atomic import fsync_folder, temp_sibling
 from .measurement import Measurement
 
 FORMAT = "spherejax-measurement"
@@ -330,8 +331,8 @@ def check_output_base(base) -> None:
 
 
 def write_files(files: Mapping[pathlib.Path, bytes]) -> None:
-    """Write every path -> bytes: all to temporary names beside them first (flushed to disk),
-    then each renamed into place. On a failure, the temporary files are removed, and so are the
+    """Write every path -> bytes: all to temporary names beside them first (flushed to disk; the
+    names and steps of `spherejax.io.atomic`), then each renamed into place. On a failure, the temporary files are removed, and so are the
     targets this call created; a failure between two renames (which need no space) leaves a
     target it replaced replaced."""
     temporaries, added = {}, []
@@ -354,6 +355,8 @@ def write_files(files: Mapping[pathlib.Path, bytes]) -> None:
                 raise SpherejaxFileError(path, f"could not be written: {error.strerror or error}") from None
             if new:
                 added.append(path)
+        for folder in {path.parent for path in temporaries}:
+            fsync_folder(folder)  # the renames on disk too
     except BaseException:
         for path in added:
             path.unlink(missing_ok=True)

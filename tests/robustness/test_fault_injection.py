@@ -327,7 +327,7 @@ def test_resume_after_a_kill_before_the_profile_was_written(tmp_path):
     profile = write_profile(tmp_path, samples=SAMPLES[:1])
     partial = tmp_path / "s.partial"
     partial.mkdir()
-    (partial / ".profile.json.tmp").write_text('{"bands": {"400"')  # cut by the kill
+    io.temp_sibling(partial / "profile.json").write_text('{"bands": {"400"')  # cut by the kill
     run_acquire(profile, tmp_path / "s", resume=True)
     session = io.load_session(tmp_path / "s")
     assert [f.id for f in session.frames] == ["dark", "white", SAMPLES[0]]

@@ -4,7 +4,8 @@ This module, `archive` and `cli` are the only ones that touch the filesystem; th
 never import them. Every failure raises a `SpherejaxFileError` (a ValueError) whose message is one
 line, "PATH: problem (expected ...)", naming the file, the value found and what was expected. No
 format uses pickle. Every writer is atomic: it writes under a temporary name in the destination's
-folder and renames into place only when complete, so a failure leaves nothing new on disk.
+folder and renames into place only when complete, so a failure leaves nothing new on disk
+(`spherejax.io.atomic`: the steps, and the one rule for temporary names that cleanup recognises).
 
 Camera frame
 ------------
@@ -119,7 +120,6 @@ import pathlib
 import re
 import shutil
 import tokenize
-import uuid
 import zipfile
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -128,10 +128,11 @@ from typing import Any
 import numpy as np
 import OpenImageIO as oiio
 
-from . import jsontext
-from .grid import N_WAVELENGTHS
-from .pipeline import Calibration
-from .uncertainty import NoiseModel
+from .. import jsontext
+from ..grid import N_WAVELENGTHS
+from ..pipeline import Calibration
+from ..uncertainty import NoiseModel
+from .atomic import atomic_file, create_exclusive, fsync_folder, is_temp_sibling, temp_sibling
 
 SESSION_FORMAT = "spherejax-session"
 SESSION_FORMAT_VERSION = 1
@@ -232,20 +233,7 @@ def _show(value) -> str:
 # ------------------------------------------------------------------------------ shared file helpers
 
 
-def temp_sibling(path: pathlib.Path) -> pathlib.Path:
-    """An unused hidden name beside `path`: same folder, so os.replace / os.rename is atomic.
-
-    Not tempfile.mkstemp / mkdtemp: they create mode 0600 / 0700, which the rename would carry
-    into the final file or session folder; files created here follow the user's umask.
-    """
-    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-
-
-def is_temp_sibling(name: str, of: str | None = None) -> bool:
-    """True if `name` is one `temp_sibling` makes (".<name>.<12 hex>.tmp"), of a file or folder
-    named `of` if given: what a killed run leaves, and cleans up after."""
-    stem = re.escape(of) if of is not None else ".+"
-    return re.fullmatch(rf"\.{stem}\.[0-9a-f]{{12}}\.tmp", name) is not None
+# temp_sibling, is_temp_sibling: `spherejax.io.atomic`, imported above (every writer's one rule).
 
 
 def _json_value(path, value, error_type: type[SpherejaxFileError], what: str):
@@ -468,7 +456,7 @@ class _Fields:
 
 def _check_format(fields: _Fields, name: str, version: int) -> None:
     """Refuse a document of another format, or of a newer version than this software reads."""
-    from . import __version__
+    from .. import __version__
 
     found = fields.obj.get("format", _REQUIRED)
     if found != name:
@@ -674,7 +662,7 @@ def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
       SpherejaxFileError: a wrong array, names or attributes (nothing written), or a failed write
         (the temporary file is removed).
     """
-    from . import __version__
+    from .. import __version__
 
     path = pathlib.Path(path)
     array = np.asarray(array)
@@ -721,7 +709,7 @@ class AtomicImageWriter:
         self._temp = temp_sibling(self.path)
         self._output = None
         try:
-            os.close(os.open(self._temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            create_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
         except OSError as error:
             raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
         # The format is named, not guessed from the temporary file's extension.
@@ -764,6 +752,7 @@ class AtomicImageWriter:
                     digest.update(block)
                 os.fsync(file.fileno())  # on disk before the rename makes it the file
             os.replace(self._temp, self.path)
+            fsync_folder(self.path.parent)  # and the rename on disk too
         except OSError as error:
             raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
         finally:
@@ -1507,7 +1496,7 @@ def write_session(
       SessionError: invalid fields or arrays, or an existing non-empty target, before anything
         is written; a failed write, after which the partly written temporary folder is removed.
     """
-    from . import __version__
+    from .. import __version__
 
     path = pathlib.Path(path)
     manifest_path = path / MANIFEST_NAME
@@ -1555,9 +1544,11 @@ def write_session(
                 raise SessionError(path / frame.file, error.problem, error.expected) from None
         # The manifest last: a folder with a manifest is a complete session.
         text = _readable_json(session.to_manifest()) + "\n"
-        (staging / MANIFEST_NAME).write_text(text, encoding="utf-8")
+        with atomic_file(staging / MANIFEST_NAME, "w") as manifest:  # fsynced before the folder's rename
+            manifest.write(text)
         # POSIX rename replaces an empty folder atomically, and fails on a non-empty one.
         os.rename(staging, path)
+        fsync_folder(path.parent)
     except OSError as error:
         raise SessionError(path, f"could not be written: {error}") from None
     finally:
@@ -1891,7 +1882,7 @@ def save_calibration(
         NoiseModel or not for these bands, or a failed write (the temporary file is removed; an
         existing file is untouched).
     """
-    from . import __version__
+    from .. import __version__
 
     path = pathlib.Path(path)
     if not isinstance(calibration, Calibration):
@@ -1923,17 +1914,11 @@ def save_calibration(
     _check_calibration_contents(path, header, arrays)  # refuse to write what load would refuse
 
     encoded = _readable_json(header).encode("utf-8")
-    temp = temp_sibling(path)
     try:
-        with open(temp, "xb") as file:
+        with atomic_file(path) as file:
             np.savez(file, header=np.frombuffer(encoded, dtype=np.uint8), **arrays)
-            file.flush()
-            os.fsync(file.fileno())  # on disk before the rename makes it the calibration
-        os.replace(temp, path)
     except OSError as error:
         raise CalibrationFileError(path, f"could not be written: {error}") from None
-    finally:
-        temp.unlink(missing_ok=True)
     return header
 
 
@@ -1990,7 +1975,7 @@ class CalibrationFile:
                         f"{name}: {bad.size} entries are not finite (the first at flat index "
                         f"{int(bad[0])}); expected finite numbers"
                     )
-            from .pipeline import patch_bounding_box
+            from ..pipeline import patch_bounding_box
 
             self.patch_box = patch_bounding_box(self._value("patch"))
             if self.patch_box is None:

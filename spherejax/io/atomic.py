@@ -1,0 +1,108 @@
+"""Writing files so that a reader, a crash or a kill sees the old file or the new one, never half.
+
+Every writer in spherejax and hw/ goes through here, with one rule for temporary names:
+``.<target name>.<12 hex digits>.tmp`` in the target's own folder (`temp_sibling`), which
+`is_temp_sibling` recognises, so that whatever a killed run leaves is found and removed by the
+next one (`spherejax.archive`'s resume, `hw.acquire`'s).
+
+The steps of one write (`atomic_file`):
+
+1. the temporary name is created with O_EXCL: never an existing file, nor a link to one
+   elsewhere; with mode 0666 less the umask, the mode a file created at the target's name would
+   get (`tempfile.mkstemp` would give 0600, which the rename would carry into the target);
+2. the contents are written, flushed and fsynced: on disk before the rename makes them the file;
+3. `os.replace` puts it at the target's name, atomically (same folder, same file system);
+4. the folder is fsynced, so that the rename itself survives a power cut (POSIX).
+
+On any failure before the rename the temporary file is removed and the target is as it was.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import re
+import uuid
+from collections.abc import Iterator
+from typing import IO
+
+#: Mode bits a new file is created with, before the umask (as `open(path, "w")` creates it).
+NEW_FILE_MODE = 0o666
+
+
+def temp_sibling(path: os.PathLike | str) -> pathlib.Path:
+    """An unused hidden name beside `path`, ``.<name>.<12 hex>.tmp``: same folder, so os.replace /
+    os.rename onto `path` is atomic. For files and folders (`io.write_session` stages a session
+    folder under one)."""
+    path = pathlib.Path(path)
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
+
+
+def is_temp_sibling(name: str, of: str | None = None) -> bool:
+    """True if `name` is one `temp_sibling` makes (".<name>.<12 hex>.tmp"), of a file or folder
+    named `of` if given: what a killed run leaves, and cleans up after."""
+    stem = re.escape(of) if of is not None else ".+"
+    return re.fullmatch(rf"\.{stem}\.[0-9a-f]{{12}}\.tmp", name) is not None
+
+
+def create_exclusive(path: os.PathLike | str) -> None:
+    """Create `path` empty with O_EXCL and `NEW_FILE_MODE` less the umask (OSError if it exists)."""
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE))
+
+
+def fsync_folder(folder: os.PathLike | str) -> None:
+    """fsync a folder, so that a rename into it is on disk (POSIX; elsewhere nothing to do)."""
+    if os.name != "posix":
+        return
+    descriptor = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def replace_durably(temporary: os.PathLike | str, path: os.PathLike | str) -> None:
+    """fsync the finished file at `temporary`, rename it onto `path`, fsync the folder."""
+    with open(temporary, "rb") as handle:
+        os.fsync(handle.fileno())
+    os.replace(temporary, path)
+    fsync_folder(pathlib.Path(path).parent)
+
+
+@contextlib.contextmanager
+def atomic_file(path: os.PathLike | str, mode: str = "wb", *, encoding: str | None = None) -> Iterator[IO]:
+    """Open a new temporary file beside `path` for writing; on leaving the block without an
+    error it becomes `path` (the steps in the module docstring), on an error it is removed.
+
+    Args:
+      path: the file to write.
+      mode: "wb" (bytes) or "w" (text).
+      encoding: for text, default UTF-8.
+
+    Raises:
+      OSError: from creating, writing or renaming (the caller words it for its file kind).
+    """
+    if mode not in ("wb", "w"):
+        raise ValueError(f"mode: expected 'wb' or 'w', got {mode!r}")
+    path = pathlib.Path(path)
+    temporary = temp_sibling(path)
+    descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
+    try:
+        text = {"encoding": encoding or "utf-8"} if mode == "w" else {}
+        with os.fdopen(descriptor, mode, **text) as handle:  # owns the descriptor from here
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+        raise
+    fsync_folder(path.parent)
+
+
+def write_atomic(path: os.PathLike | str, data: bytes | str) -> None:
+    """Write `data` (bytes, or str as UTF-8) to `path` through `atomic_file`."""
+    with atomic_file(path, "w" if isinstance(data, str) else "wb") as handle:
+        handle.write(data)
