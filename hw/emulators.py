@@ -436,6 +436,13 @@ class EmulatedPort:
         """True while the server thread runs."""
         return self._thread is not None and self._thread.is_alive()
 
+    @property
+    def holds_pty(self) -> bool:
+        """True while this port keeps its pty open. Once it closes both ends the kernel removes
+        `path`, but another process may be given the same /dev/pts number the next moment, so
+        whether `path` exists says nothing of this port."""
+        return self._master is not None or self._slave is not None
+
     def __enter__(self) -> "EmulatedPort":
         if not self._used:
             self.start()

@@ -258,7 +258,17 @@ def test_server_round_trip_and_transcript(no_leaks):
         assert port.emulator.position == 3
         assert list(port.transcript) == [("in", b"pos=3\r"), ("out", b"pos=3\r> "),
                                          ("in", b"pos?\r"), ("out", b"pos?\r3\r> ")]
-    assert not port.is_running and not os.path.exists(port.path)
+    assert not port.is_running and not port.holds_pty
+
+
+def test_a_port_holds_its_pty_from_start_to_stop(no_leaks):
+    """What the fault tests ask instead of whether the path exists (the kernel gives a freed
+    /dev/pts number to the next pty opened anywhere, another test worker's included)."""
+    port = EmulatedPort(wheel())
+    assert not port.holds_pty
+    with port:
+        assert port.holds_pty and os.path.exists(port.path)
+    assert not port.holds_pty
 
 
 def test_server_stray_bytes_reach_the_first_reader(no_leaks):
@@ -316,7 +326,7 @@ def test_fault_vanish(no_leaks):
         ser = open_serial(port.path)
         try:
             port.vanish()
-            assert not port.is_running and not os.path.exists(port.path)
+            assert not port.is_running and not port.holds_pty
             with pytest.raises(serial.SerialException):
                 ser.write(b"pos?\r")
             with pytest.raises(serial.SerialException):
