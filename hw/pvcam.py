@@ -2,8 +2,9 @@
 
 A thin backend of `hw.camera.Camera`: the interface validates, this module only translates.
 PyVCAM (and the PVCAM SDK under it) cannot be installed here, so it is imported inside
-`PVCAMCamera.__init__`, never at module level, and this module is untested beyond its import
-error. The PyVCAM calls used (its `pyvcam.camera.Camera`):
+`PVCAMCamera.__init__`, never at module level; the camera contract every backend runs
+(tests/hw/test_camera_contract.py) runs this one against a fake `pyvcam` that follows PyVCAM's
+documented API (tests/hw/fake_pyvcam). The PyVCAM calls used (its `pyvcam.camera.Camera`):
 
 - `pvc.init_pvcam()` / `pvc.uninit_pvcam()`; `Camera.detect_camera()` (generator) or
   `Camera.select_camera(name)`; `open()`, `close()`, `name`;

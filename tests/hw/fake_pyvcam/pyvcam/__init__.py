@@ -1,0 +1,1 @@
+"""Fake PyVCAM for tests (README.md beside this package): the subset hw/pvcam.py uses."""

@@ -1,0 +1,18 @@
+"""The PVCAM constants the fake uses (values as in PyVCAM's constants.py)."""
+
+ATTR_CURRENT = 0
+ATTR_COUNT = 1
+ATTR_TYPE = 2
+ATTR_MIN = 3
+ATTR_MAX = 4
+ATTR_DEFAULT = 5
+ATTR_INCREMENT = 6
+ATTR_ACCESS = 7
+ATTR_AVAIL = 8
+
+PARAM_EXPOSURE_TIME = 0x08030000 + 1  # stand-in identifiers: only their distinctness matters here
+PARAM_SER_SIZE = 0x02000000 + 58
+PARAM_PAR_SIZE = 0x02000000 + 57
+PARAM_BIT_DEPTH = 0x02000000 + 511
+PARAM_TEMP = 0x02000000 + 525
+PARAM_EXP_RES = 0x08030000 + 2
