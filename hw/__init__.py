@@ -1,7 +1,8 @@
 """hw: control of the integrating-sphere multispectral instrument over pyserial, and emulated
 devices that follow the vendors' protocols (docs/instrument.md).
 
-    errors        HardwareError and its kinds: DeviceTimeout, ProtocolError, DeviceError, PortError
+    errors        InstrumentError, the root of every hw/ error; HardwareError and its kinds:
+                  DeviceTimeout, ProtocolError, DeviceError, PortError
     serialline    the echo / value line / "> " prompt protocol both Thorlabs devices speak
     filterwheel   Thorlabs FW102C / FW212C filter wheel
     shutter       Thorlabs SC10 shutter controller

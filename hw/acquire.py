@@ -57,7 +57,7 @@ import numpy as np
 from spherejax import interrupt, jsontext
 
 from .camera import Camera, CameraError, open_camera
-from .errors import HardwareError
+from .errors import HardwareError, InstrumentError
 from .filterbank import FilterBank, WheelCountMismatch
 from .filterwheel import FilterWheel
 from .lamp import Lamp
@@ -68,7 +68,7 @@ JOURNAL_NAME = "journal.jsonl"
 PARTIAL_SUFFIX = ".partial"
 
 
-class AcquisitionError(Exception):
+class AcquisitionError(InstrumentError):
     """The acquisition cannot start: one line saying why; nothing moved, nothing was written."""
 
 
@@ -597,7 +597,10 @@ def acquire(
             on_instrument(instrument)
         try:
             _run_protocol(instrument, captures, partial, journal, config, operator, settings)
-        except (HardwareError, CameraError, OSError) as error:
+        except AcquisitionError:  # already says why and what was kept (the warm-up's)
+            instrument.shutter.make_safe()
+            raise
+        except (InstrumentError, OSError) as error:  # a device, the lamp's record or the disk
             instrument.shutter.make_safe()
             kept = len(journal.done_images())
             raise AcquisitionStopped(

@@ -33,8 +33,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .errors import InstrumentError
 
-class CameraError(Exception):
+
+class CameraError(InstrumentError):
     """A camera failed or cannot do what was asked; the message names the camera and the problem
     on one line."""
 

@@ -1,6 +1,21 @@
-"""Exceptions raised by the hw/ drivers.
+"""Exceptions raised by hw/: one root, `InstrumentError`, with every kind under it.
 
-Every error names the port (the pyserial URL or device path as given), the command that was being
+    InstrumentError                  anything hw/ raises (catch this to catch them all)
+        HardwareError                a serial device failed (port, command, reply; below)
+            DeviceTimeout, ProtocolError, DeviceError, PortError
+        camera.CameraError           a camera failed or cannot do what was asked
+        lamp.LampError               a lamp record out of order
+        lamp.LampStateError          a malformed lamp state file (also a ValueError)
+        profile.ProfileError         an instrument profile that cannot be used (also a ValueError)
+        filterbank.WheelCountMismatch  a wheel with another number of positions (also a ValueError)
+        acquire.AcquisitionError     an acquisition that cannot start; AcquisitionStopped: one a
+                                     fault stopped
+
+Each is one line naming what failed and, where there is one, the file, key or value and what
+was expected. Those that were ValueError or RuntimeError before this root existed still are, so
+callers that caught them as such still do.
+
+A serial device's error names the port (the pyserial URL or device path as given), the command that was being
 carried out (``None`` when the failure is not tied to one, e.g. opening the port) and, when the
 device said something, the raw reply. ``str(error)`` is always one line, e.g.::
 
@@ -14,10 +29,14 @@ garbled line, a ``DeviceError`` is the instrument refusing a command or failing 
 
 from __future__ import annotations
 
-__all__ = ["HardwareError", "DeviceTimeout", "ProtocolError", "DeviceError", "PortError"]
+__all__ = ["InstrumentError", "HardwareError", "DeviceTimeout", "ProtocolError", "DeviceError", "PortError"]
 
 
-class HardwareError(Exception):
+class InstrumentError(Exception):
+    """Base class of every error hw/ raises (the module docstring lists them)."""
+
+
+class HardwareError(InstrumentError):
     """Base class of every hw/ driver error.
 
     Args:

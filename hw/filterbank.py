@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from .errors import DeviceError
+from .errors import DeviceError, InstrumentError
 from .filterwheel import FilterWheel
 from .profile import Profile
 
 
-class WheelCountMismatch(ValueError):
+class WheelCountMismatch(InstrumentError, ValueError):
     """A wheel reports another number of positions (pcount?) than the profile's model."""
 
 

@@ -30,6 +30,8 @@ import os
 import pathlib
 from typing import Callable
 
+from .errors import InstrumentError
+
 FORMAT = "hw.lamp/1"
 
 #: Warm-up checks kept in the state file (the session manifests keep each session's own).
@@ -38,12 +40,12 @@ MAX_WARMUPS = 50
 _KEYS = ("format", "hours", "on_since", "ignitions", "warmups")
 
 
-class LampStateError(ValueError):
+class LampStateError(InstrumentError, ValueError):
     """The lamp state file is malformed; the one-line message names the file, the value and what
     was expected."""
 
 
-class LampError(RuntimeError):
+class LampError(InstrumentError, RuntimeError):
     """A lamp record out of order (switching on a lamp recorded as on, or off one recorded off)."""
 
 

@@ -70,6 +70,7 @@ import tomllib
 from collections.abc import Mapping
 
 from .camera import PROFILE_OPTIONS
+from .errors import InstrumentError
 
 #: Positions of each filter wheel model (Thorlabs: pcount accepts only 6 or 12).
 WHEEL_POSITIONS = {"FW102C": 6, "FW212C": 12}
@@ -79,7 +80,7 @@ SETS = ("training", "test")
 _SAFE_ID = re.compile(r"[A-Za-z0-9._-]+")
 
 
-class ProfileError(ValueError):
+class ProfileError(InstrumentError, ValueError):
     """An instrument profile that cannot be used: "FILE: key: problem (expected ...)"."""
 
     def __init__(self, path, key: str | None, problem: str, expected: str | None = None):

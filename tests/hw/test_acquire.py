@@ -328,3 +328,42 @@ class TestDamagedStateFiles:
             acquire._check_resume(partial, None)
         message = str(refused.value)
         assert "\n" not in message and "profile.json" in message and "not an acquisition spherejax can resume" in message
+
+
+def test_a_lamp_record_that_breaks_mid_run_stops_it_like_a_device_fault(tmp_path):
+    """The lamp's state file is the lamp's only record (hw.lamp): one made unreadable after the
+    devices are connected stops the run as a device fault does (AcquisitionStopped, one line,
+    shutter closed, SESSION.partial kept for --resume), not with the lamp's own ValueError."""
+    profile = write_profile(tmp_path, samples=SAMPLES[:1])
+    out, partial = tmp_path / "session", tmp_path / "session.partial"
+    state = {}
+
+    def break_the_lamp_record(instrument):
+        state["shutter"] = instrument.emulated["shutter"].emulator
+        instrument.lamp.state_file.write_text('{"format": "spherejax-lamp", "hours": "many"')
+
+    with pytest.raises(acquire.AcquisitionStopped) as stopped:
+        run_acquire(profile, out, on_instrument=break_the_lamp_record)
+    message = str(stopped.value)
+    assert "\n" not in message and "lamp.json" in message and "--resume" in message
+    assert state["shutter"].closed and partial.is_dir() and not out.exists()
+
+
+def test_every_hw_error_has_one_root():
+    """Whatever hw/ raises is an hw.errors.InstrumentError: a caller catches one class."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import hw
+    from hw.errors import InstrumentError
+
+    found = {}
+    for module_info in pkgutil.iter_modules(hw.__path__):
+        module = importlib.import_module(f"hw.{module_info.name}")
+        for name, value in vars(module).items():
+            if inspect.isclass(value) and issubclass(value, Exception) and value.__module__ == module.__name__:
+                found[f"{module.__name__}.{name}"] = value
+    public = {name: cls for name, cls in found.items() if not name.rsplit(".", 1)[1].startswith("_")}
+    assert len(public) >= 12
+    assert [name for name, cls in public.items() if not issubclass(cls, InstrumentError)] == []
