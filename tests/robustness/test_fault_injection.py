@@ -238,7 +238,8 @@ def _staging(out: pathlib.Path) -> list[pathlib.Path]:
 
 def _acquire_kill_plan(rng: random.Random) -> list[tuple[str, float | int]]:
     """ACQUIRE_KILLS (mode, argument) pairs, in order: `time` kills argument s after the start
-    (start-up, lamp warm-up, exposures, first images); `images` once the journal holds
+    (start-up, lamp warm-up, exposures, first images), or sooner once the run has taken three
+    images more than it started with; `images` once the journal holds
     `argument` band images, plus 0-30 ms (one image takes 10-40 ms); the last, `session`, as
     soon as the session's staging folder is there, plus 0-50 ms (inside io.write_session)."""
     modes = ["time"] * 2 + ["images"] * (ACQUIRE_KILLS - 3)
@@ -263,7 +264,11 @@ def test_kills_during_acquisition_lose_and_duplicate_no_capture(tmp_path):
         mode, argument = plan[len(landed)]
         process = _start_acquire(profile, out, resume=partial.exists())
         if mode == "time":
-            time.sleep(argument)
+            # Start-up, warm-up and exposures; and at most a few new images: on a quick machine a
+            # resumed run took every image left within the sleep, so that no later kill could
+            # land mid-acquisition (CI: "2 >= 8 // 2" with kills at 7, 10, then 64 images).
+            started, before = time.monotonic(), len(_image_records(partial))
+            _wait_until(process, lambda: time.monotonic() - started >= argument or len(_image_records(partial)) > before + 2)
         elif mode == "images":
             _wait_until(process, lambda: len(_image_records(partial)) >= argument)
             time.sleep(delays.uniform(0.0, 0.030))
