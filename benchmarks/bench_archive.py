@@ -161,7 +161,7 @@ def simulate_captures(folder: pathlib.Path, size: int, distinct: int, seed: int)
         raise RuntimeError(f"the simulator gives frames of {design.image_shape(instrument)}, not {(size, size)}")
     timings = {}
     start = time.perf_counter()
-    session = simulate.simulate_session(folder / "session", seed=seed, instrument=instrument, design=design)
+    session = io.write_simulated_session(folder / "session", seed=seed, instrument=instrument, design=design)
     timings["simulate_s"] = time.perf_counter() - start
 
     start = time.perf_counter()

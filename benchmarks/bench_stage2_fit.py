@@ -19,7 +19,7 @@ Against what
     is with numpy.
 
 Data
-    Real training data from spherejax's physical simulator (`simulate.simulate_session`, the
+    Real training data from spherejax's physical simulator (`io.write_simulated_session`, the
     paper's default design), measured with `calibrate` exactly as `spherejax calibrate` does.
     The closed-form fit on it is the clean-data fit c_clean. Then, as tests/test_stage2.py's
     `with_gross_outliers` does, 10 % of the samples get errors of 0.1-0.3 in every band.
@@ -63,7 +63,7 @@ from scipy.optimize import least_squares  # noqa: E402
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
-from spherejax import calibrate, simulate  # noqa: E402
+from spherejax import calibrate, io  # noqa: E402
 from spherejax.polynomial import (  # noqa: E402
     CONVERGED,
     MAD_TO_SIGMA,
@@ -95,7 +95,7 @@ def training_data(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(v, p, target), (90, 16) float64 each: a simulated session measured as `calibrate_session`
     does (training captures, region averages, reference background of median brightness)."""
     with tempfile.TemporaryDirectory() as tmp:
-        session = simulate.simulate_session(os.path.join(tmp, "session"), seed=seed)
+        session = io.write_simulated_session(os.path.join(tmp, "session"), seed=seed)
         base = calibrate.base_calibration(session)
         training = session.frames_with(role="sample", set="training")
         measurements = calibrate.measure_frames(session, training, base)

@@ -8,6 +8,19 @@ Conventions (all modules): channels last with any leading dimensions; raw and co
 XYZ and Lab (..., 3); float32 by default, float64 when the caller passes float64. Kernels are pure
 and can be jitted, vmapped and differentiated; bad pixel values give NaN, never an exception;
 bad shapes and names raise ValueError.
+
+Layers. Each module imports only modules of its own layer or of the layers below it
+(tests/test_layers.py reads every import, function-level ones included, and fails otherwise):
+
+1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, wiener_estimation,
+   pipeline, uncertainty, consistency, markov, angles, fused (the CPU kernel), buffers, grid,
+   spectra, allocator, jsontext (a parser of text it is given), _checks.
+2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
+   a path they open): calibrate, evaluate, study, simulate, stripwise, measurement, monte_carlo,
+   simulated_targets, figures.
+3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.atomic, the one way
+   every writer puts a file in place), measurement_files, archive, cluster, interrupt, cli; and the
+   instrument, hw/, which uses spherejax and which only cli uses (`spherejax acquire`).
 """
 
 from .allocator import keep_freed_memory as keep_freed_memory

@@ -121,13 +121,13 @@ def _evaluation_files(evaluation) -> dict[str, bytes]:
 
 
 def cmd_simulate(args) -> int:
-    from . import io, simulate
+    from . import io
 
     out = pathlib.Path(args.out)
     io.check_new_session_folder(out)  # before minutes of simulation, not after
     progress = _Progress(1, args.quiet)
     progress.start(f"simulating a session into {out}")
-    session = simulate.simulate_session(out, seed=args.seed)
+    session = io.write_simulated_session(out, seed=args.seed)
     progress.done(f"{len(session.frames)} captures")
     return 0
 
@@ -626,7 +626,7 @@ def cmd_measure(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from . import io, simulate
+    from . import io
 
     out = pathlib.Path(args.out)
     session_dir = out / "session"
@@ -636,7 +636,7 @@ def cmd_demo(args) -> int:
         session = io.load_session(session_dir)
         progress.done("reusing the session already there")
     else:
-        session = simulate.simulate_session(session_dir, seed=args.seed)
+        session = io.write_simulated_session(session_dir, seed=args.seed)
         progress.done(f"{len(session.frames)} captures")
     calibration, report = _calibrate(session, args, progress)
     _save_calibration(out / "calibration.npz", calibration, report, session)

@@ -24,7 +24,8 @@ Rendering is JAX (jitted; one compilation per image shape); layout and bookkeepi
 `simulate_experiment` builds the paper's experiment (Section 4-5): grey patches on uniform
 backgrounds at several positions (training), coloured patches on patterned backgrounds (test),
 a 144-target chart of known reflectance (Wiener training), the reference white patch beside the
-holder in every frame, 35 x 35 pixel averaging regions. `simulate_session` writes it to disk.
+holder in every frame, 35 x 35 pixel averaging regions. `session_contents` gives it as a
+session's contents, which `spherejax.io.write_simulated_session` writes to disk.
 """
 
 from __future__ import annotations
@@ -456,7 +457,8 @@ class SimulatedFrame:
 
 @dataclasses.dataclass
 class SimulatedExperiment:
-    """Everything `simulate_session` writes: frames plus the layout and the parameters."""
+    """Everything a simulated session holds (`session_contents`): frames plus the layout and the
+    parameters."""
 
     instrument: InstrumentModel
     design: ExperimentDesign
@@ -709,14 +711,12 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
     )
 
 
-def simulate_session(path, seed: int = 0, instrument: InstrumentModel | None = None, design: ExperimentDesign | None = None):
-    """Simulate the experiment and write it as a session folder (see `spherejax.io`).
-
-    Returns the loaded `spherejax.io.Session`.
+def session_contents(experiment: SimulatedExperiment) -> dict:
+    """What a session folder of `experiment` holds, as the keyword arguments of
+    `spherejax.io.write_session` (instrument id, bands, shape, saturation, white patch, holder,
+    frames (manifest entry, (H, W, B) uint16 pixels), metadata). Writing them is the files
+    layer's (`spherejax.io.write_simulated_session`, `spherejax simulate`): this module computes.
     """
-    from . import io  # the maths never imports io at module level (docs/design.md, "Conventions")
-
-    experiment = simulate_experiment(seed, instrument, design)
     start = datetime.datetime(2026, 1, 1, 9, 0, 0, tzinfo=datetime.timezone.utc)
     frames = []
     for frame in experiment.frames:
@@ -741,7 +741,7 @@ def simulate_session(path, seed: int = 0, instrument: InstrumentModel | None = N
         # baseline needs R_W).
         "white_standard_reflectance": experiment.materials["white standard"].at_31().tolist(),
         "simulator": {
-            "seed": seed,
+            "seed": experiment.seed,
             "instrument": dataclasses.asdict(experiment.instrument),
             "design": dataclasses.asdict(experiment.design),
             "materials": {
@@ -755,8 +755,7 @@ def simulate_session(path, seed: int = 0, instrument: InstrumentModel | None = N
         # the model's noise switched off the frames have none, and no camera record claims any.
         gain = float(experiment.instrument.gain_e_per_dn)
         metadata["camera"] = {"gain_e_per_count": gain, "read_noise_counts": float(experiment.instrument.read_noise_e) / gain}
-    return io.write_session(
-        path,
+    return dict(
         instrument_id="sim-sphere-1",
         band_centres_nm=[int(b) for b in BAND_CENTRES_NM],
         image_shape=list(experiment.image_shape),
@@ -781,5 +780,5 @@ __all__ = [
     "fixed_materials",
     "sensor_map",
     "simulate_experiment",
-    "simulate_session",
+    "session_contents",
 ]

@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import io
 from .pipeline import Calibration, correct, patch_ratio
+
+if TYPE_CHECKING:  # for the annotations only: a workflow takes the readers it is given
+    from . import io
 
 #: Working memory per pixel of a strip, measured at 16 bands (raw, dark and white on both the
 #: numpy and the XLA side, the flat field, the outputs and their float64 preview): a bound for

@@ -72,11 +72,11 @@ def workspace(tmp_path_factory):
     """A small simulated session (tests/test_cli.py's SMALL design) and its calibration file,
     made once for the run (once per pytest-xdist worker) and shared by tests/test_cli.py and the
     robustness tests. Read-only: a test that changes the session or the file changes a copy."""
-    from spherejax import cli, simulate
+    from spherejax import cli, io
     from tests.test_cli import SMALL
 
     root = tmp_path_factory.mktemp("cli")
-    simulate.simulate_session(root / "session", seed=5, design=SMALL)
+    io.write_simulated_session(root / "session", seed=5, design=SMALL)
     assert cli.main(["-q", "calibrate", str(root / "session"), "-o", str(root / "cal.npz")]) == 0
     return root
 

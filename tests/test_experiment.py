@@ -15,14 +15,14 @@ import json
 import numpy as np
 import pytest
 
-from spherejax import calibrate, evaluate, simulate
+from spherejax import calibrate, evaluate, io, simulate
 
 SMALL = simulate.ExperimentDesign(training_backgrounds=5, test_backgrounds=3, targets=64)
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    return simulate.simulate_session(tmp_path_factory.mktemp("sim") / "session", seed=1, design=SMALL)
+    return io.write_simulated_session(tmp_path_factory.mktemp("sim") / "session", seed=1, design=SMALL)
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +109,7 @@ def test_lambertian_sphere_stage1_alone_removes_the_background_effect(tmp_path):
     left is the 14-bit quantisation), Stage I responses agree across backgrounds to 1e-4 while
     the original ones differ by tenths of a percent and more."""
     instrument = dataclasses.replace(simulate.InstrumentModel().lambertian(), noise=False)
-    session = simulate.simulate_session(tmp_path / "lambertian", seed=2, instrument=instrument, design=SMALL)
+    session = io.write_simulated_session(tmp_path / "lambertian", seed=2, instrument=instrument, design=SMALL)
     calibration, _ = calibrate.calibrate_session(session)
     m = evaluate.evaluate_session(session, calibration).metrics
     for set_name in ("training", "test"):

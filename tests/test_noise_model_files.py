@@ -334,7 +334,7 @@ READ_NOISE = INSTRUMENT.read_noise_e / GAIN
 def simulated(tmp_path_factory):
     """(session, calibration, report) of a small simulated session, made once for the module."""
     root = tmp_path_factory.mktemp("noise")
-    session = simulate.simulate_session(root / "session", seed=3, design=DESIGN)
+    session = io.write_simulated_session(root / "session", seed=3, design=DESIGN)
     calibration, report = calibrate.calibrate_session(session)
     return session, calibration, report
 
@@ -350,7 +350,7 @@ def test_simulated_session_records_the_camera_and_frames(simulated):
 
 def test_noiseless_simulation_records_no_camera(tmp_path):
     tiny = simulate.ExperimentDesign(training_backgrounds=2, training_patches=2, test_backgrounds=1, test_patches=1, targets=4)
-    session = simulate.simulate_session(tmp_path / "s", seed=1, design=tiny, instrument=simulate.InstrumentModel(noise=False))
+    session = io.write_simulated_session(tmp_path / "s", seed=1, design=tiny, instrument=simulate.InstrumentModel(noise=False))
     assert "camera" not in session.metadata
 
 

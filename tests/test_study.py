@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from spherejax import calibrate, cli, evaluate, simulate, study
+from spherejax import calibrate, cli, evaluate, io, simulate, study
 
 SMALL = simulate.ExperimentDesign(training_backgrounds=4, test_backgrounds=2, targets=36)
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    return simulate.simulate_session(tmp_path_factory.mktemp("study") / "session", seed=4, design=SMALL)
+    return io.write_simulated_session(tmp_path_factory.mktemp("study") / "session", seed=4, design=SMALL)
 
 
 @pytest.fixture(scope="module")

@@ -1556,6 +1556,22 @@ def write_session(
     return load_session(path)
 
 
+def write_simulated_session(path, seed: int = 0, instrument=None, design=None) -> Session:
+    """Simulate the paper's experiment (`spherejax.simulate.simulate_experiment`) and write it as a
+    session folder (`write_session`); return the loaded `Session`.
+
+    Args:
+      path: the session folder to create (refused if it exists and is not empty).
+      seed: the simulation's seed.
+      instrument, design: `simulate.InstrumentModel` and `simulate.ExperimentDesign`, or None
+        for the defaults.
+    """
+    from .. import simulate  # here: the files layer calls the simulator only when asked to
+
+    experiment = simulate.simulate_experiment(seed, instrument, design)
+    return write_session(path, **simulate.session_contents(experiment))
+
+
 # -------------------------------------------------------------------------------- calibration file
 
 
@@ -2139,6 +2155,7 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
 __all__ = [
     "temp_sibling",
     "is_temp_sibling",
+    "write_simulated_session",
     "SpherejaxFileError",
     "SessionError",
     "CalibrationFileError",

@@ -1,0 +1,109 @@
+"""The layering of the package docstring (spherejax/__init__.py), enforced on the source.
+
+Every import in spherejax/ and hw/ is read from the syntax tree, those inside functions included
+(a lazy import is still a dependency); only imports under `if TYPE_CHECKING:` are left out, since
+they never run. A module may import modules of its own layer or of the layers below it; hw/ may
+use spherejax, and of spherejax only the command line may use hw/.
+"""
+
+import ast
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+KERNELS, WORKFLOWS, FILES = 1, 2, 3
+LAYERS = {
+    **dict.fromkeys(
+        ["colorimetry", "flatfield", "polynomial", "wiener_estimation", "pipeline", "uncertainty", "consistency",
+         "markov", "angles", "fused", "_fused_correct", "buffers", "grid", "spectra", "allocator", "jsontext",
+         "_checks"], KERNELS),
+    **dict.fromkeys(
+        ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
+         "simulated_targets", "figures"], WORKFLOWS),
+    **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "cli", "hw"], FILES),
+}
+#: spherejax modules that may import hw/ (the `acquire` command).
+USES_HW = {"cli"}
+
+
+def sources():
+    """(module path as a dotted name, file) of every spherejax and hw source but the package's
+    own __init__ (the public facade, which re-exports from every layer)."""
+    for file in sorted([*(ROOT / "spherejax").rglob("*.py"), *(ROOT / "hw").rglob("*.py")]):
+        parts = file.relative_to(ROOT).with_suffix("").parts
+        if parts == ("spherejax", "__init__"):
+            continue
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        yield ".".join(parts), file
+
+
+def imported_modules(module: str, file: pathlib.Path) -> set[str]:
+    """Dotted names of everything `file` imports at run time (relative imports resolved)."""
+    tree = ast.parse(file.read_text(encoding="utf-8"))
+    package = module.split(".") if file.name == "__init__.py" else module.split(".")[:-1]
+    type_checking_only = {
+        id(inner)
+        for guard in ast.walk(tree) if isinstance(guard, ast.If) and "TYPE_CHECKING" in ast.unparse(guard.test)
+        for statement in guard.body for inner in ast.walk(statement)
+    }
+    found = set()
+    for node in ast.walk(tree):
+        if not isinstance(node, (ast.Import, ast.ImportFrom)) or id(node) in type_checking_only:
+            continue
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+            continue
+        base = package[: len(package) - node.level + 1] if node.level else []
+        prefix = ".".join([*base, *(node.module.split(".") if node.module else [])])
+        for alias in node.names:
+            # `from . import io` imports a module; `from .io import atomic` one too; `from .grid
+            # import N` a name of a module: both depend on the module they come from.
+            found.add(f"{prefix}.{alias.name}" if node.module is None else prefix)
+    return found
+
+
+def layer_of(name: str) -> tuple[str, int] | None:
+    """(the layered unit, its layer) of a dotted module name in spherejax or hw, else None."""
+    parts = name.split(".")
+    if parts[0] == "hw":
+        return "hw", LAYERS["hw"]
+    if parts[0] != "spherejax" or len(parts) == 1:
+        return None
+    return parts[1], LAYERS.get(parts[1], 0)
+
+
+def test_every_module_has_a_layer():
+    units = {layer_of(module)[0] for module, _ in sources()}
+    assert sorted(units - set(LAYERS)) == [], "a new module: put it in a layer here and in the package docstring"
+    assert sorted(set(LAYERS) - units - {"_fused_correct"}) == []  # names that no longer exist
+
+
+@pytest.mark.parametrize("module, file", list(sources()), ids=lambda x: x if isinstance(x, str) else "")
+def test_imports_go_down_the_layers(module, file):
+    unit, layer = layer_of(module)
+    upward = []
+    for name in sorted(imported_modules(module, file)):
+        target = layer_of(name)
+        if target is None or target[0] == unit:
+            continue
+        if target[0] == "hw" and unit != "hw":
+            if unit not in USES_HW:
+                upward.append(f"{name} (hw/, used only by {sorted(USES_HW)})")
+            continue
+        if target[1] > layer:
+            upward.append(f"{name} (layer {target[1]}, above {unit}'s {layer})")
+    assert upward == [], f"{module} imports upward: {upward}"
+
+
+def test_the_reader_sees_what_it_must(tmp_path):
+    """The checks above can fail: an upward import, a lazy one and a TYPE_CHECKING one."""
+    lazy, guarded, nested = tmp_path / "lazy.py", tmp_path / "guarded.py", tmp_path / "nested.py"
+    lazy.write_text("def f():\n    from . import io\n")
+    guarded.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import io\nelse:\n    import json\n")
+    nested.write_text("from .. import grid\nfrom . import frames\nfrom .sessions import Session\n")
+    assert imported_modules("spherejax.simulated_targets", lazy) == {"spherejax.io"}
+    assert imported_modules("spherejax.stripwise", guarded) == {"typing", "json"}
+    assert imported_modules("spherejax.io.atomic", nested) == {"spherejax.grid", "spherejax.io.frames", "spherejax.io.sessions"}
