@@ -81,8 +81,9 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .grid import N_WAVELENGTHS
-from .io import SpherejaxFileError, _readable_json
 from .io.atomic import fsync_folder, temp_sibling
+from .io.documents import _readable_json
+from .io.errors import SpherejaxFileError
 from .measurement import Measurement
 
 FORMAT = "spherejax-measurement"

@@ -9,6 +9,7 @@ import copy
 import datetime
 import hashlib
 import json
+import os
 import pathlib
 import re
 import zipfile
@@ -177,7 +178,7 @@ def rewrite_npz(path, entries, header=None, *, recompute_checksum=False):
     if header is not None:
         if recompute_checksum:
             arrays = {k: v for k, v in entries.items() if k != "header"}
-            header = {**header, "checksum": io._checksum(header, arrays)}
+            header = {**header, "checksum": io.calibration_files._checksum(header, arrays)}
         entries["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
     with open(path, "wb") as file:
         np.savez(file, **entries)
@@ -274,7 +275,7 @@ def test_write_frame_failure_leaves_the_old_file_and_no_temporary(tmp_path, rng,
     def fail(src, dst):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(io.os, "replace", fail)
+    monkeypatch.setattr(os, "replace", fail)
     match = "could not be written: .*No space left"
     with refused(SpherejaxFileError, path, match, says_expected=False):
         io.write_frame(path, counts(rng))
@@ -527,7 +528,7 @@ def test_write_session_failure_removes_the_partial_folder(tmp_path, rng, monkeyp
         written.append(path)
         real_write_frame(path, array, **kwargs)
 
-    monkeypatch.setattr(io, "write_frame", write_two_then_fail)
+    monkeypatch.setattr(io.sessions, "write_frame", write_two_then_fail)
     path = tmp_path / "session"
     third_frame = path / "frames" / "train-bg03-a.tif"
     with refused(SessionError, third_frame, "No space left", says_expected=False):
@@ -794,7 +795,7 @@ def test_save_calibration_replaces_atomically(calibration_path, rng, monkeypatch
     def fail(src, dst):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(io.os, "replace", fail)
+    monkeypatch.setattr(os, "replace", fail)
     match = "could not be written: .*No space left"
     with refused(CalibrationFileError, calibration_path, match, says_expected=False):
         io.save_calibration(
@@ -1011,14 +1012,14 @@ def test_calibration_of_format_version_1_opens_with_a_zero_offset(tmp_path, rng,
     for name in ("dark", "white", "patch", "coeffs", "wiener"):
         assert np.asarray(getattr(loaded, name)).tobytes() == np.asarray(getattr(calibration, name)).tobytes()
     # Read by rows (a large file) and cropped to the patch: the same zero offset.
-    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
     with io.open_calibration(path) as opened:
         for part in (opened.rows(2, 7), opened.patch_calibration, opened.calibration()):
             assert part.wiener_offset.shape == (31,) and not np.asarray(part.wiener_offset).any()
 
 
 def test_calibration_offset_survives_rows_and_crops(calibration_path, monkeypatch):
-    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
     loaded, _ = io.load_calibration(calibration_path)
     assert np.abs(np.asarray(loaded.wiener_offset)).max() > 0
     with io.open_calibration(calibration_path) as opened:

@@ -179,7 +179,7 @@ def test_noise_model_round_trips_bit_for_bit(tmp_path, rng, per_band, dtype):
     assert header_of(npz_entries(path))["noise_model"] == model.to_json()
     # Large files (read by rows) carry it too.
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(io, "IN_MEMORY_BYTES", 0)
+        patch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
         with io.open_calibration(path) as opened:
             assert_same_model(opened.noise_model, model)
 
@@ -205,7 +205,7 @@ def test_header_with_a_noise_model_stays_small(tmp_path, rng):
     path = tmp_path / "cal.npz"
     save(path, rng, make_noise_model(rng, per_band=True))
     size = npz_entries(path)["header"].nbytes
-    assert size < 100_000 and size * 100 < io._MAX_HEADER_BYTES
+    assert size < 100_000 and size * 100 < io.calibration_files._MAX_HEADER_BYTES
 
 
 @pytest.mark.parametrize("version", [1, 2])

@@ -90,12 +90,12 @@ def test_strips_equal_whole_image_correction(tmp_path, rng, calibration, calibra
 
 def test_strips_equal_whole_image_with_calibration_on_disk(tmp_path, rng, calibration, calibration_path, monkeypatch):
     """A calibration larger than IN_MEMORY_BYTES keeps dark and white on disk, read by rows."""
-    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 1024)
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 1024)
     raw = make_raw(rng)
     io.write_frame(tmp_path / "a.tif", raw)
     with io.open_calibration(calibration_path) as opened:
-        assert isinstance(opened._arrays["dark"], io._StoredArray)
-        assert isinstance(opened._arrays["white"], io._StoredArray)
+        assert isinstance(opened._arrays["dark"], io.calibration_files._StoredArray)
+        assert isinstance(opened._arrays["white"], io.calibration_files._StoredArray)
         with io.open_cube(tmp_path / "a.tif", expected_shape=(H, W, B)) as cube:
             assert_same_as_whole(strips_of(cube, opened, 7), spherejax.correct(raw, calibration))
 
@@ -262,7 +262,7 @@ def test_writer_left_unfinished_leaves_nothing(tmp_path, rng):
 
 
 def test_calibration_file_rows_match_the_loaded_calibration(calibration_path, calibration, monkeypatch):
-    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)  # everything on disk
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)  # everything on disk
     with io.open_calibration(calibration_path) as opened:
         assert opened.image_shape == (H, W) and opened.bands == B and opened.patch_box == PATCH
         rows = opened.rows(11, 29)
@@ -279,8 +279,8 @@ def test_calibration_file_rows_match_the_loaded_calibration(calibration_path, ca
 
 def test_calibration_file_on_disk_detects_tampering(calibration_path, monkeypatch):
     """The checksum of arrays left on disk is verified block by block, as for a loaded one."""
-    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)
-    monkeypatch.setattr(io, "_READ_BLOCK", 4096)  # many blocks
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
+    monkeypatch.setattr(io.calibration_files, "_READ_BLOCK", 4096)  # many blocks
     data = bytearray(calibration_path.read_bytes())
     at = data.index(b"white.npy")  # a byte of the dark frame, before the white standard's member
     data[at - 5000] ^= 0x01
@@ -292,7 +292,7 @@ def test_calibration_file_on_disk_detects_tampering(calibration_path, monkeypatc
 def test_calibration_file_reads_the_file_it_opened(tmp_path, calibration_path, calibration, rng, monkeypatch):
     """Replacing the calibration file during a batch cannot mix two calibrations: reads go to the
     file that was opened and verified."""
-    monkeypatch.setattr(io, "IN_MEMORY_BYTES", 0)
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
     with io.open_calibration(calibration_path) as opened:
         io.save_calibration(calibration_path, make_calibration(rng), instrument_id="sphere-1", band_centres_nm=BANDS)
         np.testing.assert_array_equal(np.asarray(opened.rows(0, H).dark), np.asarray(calibration.dark))

@@ -103,7 +103,7 @@ def _forge_calibration(source: pathlib.Path, target: pathlib.Path, change) -> pa
     change(header, arrays)
     for name, array in arrays.items():
         header["arrays"][name] = {**header["arrays"].get(name, {}), "shape": list(array.shape), "dtype": array.dtype.str}
-    header["checksum"] = io._checksum(header, arrays)
+    header["checksum"] = io.calibration_files._checksum(header, arrays)
     np.savez(target, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
     return target
 

@@ -396,7 +396,7 @@ def _calibration(rng) -> sj.Calibration:
 def valid_calibration(scratch) -> Valid:
     path = scratch / "valid-cal.npz"
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(io, "_utc_now", lambda: CREATED)  # the same header on every run
+        patch.setattr(io.calibration_files, "_utc_now", lambda: CREATED)  # the same header on every run
         io.save_calibration(path, _calibration(np.random.default_rng(2)), instrument_id="sim", band_centres_nm=BANDS)
     return Valid(path, path.read_bytes())
 
@@ -489,7 +489,7 @@ def _save_forged(path: pathlib.Path, header, arrays: dict) -> None:
     one: what a third-party writer or a forger produces."""
     if isinstance(header, dict):
         with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
-            header = {**header, "checksum": io._checksum(header, arrays)}
+            header = {**header, "checksum": io.calibration_files._checksum(header, arrays)}
     encoded = json.dumps(header, allow_nan=True).encode("utf-8")
     with open(path, "wb") as file:
         np.savez(file, header=np.frombuffer(encoded, dtype=np.uint8), **arrays)
@@ -511,7 +511,7 @@ def forged_calibrations(draw, header, arrays):
         else:
             arrays[name] = draw(npy_arrays)
     header = json.loads(json.dumps(header))
-    header["arrays"] = {name: io._array_entry(name, array) for name, array in arrays.items()}
+    header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in arrays.items()}
     if draw(st.booleans()):
         header["metadata"] = draw(st.dictionaries(st.text(max_size=4), json_values, max_size=3))
     if draw(st.booleans()):
@@ -619,7 +619,7 @@ def test_calibration_of_non_numbers_is_refused(scratch, valid_calibration, dtype
     TypeError (naming no file) before the fix."""
     header, arrays = _valid_entries(valid_calibration.content)
     arrays["dark"] = np.zeros(arrays["dark"].shape, dtype)
-    header["arrays"] = {name: io._array_entry(name, array) for name, array in arrays.items()}
+    header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in arrays.items()}
     path = scratch / f"dark-{dtype}.npz"
     _save_forged(path, header, arrays)
     result = load_calibration_checked(path)
@@ -630,7 +630,7 @@ def test_calibration_in_big_endian_byte_order_loads(scratch, valid_calibration):
     """">f4" arrays (a big-endian writer): JAX's TypeError before the fix; now the same values."""
     header, arrays = _valid_entries(valid_calibration.content)
     swapped = {name: array.astype(array.dtype.newbyteorder(">")) for name, array in arrays.items()}
-    header["arrays"] = {name: io._array_entry(name, array) for name, array in swapped.items()}
+    header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in swapped.items()}
     path = scratch / "big-endian.npz"
     _save_forged(path, header, swapped)
     calibration, _ = load_calibration_checked(path)

@@ -1,0 +1,327 @@
+"""Camera frames: single-page 16-bit TIFFs of (H, W, C), channel names and attributes in their
+ImageDescription, and `AtomicImageWriter`, the row-strip image writer every image output uses."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import os
+import pathlib
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+import OpenImageIO as oiio
+
+from .atomic import create_exclusive, fsync_folder, temp_sibling
+from .errors import SpherejaxFileError, _show
+
+_FRAME_EXPECTED = "a single-page 16-bit TIFF of shape (H, W, C)"
+_RESERVED_ATTRIBUTES = ("ImageDescription",)
+
+def _refuse_undecodable_text(expected: str):
+    """Decorate a reader whose first argument is the file: a UnicodeDecodeError out of it
+    becomes a SpherejaxFileError naming the file.
+
+    OpenImageIO's binding decodes every string it hands to Python (error messages, channel
+    names, attributes) as UTF-8. A damaged file can make them quote bytes that are not, and the
+    UnicodeDecodeError would then name neither the file nor the problem.
+    """
+
+    def decorate(reader):
+        @functools.wraps(reader)
+        def checked(path, *args, **kwargs):
+            try:
+                return reader(path, *args, **kwargs)
+            except UnicodeDecodeError:
+                problem = "is corrupted: OpenImageIO finds text in it that is not UTF-8"
+                raise SpherejaxFileError(path, problem, expected) from None
+
+        return checked
+
+    return decorate
+
+
+@_refuse_undecodable_text(_FRAME_EXPECTED)
+def _open_checked_frame(path: pathlib.Path) -> oiio.ImageInput:
+    """An open ImageInput on a checked camera frame (one page, uint16 samples); the caller closes it."""
+    if not path.is_file():
+        raise SpherejaxFileError(path, "no such file", _FRAME_EXPECTED)
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        problem = f"is not a readable image: {oiio.geterror()}"
+        raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
+    try:
+        _check_frame_header(path, image)
+    except BaseException:
+        image.close()
+        raise
+    return image
+
+
+@contextlib.contextmanager
+def _open_frame(path: pathlib.Path) -> Iterator[oiio.ImageInput]:
+    """`_open_checked_frame`, closed on exit."""
+    image = _open_checked_frame(path)
+    try:
+        yield image
+    finally:
+        image.close()
+
+
+def _check_frame_header(path: pathlib.Path, image: oiio.ImageInput) -> None:
+    spec = image.spec()
+    if spec.deep or spec.depth != 1:
+        raise SpherejaxFileError(path, "is a deep or volume image", _FRAME_EXPECTED)
+    formats = [str(f) for f in (spec.channelformats or (spec.format,))]
+    bits = spec.get_int_attribute("oiio:BitsPerSample", 16)
+    if any(f != "uint16" for f in formats) or bits != 16:
+        found = ", ".join(sorted(set(formats)))
+        raise SpherejaxFileError(
+            path, f"has {found} samples of {bits} bits", "16-bit unsigned integer samples (uint16)"
+        )
+    # A second page would be silently ignored by a single-image read: refuse it.
+    if image.seek_subimage(1, 0):
+        raise SpherejaxFileError(path, "holds more than one image (page)", _FRAME_EXPECTED)
+    # The failed seek queued "could not seek to subimage 1", which would mask a later read error.
+    image.geterror()
+    image.seek_subimage(0, 0)
+
+
+def _spec_shape(image: oiio.ImageInput) -> tuple[int, int, int]:
+    spec = image.spec()
+    return spec.height, spec.width, spec.nchannels
+
+
+def _require_frame_shape(path, shape: tuple[int, int, int], expected: Sequence[int]) -> None:
+    """Refuse a frame whose (H, W) or channel count differs from `expected` (H, W, C)."""
+    height, width, channels = (int(n) for n in expected)
+    if tuple(shape[:2]) != (height, width):
+        raise SpherejaxFileError(
+            path,
+            f"is {shape[0]} x {shape[1]} pixels (H x W)",
+            f"{height} x {width} pixels",
+        )
+    if shape[2] != channels:
+        raise SpherejaxFileError(
+            path, f"has {shape[2]} channels", f"{channels} channels, one per band"
+        )
+
+
+def frame_spec(path) -> tuple[int, int, int]:
+    """The shape (H, W, C) of a camera frame, from its header only (no pixels are read).
+
+    Raises SpherejaxFileError for a missing file, a file that is not an image, and an image that is
+    not a single page of 16-bit unsigned samples.
+    """
+    path = pathlib.Path(path)
+    with _open_frame(path) as image:
+        return _spec_shape(image)
+
+
+@_refuse_undecodable_text(_FRAME_EXPECTED)
+def read_frame(path, *, expected_shape: Sequence[int] | None = None) -> np.ndarray:
+    """Read a camera frame.
+
+    Args:
+      path: a 16-bit TIFF (any single-page uint16 image OpenImageIO reads).
+      expected_shape: (H, W, C) to insist on, or None.
+
+    Returns:
+      (H, W, C) uint16 array.
+
+    Raises:
+      SpherejaxFileError: missing file, not an image or corrupted (with OpenImageIO's message),
+        not 16-bit, more than one page, or a size or channel count other than `expected_shape`.
+    """
+    path = pathlib.Path(path)
+    with _open_frame(path) as image:
+        shape = _spec_shape(image)
+        if expected_shape is not None:
+            _require_frame_shape(path, shape, expected_shape)
+        pixels = image.read_image(oiio.UINT16)
+        if pixels is None:
+            # OIIO does not always say why (a damaged deflate stream gives no message).
+            detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
+            problem = f"is corrupted: {detail}"
+            raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
+    return np.ascontiguousarray(np.asarray(pixels, dtype=np.uint16).reshape(shape))
+
+
+@_refuse_undecodable_text(_FRAME_EXPECTED)
+def read_frame_metadata(path) -> dict:
+    """The channel names and attributes `write_frame` stored in a frame (header only).
+
+    Returns:
+      {"channel_names": [C str], "attributes": {str: str}}. For a TIFF written by other software,
+      the channel names OpenImageIO reports and no attributes.
+    """
+    path = pathlib.Path(path)
+    with _open_frame(path) as image:
+        spec = image.spec()
+        description = spec.get_string_attribute("ImageDescription")
+    try:
+        stored = json.loads(description)
+        # Converted inside the try: a description that is JSON but not write_frame's falls back too.
+        return {"channel_names": list(stored["channel_names"]), "attributes": dict(stored["attributes"])}
+    except (ValueError, TypeError, KeyError, RecursionError):
+        return {"channel_names": list(spec.channelnames), "attributes": {}}
+
+
+def _frame_names_and_attributes(path, channels: int, channel_names, attributes):
+    """Checked channel names (C str) and string attributes for `write_frame`."""
+    if channel_names is None:
+        channel_names = [f"channel{i}" for i in range(channels)]
+    channel_names = list(channel_names)
+    if len(channel_names) != channels or not all(isinstance(n, str) and n for n in channel_names):
+        raise SpherejaxFileError(
+            path, f"channel_names is {_show(channel_names)}", f"{channels} non-empty strings"
+        )
+    attributes = dict(attributes or {})
+    for key, value in attributes.items():
+        if not (isinstance(key, str) and key and isinstance(value, str)):
+            raise SpherejaxFileError(
+                path, f"attribute {_show(key)} is {_show(value)}", "string names and values"
+            )
+        if key in _RESERVED_ATTRIBUTES:
+            raise SpherejaxFileError(
+                path,
+                f"attribute {key!r} is reserved for the channel names and attributes",
+                f"attribute names other than {list(_RESERVED_ATTRIBUTES)}",
+            )
+    return channel_names, attributes
+
+
+def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
+    """Write a camera frame as a multi-channel 16-bit TIFF, atomically.
+
+    Args:
+      path: destination; its folder must exist. Replaces an existing file only when complete.
+      array: (H, W, C) uint16. (H, W) is refused: pass (H, W, 1) for one channel.
+      channel_names: C names such as "400nm"; default "channel0", "channel1", ...
+      attributes: string metadata {name: value}, kept as TIFF tags where TIFF has one and always
+        in the ImageDescription JSON (`read_frame_metadata`).
+
+    Raises:
+      SpherejaxFileError: a wrong array, names or attributes (nothing written), or a failed write
+        (the temporary file is removed).
+    """
+    from .. import __version__
+
+    path = pathlib.Path(path)
+    array = np.asarray(array)
+    if array.ndim != 3 or array.dtype != np.uint16 or 0 in array.shape:
+        raise SpherejaxFileError(
+            path,
+            f"cannot hold an array of shape {array.shape} and dtype {array.dtype}",
+            "a non-empty (H, W, C) uint16 array",
+        )
+    height, width, channels = array.shape
+    names, attributes = _frame_names_and_attributes(path, channels, channel_names, attributes)
+    if not path.parent.is_dir():
+        raise SpherejaxFileError(path, "cannot be written: no such folder", "an existing folder")
+
+    spec = oiio.ImageSpec(width, height, channels, oiio.UINT16)
+    spec.channelnames = tuple(names)
+    # Every channel is a band: no channel may be taken for alpha (and premultiplied on reading).
+    spec.alpha_channel = -1
+    spec.attribute("compression", "zip")  # lossless deflate, which every TIFF reader decodes
+    spec.attribute("Software", f"spherejax {__version__}")
+    for key, value in attributes.items():
+        spec.attribute(key, value)
+    description = {"channel_names": names, "attributes": attributes}
+    spec.attribute("ImageDescription", json.dumps(description))
+
+    _write_image_atomic(path, spec, array, "tiff")
+
+
+class AtomicImageWriter:
+    """One image written through OpenImageIO in row strips under a temporary name beside `path`,
+    made the file by `commit` (fsync, then rename) only once every row is written.
+
+    The temporary name is first created with O_EXCL, so it can never be an existing file or a
+    link to one elsewhere; OpenImageIO then rewrites that fresh, empty file. Leaving the `with`
+    block without `commit` (an error, a strip never written) removes the temporary file, and an
+    existing `path` is untouched. Rows must be written in order, top to bottom; the bytes do not
+    depend on how the rows are split into strips (tested).
+    """
+
+    def __init__(self, path, spec: oiio.ImageSpec, format_name: str):
+        self.path = pathlib.Path(path)
+        self.height = spec.height
+        self._next_row = 0
+        self._temp = temp_sibling(self.path)
+        self._output = None
+        try:
+            create_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
+        except OSError as error:
+            raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
+        # The format is named, not guessed from the temporary file's extension.
+        output = oiio.ImageOutput.create(format_name)
+        if output is None or not output.open(str(self._temp), spec):
+            detail = output.geterror() if output is not None else oiio.geterror()
+            self.abort()
+            raise SpherejaxFileError(self.path, f"could not be written: {detail}")
+        self._output = output
+
+    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
+        """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows of the image."""
+        if self._output is None:
+            raise SpherejaxFileError(self.path, "is no longer open for writing")
+        if row0 != self._next_row:
+            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+        row1 = row0 + len(pixels)
+        if not self._output.write_scanlines(row0, row1, 0, np.ascontiguousarray(pixels)):
+            detail = self._output.geterror()
+            self.abort()
+            raise SpherejaxFileError(self.path, f"could not be written: {detail}")
+        self._next_row = row1
+
+    def commit(self) -> str:
+        """Finish the file, fsync it, rename it into place; return its SHA-256 (hex)."""
+        if self._output is None:
+            raise SpherejaxFileError(self.path, "is no longer open for writing")
+        if self._next_row != self.height:
+            self.abort()
+            raise SpherejaxFileError(
+                self.path, f"has {self._next_row} of its {self.height} rows", "every row written"
+            )
+        output, self._output = self._output, None
+        try:
+            if not output.close():
+                raise SpherejaxFileError(self.path, f"could not be written: {output.geterror()}")
+            digest = hashlib.sha256()
+            with open(self._temp, "rb") as file:
+                for block in iter(lambda: file.read(1 << 20), b""):
+                    digest.update(block)
+                os.fsync(file.fileno())  # on disk before the rename makes it the file
+            os.replace(self._temp, self.path)
+            fsync_folder(self.path.parent)  # and the rename on disk too
+        except OSError as error:
+            raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
+        finally:
+            self.abort()
+        return digest.hexdigest()
+
+    def abort(self) -> None:
+        """Drop what was written: the temporary file goes, `path` is untouched."""
+        output, self._output = self._output, None
+        if output is not None:
+            output.close()
+        # Best effort: the folder itself may be what failed (gone, or a file in its place).
+        with contextlib.suppress(OSError):
+            self._temp.unlink(missing_ok=True)
+
+    def __enter__(self) -> AtomicImageWriter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.abort()
+
+
+def _write_image_atomic(path: pathlib.Path, spec, array: np.ndarray, format_name: str) -> str:
+    """Write a whole image with `AtomicImageWriter`; return the SHA-256 (hex) of its bytes."""
+    with AtomicImageWriter(path, spec, format_name) as writer:
+        writer.write_rows(0, array)
+        return writer.commit()
