@@ -73,12 +73,26 @@ def workspace(tmp_path_factory):
     made once for the run (once per pytest-xdist worker) and shared by tests/test_cli.py and the
     robustness tests. Read-only: a test that changes the session or the file changes a copy."""
     from spherejax import cli, io
-    from tests.test_cli import SMALL
+    from tests.helpers import SMALL
 
     root = tmp_path_factory.mktemp("cli")
     io.write_simulated_session(root / "session", seed=5, design=SMALL)
     assert cli.main(["-q", "calibrate", str(root / "session"), "-o", str(root / "cal.npz")]) == 0
     return root
+
+
+@pytest.fixture(scope="module")
+def cal(tmp_path_factory):
+    """A calibration file for 40 x 48 pixel, 16-band frames (`tests.batch_support`), made once
+    for each test module that asks for it."""
+    from spherejax import io
+    from tests.batch_support import make_calibration
+
+    rng = np.random.default_rng(0)
+    path = tmp_path_factory.mktemp("cal") / "cal.npz"
+    calibration, bands, instrument = make_calibration(rng)
+    io.save_calibration(path, calibration, instrument_id=instrument, band_centres_nm=bands)
+    return path
 
 
 @pytest.fixture(params=[np.float32, np.float64], ids=["float32", "float64"])

@@ -5,8 +5,10 @@ from __future__ import annotations
 import pathlib
 
 import numpy as np
+import OpenImageIO as oiio
 
 from spherejax.polynomial import PAPER_TABLE_2
+from spherejax.simulate import ExperimentDesign
 
 #: Reference data kept in the repository, each file cited in tests/data/README.md.
 DATA = pathlib.Path(__file__).resolve().parent / "data"
@@ -80,3 +82,19 @@ def no_compilation_cache_writes(env: dict[str, str]) -> dict[str, str]:
     for the other processes. (JAX writes an entry only when compiling it took at least this many
     seconds.)"""
     return {**env, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "inf"}
+
+
+def write_with_oiio(path, pages):
+    """Write pages with OpenImageIO directly (formats spherejax itself never writes)."""
+    specs = [oiio.ImageSpec(p.shape[1], p.shape[0], p.shape[2], p.dtype.name) for p in pages]
+    output = oiio.ImageOutput.create(str(path))
+    assert output.open(str(path), specs)
+    for index, (spec, pixels) in enumerate(zip(specs, pages)):
+        if index:
+            assert output.open(str(path), spec, "AppendSubimage")
+        assert output.write_image(pixels)
+    output.close()
+
+
+#: A small experiment design (tests/test_cli.py, the `workspace` fixture of tests/conftest.py).
+SMALL = ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=16)

@@ -9,8 +9,6 @@ import os
 import pathlib
 import random
 import signal
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -19,84 +17,17 @@ import pytest
 
 import spherejax
 from spherejax import archive, cli, io
-from spherejax.grid import BAND_CENTRES_NM, WAVELENGTHS_NM
+from spherejax.grid import WAVELENGTHS_NM
 
-from .helpers import no_compilation_cache_writes
-
-H, W, B = 40, 48, 16
-BANDS = [int(b) for b in BAND_CENTRES_NM]
-NAMES = [f"{b}nm" for b in BANDS]
-KINDS = archive.OUTPUT_KINDS
-
-
-def make_calibration(rng, *, instrument_id="sphere-1", bands=BANDS):
-    nb = len(bands)
-    dark = rng.uniform(90, 110, (H, W, nb)).astype(np.float32)
-    white = rng.uniform(9000, 11000, (H, W, nb)).astype(np.float32)
-    patch = np.zeros((H, W), dtype=bool)
-    patch[2:8, 2:8] = True
-    wiener = (rng.uniform(0, 1, (31, nb)) / nb).astype(np.float32)
-    calibration = spherejax.Calibration(
-        dark=dark, white=white, patch=patch, coeffs=np.asarray(spherejax.identity_coeffs(nb)),
-        wiener=wiener, saturation=16383.0,
-    )
-    return calibration, bands, instrument_id
-
-
-def frame(rng, shape=(H, W, B)):
-    raw = rng.integers(2000, 9000, shape).astype(np.uint16)
-    raw[0, 0, 0] = 16383  # one saturated pixel: NaN in the outputs, magenta in the preview
-    return raw
-
-
-@pytest.fixture(scope="module")
-def cal(tmp_path_factory):
-    """A calibration file for 40 x 48 pixel, 16-band frames."""
-    rng = np.random.default_rng(0)
-    path = tmp_path_factory.mktemp("cal") / "cal.npz"
-    calibration, bands, instrument = make_calibration(rng)
-    io.save_calibration(path, calibration, instrument_id=instrument, band_centres_nm=bands)
-    return path
+from .batch_support import (
+    B, BANDS, H, KINDS, NAMES, W, frame, holds_lock, make_calibration, manifest_records, outputs_of, read_exr, run,
+    spec_alpha, start_correct, wait_until,
+)
 
 
 @pytest.fixture
 def rng():
     return np.random.default_rng(1)
-
-
-def run(argv, capsys):
-    status = cli.main(argv)
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
-
-
-def outputs_of(out: pathlib.Path) -> dict[str, bytes]:
-    """Every output file under OUT (manifest and lock left out) -> bytes."""
-    skip = {archive.MANIFEST_NAME, archive.LOCK_NAME}
-    return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file() and p.name not in skip}
-
-
-def read_exr(path):
-    """(pixels (H, W, C) float32, channel names, attributes) through OpenImageIO."""
-    image = oiio.ImageInput.open(str(path))
-    spec = image.spec()
-    pixels = image.read_image(oiio.FLOAT)
-    attributes = {a.name: a.value for a in spec.extra_attribs}
-    names = list(spec.channelnames)
-    image.close()
-    return pixels, names, attributes
-
-
-def spec_alpha(path):
-    image = oiio.ImageInput.open(str(path))
-    alpha = image.spec().alpha_channel
-    image.close()
-    return alpha
-
-
-def manifest_records(out):
-    return [json.loads(line) for line in (out / archive.MANIFEST_NAME).read_text().splitlines() if line.strip()]
-
 
 # --------------------------------------------------------------------------------------- outputs
 
@@ -423,36 +354,6 @@ def test_resume_ignores_a_torn_manifest_line_and_stale_temporaries(cal, tmp_path
 # ------------------------------------------------------------------------------ kill and resume
 
 
-def _start(argv, *, may_be_killed: bool = True) -> subprocess.Popen:
-    """`spherejax correct` in a child process. One that may be killed reads the shared
-    compilation cache but writes none (`helpers.no_compilation_cache_writes`); an uninterrupted
-    reference run fills it for the others."""
-    command = [sys.executable, "-m", "spherejax.cli", "correct", *argv]
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    if may_be_killed:
-        env = no_compilation_cache_writes(env)
-    return subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-
-def _wait_until(process: subprocess.Popen, condition) -> float:
-    """Poll until `condition()` holds or the process ends; return the time."""
-    while not condition() and process.poll() is None:
-        time.sleep(0.002)
-    return time.perf_counter()
-
-
-def _holds_lock(process: subprocess.Popen, out: pathlib.Path):
-    """True once `process` holds OUT's lock (a killed run's lock file stays behind: check the pid)."""
-
-    def condition():
-        try:
-            return json.loads((out / archive.LOCK_NAME).read_text())["pid"] == process.pid
-        except (OSError, ValueError, KeyError):
-            return False
-
-    return condition
-
-
 @pytest.mark.slow
 def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
     rng = np.random.default_rng(7)
@@ -461,7 +362,7 @@ def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
     for index in range(12):
         io.write_frame(inputs / f"cube{index:02d}.tif", frame(rng), channel_names=NAMES)
     reference, killed = tmp_path / "reference", tmp_path / "killed"
-    process = _start(["-c", str(cal), str(inputs), "-o", str(reference)], may_be_killed=False)
+    process = start_correct(["-c", str(cal), str(inputs), "-o", str(reference)], may_be_killed=False)
     _, err = process.communicate(timeout=120)
     assert process.returncode == 0, err.decode()
 
@@ -473,18 +374,18 @@ def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
         argv = ["-c", str(cal), str(inputs), "-o", str(killed)]
         if (killed / archive.MANIFEST_NAME).exists():
             argv.append("--resume")
-        process = _start(argv)
+        process = start_correct(argv)
         if attempt == 0:
             time.sleep(0.2)
         else:
-            _wait_until(process, _holds_lock(process, killed))
+            wait_until(process, holds_lock(process, killed))
             target = len(archive.read_manifest(killed)) + delays.randint(1, 2)
-            _wait_until(process, lambda: len(archive.read_manifest(killed)) >= target)
+            wait_until(process, lambda: len(archive.read_manifest(killed)) >= target)
             time.sleep(delays.uniform(0.0, 0.015))
         process.send_signal(signal.SIGKILL)
         process.communicate(timeout=60)
         progress.append(len(archive.read_manifest(killed)))
-    process = _start(["-c", str(cal), str(inputs), "-o", str(killed), "--resume"])
+    process = start_correct(["-c", str(cal), str(inputs), "-o", str(killed), "--resume"])
     _, err = process.communicate(timeout=120)
     assert process.returncode == 0, err.decode()
 

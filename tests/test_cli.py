@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from spherejax import cli, io, simulate
+from tests.helpers import SMALL
 
-SMALL = simulate.ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=16)
 
 
 # `workspace` (tests/conftest.py): a small simulated session of the SMALL design and its

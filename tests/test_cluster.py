@@ -8,7 +8,7 @@ import pytest
 
 from spherejax import archive, cluster, io
 
-from .test_archive import NAMES, frame, make_calibration, outputs_of, run
+from .batch_support import NAMES, frame, make_calibration, outputs_of, run
 
 
 @pytest.fixture(scope="module")

@@ -15,12 +15,12 @@ import re
 import zipfile
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 
 import spherejax as sj
 from spherejax import io
 from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
+from tests.helpers import write_with_oiio
 
 H, W = 12, 10
 BANDS = list(range(400, 701, 20))
@@ -339,18 +339,6 @@ def test_read_frame_wrong_channel_count(tmp_path, rng):
     io.write_frame(path, counts(rng, (H, W, 3)))
     with refused(SpherejaxFileError, path, f"has 3 channels .*{B} channels"):
         io.read_frame(path, expected_shape=(H, W, B))
-
-
-def write_with_oiio(path, pages):
-    """Write pages with OpenImageIO directly (formats spherejax itself never writes)."""
-    specs = [oiio.ImageSpec(p.shape[1], p.shape[0], p.shape[2], p.dtype.name) for p in pages]
-    output = oiio.ImageOutput.create(str(path))
-    assert output.open(str(path), specs)
-    for index, (spec, pixels) in enumerate(zip(specs, pages)):
-        if index:
-            assert output.open(str(path), spec, "AppendSubimage")
-        assert output.write_image(pixels)
-    output.close()
 
 
 def test_read_frame_refuses_8_bit(tmp_path):

@@ -58,10 +58,11 @@ def imported_modules(module: str, file: pathlib.Path) -> set[str]:
             continue
         base = package[: len(package) - node.level + 1] if node.level else []
         prefix = ".".join([*base, *(node.module.split(".") if node.module else [])])
+        if node.module is not None:
+            found.add(prefix)  # `from .grid import N`: depends on spherejax.grid
         for alias in node.names:
-            # `from . import io` imports a module; `from .io import atomic` one too; `from .grid
-            # import N` a name of a module: both depend on the module they come from.
-            found.add(f"{prefix}.{alias.name}" if node.module is None else prefix)
+            # `from . import io`, `from .io import atomic`: a module, if the name is one.
+            found.add(f"{prefix}.{alias.name}")
     return found
 
 
@@ -105,5 +106,20 @@ def test_the_reader_sees_what_it_must(tmp_path):
     guarded.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import io\nelse:\n    import json\n")
     nested.write_text("from .. import grid\nfrom . import frames\nfrom .sessions import Session\n")
     assert imported_modules("spherejax.simulated_targets", lazy) == {"spherejax.io"}
-    assert imported_modules("spherejax.stripwise", guarded) == {"typing", "json"}
-    assert imported_modules("spherejax.io.atomic", nested) == {"spherejax.grid", "spherejax.io.frames", "spherejax.io.sessions"}
+    assert imported_modules("spherejax.stripwise", guarded) == {"typing", "typing.TYPE_CHECKING", "json"}
+    assert imported_modules("spherejax.io.atomic", nested) == {
+        "spherejax.grid", "spherejax.io.frames", "spherejax.io.sessions", "spherejax.io.sessions.Session"}
+
+
+def test_no_test_module_imports_another():
+    """What tests share lives in support modules (tests/helpers.py, batch_support.py,
+    hw/support.py, hw/profiles.py, robustness/catalogue.py) and tests/conftest.py, never in
+    another test file."""
+    tests = ROOT / "tests"
+    importing = []
+    for file in sorted(tests.rglob("*.py")):
+        module = ".".join(file.relative_to(ROOT).with_suffix("").parts)
+        for name in imported_modules(module, file):
+            if name.startswith("tests.") and name.rsplit(".", 1)[-1].startswith("test_"):
+                importing.append(f"{file.relative_to(ROOT)} imports {name}")
+    assert importing == []

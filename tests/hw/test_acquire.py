@@ -18,33 +18,7 @@ from hw import acquire
 from spherejax import cli, io
 from tests.helpers import no_compilation_cache_writes
 
-BANDS = list(range(400, 701, 20))
-SAMPLES = ("train-bg00-g0", "test-bg01-g1")
-
-
-def write_profile(folder: pathlib.Path, *, samples=SAMPLES, extra: str = "", move_timeout_s: float = 3.0) -> pathlib.Path:
-    lines = ["[instrument]", 'id = "sphere-1"']
-    for name, port in (("a", "/dev/ttyUSB0"), ("b", "/dev/ttyUSB1")):
-        lines += [f"[wheels.{name}]", f'port = "{port}"', 'model = "FW212C"', "open_slot = 12", f"move_timeout_s = {move_timeout_s}"]
-    lines += ["[shutter]", 'port = "/dev/ttyUSB2"', 'model = "SC10"', "[camera]", 'backend = "sim"', "[bands]"]
-    lines += [f'{nm} = ["{"a" if i < 8 else "b"}", {i % 8 + 1}]' for i, nm in enumerate(BANDS)]
-    lines += ["[acquisition]", "frames_averaged = 2", "dark_frames = 2", "warmup_checks = 2"]
-    for sample in samples:
-        set_name = "training" if sample.startswith("train") else "test"
-        lines += ["[[samples]]", f'id = "{sample}"', f'set = "{set_name}"', 'background = "bg"']
-    path = folder / "sphere.toml"
-    path.write_text("\n".join(lines) + "\n" + extra)
-    return path
-
-
-def quiet_settings(progress=None):
-    return acquire.Settings(log=lambda line: None, progress=progress)
-
-
-def run_acquire(profile, out, **kwargs):
-    with open(os.devnull, "w") as devnull:
-        operator = acquire.Operator(yes=True, stream=devnull)
-        return acquire.acquire(profile, out, emulate=True, operator=operator, settings=quiet_settings(), **kwargs)
+from tests.hw.support import BANDS, SAMPLES, quiet_settings, run_acquire, write_profile
 
 
 def test_emulated_acquisition_writes_a_session(tmp_path):

@@ -14,8 +14,8 @@ from hw import acquire
 from hw.profile import NoiseSettings, ProfileError, load_profile
 from spherejax import calibrate, io, simulate
 
-from .test_acquire import SAMPLES, quiet_settings, write_profile
-from .test_profile import _check_message, example, write
+from .support import SAMPLES, quiet_settings, write_profile
+from .profiles import check_message, example, write
 
 NOISE = {"gain_e_per_count": 1.04, "read_noise_counts": 5.8, "white_reflectance_u": 0.003}
 
@@ -69,7 +69,7 @@ def test_bad_noise_section_is_refused_in_one_line(folder, noise, key, expected):
     path = write(folder, data)
     with pytest.raises(ProfileError) as caught:
         load_profile(path)
-    _check_message(caught.value, path, key, expected)
+    check_message(caught.value, path, key, expected)
 
 
 def test_noise_that_is_not_a_table_is_refused(folder):
@@ -78,7 +78,7 @@ def test_noise_that_is_not_a_table_is_refused(folder):
     path = write(folder, data)
     with pytest.raises(ProfileError) as caught:
         load_profile(path)
-    _check_message(caught.value, path, "noise", "a table")
+    check_message(caught.value, path, "noise", "a table")
 
 
 # ------------------------------------------------------------------------ the camera record

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import os
 import pathlib
-import re
 
 import pytest
 
@@ -24,7 +22,7 @@ from hw.profile import (
     load_profile,
 )
 
-BANDS = list(range(400, 701, 20))
+from tests.hw.profiles import BANDS, check_message, example, write
 
 # The profile as the issue's acceptance checks write it (comments included), 8 bands per wheel.
 EXAMPLE = """\
@@ -49,83 +47,11 @@ backend = "sim"
 )
 
 
-def example() -> dict:
-    """The example profile as data, to be changed by a test and written with `dump`."""
-    return {
-        "instrument": {"id": "sphere-1"},
-        "wheels": {
-            "a": {"port": "/dev/ttyUSB0", "model": "FW212C", "open_slot": 12},
-            "b": {"port": "/dev/ttyUSB1", "model": "FW212C", "open_slot": 12},
-        },
-        "shutter": {"port": "/dev/ttyUSB2", "model": "SC10"},
-        "camera": {"backend": "sim"},
-        "bands": {str(nm): ["a" if i < 8 else "b", i % 8 + 1] for i, nm in enumerate(BANDS)},
-    }
-
-
-# -- a small TOML writer (the subset profiles use) -------------------------------------------------
-
-_BARE = re.compile(r"[A-Za-z0-9_-]+")
-
-
-def _key(name: str) -> str:
-    return name if _BARE.fullmatch(name) else json.dumps(name)
-
-
-def _value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, list):
-        return "[" + ", ".join(_value(v) for v in value) + "]"
-    raise TypeError(value)
-
-
-def _is_table_array(value) -> bool:
-    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
-
-
-def _table(lines: list[str], prefix: str, table: dict) -> None:
-    for name, value in table.items():
-        if not isinstance(value, dict) and not _is_table_array(value):
-            lines.append(f"{_key(name)} = {_value(value)}")
-    for name, value in table.items():
-        dotted = f"{prefix}.{_key(name)}" if prefix else _key(name)
-        if isinstance(value, dict):
-            lines.append(f"[{dotted}]")
-            _table(lines, dotted, value)
-        elif _is_table_array(value):
-            for item in value:
-                lines.append(f"[[{dotted}]]")
-                _table(lines, dotted, item)
-
-
-def dump(data: dict) -> str:
-    lines: list[str] = []
-    _table(lines, "", data)
-    return "\n".join(lines) + "\n"
-
-
 @pytest.fixture
 def folder(tmp_path) -> pathlib.Path:
     """The profile's folder, one level below tmp_path so that tmp_path is "outside" it."""
     path = tmp_path / "instrument"
     path.mkdir()
-    return path
-
-
-def write(folder: pathlib.Path, data: dict | str, name: str = "profile.toml") -> pathlib.Path:
-    path = folder / name
-    path.write_text(data if isinstance(data, str) else dump(data), encoding="utf-8")
     return path
 
 
@@ -442,18 +368,6 @@ BAD = [
 ]
 
 
-def _check_message(error: ProfileError, path: pathlib.Path, key: str | None, expected: str) -> str:
-    message = str(error)
-    assert "\n" not in message and "\r" not in message, message
-    assert message.startswith(f"{path}: "), message
-    if key is not None:
-        assert error.key == key, message
-        assert f": {key}: " in message, message
-    assert "(expected " in message, message
-    assert expected in message, message
-    return message
-
-
 @pytest.mark.parametrize(("change", "key", "expected"), [case[1:] for case in BAD], ids=[case[0] for case in BAD])
 def test_bad_profile_is_refused(folder, change, key, expected):
     data = example()
@@ -462,7 +376,7 @@ def test_bad_profile_is_refused(folder, change, key, expected):
     with pytest.raises(ProfileError) as caught:
         load_profile(path)
     assert isinstance(caught.value, ValueError)  # the CLI reports ValueError as bad input
-    _check_message(caught.value, path, key, expected)
+    check_message(caught.value, path, key, expected)
 
 
 def test_every_required_key_is_in_the_catalogue():
@@ -487,10 +401,10 @@ def test_not_toml_or_empty(folder, text):
     with pytest.raises(ProfileError) as caught:
         load_profile(path)
     if text:
-        message = _check_message(caught.value, path, None, "an instrument profile (TOML)")
+        message = check_message(caught.value, path, None, "an instrument profile (TOML)")
         assert "not valid TOML" in message
     else:
-        _check_message(caught.value, path, "instrument", "a table")
+        check_message(caught.value, path, "instrument", "a table")
 
 
 def test_not_utf8(folder):
@@ -498,21 +412,21 @@ def test_not_utf8(folder):
     path.write_bytes(b'[instrument]\nid = "\xff\xfe"\n')
     with pytest.raises(ProfileError) as caught:
         load_profile(path)
-    _check_message(caught.value, path, None, "TOML")
+    check_message(caught.value, path, None, "TOML")
 
 
 def test_missing_file(folder):
     path = folder / "nope.toml"
     with pytest.raises(ProfileError) as caught:
         load_profile(path)
-    message = _check_message(caught.value, path, None, "an instrument profile (TOML)")
+    message = check_message(caught.value, path, None, "an instrument profile (TOML)")
     assert "no such file" in message
 
 
 def test_a_folder_is_not_a_profile(folder):
     with pytest.raises(ProfileError) as caught:
         load_profile(folder)
-    _check_message(caught.value, folder, None, "TOML")
+    check_message(caught.value, folder, None, "TOML")
 
 
 def test_lamp_symlink_inside_the_folder_is_allowed(folder):

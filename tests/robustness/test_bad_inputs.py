@@ -15,194 +15,25 @@ EFBIG ("File too large") as they would with ENOSPC.
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import hashlib
 import json
 import os
 import pathlib
-import shutil
-import struct
-import subprocess
-import sys
-from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 import spherejax as sj
 from hw import profile as hw_profile
-from spherejax import archive, cli, io
-from tests.helpers import no_compilation_cache_writes
-from tests.hw.test_acquire import write_profile
-from tests.test_archive import NAMES, frame
-from tests.test_io import write_with_oiio
+from spherejax import io
+from tests.batch_support import NAMES, frame
+from tests.hw.support import write_profile
+from tests.robustness.catalogue import (
+    Case, Folder, acquire_case, check_case, correct_case, edited_profile, evaluate_with_calibration, huge_tiff,
+    parameters, session_case, snapshot, truncate, write_any_tiff, write_file,
+)
 
 # --------------------------------------------------------------------------------------------
-# Helpers
-
-
-@dataclasses.dataclass
-class Folder:
-    """The case's folder and the shared inputs it may copy."""
-
-    tmp: pathlib.Path
-    workspace: pathlib.Path  # session/ and cal.npz (tests/test_cli.py)
-    cube_cal: pathlib.Path  # a calibration for 40 x 48 x 16 cubes (tests/test_archive.py)
-
-    def session(self) -> pathlib.Path:
-        """A private copy of the simulated session, to damage."""
-        target = self.tmp / "session"
-        if not target.exists():
-            shutil.copytree(self.workspace / "session", target)
-        return target
-
-    def calibration(self) -> pathlib.Path:
-        target = self.tmp / "cal.npz"
-        if not target.exists():
-            shutil.copyfile(self.workspace / "cal.npz", target)
-        return target
-
-    def edit_manifest(self, change) -> pathlib.Path:
-        path = self.session() / "manifest.json"
-        manifest = json.loads(path.read_text())
-        change(manifest)
-        path.write_text(json.dumps(manifest))
-        return path
-
-    def replace_frame(self, name: str, array: np.ndarray) -> pathlib.Path:
-        path = self.session() / "frames" / name
-        path.unlink()
-        io.write_frame(path, np.ascontiguousarray(array))
-        return path
-
-    def frame_of(self, name: str) -> np.ndarray:
-        return io.read_frame(self.session() / "frames" / name)
-
-    def cube(self, name: str = "in/a.tif", array: np.ndarray | None = None, names=NAMES) -> pathlib.Path:
-        path = self.tmp / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        io.write_frame(path, frame(np.random.default_rng(3)) if array is None else array, channel_names=names)
-        return path
-
-
-def snapshot(folder: pathlib.Path) -> dict[str, tuple]:
-    """Every path under `folder` -> (kind, sha256 or link target, mtime); links not followed."""
-    out = {}
-    for path in sorted(folder.rglob("*")):
-        key = path.relative_to(folder).as_posix()
-        if path.is_symlink():
-            out[key] = ("link", os.readlink(path), None)
-        elif path.is_dir():
-            out[key] = ("dir", None, None)
-        else:
-            out[key] = ("file", hashlib.sha256(path.read_bytes()).hexdigest(), path.stat().st_mtime_ns)
-    return out
-
-
-@contextlib.contextmanager
-def read_only(folder: pathlib.Path):
-    """`folder` cannot be written, even by root, for the duration (chattr +i; chmod when not root)."""
-    if os.geteuid() == 0:
-        subprocess.run(["chattr", "+i", str(folder)], check=True, capture_output=True)
-        try:
-            yield
-        finally:
-            subprocess.run(["chattr", "-i", str(folder)], check=True, capture_output=True)
-    else:
-        mode = folder.stat().st_mode
-        folder.chmod(0o555)
-        try:
-            yield
-        finally:
-            folder.chmod(mode)
-
-
-def huge_tiff(path: pathlib.Path, width: int = 200_000, height: int = 150_000) -> pathlib.Path:
-    """A small valid 16-band TIFF whose header then claims width x height pixels."""
-    io.write_frame(path, frame(np.random.default_rng(4)), channel_names=NAMES)
-    data = bytearray(path.read_bytes())
-    assert data[:4] == b"II*\x00", "little-endian classic TIFF expected"
-    (ifd,) = struct.unpack_from("<I", data, 4)
-    (count,) = struct.unpack_from("<H", data, ifd)
-    for index in range(count):
-        entry = ifd + 2 + 12 * index
-        tag, _ = struct.unpack_from("<HH", data, entry)
-        if tag in (256, 257):  # ImageWidth, ImageLength: as LONG values
-            struct.pack_into("<HHII", data, entry, tag, 4, 1, width if tag == 256 else height)
-    path.write_bytes(bytes(data))
-    return path
-
-
-def write_any_tiff(path: pathlib.Path, array: np.ndarray) -> pathlib.Path:
-    """A TIFF of any dtype OpenImageIO writes, in place of `path` (io.write_frame writes uint16 only)."""
-    path.unlink(missing_ok=True)
-    write_with_oiio(path, [array])
-    return path
-
-
-def truncate(path: pathlib.Path, fraction: float = 0.5) -> pathlib.Path:
-    data = path.read_bytes()
-    path.write_bytes(data[: int(len(data) * fraction)])
-    return path
-
-
-# --------------------------------------------------------------------------------------------
-# The catalogue
-
-
-@dataclasses.dataclass(frozen=True)
-class Case:
-    """One bad input. `prepare` makes the files and returns (argv, the input the message names)."""
-
-    id: str
-    command: str
-    prepare: Callable[[Folder], tuple[list[str], str]]
-    problem: str  # a fragment of the message that says what is wrong
-    file_size_limit: int | None = None  # bytes: run the real entry point with RLIMIT_FSIZE
-    read_only: str | None = None  # a folder under tmp made read-only during the run
-    batch: bool = False  # a `correct` batch over a bad input: logged, exit 1, the rest goes on
-
-
-def _session_case(id, change, problem, command="calibrate"):
-    """calibrate (or evaluate) on a session damaged by `change(folder) -> the path to name`."""
-
-    def prepare(f: Folder):
-        named = change(f)
-        session = f.session()
-        if command == "calibrate":
-            return ["calibrate", str(session), "-o", str(f.tmp / "new.npz")], str(named)
-        return ["evaluate", str(session), "-c", str(f.calibration()), "--out", str(f.tmp / "evaluation")], str(named)
-
-    return Case(id, command, prepare, problem)
-
-
-def _evaluate_with_calibration(id, make_calibration, problem):
-    def prepare(f: Folder):
-        path = make_calibration(f)
-        return ["evaluate", str(f.session()), "-c", str(path), "--out", str(f.tmp / "evaluation")], str(path)
-
-    return Case(id, "evaluate", prepare, problem)
-
-
-def _correct_case(id, make_input, problem, **kwargs):
-    """correct -c CAL INPUT -o OUT with --resume over an earlier batch of one good cube."""
-
-    def prepare(f: Folder):
-        path = make_input(f)
-        return ["correct", "-c", str(f.cube_cal), str(f.tmp / "in"), "-o", str(f.tmp / "out"), "--resume"], str(
-            path.relative_to(f.tmp) if path.is_relative_to(f.tmp) else path
-        )
-
-    return Case(id, "correct", prepare, problem, batch=True, **kwargs)
-
-
-def _acquire_case(id, make_profile, problem, **kwargs):
-    def prepare(f: Folder):
-        path = make_profile(f)
-        return ["acquire", "--profile", str(path), "-o", str(f.tmp / "acquired"), "--emulate", "--yes"], str(path)
-
-    return Case(id, "acquire", prepare, problem, **kwargs)
+# The catalogue's inputs
 
 
 def _calibration_bytes(f: Folder) -> dict[str, np.ndarray]:
@@ -233,28 +64,6 @@ def _other_bands_calibration(f: Folder) -> pathlib.Path:
     return f.tmp / "other.npz"
 
 
-def _write(name: str, content: bytes | str):
-    def make(f: Folder) -> pathlib.Path:
-        path = f.tmp / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if isinstance(content, str):
-            path.write_text(content)
-        else:
-            path.write_bytes(content)
-        return path
-
-    return make
-
-
-def _profile(edit: Callable[[str], str]):
-    def make(f: Folder) -> pathlib.Path:
-        path = write_profile(f.tmp, samples=("train-bg00-g0",))
-        path.write_text(edit(path.read_text()))
-        return path
-
-    return make
-
-
 def _frames(f: Folder, name: str) -> pathlib.Path:
     return f.session() / "frames" / name
 
@@ -262,10 +71,10 @@ def _frames(f: Folder, name: str) -> pathlib.Path:
 CATALOGUE: list[Case] = [
     # ---- simulate
     Case("simulate-into-non-empty-folder",
-         "simulate", lambda f: (_write("out/keep.txt", "mine")(f) and ["simulate", str(f.tmp / "out")], str(f.tmp / "out")),
+         "simulate", lambda f: (write_file("out/keep.txt", "mine")(f) and ["simulate", str(f.tmp / "out")], str(f.tmp / "out")),
          "not an empty folder"),
     Case("simulate-onto-a-file",
-         "simulate", lambda f: (_write("out", "a file")(f) and ["simulate", str(f.tmp / "out")], str(f.tmp / "out")),
+         "simulate", lambda f: (write_file("out", "a file")(f) and ["simulate", str(f.tmp / "out")], str(f.tmp / "out")),
          "not an empty folder"),
     Case("simulate-into-read-only-folder",
          "simulate", lambda f: ((f.tmp / "locked").mkdir() or ["simulate", str(f.tmp / "locked" / "s")], str(f.tmp / "locked" / "s")),
@@ -276,36 +85,36 @@ CATALOGUE: list[Case] = [
     # ---- calibrate: sessions
     Case("session-missing", "calibrate", lambda f: (["calibrate", str(f.tmp / "absent"), "-o", str(f.tmp / "c.npz")],
                                                     str(f.tmp / "absent")), "no such"),
-    _session_case("manifest-missing", lambda f: (f.session() / "manifest.json").unlink() or f.session() / "manifest.json", "manifest.json"),
-    _session_case("manifest-not-json", lambda f: _write("session/manifest.json", "{ not json")(f.session() and f), "JSON"),
-    _session_case("manifest-empty", lambda f: _write("session/manifest.json", b"")(f.session() and f), "JSON"),
-    _session_case("manifest-binary", lambda f: _write("session/manifest.json", bytes(range(256)))(f.session() and f), "manifest"),
-    _session_case("manifest-no-bands", lambda f: f.edit_manifest(lambda m: m.pop("band_centres_nm")), "band_centres_nm"),
-    _session_case("manifest-no-frames", lambda f: f.edit_manifest(lambda m: m.pop("frames")), "frames"),
-    _session_case("manifest-frames-not-a-list", lambda f: f.edit_manifest(lambda m: m.__setitem__("frames", 7)), "frames"),
-    _session_case("manifest-patch-empty", lambda f: f.edit_manifest(lambda m: m.__setitem__("white_patch", [8, 8, 250, 260])), "white_patch"),
-    _session_case("manifest-patch-outside", lambda f: f.edit_manifest(lambda m: m.__setitem__("white_patch", [8, 32, 300, 400])), "white_patch"),
-    _session_case("manifest-huge-image-shape", lambda f: f.edit_manifest(lambda m: m.__setitem__("image_shape", [10**9, 10**9]))
+    session_case("manifest-missing", lambda f: (f.session() / "manifest.json").unlink() or f.session() / "manifest.json", "manifest.json"),
+    session_case("manifest-not-json", lambda f: write_file("session/manifest.json", "{ not json")(f.session() and f), "JSON"),
+    session_case("manifest-empty", lambda f: write_file("session/manifest.json", b"")(f.session() and f), "JSON"),
+    session_case("manifest-binary", lambda f: write_file("session/manifest.json", bytes(range(256)))(f.session() and f), "manifest"),
+    session_case("manifest-no-bands", lambda f: f.edit_manifest(lambda m: m.pop("band_centres_nm")), "band_centres_nm"),
+    session_case("manifest-no-frames", lambda f: f.edit_manifest(lambda m: m.pop("frames")), "frames"),
+    session_case("manifest-frames-not-a-list", lambda f: f.edit_manifest(lambda m: m.__setitem__("frames", 7)), "frames"),
+    session_case("manifest-patch-empty", lambda f: f.edit_manifest(lambda m: m.__setitem__("white_patch", [8, 8, 250, 260])), "white_patch"),
+    session_case("manifest-patch-outside", lambda f: f.edit_manifest(lambda m: m.__setitem__("white_patch", [8, 32, 300, 400])), "white_patch"),
+    session_case("manifest-huge-image-shape", lambda f: f.edit_manifest(lambda m: m.__setitem__("image_shape", [10**9, 10**9]))
                   and _frames(f, "dark.tif"), "1000000000"),
-    _session_case("manifest-frame-path-escapes", lambda f: f.edit_manifest(
+    session_case("manifest-frame-path-escapes", lambda f: f.edit_manifest(
         lambda m: m["frames"][0].__setitem__("file", "../../../etc/passwd")), "inside the folder"),
-    _session_case("frame-missing", lambda f: _frames(f, "train-bg01-g0.tif").unlink() or _frames(f, "train-bg01-g0.tif"), "train-bg01-g0.tif"),
-    _session_case("frame-not-an-image", lambda f: _write("session/frames/dark.tif", "not a TIFF")(f.session() and f), "dark.tif"),
-    _session_case("frame-empty-file", lambda f: _write("session/frames/dark.tif", b"")(f.session() and f), "dark.tif"),
-    _session_case("frame-truncated", lambda f: truncate(_frames(f, "white.tif"), 0.3), "white.tif"),
-    _session_case("frame-huge-header", lambda f: huge_tiff(_frames(f, "white.tif")), "white.tif"),
-    _session_case("frame-wrong-size", lambda f: f.replace_frame("train-bg00-g0.tif", f.frame_of("train-bg00-g0.tif")[:-4]), "train-bg00-g0.tif"),
-    _session_case("frame-wrong-band-count", lambda f: f.replace_frame("white.tif", f.frame_of("white.tif")[..., :15]), "white.tif"),
-    _session_case("frame-wrong-dtype", lambda f: write_any_tiff(_frames(f, "white.tif"), f.frame_of("white.tif").astype(np.int32)), "uint16"),
-    _session_case("white-equals-dark", lambda f: f.replace_frame("white.tif", f.frame_of("dark.tif")), "white standard"),
-    _session_case("white-below-dark", lambda f: f.replace_frame("white.tif", np.zeros_like(f.frame_of("dark.tif"))), "white standard"),
-    _session_case("white-all-nan", lambda f: write_any_tiff(_frames(f, "white.tif"), np.full(f.frame_of("white.tif").shape, np.nan, np.float32)), "uint16"),
-    _session_case("white-saturated", lambda f: f.replace_frame("white.tif", np.full_like(f.frame_of("white.tif"), 65535)), "white standard"),
-    _session_case("samples-all-zero", lambda f: [
+    session_case("frame-missing", lambda f: _frames(f, "train-bg01-g0.tif").unlink() or _frames(f, "train-bg01-g0.tif"), "train-bg01-g0.tif"),
+    session_case("frame-not-an-image", lambda f: write_file("session/frames/dark.tif", "not a TIFF")(f.session() and f), "dark.tif"),
+    session_case("frame-empty-file", lambda f: write_file("session/frames/dark.tif", b"")(f.session() and f), "dark.tif"),
+    session_case("frame-truncated", lambda f: truncate(_frames(f, "white.tif"), 0.3), "white.tif"),
+    session_case("frame-huge-header", lambda f: huge_tiff(_frames(f, "white.tif")), "white.tif"),
+    session_case("frame-wrong-size", lambda f: f.replace_frame("train-bg00-g0.tif", f.frame_of("train-bg00-g0.tif")[:-4]), "train-bg00-g0.tif"),
+    session_case("frame-wrong-band-count", lambda f: f.replace_frame("white.tif", f.frame_of("white.tif")[..., :15]), "white.tif"),
+    session_case("frame-wrong-dtype", lambda f: write_any_tiff(_frames(f, "white.tif"), f.frame_of("white.tif").astype(np.int32)), "uint16"),
+    session_case("white-equals-dark", lambda f: f.replace_frame("white.tif", f.frame_of("dark.tif")), "white standard"),
+    session_case("white-below-dark", lambda f: f.replace_frame("white.tif", np.zeros_like(f.frame_of("dark.tif"))), "white standard"),
+    session_case("white-all-nan", lambda f: write_any_tiff(_frames(f, "white.tif"), np.full(f.frame_of("white.tif").shape, np.nan, np.float32)), "uint16"),
+    session_case("white-saturated", lambda f: f.replace_frame("white.tif", np.full_like(f.frame_of("white.tif"), 65535)), "white standard"),
+    session_case("samples-all-zero", lambda f: [
         f.replace_frame(m["file"].split("/")[-1], np.zeros_like(f.frame_of("white.tif")))
         for m in json.loads((f.session() / "manifest.json").read_text())["frames"] if m["role"] == "sample"
     ][0], "white-patch ratio"),
-    _session_case("targets-all-zero", lambda f: [
+    session_case("targets-all-zero", lambda f: [
         f.replace_frame(m["file"].split("/")[-1], np.zeros_like(f.frame_of("white.tif")))
         for m in json.loads((f.session() / "manifest.json").read_text())["frames"] if m["role"] == "target"
     ] and f.session() / "manifest.json", "target regions"),
@@ -320,40 +129,40 @@ CATALOGUE: list[Case] = [
          lambda f: ((f.tmp / "c.npz").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "c.npz")], str(f.tmp / "c.npz")),
          "Is a directory"),
     # ---- evaluate: calibration files
-    _evaluate_with_calibration("calibration-missing", lambda f: f.tmp / "none.npz", "no such"),
-    _evaluate_with_calibration("calibration-empty", _write("empty.npz", b""), "npz"),
-    _evaluate_with_calibration("calibration-not-npz", _write("text.npz", "hello"), "npz"),
-    _evaluate_with_calibration("calibration-truncated", lambda f: truncate(f.calibration(), 0.5), "npz"),
-    _evaluate_with_calibration("calibration-tampered", _tampered_calibration, "checksum"),
-    _evaluate_with_calibration("calibration-newer-version", _newer_calibration, "99"),
-    _evaluate_with_calibration("calibration-other-bands", _other_bands_calibration, "bands"),
+    evaluate_with_calibration("calibration-missing", lambda f: f.tmp / "none.npz", "no such"),
+    evaluate_with_calibration("calibration-empty", write_file("empty.npz", b""), "npz"),
+    evaluate_with_calibration("calibration-not-npz", write_file("text.npz", "hello"), "npz"),
+    evaluate_with_calibration("calibration-truncated", lambda f: truncate(f.calibration(), 0.5), "npz"),
+    evaluate_with_calibration("calibration-tampered", _tampered_calibration, "checksum"),
+    evaluate_with_calibration("calibration-newer-version", _newer_calibration, "99"),
+    evaluate_with_calibration("calibration-other-bands", _other_bands_calibration, "bands"),
     Case("evaluate-into-read-only-folder", "evaluate",
          lambda f: ((f.tmp / "locked").mkdir() or ["evaluate", str(f.session()), "-c", str(f.calibration()),
                                                    "--out", str(f.tmp / "locked" / "e")], str(f.tmp / "locked" / "e")),
          "Operation not permitted", read_only="locked"),
     # ---- correct: inputs (each fails alone; an earlier batch's outputs stay as they were)
-    _correct_case("cube-not-an-image", _write("in/text.tif", "not an image"), "not a readable image"),
-    _correct_case("cube-empty-file", _write("in/empty.tif", b""), "in/empty.tif"),
-    _correct_case("cube-truncated", lambda f: truncate(f.cube("in/cut.tif")), "corrupted"),
-    _correct_case("cube-huge-header", lambda f: huge_tiff(f.tmp / "in" / "huge.tif"), "200000"),
-    _correct_case("cube-wrong-band-count", lambda f: f.cube("in/b15.tif", frame(np.random.default_rng(5), (40, 48, 15)), NAMES[:15]), "15 channels"),
-    _correct_case("cube-wrong-size", lambda f: f.cube("in/size.tif", frame(np.random.default_rng(5), (40, 50, 16))), "40 x 50"),
-    _correct_case("cube-wrong-dtype", lambda f: write_any_tiff(f.tmp / "in" / "int8.tif", np.zeros((40, 48, 16), np.int8)), "in/int8.tif"),
-    _correct_case("output-through-a-link-out-of-out", lambda f: (
+    correct_case("cube-not-an-image", write_file("in/text.tif", "not an image"), "not a readable image"),
+    correct_case("cube-empty-file", write_file("in/empty.tif", b""), "in/empty.tif"),
+    correct_case("cube-truncated", lambda f: truncate(f.cube("in/cut.tif")), "corrupted"),
+    correct_case("cube-huge-header", lambda f: huge_tiff(f.tmp / "in" / "huge.tif"), "200000"),
+    correct_case("cube-wrong-band-count", lambda f: f.cube("in/b15.tif", frame(np.random.default_rng(5), (40, 48, 15)), NAMES[:15]), "15 channels"),
+    correct_case("cube-wrong-size", lambda f: f.cube("in/size.tif", frame(np.random.default_rng(5), (40, 50, 16))), "40 x 50"),
+    correct_case("cube-wrong-dtype", lambda f: write_any_tiff(f.tmp / "in" / "int8.tif", np.zeros((40, 48, 16), np.int8)), "in/int8.tif"),
+    correct_case("output-through-a-link-out-of-out", lambda f: (
         (f.tmp / "elsewhere").mkdir() or (f.tmp / "out" / "in" / "esc").symlink_to(f.tmp / "elsewhere")
         or f.cube("in/esc/y.tif")), "would be written outside OUT"),
     Case("calibration-missing-for-correct", "correct", lambda f: (
         f.cube("in/a.tif") and ["correct", "-c", str(f.tmp / "none.npz"), str(f.tmp / "in"), "-o", str(f.tmp / "out2")],
         str(f.tmp / "none.npz")), "no such"),
     # ---- acquire: profiles
-    _acquire_case("profile-missing", lambda f: f.tmp / "none.toml", "no such"),
-    _acquire_case("profile-empty", _write("empty.toml", ""), "instrument"),
-    _acquire_case("profile-not-toml", _write("bad.toml", "[instrument\nid = "), "TOML"),
-    _acquire_case("profile-binary", _write("bin.toml", bytes(range(256)) * 4), "bin.toml"),
-    _acquire_case("profile-no-camera", _profile(lambda t: t.replace('[camera]\nbackend = "sim"\n', "")), "camera"),
-    _acquire_case("profile-band-on-unknown-wheel", _profile(lambda t: t.replace('400 = ["a", 1]', '400 = ["z", 1]')), "z"),
-    _acquire_case("profile-slot-out-of-range", _profile(lambda t: t.replace('400 = ["a", 1]', '400 = ["a", 99]')), "99"),
-    _acquire_case("profile-negative-frames", _profile(lambda t: t.replace("frames_averaged = 2", "frames_averaged = -3")), "frames_averaged"),
+    acquire_case("profile-missing", lambda f: f.tmp / "none.toml", "no such"),
+    acquire_case("profile-empty", write_file("empty.toml", ""), "instrument"),
+    acquire_case("profile-not-toml", write_file("bad.toml", "[instrument\nid = "), "TOML"),
+    acquire_case("profile-binary", write_file("bin.toml", bytes(range(256)) * 4), "bin.toml"),
+    acquire_case("profile-no-camera", edited_profile(lambda t: t.replace('[camera]\nbackend = "sim"\n', "")), "camera"),
+    acquire_case("profile-band-on-unknown-wheel", edited_profile(lambda t: t.replace('400 = ["a", 1]', '400 = ["z", 1]')), "z"),
+    acquire_case("profile-slot-out-of-range", edited_profile(lambda t: t.replace('400 = ["a", 1]', '400 = ["a", 99]')), "99"),
+    acquire_case("profile-negative-frames", edited_profile(lambda t: t.replace("frames_averaged = 2", "frames_averaged = -3")), "frames_averaged"),
     Case("acquire-into-read-only-folder", "acquire",
          lambda f: ((f.tmp / "locked").mkdir() or ["acquire", "--profile", str(write_profile(f.tmp, samples=("train-bg00-g0",))),
                                                    "-o", str(f.tmp / "locked" / "s"), "--emulate", "--yes"],
@@ -361,75 +170,10 @@ CATALOGUE: list[Case] = [
 ]
 
 
-def _baseline_batch(f: Folder) -> None:
-    """An earlier batch in OUT: one good cube, corrected, which later runs must not touch."""
-    f.cube("in/good.tif")
-    assert cli.main(["-q", "correct", "-c", str(f.cube_cal), str(f.tmp / "in"), "-o", str(f.tmp / "out")]) == 0
-
-
-def _run_child(argv: list[str], limit: int) -> tuple[int, str]:
-    """The real entry point under a file-size limit, set by a tiny launcher that then execs it
-    (not preexec_fn: forking this multithreaded JAX process is unsafe, and JAX warns)."""
-    launcher = (
-        "import os, resource, sys; "
-        f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit})); "
-        "os.execv(sys.executable, [sys.executable, '-m', 'spherejax.cli', '-q', *sys.argv[1:]])"
-    )
-    # Under the limit a write of the shared compilation cache would be cut short: read it only.
-    env = no_compilation_cache_writes({**os.environ, "JAX_PLATFORMS": "cpu"})
-    result = subprocess.run([sys.executable, "-c", launcher, *argv], capture_output=True, text=True, env=env, timeout=600)
-    return result.returncode, result.stderr
-
-
-def parameters(cases: list[Case], slow: set[str]) -> list:
-    """`cases` as parameters named by their ids, those in `slow` (over about 10 s on a 2-core
-    machine: a whole calibrate, evaluate or simulate) marked so."""
-    assert slow <= {case.id for case in cases}, slow
-    return [pytest.param(case, id=case.id, marks=[pytest.mark.slow] if case.id in slow else []) for case in cases]
-
-
 @pytest.mark.parametrize("case", parameters(CATALOGUE, slow={"simulate-full-disk", "calibrate-full-disk",
                                                              "evaluate-into-read-only-folder"}))
 def test_bad_input(case: Case, workspace, cal, tmp_path, capsys):
-    f = Folder(tmp_path / "case", workspace, tmp_path / "cube-cal.npz")
-    f.tmp.mkdir()
-    shutil.copyfile(cal, f.cube_cal)
-    if case.batch:
-        _baseline_batch(f)
-    argv, named = case.prepare(f)
-    capsys.readouterr()
-    before = snapshot(tmp_path)
-
-    with read_only(f.tmp / case.read_only) if case.read_only else contextlib.nullcontext():
-        if case.file_size_limit:
-            status, err = _run_child(argv, case.file_size_limit)
-        else:
-            status = cli.main(["-q", *argv])
-            err = capsys.readouterr().err
-    after = snapshot(tmp_path)
-
-    assert status != 0, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    if case.batch:
-        # Logged once as it happens and once in the summary, one line each, exit status 1.
-        assert status == 1
-        mentions = [line for line in lines if named in line]
-        assert mentions and all(case.problem in line for line in mentions), err
-        # The earlier batch's outputs are untouched; the manifest, the one file allowed to
-        # change, records the failure; nothing else is new.
-        changed = {key for key in set(before) | set(after) if before.get(key) != after.get(key)}
-        manifest = f"case/out/{archive.MANIFEST_NAME}"
-        assert changed <= {manifest}, sorted(changed)
-        if manifest in changed:
-            records = archive.read_manifest(f.tmp / "out")
-            assert any(r["status"] == "failed" for r in records.values())
-    else:
-        assert status == cli.EXIT_BAD_INPUT, err
-        assert len(lines) == 1 and lines[0].startswith("spherejax: error: "), err
-        assert named in lines[0] or pathlib.Path(named).name in lines[0], (named, lines[0])
-        assert case.problem in lines[0], (case.problem, lines[0])
-        assert after == before, sorted(set(before) ^ set(after))
+    check_case(case, workspace, cal, tmp_path, capsys)
 
 
 def test_catalogue_size():
@@ -465,10 +209,10 @@ API_CASES = {
     "correct-p-wrong-length": (lambda tmp: sj.correct(np.zeros((8, 9, 16), np.uint16), _api_calibration(), p=np.ones(3)), "p"),
     "delta-e-wrong-axis": (lambda tmp: sj.delta_e_2000(np.zeros((5, 4)), np.zeros((5, 3))), "lab1"),
     "read-frame-huge-header": (lambda tmp: io.read_frame(huge_tiff(tmp / "huge.tif")), "huge.tif"),
-    "read-frame-not-an-image": (lambda tmp: io.read_frame(_write("x.exr", "text")(Folder(tmp, tmp, tmp))), "x.exr"),
-    "load-calibration-random-bytes": (lambda tmp: io.load_calibration(_write("r.npz", os.urandom(4096))(Folder(tmp, tmp, tmp))), "r.npz"),
+    "read-frame-not-an-image": (lambda tmp: io.read_frame(write_file("x.exr", "text")(Folder(tmp, tmp, tmp))), "x.exr"),
+    "load-calibration-random-bytes": (lambda tmp: io.load_calibration(write_file("r.npz", os.urandom(4096))(Folder(tmp, tmp, tmp))), "r.npz"),
     "load-session-missing": (lambda tmp: io.load_session(tmp / "nowhere"), "nowhere"),
-    "load-profile-not-toml": (lambda tmp: hw_profile.load_profile(_write("p.toml", "= =")(Folder(tmp, tmp, tmp))), "p.toml"),
+    "load-profile-not-toml": (lambda tmp: hw_profile.load_profile(write_file("p.toml", "= =")(Folder(tmp, tmp, tmp))), "p.toml"),
 }
 
 

@@ -41,9 +41,9 @@ import pytest
 
 import spherejax as sj
 from spherejax import archive, cli, io
-from tests.robustness import test_bad_inputs as catalogue
-from tests.robustness.test_bad_inputs import Case, Folder, _correct_case, _write, read_only, snapshot
-from tests.test_archive import KINDS, NAMES, _holds_lock, _wait_until, frame, make_calibration, outputs_of, read_exr
+from tests.robustness import catalogue
+from tests.robustness.catalogue import Case, Folder, correct_case, read_only, snapshot, write_file
+from tests.batch_support import KINDS, NAMES, holds_lock, wait_until, frame, make_calibration, outputs_of, read_exr
 
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
 
@@ -198,7 +198,7 @@ def _nan_offset(header, arrays):
 
 def _correct_into_read_only_out(f: Folder):
     """An earlier batch in OUT, then OUT made read-only: --resume on a new input."""
-    catalogue._baseline_batch(f)
+    catalogue.baseline_batch(f)
     f.cube("in/new.tif")
     return ["correct", "-c", str(f.cube_cal), str(f.tmp / "in"), "-o", str(f.tmp / "out"), "--resume"], str(f.tmp / "out")
 
@@ -217,18 +217,18 @@ def _correct_new_out(f: Folder):
 
 ROUND_TWO: list[Case] = [
     # ---- odd files
-    _correct_case("cube-png-named-tif", _png_named_tif, "in/photo.tif"),
-    _correct_case("cube-zero-bytes-exr", _write("in/zero.exr", b""), "in/zero.exr"),
-    _correct_case("cube-text-named-exr", _write("in/notes.exr", "these are notes\n" * 50), "not a readable image"),
+    correct_case("cube-png-named-tif", _png_named_tif, "in/photo.tif"),
+    correct_case("cube-zero-bytes-exr", write_file("in/zero.exr", b""), "in/zero.exr"),
+    correct_case("cube-text-named-exr", write_file("in/notes.exr", "these are notes\n" * 50), "not a readable image"),
     # ---- calibration files given to correct
     _correct_with_calibration("correct-calibration-wiener-offset-wrong-shape",
                               _offset_forged(_wrong_shape_offset), "wiener_offset"),
     _correct_with_calibration("correct-calibration-wiener-offset-nan", _offset_forged(_nan_offset), "wiener_offset"),
     # ---- environment: a read-only OUT, a full disk at several points
     Case("correct-into-read-only-out", "correct", _correct_into_read_only_out, "Operation not permitted", read_only="out"),
-    _correct_case("correct-full-disk-at-the-first-output", lambda f: f.cube("in/big.tif"), "could not be written",
+    correct_case("correct-full-disk-at-the-first-output", lambda f: f.cube("in/big.tif"), "could not be written",
                   file_size_limit=4 * 1024),
-    _correct_case("correct-full-disk-mid-outputs", lambda f: f.cube("in/big.tif"), "could not be written",
+    correct_case("correct-full-disk-mid-outputs", lambda f: f.cube("in/big.tif"), "could not be written",
                   file_size_limit=64 * 1024),
     Case("calibrate-full-disk-at-once", "calibrate",
          lambda f: (["calibrate", str(f.session()), "-o", str(f.tmp / "c.npz")], str(f.tmp / "c.npz")),
@@ -244,7 +244,7 @@ ROUND_TWO: list[Case] = [
 @pytest.mark.parametrize("case", catalogue.parameters(ROUND_TWO, slow={
     "calibrate-full-disk-at-once", "calibrate-full-disk-over-an-existing-file", "evaluate-full-disk"}))
 def test_bad_input_round_two(case: Case, workspace, cal, tmp_path, capsys):
-    catalogue.test_bad_input(case, workspace, cal, tmp_path, capsys)
+    catalogue.check_case(case, workspace, cal, tmp_path, capsys)
 
 
 # --------------------------------------------------------------------------------------------
@@ -275,7 +275,7 @@ def test_a_second_correct_on_a_locked_out_is_refused(second, cal, long_batch, tm
     other.mkdir()
     io.write_frame(other / "x.tif", frame(np.random.default_rng(12)), channel_names=NAMES)
     first = _start("correct", "-c", cal, long_batch, "-o", out)
-    _wait_until(first, _holds_lock(first, out))
+    wait_until(first, holds_lock(first, out))
     assert first.poll() is None, "the first run ended before the second started"
     argv = ["correct", "-c", cal, other, "-o", out] + (["--resume"] if second == "resume" else [])
     status, stdout, err = _correct(argv, capsys)

@@ -29,9 +29,9 @@ import pytest
 from hw import acquire
 from spherejax import archive, io
 from tests.helpers import no_compilation_cache_writes
-from tests.hw.test_acquire import BANDS as ACQUIRED_BANDS
-from tests.hw.test_acquire import SAMPLES, run_acquire, write_profile
-from tests.test_archive import NAMES, _holds_lock, _start, _wait_until, frame, outputs_of
+from tests.hw.support import BANDS as ACQUIRED_BANDS
+from tests.hw.support import SAMPLES, run_acquire, write_profile
+from tests.batch_support import NAMES, holds_lock, start_correct, wait_until, frame, outputs_of
 
 # ----------------------------------------------------------------------------- spherejax correct
 
@@ -120,9 +120,9 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
     argv = ["-c", str(cal), str(inputs), "-o"]
 
     started = time.perf_counter()
-    process = _start([*argv, str(reference)], may_be_killed=False)
-    lock_s = _wait_until(process, _holds_lock(process, reference)) - started
-    done_s = _wait_until(process, lambda: len(_done(reference)) == INPUTS) - started
+    process = start_correct([*argv, str(reference)], may_be_killed=False)
+    lock_s = wait_until(process, holds_lock(process, reference)) - started
+    done_s = wait_until(process, lambda: len(_done(reference)) == INPUTS) - started
     _, err = process.communicate(timeout=120)
     assert process.returncode == 0, err.decode()
     expected = outputs_of(reference)
@@ -137,20 +137,20 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
         assert runs <= 2 * KILLS, f"only {len(landed)} of {KILLS} kills landed in {runs - 1} runs: {landed}"
         mode, argument = plan[len(landed)]
         stale = _temporaries(killed) if killed.exists() else set()
-        process = _start([*argv, str(killed), *(["--resume"] if killed.exists() else [])])
+        process = start_correct([*argv, str(killed), *(["--resume"] if killed.exists() else [])])
         if mode in ("start-up", "time"):
             time.sleep(argument)
         else:
-            _wait_until(process, _holds_lock(process, killed))
-            _wait_until(process, lambda: len(_done(killed)) >= argument)
+            wait_until(process, holds_lock(process, killed))
+            wait_until(process, lambda: len(_done(killed)) >= argument)
             # (Should the poll miss the moment, an input finishing first ends the wait: a kill
             # never lets a run get far ahead.)
             reached = len(_done(killed))
             if mode == "in-writes":
-                _wait_until(process, lambda: bool(_temporaries(killed) - stale) or len(_done(killed)) > reached)
+                wait_until(process, lambda: bool(_temporaries(killed) - stale) or len(_done(killed)) > reached)
                 time.sleep(delays.uniform(0.0, 0.005))
             elif mode == "renamed":
-                _wait_until(process, lambda: bool(_unrecorded(killed)) or len(_done(killed)) > reached)
+                wait_until(process, lambda: bool(_unrecorded(killed)) or len(_done(killed)) > reached)
             else:
                 time.sleep(delays.uniform(0.0, 0.020))
         if not _kill(process):  # it finished first: not a kill; the next run gets this one
@@ -179,7 +179,7 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
         landed.append((mode, len(done), lock.get("pid") == process.pid, len(temporaries), len(unrecorded)))
 
     before_final = len(_done(killed))
-    process = _start([*argv, str(killed), "--resume"])
+    process = start_correct([*argv, str(killed), "--resume"])
     _, err = process.communicate(timeout=120)
     log = err.decode()
     assert process.returncode == 0, log
@@ -268,12 +268,12 @@ def test_kills_during_acquisition_lose_and_duplicate_no_capture(tmp_path):
             # resumed run took every image left within the sleep, so that no later kill could
             # land mid-acquisition (CI: "2 >= 8 // 2" with kills at 7, 10, then 64 images).
             started, before = time.monotonic(), len(_image_records(partial))
-            _wait_until(process, lambda: time.monotonic() - started >= argument or len(_image_records(partial)) > before + 2)
+            wait_until(process, lambda: time.monotonic() - started >= argument or len(_image_records(partial)) > before + 2)
         elif mode == "images":
-            _wait_until(process, lambda: len(_image_records(partial)) >= argument)
+            wait_until(process, lambda: len(_image_records(partial)) >= argument)
             time.sleep(delays.uniform(0.0, 0.030))
         else:
-            _wait_until(process, lambda: bool(_staging(out)))
+            wait_until(process, lambda: bool(_staging(out)))
             time.sleep(delays.uniform(0.0, 0.050))
         if not _kill(process):  # it finished first: not a kill
             continue

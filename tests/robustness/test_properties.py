@@ -40,7 +40,7 @@ import spherejax as sj
 from hw.profile import ProfileError, load_profile
 from spherejax import archive, fused, io
 from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
-from tests.test_io import write_with_oiio
+from tests.helpers import write_with_oiio
 
 
 def fuzz(examples: int):

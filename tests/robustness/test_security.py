@@ -17,8 +17,8 @@ import pytest
 import spherejax
 from hw import profile as hw_profile
 from spherejax import archive, cli, io
-from tests.hw.test_acquire import write_profile
-from tests.test_archive import NAMES, frame
+from tests.hw.support import write_profile
+from tests.batch_support import NAMES, frame
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 SOURCES = sorted([*(ROOT / "spherejax").rglob("*.py"), *(ROOT / "hw").rglob("*.py")])

@@ -23,9 +23,9 @@ import pytest
 
 from hw import acquire
 from spherejax import archive, io
-from tests.hw.test_acquire import BANDS as ACQUIRED_BANDS
-from tests.hw.test_acquire import SAMPLES, run_acquire, write_profile
-from tests.test_archive import KINDS, NAMES, _holds_lock, _wait_until, frame, manifest_records, outputs_of, run
+from tests.hw.support import BANDS as ACQUIRED_BANDS
+from tests.hw.support import SAMPLES, run_acquire, write_profile
+from tests.batch_support import KINDS, NAMES, holds_lock, wait_until, frame, manifest_records, outputs_of, run
 
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
 IMAGES = (2 + len(SAMPLES)) * len(ACQUIRED_BANDS)  # dark, white and the samples, every band
@@ -253,13 +253,13 @@ def test_sigint_and_sigterm_stop_correct_cleanly_and_resume_finishes_it(cal, tmp
     in_writes = 0
     for signum, moment in moments:
         process = _start("correct", "-c", cal, tmp_path / "in", "-o", out, *(["--resume"] if out.exists() else []))
-        _wait_until(process, _holds_lock(process, out))
+        wait_until(process, holds_lock(process, out))
         if moment == "mid-batch":
-            _wait_until(process, lambda: len(_done(out)) >= done + 3)
+            wait_until(process, lambda: len(_done(out)) >= done + 3)
         elif moment == "in-writes":
-            _wait_until(process, lambda: len(_done(out)) >= done + 1)
+            wait_until(process, lambda: len(_done(out)) >= done + 1)
             reached = len(_done(out))
-            _wait_until(process, lambda: bool(_temporaries(out)) or len(_done(out)) > reached)
+            wait_until(process, lambda: bool(_temporaries(out)) or len(_done(out)) > reached)
             in_writes += bool(_temporaries(out))
         assert process.poll() is None, f"{moment}: the run ended before the signal"
         process.send_signal(signum)
@@ -288,7 +288,7 @@ def test_sigterm_stops_a_dask_batch_cleanly(cal, tmp_path, rng):
     command = [sys.executable, "-m", "spherejax.cli", "-q", "correct", "-c", str(cal), str(tmp_path / "in"), "-o", str(out)]
     process = subprocess.Popen([*command, "--workers", "2"], env={**ENV, "SPHEREJAX_COMPILATION_CACHE": str(env_cache)},
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _wait_until(process, lambda: len(_done(out)) >= 2)
+    wait_until(process, lambda: len(_done(out)) >= 2)
     assert process.poll() is None, "the batch ended before the signal"
     workers = psutil.Process(process.pid).children(recursive=True)
     assert workers
@@ -354,7 +354,7 @@ def test_sigint_stops_the_acquire_command_and_resume_completes_it(tmp_path):
     def images() -> int:
         return sum(1 for r in acquire.Journal(partial).records() if r["event"] == "image") if partial.is_dir() else 0
 
-    _wait_until(process, lambda: images() >= 20)
+    wait_until(process, lambda: images() >= 20)
     assert process.poll() is None, "the acquisition ended before the signal"
     process.send_signal(signal.SIGINT)
     _, err = process.communicate(timeout=60)
