@@ -15,7 +15,7 @@ What it measures
 Against what
     1. The reference: a plain numpy + colour-science batch, the script a lab would write. For
        each input it reads the TIFF with OpenImageIO, corrects it with
-       `bench_correct.reference_correct` (the calibration's arrays loaded with `numpy.load`),
+       `reference.reference_correct` (the calibration's arrays loaded with `numpy.load`),
        computes the quality bits and the same sRGB preview (`spherejax.archive.srgb_preview`,
        itself numpy + colour-science) and writes the same four outputs with OpenImageIO (same
        formats, channel names, EXR compression): plain writes, no temporary
@@ -50,7 +50,7 @@ How
     For the workers the dask start-up (LocalCluster + client + worker plugin) is timed apart
     from the batch; the workers use a JAX compilation cache in the work folder, empty at the
     start, so their first files compile. Each result records the share of the machine's CPU
-    that other processes took during its child's life (`bench_correct.OtherProcessesLoad`,
+    that other processes took during its child's life (`harness.OtherProcessesLoad`,
     counting the child and its workers as this run's own); on 2 cores that matters.
 
 Data
@@ -100,16 +100,8 @@ import numpy as np
 import OpenImageIO as oiio
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import (  # noqa: E402
-    LAB_TOLERANCE,
-    REFLECTANCE_TOLERANCE,
-    SATURATION,
-    OtherProcessesLoad,
-    machine_info,
-    reference_constants,
-    reference_correct,
-    write_record,
-)
+from harness import OtherProcessesLoad, machine_info, write_record  # noqa: E402
+from reference import LAB_TOLERANCE, REFLECTANCE_TOLERANCE, SATURATION, reference_constants, reference_correct  # noqa: E402
 
 from spherejax import archive, io  # noqa: E402
 from spherejax.grid import BAND_CENTRES_NM, WAVELENGTHS_NM  # noqa: E402
@@ -307,7 +299,7 @@ def load_reference_calibration(path) -> dict:
         # Format version 2 stores the estimator's offset r0; a version 1 file has none (r0 = 0).
         arrays["wiener_offset"] = npz["wiener_offset"] if "wiener_offset" in npz.files else None
         header = json.loads(bytes(npz["header"]).decode("utf-8"))
-    # reference_correct is written for a D65, 14-bit calibration (bench_correct's constants).
+    # reference_correct is written for a D65, 14-bit calibration (reference.py's constants).
     if header["illuminant"] != "D65" or header["saturation"] != SATURATION:
         raise ValueError(
             f"{path}: the reference needs a D65 calibration with saturation {SATURATION:g}, got "

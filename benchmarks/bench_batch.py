@@ -14,7 +14,7 @@ What it measures
     `jax.jit`, to float32 rounding).
 
 Against what
-    The numpy + colour-science reference of `bench_correct.py` on one frame, timed in the same
+    The numpy + colour-science reference (reference.py) on one frame, timed in the same
     run (its ms/MP is the same per pixel whatever the batch), and the single-image loop: the
     target is that a batch costs per pixel what single images cost.
 
@@ -32,7 +32,8 @@ import sys
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-import bench_correct as bc  # noqa: E402  (sets the colour-science warning filter first)
+import harness  # noqa: E402
+import reference  # noqa: E402  (sets the colour-science warning filter first)
 import jax  # noqa: E402
 
 import spherejax  # noqa: E402
@@ -56,8 +57,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=7, help="timed runs per way")
     parser.add_argument("--json", metavar="PATH", help="also write the results here")
     args = parser.parse_args(argv)
-    if args.size < bc.PATCH_SIZE + 8:
-        parser.error(f"--size must be at least {bc.PATCH_SIZE + 8} to hold the white patch")
+    if args.size < reference.PATCH_SIZE + 8:
+        parser.error(f"--size must be at least {reference.PATCH_SIZE + 8} to hold the white patch")
     if args.images < 1 or args.repeats < 1:
         parser.error("--images and --repeats must be at least 1")
     return args
@@ -65,13 +66,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    info = bc.machine_info()
+    info = harness.machine_info()
     info["fused_kernel"] = spherejax.fused.enabled()
-    wiener, wiener_offset = bc.wiener_estimator()
-    coeffs = bc.stage2_coeffs()
-    inputs = bc.make_inputs(args.size)
-    calibration = bc.make_calibration(inputs, coeffs, wiener, wiener_offset)
-    xyz_weights, whitepoint_xy = bc.reference_constants()
+    wiener, wiener_offset = reference.wiener_estimator()
+    coeffs = reference.stage2_coeffs()
+    inputs = reference.make_inputs(args.size)
+    calibration = reference.make_calibration(inputs, coeffs, wiener, wiener_offset)
+    xyz_weights, whitepoint_xy = reference.reference_constants()
     stack = frames_of(inputs, args.images)
     frames = list(stack)
 
@@ -96,8 +97,8 @@ def main(argv=None) -> int:
     def under_jit_vmap():
         return jax.block_until_ready(jitted(stack))
 
-    def reference():
-        return bc.reference_correct(
+    def numpy_reference():
+        return reference.reference_correct(
             frames[0], inputs["dark"], inputs["white"], inputs["patch"], coeffs, wiener, xyz_weights,
             whitepoint_xy, wiener_offset,
         )
@@ -121,9 +122,9 @@ def main(argv=None) -> int:
     del singles, batch
 
     ways = {"single images": single_images, "stack": whole_stack, "vmap": under_vmap,
-            "jit(vmap)": under_jit_vmap, "reference (one image)": reference}
-    with bc.OtherProcessesLoad() as other_load:
-        timings = bc.time_interleaved(ways, args.repeats)
+            "jit(vmap)": under_jit_vmap, "reference (one image)": numpy_reference}
+    with harness.OtherProcessesLoad() as other_load:
+        timings = harness.time_interleaved(ways, args.repeats)
     megapixels = args.size * args.size / 1e6
     per_mp = {}
     for name, t in timings.items():
@@ -137,7 +138,7 @@ def main(argv=None) -> int:
         print(f"{name:24s} {value:8.1f} {value / per_mp['single images']:9.2f}x "
               f"{per_mp['reference (one image)'] / value:12.1f}x")
     if args.json:
-        bc.write_record(args.json, {
+        harness.write_record(args.json, {
             "benchmark": "bench_batch",
             "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "size": args.size, "images": args.images, "repeats": args.repeats,

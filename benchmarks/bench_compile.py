@@ -41,12 +41,13 @@ if cache:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 import numpy as np
 import spherejax
-import bench_correct as bc
+import harness
+import reference
 compiles = []
 jax.monitoring.register_event_duration_secs_listener(
     lambda event, seconds, **kw: compiles.append(seconds) if event == "/jax/core/compile/backend_compile_duration" else None)
-inputs = bc.make_inputs({size})
-calibration = bc.make_calibration(inputs, bc.stage2_coeffs(), bc.wiener_matrix())
+inputs = reference.make_inputs({size})
+calibration = reference.make_calibration(inputs, reference.stage2_coeffs(), reference.wiener_matrix())
 raw2 = np.roll(inputs["raw"], 7, axis=1)
 compiles.clear()  # making the inputs (fitting the Wiener matrix) compiled other things
 start = time.perf_counter()
@@ -76,7 +77,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", metavar="PATH")
     args = parser.parse_args(argv)
     sys.path.insert(0, HERE)
-    from bench_correct import machine_info, write_record
+    from harness import machine_info, write_record
 
     with tempfile.TemporaryDirectory(prefix="spherejax-jax-cache-") as cache:
         results = {

@@ -46,10 +46,7 @@ jax.config.update("jax_enable_x64", True)
 import colour  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import (  # noqa: E402
-    OtherProcessesLoad, add_allocator_argument, apply_allocator_argument, machine_info, time_first_call,
-    time_interleaved, write_record,
-)
+from harness import OtherProcessesLoad, add_allocator_argument, apply_allocator_argument, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
 import spherejax  # noqa: E402
 

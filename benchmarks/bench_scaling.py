@@ -1,14 +1,15 @@
 """How the cost of `spherejax.correct` grows with pixels and cores, beside the numpy reference.
 
 What it measures
-    `spherejax.correct` and bench_correct's numpy + colour-science `reference_correct` on
+    `spherejax.correct` and the numpy + colour-science `reference_correct` (reference.py) on
     1, 4 and 16 megapixel cubes (1024², 2048², 4096² x 16 uint16; --sizes), each on 1 core and on
     2 cores: every (size, cores) pair runs in a fresh process pinned with os.sched_setaffinity
     before JAX starts (XLA sizes its thread pool from the CPUs it may use). Reported: median ms
     per call (after a warm-up call), ms per megapixel, MP/s, and the ratio to the reference.
     Cost should grow linearly with pixels: ms per megapixel roughly constant down a column.
 
-The inputs and the agreement check are bench_correct's (make_inputs, compare): a process that
+The inputs and the agreement check are reference.py's (make_inputs, compare), the timing
+harness.py's, in benchmarks/scaling_child.py, run once per (size, cores): a child that
 disagrees with the reference stops the benchmark.
 
 Run:
@@ -29,31 +30,12 @@ import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
-CHILD = r"""
-import json, os, sys, warnings
-os.sched_setaffinity(0, {cpus!r})
-warnings.filterwarnings("ignore")
-sys.path.insert(0, {here!r})
-import spherejax, spherejax.allocator
-if {reuse!r}:
-    spherejax.allocator.keep_freed_memory()  # before any JAX work, as the command line does
-import jax
-import bench_correct as bc
-inputs = bc.make_inputs({size})
-coeffs, wiener = bc.stage2_coeffs(), bc.wiener_matrix()
-calibration = bc.make_calibration(inputs, coeffs, wiener)
-xyz_weights, whitepoint_xy = bc.reference_constants()
-run_spherejax = lambda: jax.block_until_ready(spherejax.correct(inputs["raw"], calibration))
-run_reference = lambda: bc.reference_correct(inputs["raw"], inputs["dark"], inputs["white"], inputs["patch"], coeffs, wiener, xyz_weights, whitepoint_xy)
-agreement = bc.compare(run_spherejax(), run_reference())
-timings = bc.time_interleaved({{"spherejax": run_spherejax, "reference": run_reference}}, {repeats})
-print(json.dumps({{"agreement": agreement, "timings": {{k: {{"median_s": v["median_s"], "min_s": v["min_s"]}} for k, v in timings.items()}}}}))
-"""
 
 
 def run(size: int, cpus: set[int], repeats: int, reuse: bool) -> dict:
-    code = CHILD.format(here=HERE, size=size, cpus=sorted(cpus), repeats=repeats, reuse=reuse)
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=3600)
+    options = json.dumps({"size": size, "cpus": sorted(cpus), "repeats": repeats, "reuse": reuse})
+    child = os.path.join(HERE, "scaling_child.py")  # its folder is first on its sys.path: harness, reference
+    done = subprocess.run([sys.executable, child, options], capture_output=True, text=True, timeout=3600)
     if done.returncode != 0:
         last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"
         raise SystemExit(f"size {size}, cpus {sorted(cpus)}: {last}")
@@ -66,7 +48,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", metavar="PATH")
     sys.path.insert(0, HERE)
-    from bench_correct import add_allocator_argument, machine_info, write_record
+    from harness import add_allocator_argument, machine_info, write_record
     add_allocator_argument(parser)
     args = parser.parse_args(argv)
 

@@ -61,7 +61,7 @@ import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import OtherProcessesLoad, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
+from harness import OtherProcessesLoad, machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
 from spherejax import calibrate, io  # noqa: E402
 from spherejax.polynomial import (  # noqa: E402

@@ -5,7 +5,7 @@ Cost
     `spherejax.correct(raw, calibration)` and `spherejax.correct(raw, calibration,
     noise=NoiseModel(...))` on bench_correct's synthetic (size, size, 16) uint16 cube, as the user
     gets them (default path), timed in turns with the numpy + colour-science reference of the
-    plain path (`bench_correct.reference_correct`). The target: with noise, at most 3 times the
+    plain path (`reference.reference_correct`). The target: with noise, at most 3 times the
     plain call. The plain call's outputs are checked against the reference first.
 
 Agreement with Monte Carlo
@@ -36,7 +36,8 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
-import bench_correct  # noqa: E402
+import harness  # noqa: E402
+import reference  # noqa: E402
 
 import spherejax  # noqa: E402
 from spherejax import monte_carlo as mc  # noqa: E402
@@ -44,28 +45,28 @@ from spherejax import uncertainty  # noqa: E402
 
 
 def cost(size: int, repeats: int) -> dict:
-    inputs = bench_correct.make_inputs(size)
-    coeffs = bench_correct.stage2_coeffs()
-    wiener, offset = bench_correct.wiener_estimator()
-    calibration = bench_correct.make_calibration(inputs, coeffs, wiener, offset)
+    inputs = reference.make_inputs(size)
+    coeffs = reference.stage2_coeffs()
+    wiener, offset = reference.wiener_estimator()
+    calibration = reference.make_calibration(inputs, coeffs, wiener, offset)
     instrument = spherejax.simulate.InstrumentModel()
     noise = spherejax.NoiseModel(
         gain=instrument.gain_e_per_dn, read_noise=instrument.read_noise_e / instrument.gain_e_per_dn,
         dark_frames=16, white_frames=8, sample_frames=4,
     )
-    xyz_weights, whitepoint = bench_correct.reference_constants()
-    reference = bench_correct.reference_correct(
+    xyz_weights, whitepoint = reference.reference_constants()
+    expected = reference.reference_correct(
         inputs["raw"], inputs["dark"], inputs["white"], inputs["patch"], coeffs, wiener, xyz_weights, whitepoint, offset
     )
-    bench_correct.compare(spherejax.correct(inputs["raw"], calibration), reference)  # raises if not
+    reference.compare(spherejax.correct(inputs["raw"], calibration), expected)  # raises if not
     with_noise = spherejax.correct(inputs["raw"], calibration, noise=noise)
     if not np.all(np.isfinite(np.asarray(with_noise.lab_u)[np.asarray(with_noise.valid)])):
         raise SystemExit("lab_u is not finite on good pixels")
-    timings = bench_correct.time_interleaved(
+    timings = harness.time_interleaved(
         {
             "correct": lambda: jax.block_until_ready(spherejax.correct(inputs["raw"], calibration)),
             "correct(noise=)": lambda: jax.block_until_ready(spherejax.correct(inputs["raw"], calibration, noise=noise)),
-            "numpy + colour-science": lambda: bench_correct.reference_correct(
+            "numpy + colour-science": lambda: reference.reference_correct(
                 inputs["raw"], inputs["dark"], inputs["white"], inputs["patch"], coeffs, wiener, xyz_weights, whitepoint, offset
             ),
         },
@@ -141,7 +142,7 @@ def main(argv=None) -> int:
     for distance, row in checks["delta_e"].items():
         print(f"  {distance:4.2f}   {row['true_delta_e']:8.3f}   {row['mean_delta_e']:8.3f}  {row['u_over_sd']:5.2f}  {row['coverage_k2']:6.3f}")
     if args.json:
-        record = {"cost": costs, "monte_carlo": checks, "machine": bench_correct.machine_info()}
+        record = {"cost": costs, "monte_carlo": checks, "machine": harness.machine_info()}
         pathlib.Path(args.json).write_text(json.dumps(record, indent=2, default=str))
     if costs["noise_over_plain"] > 3.0:
         print("\nnote: correct(noise=) took more than 3 times correct in this run", file=sys.stderr)

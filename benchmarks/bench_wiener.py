@@ -41,7 +41,7 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_correct import machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
+from harness import machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
 import spherejax  # noqa: E402
 from spherejax import simulated_targets, wiener_estimation as we  # noqa: E402

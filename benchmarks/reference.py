@@ -1,0 +1,218 @@
+"""The numpy + colour-science reference of `spherejax.correct`, the synthetic inputs it and
+spherejax are timed on, and the check that their outputs agree: what every speed figure of
+spherejax is a ratio to (benchmarks/README.md)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+# colour-science warns at import that matplotlib is missing; plotting is not used here.
+warnings.filterwarnings("ignore", message=".*Matplotlib.* related API features are not available")
+
+import colour  # noqa: E402
+
+import spherejax  # noqa: E402
+from spherejax import spectra  # noqa: E402
+from spherejax.polynomial import PAPER_TABLE_2  # noqa: E402
+
+BANDS = 16
+SATURATION = 16383.0  # 14-bit ADC full scale
+PATCH_SIZE = 35  # the paper's 35 x 35 pixel averaging region
+SEED = 20190816  # fixed so every run times the same cube
+
+# Bytes the path must move per pixel (docs/design.md, "Performance model"): read raw uint16, dark and
+# white float32; write reflectance (31) and Lab (3) float32 and the uint8 quality mask.
+BYTES_PER_PIXEL = BANDS * 2 + BANDS * 4 * 2 + (31 + 3) * 4 + 1  # = 297
+
+REFLECTANCE_TOLERANCE = 1e-4
+LAB_TOLERANCE = 1e-2
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs
+
+
+def stage2_coeffs() -> np.ndarray:
+    """The paper's Table 2 as a (16, 4) float32 array, columns c1, c2, c3, c4."""
+    return np.asarray(PAPER_TABLE_2, dtype=np.float32)
+
+
+def camera_sensitivity() -> np.ndarray:
+    """(16, 31): Gaussian filters, centres 400..700 step 20, FWHM 10 nm, on 400..700 step 10.
+
+    Each row sums to 1, so a perfect diffuser (reflectance 1) gives response 1 in every band:
+    the units of flat-fielded responses, which is what the Wiener matrix is applied to.
+    """
+    sigma = 10.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    centres = spherejax.BAND_CENTRES_NM[:, None].astype(np.float64)
+    wavelengths = spherejax.WAVELENGTHS_NM[None, :].astype(np.float64)
+    filters = np.exp(-0.5 * ((wavelengths - centres) / sigma) ** 2)
+    return filters / filters.sum(axis=1, keepdims=True)
+
+
+def wiener_estimator() -> tuple[np.ndarray, np.ndarray]:
+    """(W (31, 16), r0 (31,)) float32: the affine Wiener estimator r = W v + r0 trained on every
+    reflectance spherejax ships. A plain matrix (what `fit_wiener` returned before the
+    estimator became affine) is taken with a zero offset."""
+    reflectances = spectra.all_reflectances()
+    responses = reflectances @ camera_sensitivity().T
+    estimator = spherejax.fit_wiener(responses, reflectances)
+    matrix = getattr(estimator, "matrix", estimator)
+    offset = getattr(estimator, "offset", np.zeros(matrix.shape[0]))
+    return np.asarray(matrix, dtype=np.float32), np.asarray(offset, dtype=np.float32)
+
+
+def wiener_matrix() -> np.ndarray:
+    """(31, 16) float32: the matrix W of `wiener_estimator` (its offset left out)."""
+    return wiener_estimator()[0]
+
+
+def vignetting(size: int) -> np.ndarray:
+    """(size, size, 1) smooth cos^4-like falloff, 1 at the centre and about 0.7 in the corners."""
+    axis = np.linspace(-1.0, 1.0, size, dtype=np.float32)
+    radius2 = axis[:, None] ** 2 + axis[None, :] ** 2
+    return (1.0 / (1.0 + 0.2 * radius2) ** 2)[..., None]
+
+
+def sample_reflectance(size: int, rng: np.random.Generator) -> np.ndarray:
+    """(size, size, 16) in 0.05..0.95: 32 x 32 px tiles of measured spectra at the band centres.
+
+    Real spectra rather than noise so the Wiener step sees the band correlations it was trained
+    for; tiles so the image has edges like a patterned background.
+    """
+    at_bands = spectra.all_reflectances()[:, ::2]  # 31 samples -> the 16 band centres
+    tiles = -(-size // 32)
+    choice = rng.integers(0, at_bands.shape[0], size=(tiles, tiles))
+    tiled = np.repeat(np.repeat(at_bands[choice], 32, axis=0), 32, axis=1)[:size, :size]
+    return np.clip(tiled, 0.05, 0.95).astype(np.float32)
+
+
+def patch_mask(size: int) -> np.ndarray:
+    """(size, size) bool: the 35 x 35 reference white patch, 8 px in from the top-left corner."""
+    mask = np.zeros((size, size), dtype=bool)
+    mask[8 : 8 + PATCH_SIZE, 8 : 8 + PATCH_SIZE] = True
+    return mask
+
+
+def make_inputs(size: int, seed: int = SEED) -> dict:
+    """Synthetic but plausible frames: dark, white standard, one raw sample cube, the patch mask.
+
+    The sample darkens the sphere by q = 0.97 (Eq. 9-15), so the white patch reads 0.97 of the
+    white standard and p should come out near 1 / 0.97. A few pixels are driven to saturation so
+    the quality-mask path is exercised and compared too.
+    """
+    rng = np.random.default_rng(seed)
+    shape = (size, size, BANDS)
+    dark = (100.0 + rng.normal(0.0, 3.0, shape)).astype(np.float32)
+    white_signal = 12000.0 * vignetting(size) * rng.uniform(0.9, 1.1, BANDS).astype(np.float32)
+    white = (dark + white_signal + rng.normal(0.0, 30.0, shape)).astype(np.float32)
+
+    patch = patch_mask(size)
+    reflectance = sample_reflectance(size, rng)
+    reflectance[patch] = 1.0  # the patch is the same material as the white standard
+    q_s = 0.97
+    raw = dark + q_s * white_signal * reflectance + rng.normal(0.0, 20.0, shape)
+    hot = rng.random((size, size)) < 1e-4
+    raw[hot, rng.integers(0, BANDS)] = SATURATION
+    raw = np.clip(np.rint(raw), 0, SATURATION).astype(np.uint16)
+    return {"raw": raw, "dark": dark, "white": white, "patch": patch}
+
+
+def make_calibration(inputs: dict, coeffs: np.ndarray, wiener: np.ndarray, wiener_offset=None) -> spherejax.Calibration:
+    """The calibration of `make_inputs`; wiener_offset r0 (31,), None = zeros."""
+    return spherejax.Calibration(
+        dark=inputs["dark"],
+        white=inputs["white"],
+        patch=inputs["patch"],
+        coeffs=coeffs,
+        wiener=wiener,
+        illuminant="D65",
+        saturation=SATURATION,
+        wiener_offset=np.zeros(31, np.float32) if wiener_offset is None else wiener_offset,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The reference: numpy + colour-science
+
+
+def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whitepoint_xy, wiener_offset=None) -> dict:
+    """The `correct` path in numpy, float32 throughout except inside colour-science.
+
+    wiener_offset: the estimator's offset r0 (31,), None = zeros.
+
+    Returns a dict with reflectance (H, W, 31), lab (H, W, 3) and valid (H, W) bool. Bad pixels
+    (saturated, non-finite, white <= dark) and every pixel of an image whose patch ratio is not
+    finite are NaN, as in spherejax.
+    """
+    raw_f = raw.astype(np.float32)
+    saturated = np.any(raw_f >= SATURATION, axis=-1)
+    nonfinite = np.any(~np.isfinite(raw_f), axis=-1)
+    white_signal = white - dark
+    no_flat_field = np.any(~(white_signal > 0), axis=-1)
+    valid = ~(saturated | nonfinite | no_flat_field)
+
+    # Eq. 10. Where white <= dark the division is meaningless; those pixels are NaN below anyway.
+    sample_signal = raw_f - dark
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = sample_signal / white_signal
+
+    # Eq. 14-15 over the usable pixels of the patch only, as spherejax does.
+    in_patch = patch & valid
+    p = white_signal[in_patch].sum(axis=0) / sample_signal[in_patch].sum(axis=0)  # (16,)
+    if not np.all(np.isfinite(p)):
+        valid = np.zeros_like(valid)
+
+    # Eq. 23, coefficients (B, 4) ordered c1..c4.
+    c_1, c_2, c_3, c_4 = coeffs.T
+    v_tilde = (c_1 * p + c_2) * v + c_3 * p + c_4
+    v_tilde[~valid] = np.nan
+
+    reflectance = v_tilde @ wiener.T  # (H, W, 31)
+    if wiener_offset is not None:
+        reflectance += wiener_offset  # the affine estimate W v + r0; NaN rows stay NaN
+    xyz = reflectance @ xyz_weights  # ASTM E308, Y = 100 for the perfect diffuser
+    # colour-science works in float64 internally (its default float dtype); that is how a user
+    # would call it, so it is left that way and only the result is cast back.
+    lab = colour.XYZ_to_Lab(xyz / 100.0, whitepoint_xy).astype(np.float32)
+    return {"reflectance": reflectance, "lab": lab, "valid": valid}
+
+
+def reference_constants() -> tuple[np.ndarray, np.ndarray]:
+    """D65 ASTM E308 weights (31, 3) float32 and the white point as CIE xy for colour-science."""
+    xyz_weights = np.asarray(spherejax.tristimulus_weights("D65"), dtype=np.float32)
+    white_xyz = spherejax.white_point_xyz("D65")
+    return xyz_weights, colour.XYZ_to_xy(white_xyz / 100.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Agreement
+
+
+def compare(result: spherejax.CorrectionResult, reference: dict) -> dict:
+    """Max abs differences over valid pixels; raises AssertionError when out of tolerance."""
+    valid = np.asarray(result.valid)
+    if not np.array_equal(valid, reference["valid"]):
+        raise AssertionError(
+            f"quality masks differ: spherejax marks {int((~valid).sum())} bad pixels, the "
+            f"reference {int((~reference['valid']).sum())}"
+        )
+    if not valid.any():
+        raise AssertionError("no valid pixel to compare: the patch ratio came out non-finite")
+    reflectance_diff = float(np.max(np.abs(np.asarray(result.reflectance)[valid] - reference["reflectance"][valid])))
+    lab_diff = float(np.max(np.abs(np.asarray(result.lab)[valid] - reference["lab"][valid])))
+    bad = []
+    if not reflectance_diff <= REFLECTANCE_TOLERANCE:  # `not <=` so NaN fails too
+        bad.append(f"reflectance max |diff| {reflectance_diff:.3g} > {REFLECTANCE_TOLERANCE:g}")
+    if not lab_diff <= LAB_TOLERANCE:
+        bad.append(f"Lab max |diff| {lab_diff:.3g} > {LAB_TOLERANCE:g}")
+    if bad:
+        raise AssertionError("spherejax and the reference disagree: " + "; ".join(bad))
+    return {
+        "reflectance_max_abs_diff": reflectance_diff,
+        "lab_max_abs_diff": lab_diff,
+        "valid_pixels": int(valid.sum()),
+        "bad_pixels": int((~valid).sum()),
+    }
