@@ -119,16 +119,7 @@ header's "arrays" and in the checksum; it is read with r0 = 0, which is what it 
 from __future__ import annotations
 
 from .errors import CalibrationFileError, SessionError, SpherejaxFileError
-from .atomic import (
-    atomic_file,
-    create_exclusive,
-    fsync_folder,
-    is_temp_sibling,
-    NEW_FILE_MODE,
-    replace_durably,
-    temp_sibling,
-    write_atomic,
-)
+from .atomic import is_temp_sibling, temp_sibling
 from .frames import (
     AtomicImageWriter,
     frame_spec,
@@ -212,12 +203,6 @@ __all__ = [
     "open_calibration",
     "load_calibration",
     "noise_model_of",
-    "atomic_file",
-    "create_exclusive",
-    "fsync_folder",
-    "NEW_FILE_MODE",
-    "replace_durably",
-    "write_atomic",
     "DEFAULT_EXR_COMPRESSION",
     "EXR_COMPRESSIONS",
     "check_new_session_folder",

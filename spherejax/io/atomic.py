@@ -62,14 +62,6 @@ def fsync_folder(folder: os.PathLike | str) -> None:
         os.close(descriptor)
 
 
-def replace_durably(temporary: os.PathLike | str, path: os.PathLike | str) -> None:
-    """fsync the finished file at `temporary`, rename it onto `path`, fsync the folder."""
-    with open(temporary, "rb") as handle:
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
-    fsync_folder(pathlib.Path(path).parent)
-
-
 @contextlib.contextmanager
 def atomic_file(path: os.PathLike | str, mode: str = "wb", *, encoding: str | None = None) -> Iterator[IO]:
     """Open a new temporary file beside `path` for writing; on leaving the block without an
