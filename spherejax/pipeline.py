@@ -295,27 +295,45 @@ def patch_bounding_box(patch) -> tuple[int, int, int, int] | None:
     """
     if not _checks.is_concrete(patch):
         return None
+
+    def box_of_patch():
+        mask = np.asarray(patch) != 0
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        return None if rows.size == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+
     if isinstance(patch, jax.Array):  # immutable: its box is worked out once
-        with _boxes_lock:
-            known = _boxes.get(id(patch))
-            if known is not None and known[0]() is patch:
+        return _boxes.get_or_compute((patch,), None, box_of_patch)
+    return box_of_patch()  # a NumPy mask may change in place: never remembered
+
+
+class _RememberedByIdentity:
+    """Values worked out from immutable jax.Arrays, remembered for the last `size` sets of arrays
+    by their ids and a key, with weak references that tell whether an id is still that array's
+    (a freed array's id may be given to a new one). Thread-safe; the value is computed outside
+    the lock, so two threads may both compute it once."""
+
+    def __init__(self, size: int):
+        self._size = size
+        self._entries: dict[tuple, tuple[tuple[weakref.ref, ...], object]] = {}
+        self._lock = threading.Lock()
+
+    def get_or_compute(self, arrays: tuple, key, compute):
+        index = (*(id(array) for array in arrays), key)
+        with self._lock:
+            known = self._entries.get(index)
+            if known is not None and all(ref() is array for ref, array in zip(known[0], arrays)):
                 return known[1]
-    mask = np.asarray(patch) != 0
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    box = None if rows.size == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
-    if isinstance(patch, jax.Array):
-        with _boxes_lock:
-            _boxes[id(patch)] = (weakref.ref(patch), box)
-            while len(_boxes) > 8:
-                del _boxes[next(iter(_boxes))]
-    return box
+        value = compute()
+        with self._lock:
+            self._entries[index] = (tuple(weakref.ref(array) for array in arrays), value)
+            while len(self._entries) > self._size:
+                del self._entries[next(iter(self._entries))]
+        return value
 
 
-#: Boxes of the last few patches (jax.Arrays), by id, with a weak reference that tells whether
-#: the id is still that array's: finding the box reads the whole mask, about 0.9 ms a megapixel,
-#: which `correct` needs on every call.
-_boxes: dict[int, tuple[weakref.ref, tuple[int, int, int, int] | None]] = {}
-_boxes_lock = threading.Lock()
+#: Boxes of the last few patches (jax.Arrays): finding the box reads the whole mask, about 0.9 ms
+#: a megapixel, which `correct` needs on every call.
+_boxes = _RememberedByIdentity(8)
 
 
 @functools.partial(jax.jit, static_argnames="dtype")
@@ -333,24 +351,12 @@ def _flat_field_mask(calibration: Calibration, dtype) -> jax.Array:
     that flat-fields: a fifth of the jax.numpy path's CPU time (12 of 60 ms a megapixel on 2 Zen
     5 cores). Read from here it is one byte a pixel, and the same flags.
     """
-    dark, white = calibration.dark, calibration.white
-    key = (id(dark), id(white), np.dtype(dtype).name)
-    with _masks_lock:
-        known = _masks.get(key)
-        if known is not None and known[0]() is dark and known[1]() is white:
-            return known[2]
-    mask = _no_flat_field_program(dark, white, np.dtype(dtype))
-    with _masks_lock:
-        _masks[key] = (weakref.ref(dark), weakref.ref(white), mask)
-        while len(_masks) > 4:
-            del _masks[next(iter(_masks))]
-    return mask
+    dark, white, dtype = calibration.dark, calibration.white, np.dtype(dtype)
+    return _masks.get_or_compute((dark, white), dtype.name, lambda: _no_flat_field_program(dark, white, dtype))
 
 
-#: `_flat_field_mask` of the last few calibrations, by the ids of their dark and white frames and
-#: the dtype, with weak references that tell whether the ids are still those arrays'.
-_masks: dict[tuple[int, int, str], tuple[weakref.ref, weakref.ref, jax.Array]] = {}
-_masks_lock = threading.Lock()
+#: `_flat_field_mask` of the last few calibrations (their dark and white frames, and the dtype).
+_masks = _RememberedByIdentity(4)
 
 
 def _patch_flags(raw, raw_f, dark, white, saturation):
