@@ -1,5 +1,5 @@
-"""hw: control of the integrating-sphere multispectral instrument over pyserial, and emulated
-devices that follow the vendors' protocols (docs/instrument.md).
+"""spherejax_hw (the folder hw/): control of the integrating-sphere multispectral instrument over
+pyserial, and emulated devices that follow the vendors' protocols (docs/instrument.md).
 
     errors        InstrumentError, the root of every hw/ error; HardwareError and its kinds:
                   DeviceTimeout, ProtocolError, DeviceError, PortError
@@ -12,7 +12,11 @@ devices that follow the vendors' protocols (docs/instrument.md).
     lamp          the xenon lamp as a manual device: lamp hours and warm-up in a state file
     profile       the instrument profile (TOML)
     emulators     FW102C / FW212C and SC10 state machines served on pseudo-terminals
-    acquire       the acquisition protocol (`spherejax acquire`), resumable, into a session
+    acquire       the acquisition protocol, resumable, into a session
+    command       `spherejax acquire`, added to spherejax's command line through the
+                  "spherejax.commands" entry points (pyproject.toml)
 
-This package uses spherejax only to render frames for the simulated camera and to write sessions.
+It installs as `spherejax_hw`, so that no other package named `hw` can shadow it. It uses
+spherejax (to render frames for the simulated camera, to write sessions and for the command
+line); spherejax never imports it.
 """

@@ -252,8 +252,9 @@ class Camera(abc.ABC):
         return f"<{type(self).__name__} {self.name!r} {state}>"
 
 
-#: Backend name -> (module, class): imported only when chosen (PyVCAM or JAX are heavy or absent).
-BACKENDS = {"pvcam": ("hw.pvcam", "PVCAMCamera"), "sim": ("hw.simcamera", "SimulatedCamera")}
+#: Backend name -> (module, relative to this package, class): imported only when chosen (PyVCAM or
+#: JAX are heavy or absent).
+BACKENDS = {"pvcam": (".pvcam", "PVCAMCamera"), "sim": (".simcamera", "SimulatedCamera")}
 
 
 def open_camera(backend: str, **options) -> Camera:
@@ -263,7 +264,7 @@ def open_camera(backend: str, **options) -> Camera:
         choices = ", ".join(repr(name) for name in sorted(BACKENDS))
         raise ValueError(f"unknown camera backend {backend!r}: choose one of {choices}")
     module, cls = BACKENDS[backend]
-    return getattr(importlib.import_module(module), cls)(**options)
+    return getattr(importlib.import_module(module, __package__), cls)(**options)
 
 
 @dataclasses.dataclass(frozen=True)

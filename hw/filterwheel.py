@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import operator
 
-from hw.errors import DeviceError, PortError, ProtocolError
-from hw.serialline import PromptedSerialDevice
+from .errors import DeviceError, PortError, ProtocolError
+from .serialline import PromptedSerialDevice
 
 __all__ = ["MODELS", "FilterWheel"]
 

@@ -42,7 +42,7 @@ import time
 
 import serial
 
-from hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
+from .errors import DeviceError, DeviceTimeout, PortError, ProtocolError
 
 try:  # tcflush on a vanished pty raises termios.error, which is not an OSError.
     import termios

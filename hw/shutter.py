@@ -20,8 +20,8 @@ from __future__ import annotations
 import logging
 import time
 
-from hw.errors import DeviceError, ProtocolError
-from hw.serialline import PromptedSerialDevice
+from .errors import DeviceError, ProtocolError
+from .serialline import PromptedSerialDevice
 
 __all__ = ["Shutter"]
 

@@ -20,7 +20,8 @@ Layers. Each module imports only modules of its own layer or of the layers below
    simulated_targets, figures.
 3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.atomic, the one way
    every writer puts a file in place), measurement_files, archive, cluster, interrupt, cli; and the
-   instrument, hw/, which uses spherejax and which only cli uses (`spherejax acquire`).
+   instrument, hw/ (installed as spherejax_hw), which uses spherejax and which spherejax never
+   imports: it adds `spherejax acquire` to cli through the "spherejax.commands" entry points.
 """
 
 from .allocator import keep_freed_memory as keep_freed_memory

@@ -14,7 +14,9 @@
                                                batch-correct cubes, sessions and folders into OUT
                                                (spherejax.archive)
     spherejax acquire --profile FILE -o SESSION [--yes] [--emulate] [--resume]
-                                               drive the instrument (hw.acquire) into a session
+                                               drive the instrument into a session; added by the
+                                               instrument package, spherejax_hw (hw/command.py),
+                                               through the "spherejax.commands" entry points
     spherejax measure -c CAL INPUT --region NAME=r0,r1,c0,c1 ... [--reference NAME|L,a,b]
               [-o OUT] [--gain E --read-noise COUNTS --frames N]
                                                regions of one cube as a spectrophotometer measures
@@ -383,53 +385,6 @@ def cmd_correct(args) -> int:
     return 1 if summary.failed else 0
 
 
-def cmd_acquire(args) -> int:
-    # hw/ is the instrument package beside spherejax (docs/design.md, "Top level"); imported here so the
-    # other commands never load serial drivers.
-    from hw import acquire
-
-    bar = None
-    if not args.quiet and sys.stderr.isatty():
-        from tqdm import tqdm
-
-        bar = tqdm(unit="image", file=sys.stderr, dynamic_ncols=True, desc="band images")
-
-    def progress(done: int, total: int) -> None:
-        if bar is not None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
-        elif not args.quiet and (done == total or done % 16 == 0):
-            print(f"spherejax: {done}/{total} band images", file=sys.stderr, flush=True)
-
-    def log(line: str) -> None:
-        if args.quiet:
-            return
-        if bar is not None:
-            bar.write(f"spherejax: {line}", file=sys.stderr)
-        else:
-            print(f"spherejax: {line}", file=sys.stderr, flush=True)
-
-    settings = acquire.Settings(log=log, progress=progress)
-    try:
-        with interrupt.stop_requests():  # SIGINT / SIGTERM: stop between band images (`main` reports)
-            session = acquire.acquire(
-                args.profile, args.output, emulate=args.emulate, resume=args.resume,
-                operator=acquire.Operator(yes=args.yes), settings=settings,
-            )
-    except acquire.AcquisitionStopped as error:
-        print(f"spherejax: {error}", file=sys.stderr)
-        return 1
-    except acquire.AcquisitionError as error:
-        print(f"spherejax: error: {error}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    finally:
-        if bar is not None:
-            bar.close()
-    print(f"session written to {session}")
-    return 0
-
-
 def _measure_regions(values, image_shape=None) -> list[tuple[str, tuple[int, int, int, int], str]]:
     """--region NAME=r0,r1,c0,c1 values -> [(name, rect, as given)]; ValueError naming the option
     and value. With `image_shape`, each rectangle must also lie inside the image."""
@@ -647,6 +602,24 @@ def cmd_demo(args) -> int:
 # --------------------------------------------------------------------------------------------
 
 
+#: Entry-point group through which installed packages add commands, each entry point a function
+#: `add_command(commands)` given the subparsers action (spherejax_hw adds `acquire` this way: the
+#: instrument package depends on spherejax, never spherejax on it).
+COMMAND_ENTRY_POINTS = "spherejax.commands"
+
+
+def add_plugin_commands(commands) -> None:
+    """Let every installed `spherejax.commands` entry point add its subcommand, in name order.
+
+    The entry point's module is imported here (to add its options), so it should defer heavy
+    imports to when its command runs.
+    """
+    from importlib.metadata import entry_points
+
+    for entry_point in sorted(entry_points(group=COMMAND_ENTRY_POINTS), key=lambda e: e.name):
+        entry_point.load()(commands)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="spherejax",
@@ -729,15 +702,7 @@ def build_parser() -> argparse.ArgumentParser:
     scale.add_argument("--scheduler", metavar="ADDRESS", help="use a running dask.distributed scheduler")
     correct.set_defaults(run=cmd_correct)
 
-    acquire = commands.add_parser("acquire", help="drive the instrument (hw/) through the acquisition protocol into a session")
-    acquire.add_argument("--profile", required=True, metavar="FILE", help="instrument profile (TOML)")
-    acquire.add_argument("-o", "--output", required=True, metavar="SESSION", help="session folder to write")
-    acquire.add_argument("--yes", action="store_true", help="answer every operator prompt as done (scripts, tests)")
-    acquire.add_argument("--emulate", action="store_true",
-                         help="emulated wheels and shutter on pseudo-terminals and the simulated camera: no hardware")
-    acquire.add_argument("--resume", action="store_true",
-                         help="complete an interrupted acquisition without retaking what it captured")
-    acquire.set_defaults(run=cmd_acquire)
+    add_plugin_commands(commands)
 
     measure = commands.add_parser(
         "measure", help="measure regions of one cube: Lab and reflectance with uncertainties (k = 2), ΔE00"

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from hw.lamp import Lamp
+from spherejax_hw.lamp import Lamp
 from spherejax import cli, io, measurement_files
 from spherejax.io import atomic
 

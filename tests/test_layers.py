@@ -2,12 +2,15 @@
 
 Every import in spherejax/ and hw/ is read from the syntax tree, those inside functions included
 (a lazy import is still a dependency); only imports under `if TYPE_CHECKING:` are left out, since
-they never run. A module may import modules of its own layer or of the layers below it; hw/ may
-use spherejax, and of spherejax only the command line may use hw/.
+they never run. A module may import modules of its own layer or of the layers below it. hw/, the
+instrument package, installs as `spherejax_hw` and uses spherejax; spherejax never imports it (its
+`acquire` command reaches the command line through an entry point).
 """
 
 import ast
+import importlib.metadata
 import pathlib
+import tomllib
 
 import pytest
 
@@ -24,17 +27,19 @@ LAYERS = {
          "simulated_targets", "figures"], WORKFLOWS),
     **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "cli", "hw"], FILES),
 }
-#: spherejax modules that may import hw/ (the `acquire` command).
-USES_HW = {"cli"}
+#: The installed name of the package in the folder hw/.
+HW_PACKAGE = "spherejax_hw"
 
 
 def sources():
-    """(module path as a dotted name, file) of every spherejax and hw source but the package's
-    own __init__ (the public facade, which re-exports from every layer)."""
+    """(module path as a dotted name, as installed, file) of every spherejax and hw source but
+    the package's own __init__ (the public facade, which re-exports from every layer)."""
     for file in sorted([*(ROOT / "spherejax").rglob("*.py"), *(ROOT / "hw").rglob("*.py")]):
         parts = file.relative_to(ROOT).with_suffix("").parts
         if parts == ("spherejax", "__init__"):
             continue
+        if parts[0] == "hw":
+            parts = (HW_PACKAGE, *parts[1:])
         if parts[-1] == "__init__":
             parts = parts[:-1]
         yield ".".join(parts), file
@@ -69,7 +74,7 @@ def imported_modules(module: str, file: pathlib.Path) -> set[str]:
 def layer_of(name: str) -> tuple[str, int] | None:
     """(the layered unit, its layer) of a dotted module name in spherejax or hw, else None."""
     parts = name.split(".")
-    if parts[0] == "hw":
+    if parts[0] in ("hw", HW_PACKAGE):  # `hw`: the folder's own name, which must not be imported
         return "hw", LAYERS["hw"]
     if parts[0] != "spherejax" or len(parts) == 1:
         return None
@@ -91,8 +96,7 @@ def test_imports_go_down_the_layers(module, file):
         if target is None or target[0] == unit:
             continue
         if target[0] == "hw" and unit != "hw":
-            if unit not in USES_HW:
-                upward.append(f"{name} (hw/, used only by {sorted(USES_HW)})")
+            upward.append(f"{name} (the instrument package: it depends on spherejax, not the reverse)")
             continue
         if target[1] > layer:
             upward.append(f"{name} (layer {target[1]}, above {unit}'s {layer})")
@@ -123,3 +127,35 @@ def test_no_test_module_imports_another():
             if name.startswith("tests.") and name.rsplit(".", 1)[-1].startswith("test_"):
                 importing.append(f"{file.relative_to(ROOT)} imports {name}")
     assert importing == []
+
+
+def test_hw_is_imported_by_its_installed_name():
+    """`import hw` would find whatever other package of that name comes first on the path."""
+    by_folder = []
+    for folder in ("spherejax", "hw", "tests", "benchmarks"):
+        for file in sorted((ROOT / folder).rglob("*.py")):
+            parts = file.relative_to(ROOT).with_suffix("").parts
+            module = ".".join((HW_PACKAGE, *parts[1:]) if folder == "hw" else parts)
+            by_folder += [f"{file.relative_to(ROOT)}: {name}" for name in imported_modules(module, file)
+                          if name == "hw" or name.startswith("hw.")]
+    assert by_folder == []
+
+
+def test_every_package_folder_is_installed():
+    """pyproject.toml lists the packages by hand (hw/ installs under another name): a new package
+    folder missing from the list would be left out of a wheel."""
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+    folders = {setuptools["package-dir"].get(name, name.replace(".", "/")): name for name in setuptools["packages"]}
+    on_disk = {str(init.parent.relative_to(ROOT)) for root in ("spherejax", "hw") for init in (ROOT / root).rglob("__init__.py")}
+    assert set(folders) == on_disk
+    assert setuptools["package-dir"] == {HW_PACKAGE: "hw"}
+
+
+def test_the_acquire_command_comes_from_the_instrument_package():
+    from spherejax import cli
+
+    (entry_point,) = [e for e in importlib.metadata.entry_points(group=cli.COMMAND_ENTRY_POINTS) if e.name == "acquire"]
+    assert entry_point.value == f"{HW_PACKAGE}.command:add_command"
+    parser = cli.build_parser()
+    args = parser.parse_args(["acquire", "--profile", "p.toml", "-o", "s", "--emulate"])
+    assert args.run.__module__ == f"{HW_PACKAGE}.command" and args.emulate and args.profile == "p.toml"

@@ -9,7 +9,7 @@ import math
 import pathlib
 import re
 
-from hw.profile import ProfileError
+from spherejax_hw.profile import ProfileError
 
 BANDS = list(range(400, 701, 20))
 

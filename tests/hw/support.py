@@ -10,8 +10,8 @@ import threading
 
 import serial
 
-from hw import acquire
-from hw.emulators import ScriptedPort
+from spherejax_hw import acquire
+from spherejax_hw.emulators import ScriptedPort
 
 
 def scripted(monkeypatch, script, url: str) -> ScriptedPort:

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from hw import acquire
+from spherejax_hw import acquire
 from spherejax import cli, io
 from tests.helpers import no_compilation_cache_writes
 
@@ -169,7 +169,7 @@ def test_cli_acquire_refusals(tmp_path, capsys, monkeypatch, setup, argv_extra, 
 
 def test_wheel_count_mismatch_refused_before_anything_moves(tmp_path, monkeypatch):
     """A wheel whose pcount? disagrees with the profile: refused naming the wheel, no move."""
-    from hw import emulators
+    from spherejax_hw import emulators
 
     real = emulators.FilterWheelEmulator
     made = []
@@ -225,7 +225,7 @@ def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
 )
 def test_wrong_identity_refused_before_anything_moves(tmp_path, monkeypatch, emulator, identity, match):
     """A device whose *idn? / id? is not what the profile names: refused naming the device."""
-    from hw import emulators
+    from spherejax_hw import emulators
 
     real, made = getattr(emulators, emulator), []
 
@@ -256,7 +256,7 @@ def test_a_kill_after_the_session_is_written_leaves_no_partial_folder(tmp_path, 
     """The finished SESSION.partial is renamed aside before the devices close and before it is
     deleted: a kill there (here: the deletion never returns) leaves the session and a hidden
     staging folder, which --resume removes, and never a SESSION.partial that blocks the name."""
-    from hw import acquire as acquire_module
+    from spherejax_hw import acquire as acquire_module
 
     profile = write_profile(tmp_path, samples=SAMPLES[:1])
     out = tmp_path / "s"
@@ -329,12 +329,12 @@ def test_every_hw_error_has_one_root():
     import inspect
     import pkgutil
 
-    import hw
-    from hw.errors import InstrumentError
+    import spherejax_hw as hw
+    from spherejax_hw.errors import InstrumentError
 
     found = {}
     for module_info in pkgutil.iter_modules(hw.__path__):
-        module = importlib.import_module(f"hw.{module_info.name}")
+        module = importlib.import_module(f"spherejax_hw.{module_info.name}")
         for name, value in vars(module).items():
             if inspect.isclass(value) and issubclass(value, Exception) and value.__module__ == module.__name__:
                 found[f"{module.__name__}.{name}"] = value

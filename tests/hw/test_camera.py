@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from hw.camera import BACKENDS, PROFILE_OPTIONS, Camera, CameraError, open_camera
-from hw.simcamera import FILTER_LEAK, SENSOR_TEMPERATURE_C, WARMUP_DEFICIT, SimulatedCamera
+from spherejax_hw.camera import BACKENDS, PROFILE_OPTIONS, Camera, CameraError, open_camera
+from spherejax_hw.simcamera import FILTER_LEAK, SENSOR_TEMPERATURE_C, WARMUP_DEFICIT, SimulatedCamera
 from spherejax import simulate
 
 BLUE, GREEN = 0, 8  # band indices of 400 nm and 560 nm
@@ -188,7 +188,7 @@ def test_open_camera_sim():
 def test_pvcam_without_pyvcam(monkeypatch):
     # A None entry in sys.modules makes `import pyvcam` raise ImportError, installed or not.
     monkeypatch.setitem(sys.modules, "pyvcam", None)
-    from hw.pvcam import PVCAMCamera
+    from spherejax_hw.pvcam import PVCAMCamera
 
     for make in (PVCAMCamera, lambda: open_camera("pvcam")):
         with pytest.raises(CameraError) as error:
@@ -209,7 +209,7 @@ def test_profile_options_are_the_constructor_keywords(backend):
     the backend's keyword parameters, less those the acquisition supplies: an option added to a
     constructor without the table, or a name in the table the constructor does not take, fails."""
     module, cls = BACKENDS[backend]
-    parameters = inspect.signature(getattr(importlib.import_module(module), cls)).parameters
+    parameters = inspect.signature(getattr(importlib.import_module(module, "spherejax_hw"), cls)).parameters
     keywords = {name for name, p in parameters.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
     assert not any(p.kind is p.VAR_KEYWORD for p in parameters.values())
     assert set(PROFILE_OPTIONS[backend]) == keywords - SET_BY_ACQUIRE[backend]

@@ -16,7 +16,7 @@ import sys
 import numpy as np
 import pytest
 
-from hw.camera import BACKENDS, CameraError, open_camera
+from spherejax_hw.camera import BACKENDS, CameraError, open_camera
 
 FAKE_PYVCAM = pathlib.Path(__file__).parent / "fake_pyvcam"
 

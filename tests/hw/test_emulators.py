@@ -7,13 +7,12 @@ checked with a bare ``serial.Serial`` (no driver), so its bytes, faults and clea
 from __future__ import annotations
 
 import os
-import threading
 import time
 
 import pytest
 import serial
 
-from hw.emulators import EmulatedPort, FilterWheelEmulator, ScriptedPort, ShutterEmulator
+from spherejax_hw.emulators import EmulatedPort, FilterWheelEmulator, ScriptedPort, ShutterEmulator
 
 NOT_DEFINED = b"Command error CMD_NOT_DEFINED"
 ARG_INVALID = b"Command error CMD_ARG_INVALID"

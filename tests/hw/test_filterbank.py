@@ -11,11 +11,11 @@ import contextlib
 
 import pytest
 
-from hw.emulators import EmulatedPort, FilterWheelEmulator
-from hw.errors import DeviceError, ProtocolError
-from hw.filterbank import FilterBank, WheelCountMismatch
-from hw.filterwheel import FilterWheel
-from hw.profile import load_profile
+from spherejax_hw.emulators import EmulatedPort, FilterWheelEmulator
+from spherejax_hw.errors import DeviceError, ProtocolError
+from spherejax_hw.filterbank import FilterBank, WheelCountMismatch
+from spherejax_hw.filterwheel import FilterWheel
+from spherejax_hw.profile import load_profile
 
 BANDS = list(range(400, 701, 20))  # 400..540 on wheel a slots 1..8, 560..700 on wheel b slots 1..8
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import pytest
 
 from .support import scripted, transcript
-from hw.emulators import EmulatedPort, FilterWheelEmulator
-from hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
-from hw.filterwheel import MODELS, FilterWheel
+from spherejax_hw.emulators import EmulatedPort, FilterWheelEmulator
+from spherejax_hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
+from spherejax_hw.filterwheel import MODELS, FilterWheel
 
 STRAY = b"\x00\x00Command error CMD_NOT_DEFINED\r> "
 IDN = b"THORLABS FW102C/FW212C Filter Wheel version 1.07"

@@ -8,7 +8,7 @@ import os
 
 import pytest
 
-from hw.lamp import FORMAT, MAX_WARMUPS, Lamp, LampError, LampStateError
+from spherejax_hw.lamp import FORMAT, MAX_WARMUPS, Lamp, LampError, LampStateError
 
 T0 = datetime.datetime(2026, 1, 5, 9, 0, 0, tzinfo=datetime.timezone.utc)
 

@@ -10,8 +10,8 @@ import types
 import numpy as np
 import pytest
 
-from hw import acquire
-from hw.profile import NoiseSettings, ProfileError, load_profile
+from spherejax_hw import acquire
+from spherejax_hw.profile import NoiseSettings, ProfileError, load_profile
 from spherejax import calibrate, io, simulate
 
 from .support import SAMPLES, quiet_settings, write_profile
@@ -102,7 +102,7 @@ def test_camera_record_prefers_the_cameras_own_values(folder):
 
 
 def test_simulated_camera_reports_its_models_noise():
-    from hw.simcamera import SimulatedCamera
+    from spherejax_hw.simcamera import SimulatedCamera
 
     instrument = simulate.InstrumentModel()
     camera = SimulatedCamera(light_path=lambda: None, shutter_open=lambda: False)

@@ -11,7 +11,7 @@ import pathlib
 
 import pytest
 
-from hw.profile import (
+from spherejax_hw.profile import (
     WHEEL_POSITIONS,
     AcquisitionSettings,
     CameraConfig,
@@ -500,7 +500,7 @@ def test_cli_refuses_a_bad_profile_before_anything_is_created(tmp_path, folder, 
 def test_cli_refuses_a_camera_option_before_any_device_is_opened(tmp_path, folder, capsys, monkeypatch, emulate, camera, key, expected):
     """A [camera] option the backend does not take: one line naming the key, exit status 2,
     nothing opened or written (it used to end in a TypeError traceback from the constructor)."""
-    from hw import acquire
+    from spherejax_hw import acquire
     from spherejax import cli
 
     def connect(*args, **kwargs):

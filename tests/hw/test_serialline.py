@@ -11,9 +11,9 @@ import pickle
 import pytest
 import serial
 
-from hw.emulators import ScriptedPort
-from hw.errors import DeviceError, DeviceTimeout, HardwareError, PortError, ProtocolError
-from hw.serialline import PromptedSerialDevice
+from spherejax_hw.emulators import ScriptedPort
+from spherejax_hw.errors import DeviceError, DeviceTimeout, HardwareError, PortError, ProtocolError
+from spherejax_hw.serialline import PromptedSerialDevice
 
 DRAIN = (b"\r", b"\r> ")
 

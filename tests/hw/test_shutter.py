@@ -7,16 +7,13 @@ when ``closed?`` says the state must change, and the new state is confirmed with
 from __future__ import annotations
 
 import logging
-import os
-import threading
 
 import pytest
-import serial
 
 from .support import scripted, transcript
-from hw.emulators import EmulatedPort, ScriptedPort, ShutterEmulator
-from hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
-from hw.shutter import Shutter
+from spherejax_hw.emulators import EmulatedPort, ShutterEmulator
+from spherejax_hw.errors import DeviceError, DeviceTimeout, PortError, ProtocolError
+from spherejax_hw.shutter import Shutter
 
 CONNECT = [
     (b"\r", b"\r> "),
@@ -112,7 +109,7 @@ def test_make_safe_never_raises(monkeypatch, caplog):
     port = scripted(monkeypatch, CONNECT, 'scripted://sc10')
     with Shutter("scripted://sc10") as shutter:
         port.vanish()
-        with caplog.at_level(logging.WARNING, logger="hw.shutter"):
+        with caplog.at_level(logging.WARNING, logger="spherejax_hw.shutter"):
             shutter.make_safe()  # the port failed: logged, not raised
             shutter.make_safe()  # reconnecting fails too: logged, not raised
     assert len(caplog.records) == 2 and "could not make the shutter safe" in caplog.text

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from hw import profile as hw_profile
+from spherejax_hw import profile as hw_profile
 from spherejax import io
 from tests.batch_support import NAMES, frame
 from tests.hw.support import write_profile

@@ -26,7 +26,7 @@ import time
 import numpy as np
 import pytest
 
-from hw import acquire
+from spherejax_hw import acquire
 from spherejax import archive, io
 from tests.helpers import no_compilation_cache_writes
 from tests.hw.support import BANDS as ACQUIRED_BANDS

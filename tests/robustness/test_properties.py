@@ -37,7 +37,7 @@ import pytest
 from hypothesis import HealthCheck, currently_in_test_context, event, example, given, settings, strategies as st
 
 import spherejax as sj
-from hw.profile import ProfileError, load_profile
+from spherejax_hw.profile import ProfileError, load_profile
 from spherejax import archive, fused, io
 from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
 from tests.helpers import write_with_oiio

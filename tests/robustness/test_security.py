@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import spherejax
-from hw import profile as hw_profile
+from spherejax_hw import profile as hw_profile
 from spherejax import archive, cli, io
 from tests.hw.support import write_profile
 from tests.batch_support import NAMES, frame

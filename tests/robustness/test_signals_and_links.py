@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pytest
 
-from hw import acquire
+from spherejax_hw import acquire
 from spherejax import archive, io
 from tests.hw.support import BANDS as ACQUIRED_BANDS
 from tests.hw.support import SAMPLES, run_acquire, write_profile
