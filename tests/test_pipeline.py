@@ -466,3 +466,52 @@ def test_remembered_values_follow_the_arrays_not_their_ids():
     assert calls == ["ab", "ab other", "ba"]
     remembered.get_or_compute((a,), "k", lambda: compute("a"))  # the third entry: the oldest goes
     assert remembered.get_or_compute((a, b), "k", lambda: compute("ab after eviction")) is not one
+
+
+BENCHMARK_SIZE = 96  # three 32-pixel tiles a side; the 35 x 35 patch sits 8 px in
+
+
+@pytest.fixture(scope="module")
+def benchmark_frames():
+    """benchmarks/reference.py's frames and calibration, and its outputs for them."""
+    from benchmarks import reference
+
+    inputs = reference.make_inputs(BENCHMARK_SIZE, seed=7)
+    # Saturated pixels, one inside the patch (the frames have about one at this size by chance).
+    for row, col, band in ((50, 60, 4), (81, 20, 15), (20, 20, 0)):
+        inputs["raw"][row, col, band] = reference.SATURATION
+    wiener, offset = reference.wiener_estimator()
+    xyz_weights, whitepoint_xy = reference.reference_constants()
+    coeffs = reference.stage2_coeffs()
+    expected = reference.reference_correct(
+        inputs["raw"], inputs["dark"], inputs["white"], inputs["patch"], coeffs, wiener,
+        xyz_weights, whitepoint_xy, wiener_offset=offset,
+    )
+    calibration = reference.make_calibration(inputs, coeffs, wiener, wiener_offset=offset)
+    return reference, inputs["raw"], calibration, expected
+
+
+class TestAgainstTheBenchmarkReference:
+    """`correct` against the numpy + colour-science reference every speed figure is a ratio to
+    (benchmarks/reference.py), on the same synthetic frames the benchmarks time: measured
+    spectra in tiles under vignetting, a sample darkening the sphere (p near 1 / 0.97), a few
+    saturated pixels, the paper's Table 2 and an affine Wiener estimator. One oracle for the
+    benchmarks' agreement check and for the tests."""
+
+    @pytest.mark.parametrize("path", ["default", "jax.numpy"])
+    def test_agrees_with_the_reference(self, benchmark_frames, path, monkeypatch):
+        if path == "jax.numpy":
+            monkeypatch.setenv("SPHEREJAX_FUSED", "0")
+        reference, raw, calibration, expected = benchmark_frames
+        assert 3 <= (~expected["valid"]).sum() <= 5  # the saturated pixels, and only they
+        agreement = reference.compare(sj.correct(raw, calibration), expected)
+        assert agreement["valid_pixels"] == BENCHMARK_SIZE**2 - (~expected["valid"]).sum()
+
+    def test_the_agreement_check_can_fail(self, benchmark_frames):
+        """A Table 2 coefficient off by 1 % must be caught by the tolerance the benchmarks use."""
+        reference, raw, calibration, expected = benchmark_frames
+        coeffs = np.asarray(calibration.coeffs).copy()
+        coeffs[5, 0] *= 1.01
+        wrong = dataclasses.replace(calibration, coeffs=coeffs)
+        with pytest.raises(AssertionError, match="disagree"):
+            reference.compare(sj.correct(raw, wrong), expected)
