@@ -72,24 +72,16 @@ class _Progress:
 
 
 def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
-    """Write name -> bytes into out_dir, each atomically (`spherejax.io.atomic`). When one
-    cannot be written (a full disk), the files this call added and the folder it created are
-    removed: no partial set of outputs is left."""
+    """Write name -> bytes into out_dir as one set (`spherejax.io.atomic.write_together`: all
+    the temporary files first, then the renames). When one cannot be written (a full disk), none
+    of the files is changed and a folder this call created is removed."""
     from .io import atomic  # here, not at the top: --help imports nothing of JAX
 
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
-    added = []
     try:
-        for name, payload in files.items():
-            target = out_dir / name
-            new = not target.exists()
-            atomic.write_atomic(target, payload)
-            if new:
-                added.append(target)
+        atomic.write_together({out_dir / name: payload for name, payload in files.items()})
     except BaseException:
-        for target in added:
-            target.unlink(missing_ok=True)
         if created:
             with contextlib.suppress(OSError):
                 out_dir.rmdir()

@@ -74,14 +74,13 @@ import csv
 import dataclasses
 import io as _text_io
 import math
-import os
 import pathlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from .grid import N_WAVELENGTHS
-from .io.atomic import fsync_folder, temp_sibling
+from .io import atomic
 from .io.documents import _readable_json
 from .io.errors import SpherejaxFileError
 from .measurement import Measurement
@@ -332,39 +331,12 @@ def check_output_base(base) -> None:
 
 
 def write_files(files: Mapping[pathlib.Path, bytes]) -> None:
-    """Write every path -> bytes: all to temporary names beside them first (flushed to disk; the
-    names and steps of `spherejax.io.atomic`), then each renamed into place. On a failure, the temporary files are removed, and so are the
-    targets this call created; a failure between two renames (which need no space) leaves a
-    target it replaced replaced."""
-    temporaries, added = {}, []
+    """Write every path -> bytes as one set (`spherejax.io.atomic.write_together`: all the
+    temporary files first, then the renames); SpherejaxFileError naming the file on a failure."""
     try:
-        for path, payload in files.items():
-            temporary = temp_sibling(pathlib.Path(path))
-            temporaries[pathlib.Path(path)] = temporary
-            try:
-                with open(temporary, "xb") as handle:
-                    handle.write(payload)
-                    handle.flush()
-                    os.fsync(handle.fileno())
-            except OSError as error:
-                raise SpherejaxFileError(path, f"could not be written: {error.strerror or error}") from None
-        for path, temporary in temporaries.items():
-            new = not os.path.lexists(path)
-            try:
-                os.replace(temporary, path)
-            except OSError as error:
-                raise SpherejaxFileError(path, f"could not be written: {error.strerror or error}") from None
-            if new:
-                added.append(path)
-        for folder in {path.parent for path in temporaries}:
-            fsync_folder(folder)  # the renames on disk too
-    except BaseException:
-        for path in added:
-            path.unlink(missing_ok=True)
-        raise
-    finally:
-        for temporary in temporaries.values():
-            temporary.unlink(missing_ok=True)
+        atomic.write_together(files)
+    except OSError as error:
+        raise SpherejaxFileError(error.filename, f"could not be written: {error.strerror or error}") from None
 
 
 __all__ = [

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax_hw.lamp import Lamp
 from spherejax import cli, io, measurement_files
 from spherejax.io import atomic
+from spherejax_hw.lamp import Lamp
 
 
 def leftovers(folder: pathlib.Path) -> list[str]:
@@ -141,3 +141,61 @@ def test_every_writer_renames_from_a_name_cleanup_recognises(tmp_path, monkeypat
     source = renamed[-1][0]
     assert source.parent == target.parent and atomic.is_temp_sibling(source.name, target.name), (what, source.name)
     assert leftovers(target.parent) == [], what
+
+
+def test_a_set_of_files_is_written_together(tmp_path):
+    old = tmp_path / "tables.txt"
+    old.write_bytes(b"old tables")
+    atomic.write_together({old: b"new tables", tmp_path / "figure.png": b"\x89PNG"})
+    assert old.read_bytes() == b"new tables" and (tmp_path / "figure.png").read_bytes() == b"\x89PNG"
+    assert leftovers(tmp_path) == []
+
+
+def test_a_full_disk_changes_none_of_the_set(tmp_path, monkeypatch):
+    """The second file's contents cannot be flushed (ENOSPC): the first, already complete in its
+    temporary file, is not renamed either, and the error names the second target."""
+    old = tmp_path / "a.csv"
+    old.write_bytes(b"old")
+    real_fsync, calls = os.fsync, []
+
+    def fsync(descriptor):
+        calls.append(descriptor)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        real_fsync(descriptor)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(OSError) as raised:
+        atomic.write_together({old: b"new", tmp_path / "b.json": b"{}"})
+    assert raised.value.filename == str(tmp_path / "b.json")
+    assert old.read_bytes() == b"old" and sorted(os.listdir(tmp_path)) == ["a.csv"]
+
+
+def test_a_failed_rename_removes_what_the_set_created(tmp_path, monkeypatch):
+    """Renames need no space, but one can still fail (a folder where the file should go): the
+    targets the call created are removed, the one it replaced stays replaced, no temporaries."""
+    replaced, created, blocked = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
+    replaced.write_bytes(b"old")
+    blocked.mkdir()
+    (blocked / "inside").write_bytes(b"x")  # a non-empty folder: os.replace of a file onto it fails
+    with pytest.raises(OSError) as raised:
+        atomic.write_together({replaced: b"new a", created: b"new b", blocked: b"new c"})
+    assert raised.value.filename == str(blocked)
+    assert replaced.read_bytes() == b"new a" and not created.exists() and blocked.is_dir()
+    assert sorted(os.listdir(tmp_path)) == ["a.csv", "c.csv"]
+
+
+def test_the_command_line_outputs_of_a_failed_set_leave_no_folder(tmp_path, monkeypatch):
+    def full_disk(descriptor):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full_disk)
+    with pytest.raises(OSError):
+        cli._write_files(tmp_path / "evaluation", {"tables.txt": b"t", "figure5.png": b"f"})
+    assert os.listdir(tmp_path) == []
+
+
+def test_measurement_files_word_a_failure_for_their_file(tmp_path):
+    target = tmp_path / "missing-folder" / "m.csv"
+    with pytest.raises(io.SpherejaxFileError, match="m.csv.*could not be written"):
+        measurement_files.write_files({target: b"a\n"})

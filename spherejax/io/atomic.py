@@ -15,6 +15,10 @@ The steps of one write (`atomic_file`):
 4. the folder is fsynced, so that the rename itself survives a power cut (POSIX).
 
 On any failure before the rename the temporary file is removed and the target is as it was.
+
+A set of files that belong together (a command's tables and figures, a measurement's CSV and
+JSON) goes through `write_together`: every temporary file written first, then the renames, so a
+full disk leaves none of them changed.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import os
 import pathlib
 import re
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import IO
 
 #: Mode bits a new file is created with, before the umask (as `open(path, "w")` creates it).
@@ -98,3 +102,50 @@ def write_atomic(path: os.PathLike | str, data: bytes | str) -> None:
     """Write `data` (bytes, or str as UTF-8) to `path` through `atomic_file`."""
     with atomic_file(path, "w" if isinstance(data, str) else "wb") as handle:
         handle.write(data)
+
+
+def write_together(files: Mapping[os.PathLike | str, bytes]) -> None:
+    """Write every path -> bytes as one set: each to a temporary sibling (created, written and
+    fsynced as in `atomic_file`) first, then each renamed into place, then their folders fsynced.
+
+    A failure while writing the temporaries (a full disk, the usual one) leaves every target as it
+    was. On a failure among the renames (which need no space), the targets this call created are
+    removed; one it replaced stays replaced. The temporaries never outlive the call.
+
+    Raises:
+      OSError: from creating, writing or renaming, with `filename` the target it was for (the
+        caller words it for its file kind).
+    """
+    temporaries: dict[pathlib.Path, pathlib.Path] = {}
+    added: list[pathlib.Path] = []
+    try:
+        for path, payload in files.items():
+            path = pathlib.Path(path)
+            temporaries[path] = temp_sibling(path)
+            try:
+                descriptor = os.open(temporaries[path], os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
+                with os.fdopen(descriptor, "wb") as handle:
+                    handle.write(payload)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+            except OSError as error:
+                error.filename = str(path)  # the file the user asked for, not its temporary name
+                raise
+        for path, temporary in temporaries.items():
+            new = not os.path.lexists(path)
+            try:
+                os.replace(temporary, path)
+            except OSError as error:
+                error.filename = str(path)
+                raise
+            if new:
+                added.append(path)
+        for folder in {path.parent for path in temporaries}:
+            fsync_folder(folder)
+    except BaseException:
+        for path in added:
+            path.unlink(missing_ok=True)
+        raise
+    finally:
+        for temporary in temporaries.values():
+            temporary.unlink(missing_ok=True)
