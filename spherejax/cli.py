@@ -18,10 +18,11 @@
                                                instrument package, spherejax_hw (hw/command.py),
                                                through the "spherejax.commands" entry points
     spherejax measure -c CAL INPUT --region NAME=r0,r1,c0,c1 ... [--reference NAME|L,a,b]
-              [-o OUT] [--gain E --read-noise COUNTS --frames N]
+              [-o OUT] [--cgats FILE] [--gain E --read-noise COUNTS --frames N]
                                                regions of one cube as a spectrophotometer measures
                                                them: Lab, reflectance, ± U (k = 2), ΔE00; a table,
-                                               OUT.csv and OUT.json (spherejax.measurement_files)
+                                               OUT.csv and OUT.json, and CGATS.17 text with --cgats
+                                               (spherejax.measurement_files)
 
 Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
 status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
@@ -38,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import datetime
 import io as _bytes_io
 import json
 import pathlib
@@ -506,6 +508,8 @@ def cmd_measure(args) -> int:
     reference = _measure_reference(args.reference, [name for name, _, _ in regions])
     base = pathlib.Path(args.output) if args.output else measurement_files.default_base(args.input)
     measurement_files.check_output_base(base)
+    if args.cgats is not None:
+        measurement_files.check_cgats_path(args.cgats, measurement_files.output_paths(base))
 
     calibration_file = io.open_calibration(args.calibration)
     try:
@@ -561,6 +565,11 @@ def cmd_measure(args) -> int:
     csv_path, json_path = measurement_files.output_paths(base)
     files = {csv_path: measurement_files.csv_text(rows).encode(),
              json_path: measurement_files.json_text(document).encode()}
+    if args.cgats is not None:
+        created = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        files[pathlib.Path(args.cgats)] = measurement_files.cgats_text(
+            rows, input_path=args.input, instrument_id=header.get("instrument_id"), created=created,
+        ).encode()
     # A stop request (SIGINT, SIGTERM) while the two files are written waits until both are in place.
     with interrupt.stop_requests():
         measurement_files.write_files(files)
@@ -568,7 +577,7 @@ def cmd_measure(args) -> int:
         print(note, file=sys.stderr)
     if not args.quiet:
         print(measurement_files.format_table(rows, reference=label), end="")
-        print(f"written: {csv_path}, {json_path}")
+        print("written: " + ", ".join(map(str, files)))
     return 0
 
 
@@ -709,6 +718,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="illuminant for Lab (default: the calibration's)")
     measure.add_argument("-o", "--output", metavar="OUT",
                          help="writes OUT.csv and OUT.json (default: INPUT's stem + .measure, in this folder)")
+    measure.add_argument("--cgats", metavar="FILE",
+                         help="also write the regions as CGATS.17 text (X-Rite layout: SAMPLE_ID, SAMPLE_NAME, "
+                              "LAB_L/A/B, nm400..nm700), as colour quality-control software and ArgyllCMS read")
     measure.add_argument("--gain", metavar="E_PER_COUNT",
                          help="camera gain, electrons per count: overrides the calibration's noise model, "
                               "or with --read-noise supplies one")

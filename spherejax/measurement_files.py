@@ -63,8 +63,26 @@ The region fields are `Measurement.to_dict()`; "reflectance_spread" is the stand
 the per-pixel reflectances over the region (non-uniformity and pixel noise, not an uncertainty
 of the mean). All numbers are finite; what is not known is null.
 
-Both files are written together by `write_files`: each to a temporary name beside it, then
-renamed into place, so that on any failure neither file is left half-written and no new file is
+CGATS (--cgats FILE)
+-------------------
+The regions as colour quality-control software exchanges spectral measurements: CGATS.17 text
+(ISO 28178, `spherejax.io.cgats`) in the X-Rite layout, which colour-science's
+`read_sds_from_xrite_file` and ArgyllCMS read:
+
+    CGATS.17
+    ORIGINATOR "spherejax 0.1.0", DESCRIPTOR, CREATED (ISO 8601), INSTRUMENTATION
+    ILLUMINATION_NAME "D65"           the illuminant of LAB_L, LAB_A, LAB_B
+    OBSERVER_ANGLE "2"                2 (CIE 1931) or 10 (CIE 1964) degrees
+    MEASUREMENT_SOURCE "Illumination=D65 ObserverAngle=2 WhiteBase=Abs"
+    SPECTRAL_BANDS "31", SPECTRAL_START_NM "400", SPECTRAL_END_NM "700", SPECTRAL_NORM "1"
+    SAMPLE_ID SAMPLE_NAME LAB_L LAB_A LAB_B nm400 nm410 ... nm700
+
+one line per region in the order given: SAMPLE_ID 1, 2, ...; SAMPLE_NAME the region's name;
+reflectance factors (0..1, white standard 1), numbers in full precision like the CSV's. The
+uncertainties are in the CSV and JSON only (CGATS.17 has no fields for them).
+
+The files are written together by `write_files`: each to a temporary name beside it, then
+renamed into place, so that on any failure no file is left half-written and no new file is
 left at all.
 """
 
@@ -81,6 +99,7 @@ import numpy as np
 
 from .grid import N_WAVELENGTHS
 from .io import atomic
+from .io.cgats import cgats_text as _cgats_table
 from .io.documents import _readable_json
 from .io.errors import SpherejaxFileError
 from .measurement import Measurement
@@ -304,6 +323,60 @@ def json_text(document: Mapping) -> str:
     return _readable_json(_listed(document)) + "\n"
 
 
+# ---------------------------------------------------------------------------------------- CGATS
+
+#: CGATS's OBSERVER_ANGLE of each observer `measure` may use.
+_OBSERVER_ANGLE = {"CIE 1931 2 Degree Standard Observer": "2", "CIE 1964 10 Degree Standard Observer": "10"}
+
+
+def cgats_text(results: Sequence[RegionResult], *, input_path, instrument_id: str | None, created: str) -> str:
+    """The CGATS.17 file's text (module docstring).
+
+    Args:
+      results: the regions, in order; all measured under one illuminant and observer.
+      input_path: the cube measured (in DESCRIPTOR). instrument_id: the calibration's (or None).
+      created: ISO 8601 date and time of the measurement.
+    """
+    from . import __version__
+
+    first = results[0].measurement
+    angle = _OBSERVER_ANGLE[first.observer]
+    instrument = "integrating-sphere multispectral camera" + (f" {instrument_id}" if instrument_id else "")
+    keywords = {
+        "ORIGINATOR": f"spherejax {__version__}",
+        "DESCRIPTOR": f"regions of {input_path}",
+        "CREATED": created,
+        "INSTRUMENTATION": instrument,
+        "MEASUREMENT_SOURCE": f"Illumination={first.illuminant} ObserverAngle={angle} WhiteBase=Abs",
+        "ILLUMINATION_NAME": first.illuminant,
+        "OBSERVER_ANGLE": angle,
+        "SPECTRAL_BANDS": N_WAVELENGTHS,
+        "SPECTRAL_START_NM": WAVELENGTHS_NM[0],
+        "SPECTRAL_END_NM": WAVELENGTHS_NM[-1],
+        "SPECTRAL_NORM": 1,
+    }
+    fields = ["SAMPLE_ID", "SAMPLE_NAME", "LAB_L", "LAB_A", "LAB_B", *(f"nm{nm}" for nm in WAVELENGTHS_NM)]
+    rows = []
+    for number, r in enumerate(results, start=1):
+        m = r.measurement
+        rows.append([number, r.name, *m.lab.tolist(), *m.reflectance.tolist()])
+    return _cgats_table(keywords, fields, rows)
+
+
+def check_cgats_path(path, other_outputs: Sequence[pathlib.Path] = ()) -> None:
+    """SpherejaxFileError unless --cgats FILE names a file (not a folder) in an existing folder,
+    other than `other_outputs` (OUT.csv, OUT.json)."""
+    path = pathlib.Path(path)
+    for other in other_outputs:
+        if path.absolute() == pathlib.Path(other).absolute():
+            raise SpherejaxFileError(path, "is also the measurement's CSV or JSON file", "--cgats FILE another file than OUT.csv and OUT.json")
+    if path.name in ("", ".", "..") or path.is_dir():
+        raise SpherejaxFileError(path, "is a folder", "--cgats FILE: a file to write the CGATS.17 text to")
+    if not path.parent.is_dir():
+        problem = "is in a folder that does not exist" if not path.parent.exists() else "is in something that is not a folder"
+        raise SpherejaxFileError(path, problem, "--cgats FILE in an existing folder")
+
+
 # ---------------------------------------------------------------------------------------- files
 
 
@@ -344,6 +417,8 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "RegionResult",
+    "cgats_text",
+    "check_cgats_path",
     "check_output_base",
     "csv_header",
     "csv_text",

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import pathlib
+import warnings
 
+import colour
 import numpy as np
 import OpenImageIO as oiio
 
+from spherejax.grid import WAVELENGTHS_NM
 from spherejax.polynomial import PAPER_TABLE_2
 from spherejax.simulate import ExperimentDesign
 
@@ -98,3 +101,27 @@ def write_with_oiio(path, pages):
 
 #: A small experiment design (tests/test_cli.py, the `workspace` fixture of tests/conftest.py).
 SMALL = ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=16)
+
+
+# --- colour-science as the colorimetric oracle ---------------------------------------------
+
+#: colour-science's names of spherejax's illuminants.
+COLOUR_NAME = {"D65": "D65", "A": "A", "F2": "FL2"}
+
+
+def colour_sd_to_xyz(refl_31, illuminant, observer="CIE 1931 2 Degree Standard Observer"):
+    """colour-science's sd_to_XYZ (ASTM E308, its default) for one 400..700/10 nm spectrum."""
+    sd = colour.SpectralDistribution(refl_31, WAVELENGTHS_NM.astype(float))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "Trimming ..." notice for a 400-700 nm input
+        return colour.sd_to_XYZ(
+            sd, colour.MSDS_CMFS[observer], colour.SDS_ILLUMINANTS[COLOUR_NAME[illuminant]],
+            method="ASTM E308",
+        )
+
+
+def colour_lab(refl, illuminant, observer="CIE 1931 2 Degree Standard Observer"):
+    """colour-science's Lab of each spectrum, white = perfect diffuser under the illuminant."""
+    white = colour_sd_to_xyz(np.ones(31), illuminant, observer)
+    xyz = np.stack([colour_sd_to_xyz(r, illuminant, observer) for r in refl])
+    return colour.XYZ_to_Lab(xyz / 100.0, colour.XYZ_to_xy(white / 100.0))

@@ -1,7 +1,5 @@
 """Reflectance -> XYZ -> Lab against colour-science as the oracle."""
 
-import warnings
-
 import colour
 import jax
 import jax.numpy as jnp
@@ -12,26 +10,9 @@ import spherejax as sj
 from spherejax import spectra
 from spherejax.grid import WAVELENGTHS_NM
 
+from .helpers import colour_lab, colour_sd_to_xyz
+
 ILLUMINANTS = ["D65", "A", "F2"]
-COLOUR_NAME = {"D65": "D65", "A": "A", "F2": "FL2"}
-
-
-def colour_sd_to_xyz(refl_31, illuminant, observer="CIE 1931 2 Degree Standard Observer"):
-    """colour-science's sd_to_XYZ (ASTM E308, its default) for one 400..700/10 nm spectrum."""
-    sd = colour.SpectralDistribution(refl_31, WAVELENGTHS_NM.astype(float))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "Trimming ..." notice for a 400-700 nm input
-        return colour.sd_to_XYZ(
-            sd, colour.MSDS_CMFS[observer], colour.SDS_ILLUMINANTS[COLOUR_NAME[illuminant]],
-            method="ASTM E308",
-        )
-
-
-def colour_lab(refl, illuminant, observer="CIE 1931 2 Degree Standard Observer"):
-    """colour-science's Lab of each spectrum, white = perfect diffuser under the illuminant."""
-    white = colour_sd_to_xyz(np.ones(31), illuminant, observer)
-    xyz = np.stack([colour_sd_to_xyz(r, illuminant, observer) for r in refl])
-    return colour.XYZ_to_Lab(xyz / 100.0, colour.XYZ_to_xy(white / 100.0))
 
 
 @pytest.fixture(scope="module")

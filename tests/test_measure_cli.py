@@ -17,6 +17,8 @@ from spherejax.measurement import measure
 from spherejax.pipeline import Calibration
 from spherejax.uncertainty import NoiseModel
 
+from .helpers import colour_lab
+
 H, W = 20, 24
 BANDS = list(range(400, 701, 20))
 WAVELENGTHS = np.arange(400, 701, 10)
@@ -334,6 +336,39 @@ class TestRefused:
         argv = [*self.base_args(root), "--region", f"s={r},{r + 1},{c},{c + 1}"]
         self.refuse(argv, capsys, folder, "--region", "flagged")
 
+    def test_cgats_file_is_a_folder(self, setup, capsys):
+        root, folder = setup
+        (folder / "qc").mkdir()
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "r"), "--cgats", str(folder / "qc")]
+        self.refuse(argv, capsys, folder, "qc", "is a folder", "--cgats FILE")
+
+    def test_cgats_file_in_a_missing_folder(self, setup, capsys):
+        root, folder = setup
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "r"), "--cgats", str(folder / "no" / "m.txt")]
+        self.refuse(argv, capsys, folder, "m.txt", "does not exist")
+
+    def test_cgats_file_is_the_csv(self, setup, capsys):
+        root, folder = setup
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "r"), "--cgats", str(folder / "r.csv")]
+        self.refuse(argv, capsys, folder, "r.csv", "also the measurement's CSV or JSON")
+
+    def test_failed_cgats_write_leaves_nothing(self, setup, capsys):
+        """The CGATS file cannot be written (a folder appears in its place after the checks):
+        neither OUT.csv nor OUT.json is left."""
+        root, folder = setup
+        argv = [*self.base_args(root), *region_args(), "-o", str(folder / "r"), "--cgats", str(folder / "m.txt")]
+        real = measurement_files.cgats_text
+
+        def cgats_text_then_block(*args, **kwargs):
+            (folder / "m.txt").mkdir()
+            return real(*args, **kwargs)
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(measurement_files, "cgats_text", cgats_text_then_block)
+            status, out, err = run(argv, capsys)
+        assert status == cli.EXIT_BAD_INPUT and "m.txt" in err and len(err.strip().splitlines()) == 1
+        assert sorted(p.name for p in folder.iterdir()) == ["m.txt"] and (folder / "m.txt").is_dir()
+
     def test_failed_write_leaves_nothing(self, setup, capsys):
         """OUT.json cannot be written (a folder is in the way): OUT.csv is not left either."""
         root, folder = setup
@@ -350,3 +385,68 @@ def test_output_paths_append_the_suffixes():
         "U_L", "U_a", "U_b", "delta_e00", "u_delta_e00", "U_delta_e00",
     ]
     assert len(measurement_files.csv_header()) == 16 + 2 * 31
+
+
+@pytest.fixture(scope="module")
+def written(files, tmp_path_factory):
+    """(the CGATS file, the CSV rows and JSON document) of one `measure --cgats` run."""
+    folder = tmp_path_factory.mktemp("cgats")
+    regions = {**REGIONS, "paper white": (14, 18, 4, 12)}  # a name with a space is quoted
+    argv = ["-q", "measure", "-c", str(files["root"] / "cal.npz"), str(files["root"] / "sample.tif"),
+            *region_args(regions), "-o", str(folder / "r"), "--cgats", str(folder / "qc.txt")]
+    assert cli.main(argv) == 0
+    return folder / "qc.txt", read_outputs(folder / "r")
+
+
+class TestCGATS:
+    """--cgats FILE read back by colour-science's X-Rite reader (the spectra exactly) and checked
+    against `measure` in Python and colour-science's own Lab of those spectra."""
+
+    def test_colour_reads_the_spectra_exactly(self, written):
+        import colour
+
+        path, (rows, document) = written
+        spectra = colour.io.read_sds_from_xrite_file(str(path))
+        assert list(spectra) == ["grey", "red", '"paper']  # colour's reader splits on whitespace
+        for entry in document["regions"][:2]:
+            sd = spectra[entry["name"]]
+            np.testing.assert_array_equal(sd.wavelengths, WAVELENGTHS)
+            np.testing.assert_array_equal(sd.values, entry["reflectance"])  # exactly, not closely
+
+    def test_fields_keywords_and_lab(self, written, files):
+        import colour
+
+        path, (rows, document) = written
+        lines = path.read_text(encoding="utf-8").splitlines()
+        assert lines[0] == "CGATS.17" and lines[-1] == "END_DATA"
+        keywords = dict(line.split("\t", 1) for line in lines[1 : lines.index("BEGIN_DATA_FORMAT")])
+        assert keywords["ILLUMINATION_NAME"] == '"D65"' and keywords["OBSERVER_ANGLE"] == '"2"'
+        assert keywords["SPECTRAL_BANDS"] == '"31"' and keywords["NUMBER_OF_FIELDS"] == str(5 + 31)
+        declared = {line.split("\t")[1].strip('"') for line in lines if line.startswith("KEYWORD\t")}
+        assert {"ILLUMINATION_NAME", "OBSERVER_ANGLE", "SPECTRAL_BANDS"} <= declared
+        assert "ORIGINATOR" not in declared  # a CGATS.17 keyword needs no declaration
+        fields = lines[lines.index("BEGIN_DATA_FORMAT") + 1].split("\t")
+        assert fields == ["SAMPLE_ID", "SAMPLE_NAME", "LAB_L", "LAB_A", "LAB_B", *(f"nm{nm}" for nm in WAVELENGTHS)]
+        data = [line.split("\t") for line in lines[lines.index("BEGIN_DATA") + 1 : -1]]
+        assert [row[:2] for row in data] == [["1", "grey"], ["2", "red"], ["3", '"paper white"']]
+        for row, entry in zip(data, document["regions"]):
+            lab = np.array([float(v) for v in row[2:5]])
+            np.testing.assert_array_equal(lab, entry["lab"])
+            oracle = colour_lab([np.array([float(v) for v in row[5:]])], "D65")[0]  # from the file's spectra
+            assert colour.delta_E(lab, oracle, method="CIE 2000") < 0.05
+        grey = expected(files, NOISE, "grey")
+        np.testing.assert_array_equal(np.array([float(v) for v in data[0][5:]]), grey.reflectance.tolist())
+
+
+def test_cgats_text_refuses_what_no_reader_would_take():
+    from spherejax.io.cgats import cgats_text
+
+    with pytest.raises(ValueError, match="finite"):
+        cgats_text({}, ["A"], [[float("nan")]])
+    with pytest.raises(ValueError, match="2 values for 1 fields"):
+        cgats_text({}, ["A"], [[1, 2]])
+    with pytest.raises(ValueError, match="letters, digits"):
+        cgats_text({"MY KEY": 1}, ["A"], [])
+    text = cgats_text({"ORIGINATOR": "x"}, ["SAMPLE_NAME"], [["12"], ["a'b"], ['say "hi"'], ["nan"], ["ok"]])
+    data = text.split("BEGIN_DATA\n")[1].splitlines()[:-1]
+    assert data == ['"12"', '"a\'b"', '"say ""hi"""', '"nan"', "ok"]  # nothing a reader would take for a number
