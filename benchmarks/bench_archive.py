@@ -112,7 +112,7 @@ from spherejax.pipeline import (  # noqa: E402
 )
 
 BAND_NAMES = [f"{nm}nm" for nm in BAND_CENTRES_NM.tolist()]
-REFLECTANCE_NAMES = [f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()]
+REFLECTANCE_NAMES = io.reflectance_channel_names(WAVELENGTHS_NM.tolist())  # as spherejax writes them
 LAB_NAMES = ["L*", "a*", "b*"]  # spherejax's names ("a" alone would be taken for alpha)
 STRIP_PX = 32  # the white-patch strip beside the holder (ExperimentDesign.strip_px)
 INPUT_NOISE_DN = 8.0  # per-file variation of the inputs (module docstring, Data)

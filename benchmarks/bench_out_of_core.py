@@ -564,7 +564,7 @@ def _by_name(pixels: np.ndarray, names: list[str], wanted: list[str]) -> np.ndar
     return pixels[..., [names.index(n) for n in wanted]]
 
 
-REFLECTANCE_NAMES = [f"{nm}nm" for nm in spherejax.WAVELENGTHS_NM.tolist()]
+REFLECTANCE_NAMES = spherejax.io.reflectance_channel_names(spherejax.WAVELENGTHS_NM.tolist())  # as spherejax writes them
 LAB_NAMES = ["L*", "a*", "b*"]
 
 

@@ -38,8 +38,9 @@ of the inputs' parent folders, so an input's own name is kept): ``batch/a.tif`` 
 a session ``s`` -> ``OUT/s/frames/<id>``, band files ``x/a_400nm.tif``... -> ``OUT/x/a`` (no
 prefix: ``OUT/x``). For each input name N:
 
-    N.reflectance.exr  float32, channels "400nm".."700nm" (31), header attributes
-                       spherejax:calibration_checksum, spherejax:software_version,
+    N.reflectance.exr  float32 in the spectral layout of Fichet et al. (2021) (`io.spectral_layout`):
+                       channels "T.400nm".."T.700nm" (31), spectralLayoutVersion "1.0";
+                       attributes spherejax:calibration_checksum, spherejax:software_version,
                        spherejax:source (the input relative to that common folder),
                        spherejax:input_sha256, spherejax:illuminant
     N.lab.exr          float32, channels "L*", "a*", "b*" under the illuminant, same attributes
@@ -107,6 +108,7 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 
 from . import interrupt, io
+from .io import spectral_layout
 from .grid import WAVELENGTHS_NM
 
 MANIFEST_NAME = "manifest.jsonl"
@@ -623,10 +625,12 @@ def _correct_into(
         if path.is_symlink() or path.is_dir():
             raise io.SpherejaxFileError(path, "is a link or a folder", "a file spherejax may replace")
     height, width, _ = cube.shape
-    bands = [f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()]
+    bands = spectral_layout.reflectance_channel_names(WAVELENGTHS_NM.tolist())
+    spectral_attributes = {spectral_layout.LAYOUT_VERSION_ATTRIBUTE: spectral_layout.LAYOUT_VERSION, **attributes}
     openers = {
         "reflectance.exr": lambda path: io.open_exr(
-            path, (height, width, len(bands)), channel_names=bands, attributes=attributes, compression=exr_compression
+            path, (height, width, len(bands)), channel_names=bands, attributes=spectral_attributes,
+            compression=exr_compression,
         ),
         "lab.exr": lambda path: io.open_exr(
             path, (height, width, 3), channel_names=["L*", "a*", "b*"], attributes=attributes, compression=exr_compression

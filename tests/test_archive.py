@@ -11,6 +11,7 @@ import random
 import signal
 import time
 
+import colour
 import numpy as np
 import OpenImageIO as oiio
 import pytest
@@ -46,9 +47,16 @@ def test_outputs_channels_metadata_and_values(cal, tmp_path, rng, capsys):
     calibration, header = io.load_calibration(cal)
     expected = spherejax.correct(raw, calibration)
     refl, names, attributes = read_exr(f"{stem}.reflectance.exr")
-    assert names == [f"{nm}nm" for nm in WAVELENGTHS_NM.tolist()]
+    assert names == [f"T.{nm}nm" for nm in WAVELENGTHS_NM.tolist()]  # Fichet et al. (2021)
+    assert attributes["spectralLayoutVersion"] == "1.0"
     np.testing.assert_array_equal(refl, np.asarray(expected.reflectance))
     assert np.isnan(refl[0, 0]).all()
+    # colour-science's reader of the published layout: 31 wavelengths, the same values.
+    components = colour.io.read_spectral_image_Fichet2021(f"{stem}.reflectance.exr")
+    assert list(components) == ["T"]
+    wavelengths, values = components["T"]
+    np.testing.assert_array_equal(wavelengths, WAVELENGTHS_NM.astype(float))
+    np.testing.assert_array_equal(values, refl)
     assert attributes["spherejax:calibration_checksum"] == header["checksum"]
     assert attributes["spherejax:software_version"] == spherejax.__version__
     assert attributes["spherejax:source"] == "in/batch/a.tif"

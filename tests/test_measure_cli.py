@@ -437,16 +437,3 @@ class TestCGATS:
         grey = expected(files, NOISE, "grey")
         np.testing.assert_array_equal(np.array([float(v) for v in data[0][5:]]), grey.reflectance.tolist())
 
-
-def test_cgats_text_refuses_what_no_reader_would_take():
-    from spherejax.io.cgats import cgats_text
-
-    with pytest.raises(ValueError, match="finite"):
-        cgats_text({}, ["A"], [[float("nan")]])
-    with pytest.raises(ValueError, match="2 values for 1 fields"):
-        cgats_text({}, ["A"], [[1, 2]])
-    with pytest.raises(ValueError, match="letters, digits"):
-        cgats_text({"MY KEY": 1}, ["A"], [])
-    text = cgats_text({"ORIGINATOR": "x"}, ["SAMPLE_NAME"], [["12"], ["a'b"], ['say "hi"'], ["nan"], ["ok"]])
-    data = text.split("BEGIN_DATA\n")[1].splitlines()[:-1]
-    assert data == ['"12"', '"a\'b"', '"say ""hi"""', '"nan"', "ok"]  # nothing a reader would take for a number

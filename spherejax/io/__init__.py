@@ -14,6 +14,8 @@ The package's modules, one job each (their names are all available here, as befo
     documents          canonical and readable JSON; `_Fields`, the checks of a document's keys
     frames             camera frames (TIFF) and `AtomicImageWriter`
     cubes              cubes read by rows (`CubeReader`), OpenEXR and PNG outputs
+    spectral_layout    the reflectance EXR's spectral layout (Fichet et al. 2021): channel names
+    cgats              CGATS.17 text (ISO 28178), as colour quality-control software exchanges it
     sessions           session folders: `load_session`, `write_session`, `write_simulated_session`
     calibration_files  calibration files: `save_calibration`, `open_calibration`, `load_calibration`
 
@@ -34,7 +36,9 @@ is read with `read_band_files`.
 Corrected outputs (`write_exr`, `write_png`)
 ---------------------------------------------
 float32 OpenEXR (PIZ-compressed by default, or ZIP or none: all lossless) with named channels and
-string attributes, and 8-bit PNG. Neither
+string attributes, and 8-bit PNG. A reflectance EXR follows the spectral layout of Fichet,
+Pacanowski, Wilkie (JCGT 10(3), 2021; `spectral_layout`): channels "T.400nm".."T.700nm" and
+spectralLayoutVersion "1.0"; older ones named "400nm".."700nm" still read. Neither
 carries a time stamp, so writing the same pixels twice gives the same bytes (`spherejax.archive`
 relies on it to resume a batch into byte-identical outputs).
 
@@ -167,6 +171,7 @@ from .calibration_files import (
     open_calibration,
     save_calibration,
 )
+from .spectral_layout import reflectance_channel_names, wavelengths_of_channels
 
 __all__ = [
     "temp_sibling",
@@ -213,4 +218,6 @@ __all__ = [
     "CALIBRATION_FORMAT",
     "CALIBRATION_FORMAT_VERSION",
     "IN_MEMORY_BYTES",
+    "reflectance_channel_names",
+    "wavelengths_of_channels",
 ]
