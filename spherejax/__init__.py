@@ -14,7 +14,8 @@ Layers. Each module imports only modules of its own layer or of the layers below
 
 1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, wiener_estimation,
    pipeline, uncertainty, consistency, markov, angles, fused (the CPU kernel), buffers, grid,
-   spectra, allocator, jsontext (a parser of text it is given), _checks.
+   spectra, allocator, jsontext (a parser of text it is given), labelled (the xarray names of the
+   outputs), _checks.
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
    a path they open): calibrate, evaluate, study, simulate, stripwise, measurement, monte_carlo,
    simulated_targets, figures.
@@ -72,7 +73,21 @@ from .wiener_estimation import (
 
 __version__ = "0.1.0"
 
+
+def open_corrected(path):
+    """An output of `spherejax correct` as an `xarray.Dataset`, read lazily in row chunks:
+    reflectance (y, x, wavelength) with wavelength in nm, lab and quality beside it, the file's
+    header as attributes (`spherejax.io.corrected.open_corrected`; names in `spherejax.labelled`).
+
+    `path`: N.reflectance.exr (spectral layout or older names), N.reflectance.hdr (ENVI), a
+    sibling output of N, or N. Imported on call: the file readers stay out of `import spherejax`.
+    """
+    from .io.corrected import open_corrected as _open_corrected
+
+    return _open_corrected(path)
+
 __all__ = [
+    "open_corrected",
     "keep_freed_memory",
     "BAND_CENTRES_NM",
     "WAVELENGTHS_NM",

@@ -208,6 +208,16 @@ class CorrectionResult(eqx.Module):
                 )
         return _delta_e_u(self.lab, self.lab_covariance, reference, reference_covariance)
 
+    def to_xarray(self, attrs=None):
+        """The result as an `xarray.Dataset` (copied to host memory): reflectance (..., y, x,
+        wavelength) with wavelength in nm, lab (..., y, x, lab), quality (..., y, x), p (...,
+        band), and the uncertainties and intermediates this result holds; names and coordinates
+        in `spherejax.labelled`. `attrs`: the dataset's attributes (e.g. the illuminant)."""
+        from . import labelled
+
+        arrays = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+        return labelled.dataset(arrays, attrs=attrs)
+
 
 @jax.jit
 def _delta_e_u(lab, lab_covariance, reference, reference_covariance):

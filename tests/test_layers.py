@@ -21,7 +21,7 @@ LAYERS = {
     **dict.fromkeys(
         ["colorimetry", "flatfield", "polynomial", "wiener_estimation", "pipeline", "uncertainty", "consistency",
          "markov", "angles", "fused", "_fused_correct", "buffers", "grid", "spectra", "allocator", "jsontext",
-         "_checks"], KERNELS),
+         "labelled", "_checks"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
          "simulated_targets", "figures"], WORKFLOWS),

@@ -16,6 +16,8 @@ The package's modules, one job each (their names are all available here, as befo
     cubes              cubes read by rows (`CubeReader`), OpenEXR and PNG outputs
     spectral_layout    the reflectance EXR's spectral layout (Fichet et al. 2021): channel names
     cgats              CGATS.17 text (ISO 28178), as colour quality-control software exchanges it
+    envi               ENVI images (header + raw BIP pixels), written by strips, read lazily
+    corrected          outputs opened as xarray (`spherejax.open_corrected`), lazily by rows
     sessions           session folders: `load_session`, `write_session`, `write_simulated_session`
     calibration_files  calibration files: `save_calibration`, `open_calibration`, `load_calibration`
 

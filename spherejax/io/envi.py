@@ -1,0 +1,214 @@
+"""ENVI images: a plain-text header (N.hdr) and raw pixels (N.img), the format hyperspectral
+software reads (ENVI, Spectral Python, QGIS and GDAL, hylite).
+
+What `spherejax correct --format envi` writes for each output (reflectance, Lab):
+
+    ENVI
+    description = { spherejax reflectance factor ... }
+    samples = W, lines = H, bands = C, header offset = 0
+    file type = ENVI Standard
+    data type = 4                      float32
+    interleave = bip                   band interleaved by pixel: (H, W, C) in C order, each
+                                       pixel's spectrum contiguous, as spherejax holds it in
+                                       memory; rows are appended strip by strip as corrected
+    byte order = 0                     little-endian
+    wavelength units = Nanometers      (reflectance only)
+    wavelength = { 400 , 410 , ... }   (reflectance only)
+    band names = { ... }
+    data ignore value = -9999          flagged pixels (quality != 0), NaN in the EXR outputs
+    reflectance scale factor = 1       (reflectance only) reflectance factors 0..1
+    spherejax calibration checksum = sha256:...   and the other spherejax attributes, one per
+                                       line ("spherejax:name_of_it" becomes "spherejax name of it")
+
+Both files are written under temporary names (`spherejax.io.atomic`) and renamed into place
+together, the data first and the header last, once every row is written.
+
+The header text is written by Spectral Python's `write_envi_header` and read back by its
+`read_envi_header` (the library the field uses for ENVI); the pixels are appended here, strip by
+strip, because its `create_image` writes in place through a memory map, with no temporary name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import pathlib
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from .atomic import NEW_FILE_MODE, create_exclusive, fsync_folder, temp_sibling
+from .errors import SpherejaxFileError
+
+#: The value flagged pixels hold in ENVI outputs ("data ignore value"): NaN is not a value every
+#: ENVI reader can compare against.
+IGNORE_VALUE = -9999.0
+_FLOAT32 = 4  # ENVI "data type" code of IEEE float32
+_ATTRIBUTE_PREFIX = "spherejax:"
+
+
+def _header_key(name: str) -> str:
+    """"spherejax:calibration_checksum" -> "spherejax calibration checksum" (ENVI keys are words)."""
+    if name.startswith(_ATTRIBUTE_PREFIX):
+        return "spherejax " + name[len(_ATTRIBUTE_PREFIX):].replace("_", " ")
+    return name
+
+
+def _attribute_name(key: str) -> str:
+    """The reverse of `_header_key` for spherejax's keys."""
+    if key.startswith("spherejax "):
+        return _ATTRIBUTE_PREFIX + key[len("spherejax "):].replace(" ", "_")
+    return key
+
+
+def data_path(header_path) -> pathlib.Path:
+    """N.img for N.hdr: the name Spectral Python, ENVI and GDAL look for first."""
+    return pathlib.Path(header_path).with_suffix(".img")
+
+
+class EnviWriter:
+    """One float32 ENVI image (BIP) written in row strips: N.img and N.hdr under temporary names,
+    both renamed into place by `commit` once every row is written (as `AtomicImageWriter`)."""
+
+    def __init__(self, header_path, shape: Sequence[int], *, description: str, band_names: Sequence[str],
+                 wavelengths_nm: Sequence[float] | None = None, attributes: Mapping[str, str] | None = None):
+        self.header_path = pathlib.Path(header_path)
+        self.data_path = data_path(self.header_path)
+        height, width, channels = (int(n) for n in shape)
+        if len(band_names) != channels:
+            raise ValueError(f"band_names: {len(band_names)} names for {channels} channels")
+        self.height, self.width, self.channels = height, width, channels
+        self.header = {
+            "description": description,
+            "samples": width, "lines": height, "bands": channels, "header offset": 0,
+            "file type": "ENVI Standard", "data type": _FLOAT32, "interleave": "bip", "byte order": 0,
+        }
+        if wavelengths_nm is not None:
+            self.header["wavelength units"] = "Nanometers"
+            self.header["wavelength"] = [float(nm) for nm in wavelengths_nm]
+            self.header["reflectance scale factor"] = 1
+        self.header["band names"] = list(band_names)
+        self.header["data ignore value"] = IGNORE_VALUE
+        for name, value in (attributes or {}).items():
+            self.header[_header_key(name)] = str(value)
+        self._next_row = 0
+        self._digest = hashlib.sha256()
+        self._temps = {self.data_path: temp_sibling(self.data_path), self.header_path: temp_sibling(self.header_path)}
+        self._data = None
+        try:
+            create_exclusive(self._temps[self.header_path])
+            descriptor = os.open(self._temps[self.data_path], os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
+            self._data = os.fdopen(descriptor, "wb")
+        except OSError as error:
+            self.abort()
+            raise SpherejaxFileError(self.header_path, f"could not be written: {error}") from None
+
+    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
+        """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows; NaN becomes the
+        data ignore value."""
+        if self._data is None:
+            raise SpherejaxFileError(self.header_path, "is no longer open for writing")
+        if row0 != self._next_row:
+            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+        pixels = np.asarray(pixels, dtype="<f4")
+        if pixels.shape[1:] != (self.width, self.channels):
+            raise ValueError(f"pixels: expected (rows, {self.width}, {self.channels}), got {pixels.shape}")
+        block = np.where(np.isnan(pixels), np.float32(IGNORE_VALUE), pixels).tobytes()
+        try:
+            self._data.write(block)
+        except OSError as error:
+            self.abort()
+            raise SpherejaxFileError(self.data_path, f"could not be written: {error}") from None
+        self._digest.update(block)
+        self._next_row = row0 + len(pixels)
+
+    def commit(self) -> dict[pathlib.Path, str]:
+        """Finish both files, fsync, rename the data then the header into place; return
+        {path: SHA-256 (hex)} of N.img and N.hdr."""
+        from spectral.io.envi import write_envi_header
+
+        if self._data is None:
+            raise SpherejaxFileError(self.header_path, "is no longer open for writing")
+        if self._next_row != self.height:
+            self.abort()
+            raise SpherejaxFileError(self.header_path, f"has {self._next_row} of its {self.height} rows", "every row written")
+        data, self._data = self._data, None
+        try:
+            data.flush()
+            os.fsync(data.fileno())
+            data.close()
+            header_temp = self._temps[self.header_path]
+            write_envi_header(str(header_temp), self.header)
+            with open(header_temp, "rb") as handle:
+                header_digest = hashlib.file_digest(handle, "sha256").hexdigest()
+                os.fsync(handle.fileno())
+            os.replace(self._temps[self.data_path], self.data_path)
+            os.replace(header_temp, self.header_path)
+            fsync_folder(self.header_path.parent)
+        except OSError as error:
+            raise SpherejaxFileError(self.header_path, f"could not be written: {error}") from None
+        finally:
+            self.abort()
+        return {self.data_path: self._digest.hexdigest(), self.header_path: header_digest}
+
+    def abort(self) -> None:
+        """Drop what was written: the temporary files go, the targets are untouched."""
+        data, self._data = self._data, None
+        if data is not None:
+            with contextlib.suppress(OSError):
+                data.close()
+        for temporary in self._temps.values():
+            with contextlib.suppress(OSError):
+                temporary.unlink(missing_ok=True)
+
+    def __enter__(self) -> EnviWriter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.abort()
+
+
+def open_lazy(header_path, *, kind: str, chunk_bytes: int, shape: tuple[int, int] | None = None):
+    """An ENVI output as (dask array (H, W, C) float32 with NaN for the data ignore value,
+    wavelengths in nm or None, attributes); `kind` names it in messages ("reflectance", "lab").
+
+    Read through Spectral Python (`spectral.open_image`), whose memory map dask reads in chunks
+    of whole rows of about `chunk_bytes`, so only the rows a computation needs are read.
+    """
+    import dask.array as da
+    import spectral
+
+    expected = f"a float32 ENVI {kind} image written by spherejax correct --format envi"
+    header_path = pathlib.Path(header_path)
+    # The magic word first: Spectral Python leaves its file open when it refuses a header.
+    try:
+        with open(header_path, "rb") as handle:
+            magic = handle.read(4)
+    except OSError as error:
+        raise SpherejaxFileError(header_path, f"cannot be read: {error.strerror or error}", expected) from None
+    if magic != b"ENVI":
+        raise SpherejaxFileError(header_path, f"cannot be read as ENVI: it starts with {magic!r}", f"{expected} (a header starting with ENVI)")
+    try:
+        image = spectral.open_image(str(header_path))
+        pixels = image.open_memmap(interleave="bip", writable=False)
+    except Exception as error:  # noqa: BLE001 -- Spectral Python raises many kinds for a bad header
+        raise SpherejaxFileError(header_path, f"cannot be read as ENVI: {' '.join(str(error).split())}", expected) from None
+    if pixels.dtype != np.float32:
+        raise SpherejaxFileError(header_path, f"holds {pixels.dtype} pixels", f"float32 {kind} (data type = 4)")
+    if shape is not None and tuple(pixels.shape[:2]) != tuple(shape):
+        raise SpherejaxFileError(header_path, f"is {pixels.shape[0]} x {pixels.shape[1]}", f"the reflectance's {shape[0]} x {shape[1]}")
+    metadata = dict(image.metadata)
+    wavelengths = [float(nm) for nm in metadata["wavelength"]] if "wavelength" in metadata else None
+    if kind == "reflectance" and (wavelengths is None or len(wavelengths) != pixels.shape[2]):
+        raise SpherejaxFileError(header_path, "has no wavelength for each band", "wavelength = { ... } in nm, one per band")
+    ignore = float(metadata.get("data ignore value", "nan"))
+    rows = max(1, chunk_bytes // max(1, pixels.shape[1] * pixels.shape[2] * 4))
+    lazy = da.from_array(pixels, chunks=(rows, -1, -1), asarray=True)
+    lazy = da.where(lazy == np.float32(ignore), np.float32(np.nan), lazy)
+    attributes = {_attribute_name(key): value for key, value in metadata.items()
+                  if isinstance(value, str) and key.startswith("spherejax ")}
+    return lazy, wavelengths, attributes
+
+
+__all__ = ["EnviWriter", "IGNORE_VALUE", "data_path", "open_lazy"]

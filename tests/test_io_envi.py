@@ -1,0 +1,97 @@
+"""`spherejax.io.envi`: ENVI images read back by Spectral Python (wavelengths, values, the data
+ignore value, spherejax's attributes), written atomically, strip by strip."""
+
+import hashlib
+import os
+
+import numpy as np
+import pytest
+
+from spherejax import io
+from spherejax.grid import WAVELENGTHS_NM
+from spherejax.io import envi
+
+
+def write(path, pixels, *, strips=(0,), wavelengths=WAVELENGTHS_NM.tolist(), attributes=None):
+    names = [f"{nm}nm" for nm in wavelengths] if wavelengths is not None else [f"c{i}" for i in range(pixels.shape[2])]
+    with envi.EnviWriter(path, pixels.shape, description="test", band_names=names, wavelengths_nm=wavelengths,
+                         attributes=attributes) as writer:
+        bounds = [*strips, len(pixels)]
+        for row0, row1 in zip(bounds, bounds[1:]):
+            writer.write_rows(row0, pixels[row0:row1])
+        return writer.commit()
+
+
+@pytest.fixture
+def pixels():
+    rng = np.random.default_rng(0)
+    values = rng.uniform(0, 1, (7, 5, 31)).astype(np.float32)
+    values[2, 3] = np.nan  # a flagged pixel
+    return values
+
+
+def test_spectral_python_reads_wavelengths_values_and_header(tmp_path, pixels):
+    import spectral
+
+    digests = write(tmp_path / "a.reflectance.hdr", pixels, strips=(0, 3, 4),
+                    attributes={"spherejax:calibration_checksum": "sha256:abc", "spherejax:illuminant": "D65"})
+    image = spectral.open_image(str(tmp_path / "a.reflectance.hdr"))
+    assert (image.nrows, image.ncols, image.nbands) == (7, 5, 31)
+    np.testing.assert_array_equal(image.bands.centers, WAVELENGTHS_NM.astype(float))
+    assert image.metadata["wavelength units"] == "Nanometers" and image.metadata["interleave"] == "bip"
+    loaded = image.load()
+    ignore = float(image.metadata["data ignore value"])
+    assert ignore == envi.IGNORE_VALUE and (np.asarray(loaded[2, 3]) == ignore).all()
+    good = ~np.isnan(pixels)
+    np.testing.assert_array_equal(np.asarray(loaded)[good], pixels[good])
+    assert image.metadata["spherejax calibration checksum"] == "sha256:abc"
+    assert sorted(p.name for p in digests) == ["a.reflectance.hdr", "a.reflectance.img"]
+    for path, digest in digests.items():
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == digest
+    assert sorted(os.listdir(tmp_path)) == ["a.reflectance.hdr", "a.reflectance.img"]
+
+
+def test_the_lazy_reader_gives_nan_back_and_the_attributes(tmp_path, pixels):
+    write(tmp_path / "a.reflectance.hdr", pixels, attributes={"spherejax:source": "in/a.tif"})
+    lazy, wavelengths, attributes = envi.open_lazy(tmp_path / "a.reflectance.hdr", kind="reflectance", chunk_bytes=2 * 5 * 31 * 4)
+    assert lazy.chunks[0] == (2, 2, 2, 1)
+    np.testing.assert_array_equal(lazy.compute(), pixels)  # NaN where it was NaN
+    assert wavelengths == WAVELENGTHS_NM.astype(float).tolist() and attributes == {"spherejax:source": "in/a.tif"}
+
+
+def test_the_same_pixels_in_any_strips_give_the_same_bytes(tmp_path, pixels):
+    one = write(tmp_path / "one.hdr", pixels)
+    many = write(tmp_path / "many.hdr", pixels, strips=(0, 1, 2, 6))
+    assert one[tmp_path / "one.img"] == many[tmp_path / "many.img"]
+
+
+def test_an_unfinished_image_leaves_nothing(tmp_path, pixels):
+    with pytest.raises(io.SpherejaxFileError, match="has 3 of its 7 rows"):
+        with envi.EnviWriter(tmp_path / "a.hdr", pixels.shape, description="t", band_names=["b"] * 31) as writer:
+            writer.write_rows(0, pixels[:3])
+            writer.commit()
+    with envi.EnviWriter(tmp_path / "b.hdr", pixels.shape, description="t", band_names=["b"] * 31) as writer:
+        writer.write_rows(0, pixels[:3])  # left without commit: an error, or a stop request
+    assert os.listdir(tmp_path) == []
+
+
+def test_rows_out_of_order_and_bad_shapes_are_refused(tmp_path, pixels):
+    with envi.EnviWriter(tmp_path / "a.hdr", pixels.shape, description="t", band_names=["b"] * 31) as writer:
+        with pytest.raises(ValueError, match="expected the next row 0, got 2"):
+            writer.write_rows(2, pixels[2:4])
+        with pytest.raises(ValueError, match=r"expected \(rows, 5, 31\)"):
+            writer.write_rows(0, pixels[:2, :4])
+    with pytest.raises(ValueError, match="2 names for 31 channels"):
+        envi.EnviWriter(tmp_path / "c.hdr", pixels.shape, description="t", band_names=["a", "b"])
+
+
+@pytest.mark.parametrize("text", [
+    "not an ENVI header\n",                                     # no magic word
+    "ENVI\nsamples = 5\nlines = 7\n",                          # no bands, no data type
+    "ENVI\nsamples = 5\nlines = 7\nbands = 31\ndata type = 4\ninterleave = bip\nbyte order = 0\n",  # no data file
+])
+def test_a_header_that_is_not_a_whole_envi_image_is_refused_in_one_line(tmp_path, text):
+    (tmp_path / "bad.hdr").write_text(text)
+    with pytest.raises(io.SpherejaxFileError, match="bad.hdr: cannot be read") as raised:
+        envi.open_lazy(tmp_path / "bad.hdr", kind="reflectance", chunk_bytes=1 << 20)
+    assert "\n" not in str(raised.value)
