@@ -49,7 +49,13 @@ prefix: ``OUT/x``). For each input name N:
     N.preview.png      8-bit sRGB (D65, IEC 61966-2-1 encoding) for browsing, whatever the
                        illuminant; pixels with no reflectance (quality != 0) are magenta
 
-Bad pixels are NaN in both EXR files. Outputs carry no time stamps: a rerun writes the same bytes.
+With `--format envi` (`output_format="envi"`) the reflectance and Lab are ENVI images instead
+(`spherejax.io.envi`): N.reflectance.hdr + N.reflectance.img (float32, band interleaved by pixel,
+wavelength in nm, the same attributes as header fields) and N.lab.hdr + N.lab.img; quality and
+preview as above.
+
+Bad pixels are NaN in both EXR files and the ENVI files' "data ignore value" (-9999) in ENVI
+ones. Outputs carry no time stamps: a rerun writes the same bytes.
 
 Out of core
 -----------
@@ -108,12 +114,21 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 
 from . import interrupt, io
-from .io import spectral_layout
+from .io import envi, spectral_layout
 from .grid import WAVELENGTHS_NM
 
 MANIFEST_NAME = "manifest.jsonl"
 LOCK_NAME = ".spherejax.lock"
-OUTPUT_KINDS = ("reflectance.exr", "lab.exr", "quality.png", "preview.png")
+#: The outputs of one input in each output format (`--format`): "<name>.<kind>" in OUT.
+OUTPUT_KINDS_BY_FORMAT = {
+    "exr": ("reflectance.exr", "lab.exr", "quality.png", "preview.png"),
+    "envi": ("reflectance.img", "reflectance.hdr", "lab.img", "lab.hdr", "quality.png", "preview.png"),
+}
+OUTPUT_FORMATS = tuple(OUTPUT_KINDS_BY_FORMAT)
+#: The outputs of the default format, EXR.
+OUTPUT_KINDS = OUTPUT_KINDS_BY_FORMAT["exr"]
+#: Every kind of output any format writes (what removing an input's outputs looks for).
+_ALL_OUTPUT_KINDS = tuple(dict.fromkeys(kind for kinds in OUTPUT_KINDS_BY_FORMAT.values() for kind in kinds))
 CUBE_SUFFIXES = (".tif", ".tiff", ".exr")
 
 #: Preview colour of pixels without reflectance (sRGB 8-bit): magenta, never a real colour of a
@@ -605,7 +620,7 @@ def _remove_outputs(out_root: pathlib.Path, name: str) -> None:
     path = root / name
     if ".." in pathlib.PurePosixPath(name).parts or not path.parent.resolve().is_relative_to(root):
         return
-    for kind in OUTPUT_KINDS:
+    for kind in _ALL_OUTPUT_KINDS:
         output = path.parent / f"{path.name}.{kind}"
         if output.is_file() or output.is_symlink():
             output.unlink(missing_ok=True)
@@ -613,53 +628,74 @@ def _remove_outputs(out_root: pathlib.Path, name: str) -> None:
 
 def _correct_into(
     cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
-    attributes: dict, rows_per_strip: int | None, exr_compression: str,
-) -> dict[str, tuple[pathlib.Path, str]]:
-    """Correct `cube` strip by strip (`stripwise.correct_strips`) into its four outputs, each
-    written under a temporary name and renamed into place once complete; on a failure the
-    temporary files go and the outputs already renamed are removed."""
+    attributes: dict, rows_per_strip: int | None, exr_compression: str, output_format: str = "exr",
+) -> dict[pathlib.Path, str]:
+    """Correct `cube` strip by strip (`stripwise.correct_strips`) into its outputs in
+    `output_format` (`OUTPUT_KINDS_BY_FORMAT`), each written under a temporary name and renamed
+    into place once complete; on a failure the temporary files go and the outputs already
+    renamed are removed. Returns {path: SHA-256 (hex)} of every file written."""
     from .stripwise import correct_strips
 
-    paths = {kind: folder / f"{stem}.{kind}" for kind in OUTPUT_KINDS}
+    kinds = OUTPUT_KINDS_BY_FORMAT[output_format]
+    paths = {kind: folder / f"{stem}.{kind}" for kind in kinds}
     for path in paths.values():
         if path.is_symlink() or path.is_dir():
             raise io.SpherejaxFileError(path, "is a link or a folder", "a file spherejax may replace")
     height, width, _ = cube.shape
-    bands = spectral_layout.reflectance_channel_names(WAVELENGTHS_NM.tolist())
-    spectral_attributes = {spectral_layout.LAYOUT_VERSION_ATTRIBUTE: spectral_layout.LAYOUT_VERSION, **attributes}
-    openers = {
-        "reflectance.exr": lambda path: io.open_exr(
-            path, (height, width, len(bands)), channel_names=bands, attributes=spectral_attributes,
-            compression=exr_compression,
-        ),
-        "lab.exr": lambda path: io.open_exr(
-            path, (height, width, 3), channel_names=["L*", "a*", "b*"], attributes=attributes, compression=exr_compression
-        ),
-        "quality.png": lambda path: io.open_png(path, (height, width, 1), channel_names=["quality"]),
-        "preview.png": lambda path: io.open_png(path, (height, width, 3), channel_names=["R", "G", "B"]),
-    }
-    committed: dict[str, tuple[pathlib.Path, str]] = {}
+    spectral_names = spectral_layout.reflectance_channel_names(WAVELENGTHS_NM.tolist())
+    lab_names = ["L*", "a*", "b*"]
+    if output_format == "exr":
+        spectral_attributes = {spectral_layout.LAYOUT_VERSION_ATTRIBUTE: spectral_layout.LAYOUT_VERSION, **attributes}
+        openers = {
+            "reflectance": lambda: io.open_exr(
+                paths["reflectance.exr"], (height, width, len(spectral_names)), channel_names=spectral_names,
+                attributes=spectral_attributes, compression=exr_compression,
+            ),
+            "lab": lambda: io.open_exr(
+                paths["lab.exr"], (height, width, 3), channel_names=lab_names, attributes=attributes,
+                compression=exr_compression,
+            ),
+        }
+    else:
+        source = attributes.get("spherejax:source", stem)
+        openers = {
+            "reflectance": lambda: envi.EnviWriter(
+                paths["reflectance.hdr"], (height, width, len(spectral_names)),
+                description=f"spherejax reflectance factor (0..1) of {source}", band_names=spectral_names,
+                wavelengths_nm=WAVELENGTHS_NM.tolist(), attributes=attributes,
+            ),
+            "lab": lambda: envi.EnviWriter(
+                paths["lab.hdr"], (height, width, 3),
+                description=f"spherejax CIELAB of {source} under {attributes.get('spherejax:illuminant')}",
+                band_names=lab_names, attributes=attributes,
+            ),
+        }
+    openers["quality"] = lambda: io.open_png(paths["quality.png"], (height, width, 1), channel_names=["quality"])
+    openers["preview"] = lambda: io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"])
+    committed: dict[pathlib.Path, str] = {}
     with contextlib.ExitStack() as stack:
-        writers: dict[str, io.AtomicImageWriter] = {}
+        writers = {}
         for row0, arrays in correct_strips(cube, calibration, rows_per_strip=rows_per_strip):
             interrupt.check()  # a safe point: leaving here removes the temporary files (ExitStack)
             if not writers:
                 # Opened once the first strip is corrected: an input that fails before (in its
                 # header, or its patch rows) leaves no file to abandon (libpng complains on
                 # stderr about a PNG closed without rows).
-                for kind, open_writer in openers.items():
-                    writers[kind] = stack.enter_context(open_writer(paths[kind]))
-            writers["reflectance.exr"].write_rows(row0, arrays["reflectance"])
-            writers["lab.exr"].write_rows(row0, arrays["lab"])
-            writers["quality.png"].write_rows(row0, arrays["quality"][..., None])
-            writers["preview.png"].write_rows(row0, srgb_preview(arrays["reflectance"]))
-        # The last safe point: from here the four outputs go into place together.
+                for output, open_writer in openers.items():
+                    writers[output] = stack.enter_context(open_writer())
+            writers["reflectance"].write_rows(row0, arrays["reflectance"])
+            writers["lab"].write_rows(row0, arrays["lab"])
+            writers["quality"].write_rows(row0, arrays["quality"][..., None])
+            writers["preview"].write_rows(row0, srgb_preview(arrays["reflectance"]))
+        # The last safe point: from here the outputs go into place together.
         interrupt.check()
         try:
-            for kind, writer in writers.items():
-                committed[kind] = (paths[kind], writer.commit())
+            for output, writer in writers.items():
+                digests = writer.commit()
+                # An image writer gives its file's digest; an ENVI writer, its two files'.
+                committed.update(digests if isinstance(digests, dict) else {writer.path: digests})
         except BaseException:
-            for path, _ in committed.values():
+            for path in committed:
                 path.unlink(missing_ok=True)
             raise
     return committed
@@ -677,6 +713,7 @@ def _remove_empty_folders(created: list[pathlib.Path]) -> None:
 def correct_input(
     source: InputSpec, out_root, calibration_path, *, illuminant: str | None = None,
     rows_per_strip: int | None = None, exr_compression: str = io.DEFAULT_EXR_COMPRESSION,
+    output_format: str = "exr",
 ) -> FileResult:
     """Correct one input into OUT and return its `FileResult`; never raises for a bad input.
 
@@ -692,6 +729,7 @@ def correct_input(
       illuminant: Lab illuminant ("D65", "A", "F2"); None = the calibration's.
       rows_per_strip: strip height; None = `stripwise.strip_height` (the whole image when small).
       exr_compression: of the EXR outputs, one of `io.EXR_COMPRESSIONS` (all lossless).
+      output_format: "exr" (the default) or "envi" (`OUTPUT_KINDS_BY_FORMAT`).
     """
     from . import __version__
 
@@ -715,10 +753,10 @@ def correct_input(
             }
             folder, created = _output_folder(out_root, source.name)
             stem = pathlib.PurePosixPath(source.name).name
-            written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression)
+            written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression, output_format)
         outputs = {
             path.resolve().relative_to(out_root.resolve()).as_posix(): digest
-            for path, digest in written.values()
+            for path, digest in written.items()
         }
         height, width = calibration.image_shape
         return FileResult(
@@ -892,14 +930,16 @@ def _sha256_file(path: pathlib.Path) -> str | None:
         return None
 
 
-def is_done(record: dict | None, spec: InputSpec, out_root: pathlib.Path, calibration_checksum: str) -> bool:
+def is_done(record: dict | None, spec: InputSpec, out_root: pathlib.Path, calibration_checksum: str,
+            output_format: str = "exr") -> bool:
     """True if `record` says `spec` is done with this calibration, its input is unchanged and
-    every recorded output is there with its checksum."""
+    every output of `output_format` is recorded and there with its checksum (a batch resumed in
+    another format redoes its inputs)."""
     if not record or record.get("status") != "done" or spec.problem is not None:
         return False
     if record.get("calibration_checksum") != calibration_checksum:
         return False
-    expected = {f"{spec.name}.{kind}" for kind in OUTPUT_KINDS}
+    expected = {f"{spec.name}.{kind}" for kind in OUTPUT_KINDS_BY_FORMAT[output_format]}
     outputs = record.get("outputs")
     if not isinstance(outputs, dict) or set(outputs) != expected:
         return False
@@ -935,6 +975,7 @@ def run_batch(
     resume: bool = False,
     illuminant: str | None = None,
     exr_compression: str = io.DEFAULT_EXR_COMPRESSION,
+    output_format: str = "exr",
     on_start: Callable[[list[InputSpec]], None] | None = None,
     on_result: Callable[[InputSpec, FileResult | None], None] | None = None,
     on_warning: Callable[[str], None] | None = None,
@@ -949,6 +990,8 @@ def run_batch(
       resume: continue a batch already in OUT, skipping verified inputs.
       illuminant: Lab illuminant; None = the calibration's.
       exr_compression: of the EXR outputs (`io.EXR_COMPRESSIONS`, all lossless).
+      output_format: "exr" (default: OpenEXR, the reflectance in the spectral layout) or "envi"
+        (ENVI reflectance and Lab); `OUTPUT_KINDS_BY_FORMAT` lists the files of each.
       on_start: called with the inputs found, before the first is corrected.
       on_result: called per input with its FileResult, or None when it was skipped.
       on_warning: called with one line per folder not followed and per input named twice
@@ -973,6 +1016,8 @@ def run_batch(
     calibration_path = pathlib.Path(os.path.abspath(calibration_path))
     if exr_compression not in io.EXR_COMPRESSIONS:
         raise ValueError(f"exr_compression: expected one of {list(io.EXR_COMPRESSIONS)}, got {exr_compression!r}")
+    if output_format not in OUTPUT_FORMATS:
+        raise ValueError(f"output_format: expected one of {list(OUTPUT_FORMATS)}, got {output_format!r}")
     header = load_calibration(calibration_path, illuminant).header
     if out_root.exists() and not out_root.is_dir():
         raise BatchError(out_root, "is not a folder", "an output folder (OUT)")
@@ -1001,13 +1046,13 @@ def run_batch(
                 pending = []
                 for spec in specs:
                     interrupt.check()  # verifying what is done reads every output: a while
-                    if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"]):
+                    if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"], output_format):
                         summary.skipped += 1
                         if on_result is not None:
                             on_result(spec, None)
                         continue
                     pending.append(spec)
-                options = {"illuminant": illuminant, "exr_compression": exr_compression}
+                options = {"illuminant": illuminant, "exr_compression": exr_compression, "output_format": output_format}
                 if executor is None:
                     results = _in_process(pending, out_root, calibration_path, options)
                 else:
@@ -1044,7 +1089,9 @@ def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_pa
 __all__ = [
     "MANIFEST_NAME",
     "LOCK_NAME",
+    "OUTPUT_FORMATS",
     "OUTPUT_KINDS",
+    "OUTPUT_KINDS_BY_FORMAT",
     "PREVIEW_BAD_PIXEL",
     "BatchError",
     "InputSpec",

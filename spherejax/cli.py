@@ -10,9 +10,9 @@
     spherejax study SESSION [-c CAL] [--wiener] [--out DIR]
                                                Stage II fitted for ΔE00 consistency, compared with
                                                the closed form on the held-out test captures
-    spherejax correct -c CAL INPUT... -o OUT [--resume] [--illuminant NAME]
+    spherejax correct -c CAL INPUT... -o OUT [--resume] [--illuminant NAME] [--format exr|envi]
                                                batch-correct cubes, sessions and folders into OUT
-                                               (spherejax.archive)
+                                               (spherejax.archive): spectral OpenEXR or ENVI
     spherejax acquire --profile FILE -o SESSION [--yes] [--emulate] [--resume]
                                                drive the instrument into a session; added by the
                                                instrument package, spherejax_hw (hw/command.py),
@@ -365,7 +365,7 @@ def cmd_correct(args) -> int:
         with interrupt.stop_requests(), executor as running:
             summary = archive.run_batch(
                 args.inputs, args.output, args.calibration, resume=args.resume,
-                illuminant=args.illuminant, exr_compression=args.exr_compression,
+                illuminant=args.illuminant, exr_compression=args.exr_compression, output_format=args.output_format,
                 on_start=progress.start, on_result=progress.result, on_warning=warn, executor=running,
             )
     finally:
@@ -694,6 +694,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="continue the batch in OUT: skip inputs whose outputs are verified, redo the rest")
     correct.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
                          help="illuminant for Lab (default: the calibration's)")
+    correct.add_argument("--format", dest="output_format", default="exr", choices=["exr", "envi"],
+                         help="exr (default): OpenEXR, the reflectance in the spectral layout of Fichet et al. "
+                              "(2021); envi: ENVI reflectance and Lab (.hdr + .img, band interleaved by pixel)")
     correct.add_argument("--exr-compression", default="piz", choices=["piz", "zip", "none"],
                          help="lossless compression of the EXR outputs (default piz: smaller and faster than zip "
                               "on noisy reflectance; none: fastest, largest)")

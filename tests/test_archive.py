@@ -457,3 +457,67 @@ def test_unknown_exr_compression_is_refused_before_anything(cal, tmp_path, rng):
     with pytest.raises(ValueError, match=r"exr_compression: expected one of \['piz', 'zip', 'none'\], got 'lzw'"):
         archive.run_batch([tmp_path / "a.tif"], tmp_path / "out", cal, exr_compression="lzw")
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------ ENVI
+
+
+def test_envi_outputs_read_by_spectral_python_and_xarray(cal, tmp_path, rng, capsys):
+    """--format envi: reflectance and Lab as ENVI images that Spectral Python reads with their
+    wavelengths and values (flagged pixels at the data ignore value), and that open_corrected
+    reads as it reads the EXR outputs of the same input."""
+    import spectral
+
+    raw = frame(rng)
+    io.write_frame(tmp_path / "a.tif", raw, channel_names=NAMES)
+    argv = ["correct", "-c", str(cal), str(tmp_path / "a.tif")]
+    assert run([*argv, "-o", str(tmp_path / "envi"), "--format", "envi"], capsys)[0] == 0
+    assert run([*argv, "-o", str(tmp_path / "exr")], capsys)[0] == 0
+    assert sorted(outputs_of(tmp_path / "envi")) == sorted(f"a.{k}" for k in archive.OUTPUT_KINDS_BY_FORMAT["envi"])
+    calibration, header = io.load_calibration(cal)
+    expected = spherejax.correct(raw, calibration)
+    good = np.asarray(expected.quality) == 0
+
+    image = spectral.open_image(str(tmp_path / "envi" / "a.reflectance.hdr"))
+    np.testing.assert_array_equal(image.bands.centers, WAVELENGTHS_NM.astype(float))
+    assert image.metadata["wavelength units"] == "Nanometers"
+    assert image.metadata["spherejax calibration checksum"] == header["checksum"]
+    pixels = np.asarray(image.load())
+    np.testing.assert_array_equal(pixels[good], np.asarray(expected.reflectance)[good])
+    assert (pixels[~good] == float(image.metadata["data ignore value"])).all() and (~good).any()
+    lab = np.asarray(spectral.open_image(str(tmp_path / "envi" / "a.lab.hdr")).load())
+    np.testing.assert_array_equal(lab[good], np.asarray(expected.lab)[good])
+
+    from_envi = spherejax.open_corrected(tmp_path / "envi" / "a.reflectance.hdr")
+    from_exr = spherejax.open_corrected(tmp_path / "exr" / "a")
+    for name in ("reflectance", "lab", "quality"):
+        np.testing.assert_array_equal(from_envi[name].values, from_exr[name].values, err_msg=name)
+    np.testing.assert_array_equal(from_envi["wavelength"], from_exr["wavelength"])
+    assert from_envi.attrs["spherejax:calibration_checksum"] == from_exr.attrs["spherejax:calibration_checksum"]
+    # Quality and preview are the same files in either format.
+    envi_files, exr_files = outputs_of(tmp_path / "envi"), outputs_of(tmp_path / "exr")
+    assert envi_files["a.quality.png"] == exr_files["a.quality.png"]
+
+
+def test_resume_in_envi_verifies_envi_outputs(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng), channel_names=NAMES)
+    out = tmp_path / "out"
+    argv = ["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(out)]
+    assert run([*argv, "--format", "envi"], capsys)[0] == 0
+    status, stdout, _ = run([*argv, "--format", "envi", "--resume"], capsys)
+    assert status == 0 and stdout.strip() == "0 corrected, 1 skipped (already done), 0 failed"
+    (out / "a.reflectance.img").write_bytes(b"damaged")
+    status, stdout, _ = run([*argv, "--format", "envi", "--resume"], capsys)
+    assert stdout.strip() == "1 corrected, 0 skipped (already done), 0 failed"
+    # The same batch resumed in the other format has none of its outputs: redone.
+    status, stdout, _ = run([*argv, "--resume"], capsys)
+    assert stdout.strip() == "1 corrected, 0 skipped (already done), 0 failed"
+    assert (out / "a.reflectance.exr").is_file()
+
+
+def test_unknown_output_format_is_refused_before_anything(cal, tmp_path, rng, capsys):
+    with pytest.raises(ValueError, match=r"output_format: expected one of \['exr', 'envi'\], got 'tiff'"):
+        archive.run_batch([tmp_path / "a.tif"], tmp_path / "out", cal, output_format="tiff")
+    with pytest.raises(SystemExit):
+        cli.main(["correct", "-c", str(cal), str(tmp_path), "-o", str(tmp_path / "o"), "--format", "tiff"])
+    assert "invalid choice: 'tiff'" in capsys.readouterr().err and not (tmp_path / "out").exists()

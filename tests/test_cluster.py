@@ -27,12 +27,13 @@ def batch(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_two_local_workers_match_the_in_process_run(batch, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("output_format", archive.OUTPUT_FORMATS)
+def test_two_local_workers_match_the_in_process_run(batch, tmp_path, capsys, monkeypatch, output_format):
     monkeypatch.setenv("SPHEREJAX_COMPILATION_CACHE", str(tmp_path / "jax-cache"))
-    status, out, _ = run(["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "serial")], capsys)
+    common = ["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "--format", output_format]
+    status, out, _ = run([*common, "-o", str(tmp_path / "serial")], capsys)
     assert status == 1 and "6 corrected, 0 skipped (already done), 1 failed" in out
-    status, out, err = run(["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "dask"),
-                            "--workers", "2"], capsys)
+    status, out, err = run([*common, "-o", str(tmp_path / "dask"), "--workers", "2"], capsys)
     assert status == 1 and "6 corrected, 0 skipped (already done), 1 failed" in out, err
     assert outputs_of(tmp_path / "dask") == outputs_of(tmp_path / "serial")
     records = archive.read_manifest(tmp_path / "dask")
