@@ -28,6 +28,7 @@ DESIGN_SIGNATURES = {
     "measure": ["raw", "calibration", "mask", "noise"],
     "patch_ratio": ["raw", "calibration"],
     "patch_ratio_u": ["raw", "calibration", "noise"],
+    "open_corrected": ["path"],
 }
 
 
