@@ -95,3 +95,16 @@ def test_a_header_that_is_not_a_whole_envi_image_is_refused_in_one_line(tmp_path
     with pytest.raises(io.SpherejaxFileError, match="bad.hdr: cannot be read") as raised:
         envi.open_lazy(tmp_path / "bad.hdr", kind="reflectance", chunk_bytes=1 << 20)
     assert "\n" not in str(raised.value)
+
+
+def test_pixels_of_another_type_and_a_reflectance_without_wavelengths_are_refused(tmp_path, pixels):
+    write(tmp_path / "plain.hdr", pixels[..., :3], wavelengths=None)
+    with pytest.raises(io.SpherejaxFileError, match="plain.hdr: has no wavelength for each band"):
+        envi.open_lazy(tmp_path / "plain.hdr", kind="reflectance", chunk_bytes=1 << 20)
+    header = (tmp_path / "plain.hdr").read_text().replace("data type = 4", "data type = 5")  # float64
+    (tmp_path / "double.hdr").write_text(header)
+    (tmp_path / "double.img").write_bytes(np.zeros((7, 5, 3), "<f8").tobytes())
+    with pytest.raises(io.SpherejaxFileError, match="double.hdr: holds float64 pixels"):
+        envi.open_lazy(tmp_path / "double.hdr", kind="lab", chunk_bytes=1 << 20)
+    with pytest.raises(io.SpherejaxFileError, match="plain.hdr: is 7 x 5.*6 x 5"):
+        envi.open_lazy(tmp_path / "plain.hdr", kind="lab", chunk_bytes=1 << 20, shape=(6, 5))
