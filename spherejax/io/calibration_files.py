@@ -341,10 +341,15 @@ def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, di
                     "its data in the file, unfiltered, as save_calibration writes them",
                 )
             array = _StoredArray(path, dataset)
+            # Chunks are stored whole: those over the last rows hold padding beyond the array.
+            allocated = array.nbytes
+            if dataset.chunks is not None:
+                count = math.prod(-(-n // c) for n, c in zip(array.shape, dataset.chunks))
+                allocated = count * math.prod(dataset.chunks) * array.dtype.itemsize
             stored_bytes = dataset.id.get_storage_size()
-            if stored_bytes != array.nbytes:
+            if stored_bytes != allocated:
                 raise CalibrationFileError(
-                    path, f"dataset {name!r} of shape {list(array.shape)} holds {stored_bytes} of its {array.nbytes} bytes",
+                    path, f"dataset {name!r} of shape {list(array.shape)} holds {stored_bytes} of its {allocated} bytes",
                     "every byte of its data written",
                 )
             arrays[name] = array
