@@ -361,7 +361,8 @@ def _read_npz(path: pathlib.Path) -> tuple[bytes | None, dict[str, np.ndarray]]:
     versions 1 to 3), read whole by numpy, never unpickled."""
     expected = 'a "header" entry: a uint8 array of UTF-8 JSON'
     try:
-        with np.load(path, allow_pickle=False) as archive:
+        # Opened here, not by np.load, which leaves its own file unclosed when the zip is refused.
+        with open(path, "rb") as file, np.load(file, allow_pickle=False) as archive:
             foreign = sorted(name for name in archive.zip.namelist() if not name.endswith(".npy"))
             if foreign:
                 raise CalibrationFileError(path, f"holds entries that are not .npy arrays: {foreign}", "an .npz of arrays")
