@@ -418,6 +418,46 @@ def _decode_header(path, raw: bytes | None, container: str) -> dict:
         raise CalibrationFileError(path, problem, expected) from None
 
 
+class _FailureKeepingFile:
+    """The temporary file as h5py's file-object driver sees it, keeping the first failed write
+    (a full disk) in `error` and reporting success, so that `save_calibration` raises it once
+    h5py has closed the file: h5py cannot raise a write that fails while it closes the file (the
+    metadata it flushes then), it prints a traceback and carries on."""
+
+    def __init__(self, file):
+        self._file, self.error = file, None
+
+    def _keep(self, operation, *args) -> None:
+        if self.error is None:  # after a failure the file is given up: nothing more is written
+            try:
+                operation(*args)
+            except OSError as error:
+                self.error = error
+
+    def write(self, data) -> int:
+        self._keep(self._file.write, data)
+        return memoryview(data).nbytes
+
+    def truncate(self, size: int) -> int:
+        self._keep(self._file.truncate, size)
+        return size
+
+    def flush(self) -> None:
+        self._keep(self._file.flush)
+
+    def read(self, size: int = -1) -> bytes:  # what h5py tells a file object by
+        return self._file.read(size)
+
+    def readinto(self, buffer) -> int:
+        return self._file.readinto(buffer)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+
 def save_calibration(
     path, calibration: Calibration, *, instrument_id: str, band_centres_nm, metadata=None,
     noise_model: NoiseModel | None = None,
@@ -478,14 +518,18 @@ def save_calibration(
     _check_calibration_contents(path, header, arrays)  # refuse to write what load would refuse
 
     try:
-        # h5py writes through the temporary file's handle ("w+b": its file-object driver may
-        # read back what it wrote) and is closed, every byte handed to the handle, before
-        # atomic_file flushes, fsyncs and renames it.
-        with atomic_file(path, "w+b") as file, h5py.File(file, "w") as stored:
-            stored.attrs["header"] = _readable_json(header)  # a UTF-8 string: h5dump shows the JSON
-            for name, array in arrays.items():
-                chunks = _row_chunks(array.shape, array.dtype.itemsize) if name in _FRAME_ARRAYS else None
-                stored.create_dataset(name, data=array, chunks=chunks).attrs["description"] = CALIBRATION_ARRAYS[name]
+        # h5py writes the temporary file through its handle ("w+b": h5py's file-object driver
+        # reads too) and has closed it, every byte handed over, before atomic_file flushes,
+        # fsyncs and renames it.
+        with atomic_file(path, "w+b") as file:
+            keeping = _FailureKeepingFile(file)
+            with h5py.File(keeping, "w") as stored:
+                stored.attrs["header"] = _readable_json(header)  # a UTF-8 string: h5dump shows the JSON
+                for name, array in arrays.items():
+                    chunks = _row_chunks(array.shape, array.dtype.itemsize) if name in _FRAME_ARRAYS else None
+                    stored.create_dataset(name, data=array, chunks=chunks).attrs["description"] = CALIBRATION_ARRAYS[name]
+            if keeping.error is not None:
+                raise keeping.error
     except OSError as error:
         raise CalibrationFileError(path, f"could not be written: {error}") from None
     return header
