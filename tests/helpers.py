@@ -128,7 +128,7 @@ def write_calibration_entries(path, entries: dict, container: str | None = None)
     if container is None:
         try:
             version = json.loads(entries["header"].tobytes())["format_version"]
-        except (KeyError, TypeError, ValueError):  # no header, not JSON, no version
+        except (KeyError, TypeError, ValueError, RecursionError):  # no header, not JSON, no version
             version = None
         container = "npz" if isinstance(version, int) and version < 4 else "hdf5"
     if container == "npz":
