@@ -96,6 +96,7 @@ import sys
 import tempfile
 import time
 
+import h5py
 import numpy as np
 import OpenImageIO as oiio
 
@@ -158,7 +159,7 @@ def simulate_captures(folder: pathlib.Path, size: int, distinct: int, seed: int)
 
     start = time.perf_counter()
     calibration, report = calibrate.calibrate_session(session)
-    calibration_path = folder / "calibration.npz"
+    calibration_path = folder / "calibration.h5"
     io.save_calibration(
         calibration_path, calibration, instrument_id=session.instrument_id,
         band_centres_nm=[int(b) for b in session.band_centres_nm],
@@ -292,13 +293,11 @@ def write_four(stem: pathlib.Path, arrays: dict, fsync: bool = False, steps: dic
 
 
 def load_reference_calibration(path) -> dict:
-    """The calibration's arrays with `numpy.load`, plus what the reference derives from them once
-    per batch: the colorimetric constants and the pixels without a flat field."""
-    with np.load(path) as npz:
-        arrays = {name: npz[name] for name in ("dark", "white", "patch", "coeffs", "wiener")}
-        # Format version 2 stores the estimator's offset r0; a version 1 file has none (r0 = 0).
-        arrays["wiener_offset"] = npz["wiener_offset"] if "wiener_offset" in npz.files else None
-        header = json.loads(bytes(npz["header"]).decode("utf-8"))
+    """The calibration's arrays read with h5py (not spherejax), plus what the reference derives
+    from them once per batch: the colorimetric constants and the pixels without a flat field."""
+    with h5py.File(path, "r") as stored:
+        arrays = {name: stored[name][()] for name in ("dark", "white", "patch", "coeffs", "wiener", "wiener_offset")}
+        header = json.loads(stored.attrs["header"])
     # reference_correct is written for a D65, 14-bit calibration (reference.py's constants).
     if header["illuminant"] != "D65" or header["saturation"] != SATURATION:
         raise ValueError(

@@ -291,7 +291,7 @@ def cmd_study(args) -> int:
     out = pathlib.Path(args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-study")))
     _write_files(out, {"study.txt": text.encode(), "study.csv": csv.encode(),
                        "study.json": json.dumps(payload, indent=2).encode()})
-    _save_calibration(out / "study-calibration.npz", result.calibration, None, session)
+    _save_calibration(out / "study-calibration.h5", result.calibration, None, session)
     if not args.quiet:
         print(text, end="")
     return 0
@@ -595,7 +595,7 @@ def cmd_demo(args) -> int:
         session = io.write_simulated_session(session_dir, seed=args.seed)
         progress.done(f"{len(session.frames)} captures")
     calibration, report = _calibrate(session, args, progress)
-    _save_calibration(out / "calibration.npz", calibration, report, session)
+    _save_calibration(out / "calibration.h5", calibration, report, session)
     _evaluate(session, calibration, out / "evaluation", progress, args.quiet)
     return 0
 
@@ -666,7 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     calibrate = commands.add_parser("calibrate", help="fit Stage II and the Wiener matrix from a session")
     calibrate.add_argument("session", metavar="SESSION")
-    calibrate.add_argument("-o", "--output", required=True, metavar="CAL", help="calibration file to write (.npz)")
+    calibrate.add_argument("-o", "--output", required=True, metavar="CAL", help="calibration file to write (HDF5, conventionally .h5)")
     calibration_options(calibrate)
     calibrate.add_argument("--gain", metavar="E_PER_COUNT",
                            help="camera gain, electrons per count, for the stored noise model "
@@ -688,7 +688,7 @@ def build_parser() -> argparse.ArgumentParser:
     correct = commands.add_parser("correct", help="batch-correct cube files, sessions and folders into OUT")
     correct.add_argument("inputs", nargs="+", metavar="INPUT",
                          help="cube files (TIFF, EXR), band-file folders, sessions, or folders to search")
-    correct.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (.npz)")
+    correct.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (HDF5, or an .npz of format version 1 to 3)")
     correct.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
     correct.add_argument("--resume", action="store_true",
                          help="continue the batch in OUT: skip inputs whose outputs are verified, redo the rest")
@@ -712,7 +712,7 @@ def build_parser() -> argparse.ArgumentParser:
         "measure", help="measure regions of one cube: Lab and reflectance with uncertainties (k = 2), ΔE00"
     )
     measure.add_argument("input", metavar="INPUT", help="cube file (16-bit TIFF, EXR) of the calibration's size and bands")
-    measure.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (.npz)")
+    measure.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (HDF5, or an .npz of format version 1 to 3)")
     measure.add_argument("--region", action="append", required=True, metavar="NAME=r0,r1,c0,c1",
                          help="a region to measure: rows r0..r1-1, columns c0..c1-1 (repeatable, names unique)")
     measure.add_argument("--reference", metavar="NAME|L,a,b",

@@ -77,7 +77,7 @@ def workspace(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("cli")
     io.write_simulated_session(root / "session", seed=5, design=SMALL)
-    assert cli.main(["-q", "calibrate", str(root / "session"), "-o", str(root / "cal.npz")]) == 0
+    assert cli.main(["-q", "calibrate", str(root / "session"), "-o", str(root / "cal.h5")]) == 0
     return root
 
 
@@ -89,7 +89,7 @@ def cal(tmp_path_factory):
     from tests.batch_support import make_calibration
 
     rng = np.random.default_rng(0)
-    path = tmp_path_factory.mktemp("cal") / "cal.npz"
+    path = tmp_path_factory.mktemp("cal") / "cal.h5"
     calibration, bands, instrument = make_calibration(rng)
     io.save_calibration(path, calibration, instrument_id=instrument, band_centres_nm=bands)
     return path

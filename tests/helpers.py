@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import pathlib
 import warnings
 
 import colour
+import h5py
 import numpy as np
 import OpenImageIO as oiio
 
@@ -125,3 +127,50 @@ def colour_lab(refl, illuminant, observer="CIE 1931 2 Degree Standard Observer")
     white = colour_sd_to_xyz(np.ones(31), illuminant, observer)
     xyz = np.stack([colour_sd_to_xyz(r, illuminant, observer) for r in refl])
     return colour.XYZ_to_Lab(xyz / 100.0, colour.XYZ_to_xy(white / 100.0))
+
+
+def calibration_entries(path) -> dict:
+    """Every entry of a calibration file, read without spherejax: with h5py from HDF5 (format
+    version 4 on: the datasets and the root's "header" attribute), with numpy from an older .npz.
+    The header, where there is one, is "header": a uint8 array of its JSON's UTF-8 bytes."""
+    with open(path, "rb") as file:
+        hdf5 = file.read(8) == b"\x89HDF\r\n\x1a\n"
+    if not hdf5:
+        with np.load(path, allow_pickle=False) as archive:
+            return {name: archive[name] for name in archive.files}
+    with h5py.File(path, "r") as stored:
+        entries = {name: stored[name][()] for name in stored}
+        if "header" in stored.attrs:
+            text = stored.attrs["header"]
+            raw = text.encode("utf-8", "surrogateescape") if isinstance(text, str) else bytes(text)
+            entries["header"] = np.frombuffer(raw, dtype=np.uint8)
+    return entries
+
+
+def write_calibration_entries(path, entries: dict, container: str | None = None) -> None:
+    """Write `entries` (as `calibration_entries` gives them) as a calibration file: "hdf5" laid out
+    as save_calibration lays it out (the header a UTF-8 string attribute of the root, each array
+    a dataset, the frames chunked by rows), or "npz" as the writer of format versions 1 to 3 did
+    (np.savez). None: by the header's format version (an .npz before 4), HDF5 without one."""
+    if container is None:
+        try:
+            version = json.loads(entries["header"].tobytes())["format_version"]
+        except (KeyError, TypeError, ValueError, RecursionError):  # no header, not JSON, no version
+            version = None
+        container = "npz" if isinstance(version, int) and version < 4 else "hdf5"
+    if container == "npz":
+        with open(path, "wb") as file:
+            np.savez(file, **entries)
+        return
+    from spherejax.io import calibration_files
+
+    with h5py.File(path, "w") as stored:
+        for name, array in entries.items():
+            if name == "header":
+                # Bytes as they are (UTF-8 or not), in a UTF-8 string attribute as save_calibration's.
+                stored.attrs.create("header", array.tobytes(), dtype=h5py.string_dtype("utf-8"))
+                continue
+            array = np.asarray(array)
+            frame = name in calibration_files._FRAME_ARRAYS
+            chunks = calibration_files._row_chunks(array.shape, array.dtype.itemsize) if frame else None
+            stored.create_dataset(name, data=array, chunks=chunks)

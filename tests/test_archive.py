@@ -242,9 +242,9 @@ def test_bad_inputs_fail_alone(cal, tmp_path, rng, capsys, monkeypatch):
 
 def test_calibration_for_other_bands_fails_every_file(tmp_path, rng, capsys):
     calibration, _, _ = make_calibration(rng, bands=BANDS[:8])
-    io.save_calibration(tmp_path / "cal8.npz", calibration, instrument_id="other", band_centres_nm=BANDS[:8])
+    io.save_calibration(tmp_path / "cal8.h5", calibration, instrument_id="other", band_centres_nm=BANDS[:8])
     io.write_frame(tmp_path / "a.tif", frame(rng), channel_names=NAMES)
-    status, stdout, err = run(["correct", "-c", str(tmp_path / "cal8.npz"), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")], capsys)
+    status, stdout, err = run(["correct", "-c", str(tmp_path / "cal8.h5"), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")], capsys)
     assert status == 1 and "has 16 channels (expected 8 channels" in err
     assert outputs_of(tmp_path / "out") == {}
 
@@ -252,12 +252,12 @@ def test_calibration_for_other_bands_fails_every_file(tmp_path, rng, capsys):
 @pytest.mark.parametrize("problem", ["missing", "corrupt"])
 def test_bad_calibration_is_refused_before_writing(tmp_path, rng, capsys, problem):
     io.write_frame(tmp_path / "a.tif", frame(rng))
-    cal = tmp_path / "cal.npz"
+    cal = tmp_path / "cal.h5"
     if problem == "corrupt":
         cal.write_bytes(b"not a calibration")
     status, stdout, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")], capsys)
     assert status == cli.EXIT_BAD_INPUT
-    assert len(err.strip().splitlines()) == 1 and err.startswith("spherejax: error: ") and "cal.npz" in err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("spherejax: error: ") and "cal.h5" in err
     assert not (tmp_path / "out").exists()
 
 
@@ -416,7 +416,7 @@ def test_executor_gets_absolute_paths_whatever_its_folder(cal, tmp_path, rng, mo
 
     (tmp_path / "client" / "in").mkdir(parents=True)
     (tmp_path / "worker").mkdir()
-    shutil.copy(cal, tmp_path / "client" / "cal.npz")
+    shutil.copy(cal, tmp_path / "client" / "cal.h5")
     io.write_frame(tmp_path / "client" / "in" / "a.tif", frame(rng))
     monkeypatch.chdir(tmp_path / "client")
 
@@ -431,7 +431,7 @@ def test_executor_gets_absolute_paths_whatever_its_folder(cal, tmp_path, rng, mo
             finally:
                 os.chdir(here)
 
-    summary = archive.run_batch(["in"], "out", "cal.npz", executor=ElsewhereExecutor())
+    summary = archive.run_batch(["in"], "out", "cal.h5", executor=ElsewhereExecutor())
     assert summary.corrected == 1 and not summary.failed
     assert sorted(outputs_of(tmp_path / "client" / "out")) == sorted(f"in/a.{k}" for k in KINDS)
     assert list((tmp_path / "worker").iterdir()) == []

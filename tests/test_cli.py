@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from spherejax import cli, io, simulate
-from tests.helpers import SMALL
+from tests.helpers import SMALL, calibration_entries, write_calibration_entries
 
 
 
@@ -45,23 +45,23 @@ def assert_refused(status, err, *fragments):
 
 class TestCommands:
     def test_calibrate_writes_a_loadable_file(self, workspace):
-        calibration, header = io.load_calibration(workspace / "cal.npz", band_centres_nm=list(range(400, 701, 20)))
+        calibration, header = io.load_calibration(workspace / "cal.h5", band_centres_nm=list(range(400, 701, 20)))
         assert header["metadata"]["calibration_report"]["training_patches"] == 3
         assert calibration.wiener.shape == (31, 16)
 
     def test_calibrate_with_a_robust_loss(self, workspace, tmp_path, capsys):
-        status, _, err = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "h.npz"), "--loss", "huber"], capsys)
+        status, _, err = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "h.h5"), "--loss", "huber"], capsys)
         assert status == 0 and "warning" not in err
-        _, header = io.load_calibration(tmp_path / "h.npz")
+        _, header = io.load_calibration(tmp_path / "h.h5")
         report = header["metadata"]["calibration_report"]
         assert report["stage2_loss"] == "huber" and set(report["stage2_status"]) == {"converged"}
 
     def test_calibrate_reports_the_reflectance_estimator(self, workspace, tmp_path, capsys):
         """Per method tried: the cross-validated spectral rms and mean ΔE00 (D65), on stdout and
         in the file's report; the chosen estimator's offset is in the calibration."""
-        status, stdout, _ = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "c.npz")], capsys)
+        status, stdout, _ = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "c.h5")], capsys)
         assert status == 0
-        calibration, header = io.load_calibration(tmp_path / "c.npz")
+        calibration, header = io.load_calibration(tmp_path / "c.h5")
         report = header["metadata"]["calibration_report"]
         tried = report["wiener_cross_validation"]
         assert {entry["method"] for entry in tried} == {"training", "model"}
@@ -76,10 +76,10 @@ class TestCommands:
         assert np.any(np.asarray(calibration.wiener_offset) != 0)
 
     def test_calibrate_with_one_wiener_method(self, workspace, tmp_path, capsys):
-        status, _, _ = run(["-q", "calibrate", str(workspace / "session"), "-o", str(tmp_path / "t.npz"),
+        status, _, _ = run(["-q", "calibrate", str(workspace / "session"), "-o", str(tmp_path / "t.h5"),
                             "--wiener-method", "training"], capsys)
         assert status == 0
-        _, header = io.load_calibration(tmp_path / "t.npz")
+        _, header = io.load_calibration(tmp_path / "t.h5")
         report = header["metadata"]["calibration_report"]
         assert report["wiener_method"] == "training" and len(report["wiener_cross_validation"]) == 1
 
@@ -98,9 +98,9 @@ class TestCommands:
             manifest["frames"].append(second)
 
         edit_manifest(session, split_chart)
-        status, stdout, _ = run(["calibrate", str(session), "-o", str(tmp_path / "g.npz"), "--wiener-groups", "chart"], capsys)
+        status, stdout, _ = run(["calibrate", str(session), "-o", str(tmp_path / "g.h5"), "--wiener-groups", "chart"], capsys)
         assert status == 0
-        _, header = io.load_calibration(tmp_path / "g.npz")
+        _, header = io.load_calibration(tmp_path / "g.h5")
         assert header["metadata"]["calibration_report"]["wiener_cross_validation"][0]["folds"] == "leave one group out (2 groups)"
         assert "leave one group out (2 groups)" in stdout
 
@@ -111,7 +111,7 @@ class TestCommands:
 
     def test_evaluate_with_calibration_writes_tables_and_figures(self, workspace, tmp_path, capsys):
         out = tmp_path / "evaluation"
-        status, stdout, _ = run(["evaluate", str(workspace / "session"), "-c", str(workspace / "cal.npz"), "--out", str(out)], capsys)
+        status, stdout, _ = run(["evaluate", str(workspace / "session"), "-c", str(workspace / "cal.h5"), "--out", str(out)], capsys)
         assert status == 0
         assert "Table 6. Comparison with the Markov model" in stdout
         names = {p.name for p in out.iterdir()}
@@ -139,26 +139,26 @@ class TestCommands:
         status, stdout, err = run(["demo", "--out", str(tmp_path / "demo")], capsys)
         assert status == 0
         assert "reusing the session" in err and "Table 1." in stdout
-        assert (tmp_path / "demo" / "calibration.npz").exists()
+        assert (tmp_path / "demo" / "calibration.h5").exists()
         assert (tmp_path / "demo" / "evaluation" / "table6.csv").exists()
 
     def test_an_undocumented_kernel_switch_is_refused(self, workspace, tmp_path, capsys, monkeypatch):
         """SPHEREJAX_FUSED=off used to leave the fused kernel on, silently."""
         monkeypatch.setenv("SPHEREJAX_FUSED", "off")
         before = snapshot(tmp_path)
-        status, _, err = run(["correct", "-c", str(workspace / "cal.npz"), str(workspace / "session"), "-o", str(tmp_path / "out")], capsys)
+        status, _, err = run(["correct", "-c", str(workspace / "cal.h5"), str(workspace / "session"), "-o", str(tmp_path / "out")], capsys)
         assert_refused(status, err, "SPHEREJAX_FUSED", "'off'", "'portable'")
         assert snapshot(tmp_path) == before
 
     def test_no_traceback_through_the_real_entry_point(self, tmp_path):
         result = subprocess.run(
-            [sys.executable, "-m", "spherejax.cli", "calibrate", str(tmp_path / "nowhere"), "-o", str(tmp_path / "c.npz")],
+            [sys.executable, "-m", "spherejax.cli", "calibrate", str(tmp_path / "nowhere"), "-o", str(tmp_path / "c.h5")],
             capture_output=True, text=True, timeout=120,
         )
         assert result.returncode == 2
         assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
         assert "nowhere" in result.stderr
-        assert not (tmp_path / "c.npz").exists()
+        assert not (tmp_path / "c.h5").exists()
 
 
 @pytest.fixture
@@ -181,7 +181,7 @@ class TestBadSessions:
 
     def refuse(self, session, capsys, tmp_path, *fragments):
         before = snapshot(tmp_path)
-        status, _, err = run(["calibrate", str(session), "-o", str(tmp_path / "out.npz")], capsys)
+        status, _, err = run(["calibrate", str(session), "-o", str(tmp_path / "out.h5")], capsys)
         assert_refused(status, err, *fragments)
         status, _, err = run(["evaluate", str(session), "--out", str(tmp_path / "evaluation")], capsys)
         assert_refused(status, err, *fragments)
@@ -228,7 +228,7 @@ class TestBadSessions:
             io.write_frame(path, frame)
         before = snapshot(tmp_path)
         # -q: the refusal comes after the pixels are read, when the progress line is out already.
-        status, _, err = run(["-q", "calibrate", str(broken), "-o", str(tmp_path / "out.npz")], capsys)
+        status, _, err = run(["-q", "calibrate", str(broken), "-o", str(tmp_path / "out.h5")], capsys)
         assert_refused(status, err, "manifest.json", "Stage II cannot be fitted in 16 band(s), first 400 nm", "only 0 finite samples")
         assert snapshot(tmp_path) == before
 
@@ -245,13 +245,13 @@ class TestBadSessions:
 
     def test_wiener_groups_field_missing(self, broken, tmp_path, capsys):
         before = snapshot(tmp_path)
-        status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.npz"), "--wiener-groups", "chart"], capsys)
+        status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.h5"), "--wiener-groups", "chart"], capsys)
         assert_refused(status, err, "manifest.json", "'targets'", "'chart'")
         assert snapshot(tmp_path) == before
 
     def test_wiener_groups_of_one_group(self, broken, tmp_path, capsys):
         before = snapshot(tmp_path)
-        status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.npz"), "--wiener-groups", "id"], capsys)
+        status, _, err = run(["calibrate", str(broken), "-o", str(tmp_path / "out.h5"), "--wiener-groups", "id"], capsys)
         assert_refused(status, err, "manifest.json", "every target is in group 'targets'", "at least 2 groups")
         assert snapshot(tmp_path) == before
 
@@ -299,39 +299,38 @@ class TestBadCalibrationFiles:
         assert not out.exists()
 
     def test_missing(self, workspace, tmp_path, capsys):
-        self.refuse(workspace, tmp_path / "none.npz", capsys, tmp_path)
+        self.refuse(workspace, tmp_path / "none.h5", capsys, tmp_path)
 
     def test_truncated(self, workspace, tmp_path, capsys):
-        data = (workspace / "cal.npz").read_bytes()
-        (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
-        self.refuse(workspace, tmp_path / "cut.npz", capsys, tmp_path)
+        data = (workspace / "cal.h5").read_bytes()
+        (tmp_path / "cut.h5").write_bytes(data[: len(data) // 2])
+        self.refuse(workspace, tmp_path / "cut.h5", capsys, tmp_path)
 
     def test_tampered(self, workspace, tmp_path, capsys):
-        with np.load(workspace / "cal.npz", allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in archive.files}
+        arrays = calibration_entries(workspace / "cal.h5")
         arrays["coeffs"] = arrays["coeffs"].copy()
         arrays["coeffs"][3, 1] += 0.01
-        np.savez(tmp_path / "tampered.npz", **arrays)
-        self.refuse(workspace, tmp_path / "tampered.npz", capsys, tmp_path, "checksum")
+        write_calibration_entries(tmp_path / "tampered.h5", arrays)
+        self.refuse(workspace, tmp_path / "tampered.h5", capsys, tmp_path, "checksum")
 
     def test_newer_format_version(self, workspace, tmp_path, capsys):
-        with np.load(workspace / "cal.npz", allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in archive.files}
+        arrays = calibration_entries(workspace / "cal.h5")
         header = json.loads(bytes(arrays["header"]).decode())
         header["format_version"] = 99
         arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
-        np.savez(tmp_path / "newer.npz", **arrays)
-        self.refuse(workspace, tmp_path / "newer.npz", capsys, tmp_path, "99")
+        write_calibration_entries(tmp_path / "newer.h5", arrays)
+        self.refuse(workspace, tmp_path / "newer.h5", capsys, tmp_path, "99")
 
     def test_built_for_other_bands(self, workspace, tmp_path, capsys):
-        calibration, _ = io.load_calibration(workspace / "cal.npz")
-        io.save_calibration(tmp_path / "other.npz", calibration, instrument_id="x",
+        calibration, _ = io.load_calibration(workspace / "cal.h5")
+        io.save_calibration(tmp_path / "other.h5", calibration, instrument_id="x",
                             band_centres_nm=list(range(410, 711, 20)))
-        self.refuse(workspace, tmp_path / "other.npz", capsys, tmp_path, "bands")
+        self.refuse(workspace, tmp_path / "other.h5", capsys, tmp_path, "bands")
 
-    def test_not_a_calibration_file(self, workspace, tmp_path, capsys):
-        (tmp_path / "text.npz").write_text("hello")
-        self.refuse(workspace, tmp_path / "text.npz", capsys, tmp_path)
+    @pytest.mark.parametrize("name", ["text.h5", "text.npz"])
+    def test_not_a_calibration_file(self, workspace, tmp_path, capsys, name):
+        (tmp_path / name).write_text("hello\n")
+        self.refuse(workspace, tmp_path / name, capsys, tmp_path, "is neither HDF5 nor an .npz (zip) archive")
 
 
 class TestBadOutputs:
@@ -344,7 +343,7 @@ class TestBadOutputs:
         assert snapshot(tmp_path) == before
 
     def test_unknown_reference_background(self, workspace, tmp_path, capsys):
-        status, _, err = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "c.npz"),
+        status, _, err = run(["calibrate", str(workspace / "session"), "-o", str(tmp_path / "c.h5"),
                               "--reference-background", "velvet"], capsys)
         assert_refused(status, err, "velvet")
-        assert not (tmp_path / "c.npz").exists()
+        assert not (tmp_path / "c.h5").exists()

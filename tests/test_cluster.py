@@ -17,7 +17,7 @@ def batch(tmp_path_factory):
     root = tmp_path_factory.mktemp("cluster")
     rng = np.random.default_rng(5)
     calibration, bands, instrument = make_calibration(rng)
-    io.save_calibration(root / "cal.npz", calibration, instrument_id=instrument, band_centres_nm=bands)
+    io.save_calibration(root / "cal.h5", calibration, instrument_id=instrument, band_centres_nm=bands)
     inputs = root / "in"
     inputs.mkdir()
     for k in range(6):
@@ -30,7 +30,7 @@ def batch(tmp_path_factory):
 @pytest.mark.parametrize("output_format", archive.OUTPUT_FORMATS)
 def test_two_local_workers_match_the_in_process_run(batch, tmp_path, capsys, monkeypatch, output_format):
     monkeypatch.setenv("SPHEREJAX_COMPILATION_CACHE", str(tmp_path / "jax-cache"))
-    common = ["-q", "correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "--format", output_format]
+    common = ["-q", "correct", "-c", str(batch / "cal.h5"), str(batch / "in"), "--format", output_format]
     status, out, _ = run([*common, "-o", str(tmp_path / "serial")], capsys)
     assert status == 1 and "6 corrected, 0 skipped (already done), 1 failed" in out
     status, out, err = run([*common, "-o", str(tmp_path / "dask"), "--workers", "2"], capsys)
@@ -54,7 +54,7 @@ def test_executor_arguments():
 def test_unreachable_scheduler_is_one_line(batch, tmp_path, capsys, monkeypatch):
     # Nothing listens on port 9: a short connect timeout instead of the default 20 s.
     monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT_S", 1.0)
-    status, _, err = run(["correct", "-c", str(batch / "cal.npz"), str(batch / "in"), "-o", str(tmp_path / "o"),
+    status, _, err = run(["correct", "-c", str(batch / "cal.h5"), str(batch / "in"), "-o", str(tmp_path / "o"),
                           "--scheduler", "tcp://127.0.0.1:9"], capsys)
     assert status == 2 and len(err.strip().splitlines()) == 1 and "--scheduler" in err
     assert not (tmp_path / "o").exists()

@@ -77,10 +77,10 @@ def test_strips_of_an_image_compile_once(tmp_path, rng):
     """Every strip has one height (the last is padded): a tall image compiles as one strip does."""
     shape = (70, 20, 16)
     calibration = make_calibration(rng, shape)
-    io.save_calibration(tmp_path / "cal.npz", calibration, instrument_id="x", band_centres_nm=list(range(400, 701, 20)))
+    io.save_calibration(tmp_path / "cal.h5", calibration, instrument_id="x", band_centres_nm=list(range(400, 701, 20)))
     for k in range(2):
         io.write_frame(tmp_path / f"{k}.tif", rng.integers(0, 16000, shape).astype(np.uint16))
-    with io.open_calibration(tmp_path / "cal.npz") as opened:
+    with io.open_calibration(tmp_path / "cal.h5") as opened:
         with io.open_cube(tmp_path / "0.tif", expected_shape=shape) as cube:
             list(stripwise.correct_strips(cube, opened, rows_per_strip=8))  # 9 strips, the last padded
         with count_compilations() as compiled:

@@ -49,7 +49,7 @@ def test_a_new_file_gets_the_mode_the_umask_gives(tmp_path, umask):
 
 
 def test_an_error_in_the_block_leaves_the_old_file_and_no_temporary(tmp_path):
-    target = tmp_path / "calibration.npz"
+    target = tmp_path / "calibration.h5"
     target.write_bytes(b"the old calibration")
     with pytest.raises(RuntimeError, match="disk full"):
         with atomic.atomic_file(target) as handle:
@@ -115,7 +115,7 @@ def writers(tmp_path):
     """(what, target, write) for every writer of spherejax and hw that renames a file into place."""
     frame = np.arange(6 * 8 * 4, dtype=np.uint16).reshape(6, 8, 4)
     return [
-        ("calibration file", tmp_path / "cal.npz", lambda p: io.save_calibration(p, small_calibration(), instrument_id="test", band_centres_nm=[400, 500, 600, 700])),
+        ("calibration file", tmp_path / "cal.h5", lambda p: io.save_calibration(p, small_calibration(), instrument_id="test", band_centres_nm=[400, 500, 600, 700])),
         ("camera frame", tmp_path / "frame.tif", lambda p: io.write_frame(p, frame)),
         ("output image", tmp_path / "lab.exr", lambda p: io.write_exr(p, frame.astype(np.float32), channel_names=list("abcd"))),
         ("command outputs", tmp_path / "out" / "table.csv", lambda p: cli._write_files(p.parent, {p.name: b"a\n"})),

@@ -63,8 +63,8 @@ def files(tmp_path_factory):
     root = tmp_path_factory.mktemp("measure")
     calibration = _calibration()
     common = dict(instrument_id="test-sphere", band_centres_nm=BANDS)
-    io.save_calibration(root / "cal.npz", calibration, noise_model=NOISE, **common)
-    io.save_calibration(root / "bare.npz", calibration, **common)
+    io.save_calibration(root / "cal.h5", calibration, noise_model=NOISE, **common)
+    io.save_calibration(root / "bare.h5", calibration, **common)
     raw = _raw(calibration)
     names = [f"{b}nm" for b in BANDS]
     io.write_frame(root / "sample.tif", raw, channel_names=names)
@@ -117,7 +117,7 @@ class TestOutputs:
     def test_two_regions_against_a_region(self, files, tmp_path, capsys, monkeypatch):
         root = files["root"]
         monkeypatch.chdir(tmp_path)
-        status, out, err = run(["measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"),
+        status, out, err = run(["measure", "-c", str(root / "cal.h5"), str(root / "sample.tif"),
                                 *region_args(), "--reference", "grey"], capsys)
         assert status == 0, err
         assert err == ""
@@ -170,7 +170,7 @@ class TestOutputs:
         root = files["root"]
         base = tmp_path / "out" / "result"
         base.parent.mkdir()
-        status, out, err = run(["-q", "measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"),
+        status, out, err = run(["-q", "measure", "-c", str(root / "cal.h5"), str(root / "sample.tif"),
                                 *region_args(), "--reference", "50,-2.5,10", "--illuminant", "A", "-o", str(base)],
                                capsys)
         assert status == 0 and out == "" and err == ""
@@ -186,7 +186,7 @@ class TestOutputs:
 
     def test_no_reference_no_delta_e(self, files, tmp_path, capsys):
         root = files["root"]
-        status, out, _ = run(["measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"),
+        status, out, _ = run(["measure", "-c", str(root / "cal.h5"), str(root / "sample.tif"),
                               *region_args(), "-o", str(tmp_path / "r")], capsys)
         assert status == 0 and "ΔE00" not in out
         rows, document = read_outputs(tmp_path / "r")
@@ -196,7 +196,7 @@ class TestOutputs:
 
     def test_options_override_the_calibrations_noise_model(self, files, tmp_path, capsys):
         root = files["root"]
-        status, _, err = run(["measure", "-c", str(root / "cal.npz"), str(root / "sample.tif"), *region_args(),
+        status, _, err = run(["measure", "-c", str(root / "cal.h5"), str(root / "sample.tif"), *region_args(),
                               "--gain", "0.5", "--frames", "4", "-o", str(tmp_path / "r")], capsys)
         assert status == 0 and err == ""
         rows, document = read_outputs(tmp_path / "r")
@@ -212,7 +212,7 @@ class TestOutputs:
 
     def test_options_supply_a_noise_model(self, files, tmp_path, capsys):
         root = files["root"]
-        status, _, err = run(["measure", "-c", str(root / "bare.npz"), str(root / "sample.tif"), *region_args(),
+        status, _, err = run(["measure", "-c", str(root / "bare.h5"), str(root / "sample.tif"), *region_args(),
                               "--gain", "2", "--read-noise", "3", "-o", str(tmp_path / "r")], capsys)
         assert status == 0
         assert len(err.splitlines()) == 1 and err.startswith("spherejax: note: ") and "single frames" in err
@@ -224,7 +224,7 @@ class TestOutputs:
 
     def test_no_noise_model_gives_values_without_uncertainties(self, files, tmp_path, capsys):
         root = files["root"]
-        status, out, err = run(["measure", "-c", str(root / "bare.npz"), str(root / "sample.tif"), *region_args(),
+        status, out, err = run(["measure", "-c", str(root / "bare.h5"), str(root / "sample.tif"), *region_args(),
                                 "--reference", "grey", "-o", str(tmp_path / "r")], capsys)
         assert status == 0
         assert len(err.splitlines()) == 1 and err.startswith("spherejax: note: no noise model") and "--gain" in err
@@ -259,7 +259,7 @@ class TestRefused:
         assert sorted(folder.rglob("*")) == before
         assert out == ""
 
-    def base_args(self, root, cal="cal.npz", sample="sample.tif"):
+    def base_args(self, root, cal="cal.h5", sample="sample.tif"):
         return ["measure", "-c", str(root / cal), str(root / sample)]
 
     @pytest.mark.parametrize("region, fragment", [
@@ -304,7 +304,7 @@ class TestRefused:
 
     def test_gain_without_read_noise_and_no_model(self, setup, capsys):
         root, folder = setup
-        argv = [*self.base_args(root, cal="bare.npz"), *region_args(), "--gain", "2"]
+        argv = [*self.base_args(root, cal="bare.h5"), *region_args(), "--gain", "2"]
         self.refuse(argv, capsys, folder, "--read-noise", "no noise model")
 
     def test_missing_input(self, setup, capsys):
@@ -317,7 +317,7 @@ class TestRefused:
 
     def test_missing_calibration(self, setup, capsys):
         root, folder = setup
-        self.refuse([*self.base_args(root, cal="none.npz"), *region_args()], capsys, folder, "none.npz")
+        self.refuse([*self.base_args(root, cal="none.h5"), *region_args()], capsys, folder, "none.h5")
 
     def test_output_folder_missing(self, setup, capsys):
         root, folder = setup
@@ -392,7 +392,7 @@ def written(files, tmp_path_factory):
     """(the CGATS file, the CSV rows and JSON document) of one `measure --cgats` run."""
     folder = tmp_path_factory.mktemp("cgats")
     regions = {**REGIONS, "paper white": (14, 18, 4, 12)}  # a name with a space is quoted
-    argv = ["-q", "measure", "-c", str(files["root"] / "cal.npz"), str(files["root"] / "sample.tif"),
+    argv = ["-q", "measure", "-c", str(files["root"] / "cal.h5"), str(files["root"] / "sample.tif"),
             *region_args(regions), "-o", str(folder / "r"), "--cgats", str(folder / "qc.txt")]
     assert cli.main(argv) == 0
     return folder / "qc.txt", read_outputs(folder / "r")

@@ -1,4 +1,4 @@
-"""Noise models in calibration files (format version 3): written, read back bit for bit, older
+"""Noise models in calibration files (format version 3 on): written, read back bit for bit, older
 versions still read, tampering and malformed models refused in one line; and the noise model
 calibration builds from what a session records (`calibrate_session`, `spherejax calibrate`)."""
 
@@ -18,6 +18,7 @@ from spherejax import calibrate, cli, io, simulate
 from spherejax.io import CalibrationFileError
 from spherejax.uncertainty import NoiseModel
 from spherejax.wiener_estimation import EstimatorCovariance
+from tests.helpers import calibration_entries, write_calibration_entries
 
 H, W = 12, 10
 BANDS = list(range(400, 701, 20))
@@ -108,11 +109,6 @@ def save(path, rng, noise_model=None) -> dict:
     )
 
 
-def npz_entries(path) -> dict:
-    with np.load(path, allow_pickle=False) as archive:
-        return {name: archive[name] for name in archive.files}
-
-
 def header_of(entries) -> dict:
     return json.loads(entries["header"].tobytes().decode("utf-8"))
 
@@ -133,21 +129,21 @@ def written_checksum(header: dict, entries: dict, names) -> str:
 
 
 def rewrite(path, entries, header, *, names=ARRAYS_V2, checksum=True) -> dict:
-    """Write `entries` back with `header` (its checksum recomputed unless `checksum` is False)."""
+    """Write `entries` back with `header` (its checksum recomputed unless `checksum` is False):
+    HDF5, or an .npz as the writers of format versions 1 to 3 wrote (`write_calibration_entries`)."""
     header = dict(header)
     if checksum:
         header["checksum"] = written_checksum(header, entries, names)
     entries = {**entries, "header": np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)}
-    with open(path, "wb") as file:
-        np.savez(file, **entries)
+    write_calibration_entries(path, entries)
     return header
 
 
 def write_older(path, rng, version: int, noise_model="absent") -> dict:
-    """A calibration file as the format `version` (1 or 2) writer wrote it: no "noise_model"
-    (or the given value), version 1 also without wiener_offset. Returns the header."""
+    """A calibration file as the format `version` (1 or 2) writer wrote it, an .npz: no
+    "noise_model" (or the given value), version 1 also without wiener_offset. Returns the header."""
     save(path, rng)
-    entries = npz_entries(path)
+    entries = calibration_entries(path)
     header = {k: v for k, v in header_of(entries).items() if k not in ("checksum", "noise_model")}
     header["format_version"] = version
     if noise_model != "absent":
@@ -166,17 +162,17 @@ def write_older(path, rng, version: int, noise_model="absent") -> dict:
 @pytest.mark.parametrize("per_band", [False, True], ids=["scalar", "per-band"])
 def test_noise_model_round_trips_bit_for_bit(tmp_path, rng, per_band, dtype):
     model = make_noise_model(rng, per_band=per_band, dtype=dtype)
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     written = save(path, rng, model)
-    assert written["format_version"] == 3 and written["noise_model"] == model.to_json()
+    assert written["format_version"] == 4 and written["noise_model"] == model.to_json()
 
     calibration, header = io.load_calibration(path, band_centres_nm=BANDS)
     assert header == written and header["noise_model"] == model.to_json()
     assert_same_model(NoiseModel.from_json(header["noise_model"]), model)
     with io.open_calibration(path) as opened:
         assert_same_model(opened.noise_model, model)
-    # What numpy alone reads: the header's JSON, the model inside it.
-    assert header_of(npz_entries(path))["noise_model"] == model.to_json()
+    # What h5py alone reads: the header's JSON, the model inside it.
+    assert header_of(calibration_entries(path))["noise_model"] == model.to_json()
     # Large files (read by rows) carry it too.
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
@@ -186,7 +182,7 @@ def test_noise_model_round_trips_bit_for_bit(tmp_path, rng, per_band, dtype):
 
 def test_noise_model_without_covariances_round_trips(tmp_path, rng):
     model = make_noise_model(rng, covariances=False)
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     save(path, rng, model)
     with io.open_calibration(path) as opened:
         assert_same_model(opened.noise_model, model)
@@ -195,16 +191,16 @@ def test_noise_model_without_covariances_round_trips(tmp_path, rng):
 
 
 def test_no_noise_model_is_stored_as_null(tmp_path, rng):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     assert save(path, rng)["noise_model"] is None
     with io.open_calibration(path) as opened:
         assert opened.noise_model is None and opened.header["noise_model"] is None
 
 
 def test_header_with_a_noise_model_stays_small(tmp_path, rng):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     save(path, rng, make_noise_model(rng, per_band=True))
-    size = npz_entries(path)["header"].nbytes
+    size = calibration_entries(path)["header"].nbytes
     assert size < 100_000 and size * 100 < io.calibration_files._MAX_HEADER_BYTES
 
 
@@ -227,6 +223,19 @@ def test_older_versions_with_a_null_noise_model_open(tmp_path, rng, version):
         assert opened.noise_model is None
 
 
+def test_version_3_npz_opens_with_its_noise_model(tmp_path, rng):
+    """Format version 3, the last .npz, added the noise model: it reads back as written."""
+    model = make_noise_model(rng)
+    path = tmp_path / "v3.npz"
+    save(path, rng, model)
+    entries = calibration_entries(path)
+    header = rewrite(path, entries, {**header_of(entries), "format_version": 3})
+    assert path.read_bytes()[:4] == b"PK\x03\x04"
+    with io.open_calibration(path) as opened:
+        assert opened.header == header and opened.header["format_version"] == 3
+        assert_same_model(opened.noise_model, model)
+
+
 def test_older_version_holding_a_noise_model_is_refused(tmp_path, rng):
     path = tmp_path / "v2.npz"
     write_older(path, rng, 2, noise_model=make_noise_model(rng).to_json())
@@ -235,9 +244,9 @@ def test_older_version_holding_a_noise_model_is_refused(tmp_path, rng):
 
 
 def test_tampered_noise_model_fails_the_checksum(tmp_path, rng):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     save(path, rng, make_noise_model(rng))
-    entries = npz_entries(path)
+    entries = calibration_entries(path)
     header = header_of(entries)
     header["noise_model"]["read_noise_counts"] *= 0.5  # still a valid model: only the checksum tells
     rewrite(path, entries, header, checksum=False)
@@ -288,9 +297,9 @@ MALFORMED = [
 
 @pytest.mark.parametrize(("change", "match"), [case[1:] for case in MALFORMED], ids=[case[0] for case in MALFORMED])
 def test_malformed_noise_model_is_refused_in_one_line(tmp_path, rng, change, match):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     save(path, rng, make_noise_model(rng))
-    entries = npz_entries(path)
+    entries = calibration_entries(path)
     header = header_of(entries)
     change(header["noise_model"])
     rewrite(path, entries, header)  # a valid checksum: only the model's check can refuse it
@@ -301,9 +310,9 @@ def test_malformed_noise_model_is_refused_in_one_line(tmp_path, rng, change, mat
 
 @pytest.mark.parametrize("value", ["a model", 3, ["gain", 1]])
 def test_noise_model_that_is_not_an_object_is_refused(tmp_path, rng, value):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     save(path, rng)
-    entries = npz_entries(path)
+    entries = calibration_entries(path)
     header = header_of(entries)
     header["noise_model"] = value
     rewrite(path, entries, header)
@@ -312,7 +321,7 @@ def test_noise_model_that_is_not_an_object_is_refused(tmp_path, rng, value):
 
 
 def test_save_refuses_what_is_not_a_noise_model_for_its_bands(tmp_path, rng):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     with refused(path, "cannot hold a noise model of type dict"):
         save(path, rng, make_noise_model(rng).to_json())
     eight_bands = dataclasses.replace(make_noise_model(rng), coeffs_covariance=np.zeros((8, 4, 4), np.float32))
@@ -384,7 +393,7 @@ def test_calibrate_session_builds_the_noise_model(simulated):
 
 def test_calibration_file_carries_the_session_noise_model(simulated, tmp_path):
     session, calibration, report = simulated
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     io.save_calibration(path, calibration, instrument_id=session.instrument_id, band_centres_nm=BANDS,
                         noise_model=report.noise_model)
     with io.open_calibration(path) as opened:
@@ -529,9 +538,9 @@ def run(argv, capsys):
 
 def test_cli_calibrate_stores_the_session_noise_model(simulated, tmp_path, capsys):
     session = simulated[0]
-    status, out, err = run(["calibrate", str(session.path), "-o", str(tmp_path / "cal.npz")], capsys)
+    status, out, err = run(["calibrate", str(session.path), "-o", str(tmp_path / "cal.h5")], capsys)
     assert status == 0, err
-    with io.open_calibration(tmp_path / "cal.npz") as opened:
+    with io.open_calibration(tmp_path / "cal.h5") as opened:
         model = opened.noise_model
         report = opened.header["metadata"]["calibration_report"]
     assert np.asarray(model.gain) == np.float32(GAIN) and np.asarray(model.read_noise) == np.float32(READ_NOISE)
@@ -550,11 +559,11 @@ def test_cli_calibrate_options_override_and_supply_the_noise_model(simulated, tm
     manifest = json.loads((session_path / "manifest.json").read_text())
     del manifest["metadata"]["camera"]["read_noise_counts"]
     (session_path / "manifest.json").write_text(json.dumps(manifest))
-    argv = ["calibrate", str(session_path), "-o", str(tmp_path / "cal.npz"),
+    argv = ["calibrate", str(session_path), "-o", str(tmp_path / "cal.h5"),
             "--gain", "2.5", "--read-noise", "4", "--white-reflectance-u", "0.003"]
     status, out, err = run(argv, capsys)
     assert status == 0, err
-    with io.open_calibration(tmp_path / "cal.npz") as opened:
+    with io.open_calibration(tmp_path / "cal.h5") as opened:
         model = opened.noise_model
     assert float(model.gain) == 2.5 and float(model.read_noise) == 4.0
     assert np.asarray(model.white_reflectance_u) == np.float32(0.003)
@@ -575,7 +584,7 @@ def test_cli_calibrate_options_override_and_supply_the_noise_model(simulated, tm
 )
 def test_cli_calibrate_refuses_bad_noise_options(tmp_path, capsys, option, value, match):
     # The session need not exist: the options are checked before anything is read or written.
-    status, out, err = run(["calibrate", str(tmp_path / "session"), "-o", str(tmp_path / "cal.npz"), option, value], capsys)
+    status, out, err = run(["calibrate", str(tmp_path / "session"), "-o", str(tmp_path / "cal.h5"), option, value], capsys)
     assert status == cli.EXIT_BAD_INPUT
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("spherejax: error: ") and match in lines[0], err

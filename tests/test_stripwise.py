@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pathlib
 
+import h5py
 import numpy as np
 import OpenImageIO as oiio
 import pytest
@@ -56,7 +57,7 @@ def calibration(rng):
 
 @pytest.fixture
 def calibration_path(tmp_path, calibration):
-    path = tmp_path / "cal.npz"
+    path = tmp_path / "cal.h5"
     io.save_calibration(path, calibration, instrument_id="sphere-1", band_centres_nm=BANDS)
     return path
 
@@ -281,9 +282,10 @@ def test_calibration_file_on_disk_detects_tampering(calibration_path, monkeypatc
     """The checksum of arrays left on disk is verified block by block, as for a loaded one."""
     monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
     monkeypatch.setattr(io.calibration_files, "_READ_BLOCK", 4096)  # many blocks
+    with h5py.File(calibration_path, "r") as stored:
+        at = stored["dark"].id.get_chunk_info(0).byte_offset  # the dark frame's first chunk
     data = bytearray(calibration_path.read_bytes())
-    at = data.index(b"white.npy")  # a byte of the dark frame, before the white standard's member
-    data[at - 5000] ^= 0x01
+    data[at + 5000] ^= 0x01
     calibration_path.write_bytes(bytes(data))
     with pytest.raises(io.CalibrationFileError, match="does not match its checksum: tampered or corrupted"):
         io.open_calibration(calibration_path)
@@ -327,7 +329,7 @@ def test_archive_input_damaged_mid_image_leaves_nothing(tmp_path, rng, calibrati
     patch = np.zeros(big, dtype=bool)
     patch[2:6, 2:6] = True
     tall = spherejax.Calibration(dark=dark, white=white, patch=patch, saturation=16383.0, **fields)
-    path = tmp_path / "tall.npz"
+    path = tmp_path / "tall.h5"
     io.save_calibration(path, tall, instrument_id="sphere-1", band_centres_nm=BANDS)
     raw = rng.integers(0, 16000, (*big, B)).astype(np.uint16)
     io.write_frame(tmp_path / "cut.tif", raw)

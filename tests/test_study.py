@@ -71,7 +71,7 @@ def test_command(session, tmp_path, capsys):
     assert "Stage II, study (ΔE00)" in stdout and "held-out test set" in stdout
     payload = json.loads((out / "study.json").read_text())
     assert payload["response_weight"] == 0.01 and set(payload["study"]) == {"training", "test"}
-    assert (out / "study-calibration.npz").exists() and (out / "study.csv").exists()
+    assert (out / "study-calibration.h5").exists() and (out / "study.csv").exists()
 
 
 def test_negative_response_weight(session, tmp_path, capsys):

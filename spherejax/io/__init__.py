@@ -79,24 +79,31 @@ and a region is
 Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
 camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
 
-Calibration file (format "spherejax-calibration", version 3)
+Calibration file (format "spherejax-calibration", version 4)
 ------------------------------------------------------------
-An .npz archive (`numpy.savez`, no pickled objects) holding the arrays of a `Calibration`
+An HDF5 file (h5py; told by its first 8 bytes, b"\\x89HDF\\r\\n\\x1a\\n", not its name,
+conventionally .h5) whose root group holds one dataset per array of a `Calibration`
     dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B),
     wiener_offset (31,)
-and "header", a uint8 array of UTF-8 JSON:
-    {"format": "spherejax-calibration", "format_version": 3, "software_version",
+each with its meaning as the string attribute "description", and nothing else; and the root's
+attribute "header", a string of UTF-8 JSON:
+    {"format": "spherejax-calibration", "format_version": 4, "software_version",
      "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
      "saturation": number or null, "created": UTC ISO 8601,
      "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
      "metadata": {...}, "noise_model": {...} or null, "checksum": "sha256:<64 hex digits>"}
-Read the header with ``bytes(numpy.load(path)["header"]).decode()``. The checksum is SHA-256 over
+Datasets are stored in the file, unfiltered (no compression), every byte written: dark, white
+and patch in chunks of whole rows (about 1 MiB each), so that rows read without the rest of the
+frame; the others contiguous. Hard links only (no external links, groups, external or virtual
+storage). Read it with ``json.loads(h5py.File(path)["/"].attrs["header"])`` and
+``h5py.File(path)["dark"][r0:r1]``. The checksum is SHA-256 over
 the header JSON without the "checksum" field, serialised with sorted keys, separators "," and ":"
 and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
 wiener, wiener_offset, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
-the array's raw bytes in C order. It is computed from the parsed header, so the stored JSON's
-layout does not matter. "metadata" is free JSON from the writer (`save_calibration(...,
-metadata=)`), e.g. how the Stage II and Wiener fits were made.
+the array's raw bytes in C order (as h5py reads the dataset: a bool patch is one byte per
+pixel, 0 or 1). It is computed from the parsed header, so the stored JSON's layout does not
+matter, and it is the same in both containers. "metadata" is free JSON from the writer
+(`save_calibration(..., metadata=)`), e.g. how the Stage II and Wiener fits were made.
 
 The reflectance estimate is affine, r = W v_tilde + r0, with W the "wiener" array and r0 the
 "wiener_offset" array.
@@ -116,7 +123,12 @@ every value back exactly):
        estimator's sampling covariance, `spherejax.EstimatorCovariance`), or null}
 All numbers finite. Only "gain_e_per_count" and "read_noise_counts" are required inside it.
 
-Older versions are still read. Version 2 is version 3 without "noise_model" (no noise model;
+Older versions are still read (whole). Version 3 is version 4 in an .npz archive
+(`numpy.savez`, no pickled objects; told by its first bytes, b"PK\\x03\\x04"), read with
+`numpy.load(allow_pickle=False)`: one .npy member per array and "header", a uint8 array of the
+same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Version 4 is HDF5 only and
+versions 1 to 3 .npz only.
+Version 2 is version 3 without "noise_model" (no noise model;
 a null one is read as absent, any other is refused).
 Version 1 (before the offset existed) is version 2 without the member "wiener_offset", in the
 header's "arrays" and in the checksum; it is read with r0 = 0, which is what it meant.

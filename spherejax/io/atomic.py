@@ -73,17 +73,19 @@ def atomic_file(path: os.PathLike | str, mode: str = "wb", *, encoding: str | No
 
     Args:
       path: the file to write.
-      mode: "wb" (bytes) or "w" (text).
+      mode: "wb" (bytes), "w+b" (bytes, readable too: h5py's file-object driver reads back
+        what it wrote) or "w" (text).
       encoding: for text, default UTF-8.
 
     Raises:
       OSError: from creating, writing or renaming (the caller words it for its file kind).
     """
-    if mode not in ("wb", "w"):
-        raise ValueError(f"mode: expected 'wb' or 'w', got {mode!r}")
+    if mode not in ("wb", "w+b", "w"):
+        raise ValueError(f"mode: expected 'wb', 'w+b' or 'w', got {mode!r}")
     path = pathlib.Path(path)
     temporary = temp_sibling(path)
-    descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
+    access = os.O_RDWR if "+" in mode else os.O_WRONLY
+    descriptor = os.open(temporary, access | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
     try:
         text = {"encoding": encoding or "utf-8"} if mode == "w" else {}
         with os.fdopen(descriptor, mode, **text) as handle:  # owns the descriptor from here

@@ -1,5 +1,6 @@
-"""Calibration files (format "spherejax-calibration", the package docstring): written
-atomically with a checksum, read whole or by rows without loading every array."""
+"""Calibration files (format "spherejax-calibration", the package docstring): HDF5 written
+atomically with a checksum, read whole or by rows without loading every array; the .npz files of
+format versions 1 to 3 are still read (whole)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,6 @@ import contextlib
 import hashlib
 import json
 import math
-import os
 import pathlib
 import re
 import tokenize
@@ -15,6 +15,7 @@ import zipfile
 import zlib
 from collections.abc import Iterator, Mapping
 
+import h5py
 import numpy as np
 
 from .. import jsontext
@@ -26,7 +27,7 @@ from .documents import _Fields, _canonical_json, _check_format, _describe_bands,
 from .errors import CalibrationFileError, SpherejaxFileError, _one_line, _show
 
 CALIBRATION_FORMAT = "spherejax-calibration"
-CALIBRATION_FORMAT_VERSION = 3
+CALIBRATION_FORMAT_VERSION = 4
 #: Arrays of a calibration file in checksum order, with the description stored in its header.
 CALIBRATION_ARRAYS = {
     "dark": "dark frame (H, W, B) in raw counts, subtracted in the flat field (Eq. 10)",
@@ -58,7 +59,7 @@ def _calibration_arrays(header: Mapping) -> tuple[str, ...]:
 def _checksum(header: Mapping, arrays: Mapping) -> str:
     """The header's checksum, sha256:<hex>, over the header without it and the arrays (numpy
     arrays or `_StoredArray`s, hashed block by block so that a calibration larger than memory
-    is never read whole) that the header's format version holds.
+    is never read whole) that the header's format version holds; the same in either container.
 
     The exact byte sequence is in the docstring of spherejax.io: other software must reproduce it.
     """
@@ -216,131 +217,245 @@ _READ_BLOCK = 16 << 20
 # covariance, about 20 bytes a number): refuse to read gigabytes as one.
 _MAX_HEADER_BYTES = 16 << 20
 
+#: The first bytes of the two containers: HDF5 (format version 4 on; its superblock at offset 0,
+#: where h5py puts it) and zip (the .npz of format versions 1 to 3).
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+ZIP_SIGNATURE = b"PK\x03\x04"
+#: The format version that moved from .npz to HDF5.
+_HDF5_SINCE = 4
+#: The arrays stored chunked by rows: the (H, W, B) frames and the (H, W) patch, read by rows.
+_FRAME_ARRAYS = ("dark", "white", "patch")
+# A chunk is whole rows (full width and all bands), so that reading rows r0:r1 reads only the
+# chunks holding them, each one contiguous piece of the file; about 1 MiB of them, so that a
+# 2048 x 2048 x 16 float32 frame has 256 chunks (a small chunk index) and a strip's first and last
+# chunks read at most about 1 MiB it does not need. Uncompressed: the frames are noisy float
+# counts that deflate barely shrinks, and rows read at disk speed with no decompression.
+_CHUNK_BYTES = 1 << 20
+_EXPECTED_FILE = "a spherejax calibration file (HDF5; an .npz archive before format version 4)"
+
+
+def _row_chunks(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...] | None:
+    """The chunk shape of a frame array: about `_CHUNK_BYTES` of whole rows; None (contiguous)
+    for an array with no element, which HDF5 cannot chunk."""
+    if not shape or 0 in shape:
+        return None
+    row_bytes = math.prod(shape[1:]) * itemsize
+    return (max(1, min(shape[0], _CHUNK_BYTES // row_bytes)), *shape[1:])
+
+
+@contextlib.contextmanager
+def _hdf5_errors(path) -> Iterator[None]:
+    """h5py's errors on a damaged file (OSError, KeyError, ValueError, RuntimeError from its
+    checks and HDF5's) as one CalibrationFileError naming the file."""
+    try:
+        yield
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as error:
+        if isinstance(error, SpherejaxFileError):
+            raise
+        raise CalibrationFileError(path, f"is truncated or corrupted: {error}", "a whole calibration file") from None
+
 
 class _StoredArray:
-    """An array stored uncompressed in an .npz (np.savez), read from the open file by offset.
+    """An array of a calibration file's HDF5 dataset, read when needed: by rows, whole, or block by
+    block (for the checksum).
 
-    Attributes: shape, dtype (as the .npy header says); reads go through the file descriptor
-    taken when the calibration was opened, so a file replaced meanwhile is never mixed in.
+    Attributes: shape, dtype (the dataset's); nbytes. Reads go through the HDF5 file opened with
+    the calibration (it holds its own descriptor), so a file replaced meanwhile is never mixed in.
     """
 
-    def __init__(self, path: pathlib.Path, fd: int, offset: int, shape, dtype):
-        self.path, self._fd, self.offset = path, fd, offset
-        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+    def __init__(self, path: pathlib.Path, dataset: h5py.Dataset):
+        self.path, self._dataset = path, dataset
+        self.shape, self.dtype = tuple(dataset.shape), dataset.dtype
         self.row_bytes = math.prod(self.shape[1:]) * self.dtype.itemsize
-        self.nbytes = (self.shape[0] if self.shape else 1) * self.row_bytes
-
-    def _read_into(self, buffer: np.ndarray, offset: int) -> None:
-        if not buffer.nbytes:
-            return  # an empty array: memoryview refuses to cast a view with a 0 in its shape
-        view = memoryview(buffer).cast("B")
-        done = 0
-        while done < len(view):
-            got = os.preadv(self._fd, [view[done:]], offset + done)
-            if got <= 0:
-                raise CalibrationFileError(
-                    self.path, "is truncated: an array ends before its data", "a whole calibration file"
-                )
-            done += got
+        self.nbytes = math.prod(self.shape) * self.dtype.itemsize
 
     def read_rows(self, row0: int, row1: int) -> np.ndarray:
         """Rows row0:row1 of the first axis, as a new array."""
         out = np.empty((row1 - row0, *self.shape[1:]), dtype=self.dtype)
-        self._read_into(out, self.offset + row0 * self.row_bytes)
+        if out.size:  # HDF5 refuses an empty selection
+            with _hdf5_errors(self.path):
+                self._dataset.read_direct(out, np.s_[row0:row1])
         return out
 
     def read(self) -> np.ndarray:
         if not self.shape:
-            out = np.empty((), dtype=self.dtype)
-            self._read_into(out.reshape(1), self.offset)
-            return out
+            with _hdf5_errors(self.path):
+                return np.asarray(self._dataset[()], dtype=self.dtype)
         return self.read_rows(0, self.shape[0])
 
-    def blocks(self) -> Iterator[memoryview]:
-        buffer = np.empty(min(self.nbytes, _READ_BLOCK), dtype=np.uint8)
-        for start in range(0, self.nbytes, _READ_BLOCK):
-            block = buffer[: min(_READ_BLOCK, self.nbytes - start)]
-            self._read_into(block, self.offset + start)
-            yield memoryview(block)
+    def blocks(self) -> Iterator[np.ndarray]:
+        """The array's C-order bytes as arrays of whole rows, about `_READ_BLOCK` bytes each."""
+        if not self.shape:
+            yield self.read()
+            return
+        rows = max(1, _READ_BLOCK // max(self.row_bytes, 1))
+        for row0 in range(0, self.shape[0], rows):
+            yield self.read_rows(row0, min(row0 + rows, self.shape[0]))
 
 
-def _member_data_offset(fd: int, info: zipfile.ZipInfo) -> int:
-    """Where a member's data starts: after its local header, whose name and extra field lengths
-    may differ from the central directory's (zip64 members carry an extra field)."""
-    local = os.pread(fd, 30, info.header_offset)
-    if len(local) != 30 or local[:4] != b"PK\x03\x04":
-        raise zipfile.BadZipFile(f"member {info.filename!r} has no local header")
-    name_length, extra_length = int.from_bytes(local[26:28], "little"), int.from_bytes(local[28:30], "little")
-    return info.header_offset + 30 + name_length + extra_length
-
-
-def _index_npz(path: pathlib.Path, fd: int) -> dict:
-    """Every entry of an .npz archive: uncompressed .npy members as `_StoredArray`s (read later,
-    by offset), compressed ones read now; never pickle."""
-    # A cut-off archive loses its zip directory, which sits at the end.
-    if not zipfile.is_zipfile(path):
-        raise CalibrationFileError(
-            path,
-            "is not an .npz (zip) archive: truncated, or not a calibration file",
-            "a spherejax calibration file",
-        )
-    entries, foreign = {}, []
+def _container(path: pathlib.Path) -> str:
+    """"hdf5" or "zip", by the file's first bytes (not its name: any suffix is taken)."""
     try:
-        with zipfile.ZipFile(path) as archive:
-            for info in archive.infolist():
-                if not info.filename.endswith(".npy"):
-                    foreign.append(info.filename)
-                    continue
-                name = info.filename[: -len(".npy")]
-                with archive.open(info) as member:
-                    version = np.lib.format.read_magic(member)
-                    read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
-                    if read_header is None:
-                        raise ValueError(f"member {info.filename!r} has .npy version {version}")
-                    try:
-                        shape, fortran_order, dtype = read_header(member)
-                    except (SyntaxError, tokenize.TokenError, TypeError, RecursionError) as error:
-                        # numpy parses the header's text with ast and tokenize, which raise these
-                        # (not ValueError) on some damaged texts.
-                        raise ValueError(f"member {info.filename!r} has a damaged .npy header: {error!r}") from None
-                    if dtype.hasobject:
-                        raise ValueError(f"member {info.filename!r} holds Python objects")
-                    header_length = member.tell()
-                # Checked before any data is read: a damaged shape must not make a compressed
-                # member allocate more than the archive holds.
-                if any(n < 0 for n in shape) or header_length + math.prod(shape) * dtype.itemsize != info.file_size:
-                    raise ValueError(f"member {info.filename!r} does not hold the array its header describes")
-                if info.compress_type == zipfile.ZIP_STORED and not fortran_order:
-                    offset = _member_data_offset(fd, info) + header_length
-                    entries[name] = _StoredArray(path, fd, offset, shape, dtype)
-                else:
-                    with archive.open(info) as member:
-                        entries[name] = np.lib.format.read_array(member, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError, zlib.error) as error:
-        # zipfile raises RuntimeError for an encrypted member (NotImplementedError, a subclass,
-        # for an unknown compression method) and zlib.error for a damaged deflate stream.
-        raise CalibrationFileError(path, f"is corrupted: {error}", "a spherejax calibration file") from None
-    if foreign:
-        raise CalibrationFileError(
-            path, f"holds entries that are not .npy arrays: {sorted(foreign)}", "an .npz of arrays"
-        )
-    return entries
+        with open(path, "rb") as file:
+            start = file.read(len(HDF5_SIGNATURE))
+    except OSError as error:
+        raise CalibrationFileError(path, f"cannot be read: {error.strerror}") from None
+    if start == HDF5_SIGNATURE:
+        return "hdf5"
+    if start.startswith(ZIP_SIGNATURE):
+        return "zip"
+    problem = "is empty" if not start else f"is neither HDF5 nor an .npz (zip) archive: it starts with {start!r}"
+    raise CalibrationFileError(path, problem, _EXPECTED_FILE)
 
 
-def _decode_header(path, raw: np.ndarray | None) -> dict:
+def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, dict[str, _StoredArray]]:
+    """The header attribute's bytes (None when absent) and every dataset of the root group as a
+    `_StoredArray`, none read yet. Only plain datasets whose data lie whole in the file are
+    taken: no links (an external link reads another file), groups, external or virtual storage,
+    filters (compression: spherejax writes none), and every byte of the data written (a chunk
+    never written reads as zeros, and a forged shape could ask for terabytes)."""
+    with _hdf5_errors(path):
+        header = stored.attrs["header"] if "header" in stored.attrs else None
+        if isinstance(header, str):
+            # h5py decodes UTF-8 with surrogateescape: bytes that are not UTF-8 come back as
+            # they were, for jsontext to name.
+            header = header.encode("utf-8", "surrogateescape")
+        elif header is not None and not isinstance(header, bytes):
+            raise CalibrationFileError(
+                path, f"has a header attribute of {type(header).__name__} {_show(np.asarray(header).tolist())}",
+                'a "header" attribute: a string of UTF-8 JSON',
+            )
+        arrays = {}
+        for name in stored:
+            link = stored.get(name, getlink=True)
+            if not isinstance(link, h5py.HardLink):
+                raise CalibrationFileError(path, f"entry {name!r} is a {type(link).__name__}", "a dataset stored in the file")
+            dataset = stored[name]
+            if not isinstance(dataset, h5py.Dataset):
+                raise CalibrationFileError(path, f"entry {name!r} is a {type(dataset).__name__}", "a dataset")
+            if dataset.shape is None:
+                raise CalibrationFileError(path, f"dataset {name!r} has no dataspace (an empty dataset)", "an array")
+            if dataset.is_virtual or dataset.external is not None or dataset.id.get_create_plist().get_nfilters():
+                raise CalibrationFileError(
+                    path, f"dataset {name!r} is stored virtual, external or filtered (compressed)",
+                    "its data in the file, unfiltered, as save_calibration writes them",
+                )
+            array = _StoredArray(path, dataset)
+            # Chunks are stored whole: those over the last rows hold padding beyond the array.
+            allocated = array.nbytes
+            if dataset.chunks is not None:
+                count = math.prod(-(-n // c) for n, c in zip(array.shape, dataset.chunks))
+                allocated = count * math.prod(dataset.chunks) * array.dtype.itemsize
+            stored_bytes = dataset.id.get_storage_size()
+            if stored_bytes != allocated:
+                raise CalibrationFileError(
+                    path, f"dataset {name!r} of shape {list(array.shape)} holds {stored_bytes} of its {allocated} bytes",
+                    "every byte of its data written",
+                )
+            arrays[name] = array
+    return header, arrays
+
+
+def _read_npz(path: pathlib.Path) -> tuple[bytes | None, dict[str, np.ndarray]]:
+    """The header's bytes (None when absent) and every array of an .npz calibration file (format
+    versions 1 to 3), read whole by numpy, never unpickled."""
     expected = 'a "header" entry: a uint8 array of UTF-8 JSON'
+    try:
+        # Opened here, not by np.load, which leaves its own file unclosed when the zip is refused.
+        with open(path, "rb") as file, np.load(file, allow_pickle=False) as archive:
+            foreign = sorted(name for name in archive.zip.namelist() if not name.endswith(".npy"))
+            if foreign:
+                raise CalibrationFileError(path, f"holds entries that are not .npy arrays: {foreign}", "an .npz of arrays")
+            for name in archive.files:
+                _check_npy_size(archive.zip, name + ".npy")
+            entries = {name: archive[name] for name in archive.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError, zlib.error,
+            SyntaxError, tokenize.TokenError, TypeError, RecursionError) as error:
+        # zipfile raises RuntimeError for an encrypted member (NotImplementedError, a subclass,
+        # for an unknown compression method) and zlib.error for a damaged deflate stream; numpy
+        # parses an .npy header's text with ast and tokenize, which raise SyntaxError,
+        # TokenError, TypeError or RecursionError on some damaged texts.
+        if isinstance(error, SpherejaxFileError):
+            raise
+        raise CalibrationFileError(
+            path, f"is truncated or corrupted: {str(error) or type(error).__name__}", "a whole calibration file"
+        ) from None
+    header = entries.pop("header", None)
+    if header is not None and (header.dtype != np.uint8 or header.ndim != 1):
+        raise CalibrationFileError(path, f"has a header of dtype {header.dtype} and shape {header.shape}", expected)
+    return None if header is None else header.tobytes(), entries
+
+
+def _check_npy_size(archive: zipfile.ZipFile, member: str) -> None:
+    """Refuse a member whose .npy header describes another size than the member holds, before
+    numpy allocates the array it describes (a damaged shape could ask for terabytes), or one of
+    Python objects (pickles)."""
+    info = archive.getinfo(member)
+    with archive.open(info) as data:
+        version = np.lib.format.read_magic(data)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            raise ValueError(f"member {member!r} has .npy version {version}")
+        shape, _, dtype = read_header(data)
+        if dtype.hasobject:
+            raise ValueError(f"member {member!r} holds Python objects")
+        if any(n < 0 for n in shape) or data.tell() + math.prod(shape) * dtype.itemsize != info.file_size:
+            raise ValueError(f"member {member!r} does not hold the array its header describes")
+
+
+def _decode_header(path, raw: bytes | None, container: str) -> dict:
+    expected = 'a "header" attribute: a string of UTF-8 JSON' if container == "hdf5" else 'a "header" entry: a uint8 array of UTF-8 JSON'
     if raw is None:
         raise CalibrationFileError(path, "has no header", expected)
-    if raw.dtype != np.uint8 or raw.ndim != 1:
-        problem = f"has a header of dtype {raw.dtype} and shape {raw.shape}"
-        raise CalibrationFileError(path, problem, expected)
+    if len(raw) > _MAX_HEADER_BYTES:
+        raise CalibrationFileError(path, f"has a header of {len(raw)} bytes", f"a JSON header of at most {_MAX_HEADER_BYTES}")
     try:
         # NaN and Infinity are not JSON (save_calibration never writes them), and the checksum,
         # computed over strict JSON, could not be verified with one in the header.
-        return jsontext.loads(raw.tobytes(), allow_nan=False)
+        return jsontext.loads(raw, allow_nan=False)
     except jsontext.JSONTextError as error:
         problem = f"has a header that is not UTF-8 JSON: {error.detail}"
         raise CalibrationFileError(path, problem, expected) from None
+
+
+class _FailureKeepingFile:
+    """The temporary file as h5py's file-object driver sees it, keeping the first failed write
+    (a full disk) in `error` and reporting success, so that `save_calibration` raises it once
+    h5py has closed the file: h5py cannot raise a write that fails while it closes the file (the
+    metadata it flushes then), it prints a traceback and carries on."""
+
+    def __init__(self, file):
+        self._file, self.error = file, None
+
+    def _keep(self, operation, *args) -> None:
+        if self.error is None:  # after a failure the file is given up: nothing more is written
+            try:
+                operation(*args)
+            except OSError as error:
+                self.error = error
+
+    def write(self, data) -> int:
+        self._keep(self._file.write, data)
+        return memoryview(data).nbytes
+
+    def truncate(self, size: int) -> int:
+        self._keep(self._file.truncate, size)
+        return size
+
+    def flush(self) -> None:
+        self._keep(self._file.flush)
+
+    def read(self, size: int = -1) -> bytes:  # what h5py tells a file object by
+        return self._file.read(size)
+
+    def readinto(self, buffer) -> int:
+        return self._file.readinto(buffer)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
 
 
 def save_calibration(
@@ -350,7 +465,7 @@ def save_calibration(
     """Write a calibration file (the docstring of spherejax.io), atomically.
 
     Args:
-      path: destination (conventionally .npz); its folder must exist. An existing file is
+      path: destination (conventionally .h5), any name; its folder must exist. An existing file is
         replaced only when the new one is complete.
       calibration: the `Calibration` to store, arrays bit for bit.
       instrument_id: the instrument it was built for.
@@ -402,10 +517,19 @@ def save_calibration(
     header["checksum"] = _checksum(header, arrays)
     _check_calibration_contents(path, header, arrays)  # refuse to write what load would refuse
 
-    encoded = _readable_json(header).encode("utf-8")
     try:
-        with atomic_file(path) as file:
-            np.savez(file, header=np.frombuffer(encoded, dtype=np.uint8), **arrays)
+        # h5py writes the temporary file through its handle ("w+b": h5py's file-object driver
+        # reads too) and has closed it, every byte handed over, before atomic_file flushes,
+        # fsyncs and renames it.
+        with atomic_file(path, "w+b") as file:
+            keeping = _FailureKeepingFile(file)
+            with h5py.File(keeping, "w") as stored:
+                stored.attrs["header"] = _readable_json(header)  # a UTF-8 string: h5dump shows the JSON
+                for name, array in arrays.items():
+                    chunks = _row_chunks(array.shape, array.dtype.itemsize) if name in _FRAME_ARRAYS else None
+                    stored.create_dataset(name, data=array, chunks=chunks).attrs["description"] = CALIBRATION_ARRAYS[name]
+            if keeping.error is not None:
+                raise keeping.error
     except OSError as error:
         raise CalibrationFileError(path, f"could not be written: {error}") from None
     return header
@@ -424,7 +548,8 @@ class CalibrationFile:
     are read by rows (`rows`), so a calibration larger than memory can correct by strips.
 
     Use `open_calibration`; close with `close` or a `with` block (smaller files hold no open
-    file once opened).
+    file once opened). It pickles (e.g. to a dask worker): one that reads by rows is opened and
+    verified again where it is unpickled, and must be the same file there (its checksum).
 
     Attributes:
       path: the file. header: its header dict (checksum included).
@@ -434,14 +559,14 @@ class CalibrationFile:
     """
 
     def __init__(
-        self, path: pathlib.Path, fd: int | None, header: dict, arrays: dict, illuminant: str | None = None
+        self, path: pathlib.Path, file: h5py.File | None, header: dict, arrays: dict, illuminant: str | None = None
     ):
         self.path, self.header = path, header
         if "wiener_offset" not in arrays:
             # Format version 1 (its checksum, verified before, covers no offset): the estimate
             # was linear, r = W v_tilde, i.e. r0 = 0.
             arrays = {**arrays, "wiener_offset": np.zeros(N_WAVELENGTHS, np.float32)}
-        self._fd, self._arrays = None, arrays  # the fd is owned once the checks below pass
+        self._file, self._arrays = None, arrays  # the file is owned once the checks below pass
         self._calibration_fields = {
             "illuminant": header["illuminant"] if illuminant is None else illuminant,
             "observer": header["observer"],
@@ -471,7 +596,7 @@ class CalibrationFile:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
             self._patch_calibration = self._crop(*self.patch_box)
         self._noise_model = noise_model_of(path, header)
-        self._fd = fd
+        self._file = file
 
     def _value(self, name: str) -> np.ndarray:
         array = self._arrays[name]
@@ -521,12 +646,32 @@ class CalibrationFile:
         )
 
     def close(self) -> None:
-        fd, self._fd = getattr(self, "_fd", None), None
-        if fd is not None:
-            os.close(fd)
+        file, self._file = getattr(self, "_file", None), None
+        if file is not None:
+            file.close()
 
     def __del__(self):
         self.close()
+
+    def __getstate__(self) -> dict:
+        if self._file is None:
+            return self.__dict__  # everything in memory
+        # An open HDF5 file does not pickle (and a descriptor means nothing in another process).
+        return {"reopen": (self.path, self._calibration_fields["illuminant"], self.header["checksum"])}
+
+    def __setstate__(self, state: dict) -> None:
+        if "reopen" not in state:
+            self.__dict__.update(state)
+            return
+        path, illuminant, checksum = state["reopen"]
+        opened = open_calibration(path, illuminant=illuminant)
+        if opened.header["checksum"] != checksum:
+            opened.close()
+            raise CalibrationFileError(
+                path, "changed since it was opened: another checksum", f"the calibration file of checksum {checksum}"
+            )
+        self.__dict__.update(opened.__dict__)
+        opened._file = None  # this one owns the file now
 
     def __enter__(self) -> CalibrationFile:
         return self
@@ -547,7 +692,8 @@ def _reraise_invalid(path) -> Iterator[None]:
 
 def open_calibration(path, *, band_centres_nm=None, illuminant: str | None = None) -> CalibrationFile:
     """Open and verify a calibration file (`CalibrationFile`), reading into memory only the
-    arrays up to `IN_MEMORY_BYTES`; the checksum is verified block by block.
+    arrays up to `IN_MEMORY_BYTES`; the checksum is verified block by block. An .npz of format
+    versions 1 to 3 is read whole.
 
     Args: as `load_calibration`, and illuminant: the Lab illuminant of the calibrations it
       gives, instead of the one the file names (None = the file's).
@@ -556,27 +702,25 @@ def open_calibration(path, *, band_centres_nm=None, illuminant: str | None = Non
     path = pathlib.Path(path)
     if not path.is_file():
         problem = "is not a file" if path.exists() else "no such file"
-        raise CalibrationFileError(path, problem, "a spherejax calibration file (.npz)")
+        raise CalibrationFileError(path, problem, _EXPECTED_FILE)
+    container, stored = _container(path), None
     try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError as error:
-        raise CalibrationFileError(path, f"cannot be read: {error.strerror}") from None
-    try:
-        arrays = _index_npz(path, fd)
-        header_entry = arrays.pop("header", None)
-        if isinstance(header_entry, _StoredArray):
-            if header_entry.nbytes > _MAX_HEADER_BYTES:
-                raise CalibrationFileError(
-                    path, f"has a header of {header_entry.nbytes} bytes", f"a JSON header of at most {_MAX_HEADER_BYTES}"
-                )
-            header_entry = header_entry.read()
-        header = _decode_header(path, header_entry)
+        if container == "hdf5":
+            # locking=False: HDF5's file locks fail on some network file systems, and a file is
+            # never written in place (save_calibration renames a complete one over it).
+            with _hdf5_errors(path):
+                stored = h5py.File(path, "r", locking=False)
+            raw_header, arrays = _index_hdf5(path, stored)
+        else:
+            raw_header, arrays = _read_npz(path)
+        header = _decode_header(path, raw_header, container)
         _check_calibration_contents(path, header, arrays)
-        if _checksum(header, arrays) != header["checksum"]:
+        version = header["format_version"]
+        if (container == "hdf5") != (version >= _HDF5_SINCE):
+            found = "HDF5" if container == "hdf5" else "an .npz archive"
             raise CalibrationFileError(
-                path,
-                "does not match its checksum: tampered or corrupted",
-                "the contents the checksum was computed from",
+                path, f"is {found} of format version {version}",
+                f"HDF5 from format version {_HDF5_SINCE} on, an .npz archive before",
             )
         if band_centres_nm is not None:
             expected = np.asarray(band_centres_nm).tolist()
@@ -588,15 +732,22 @@ def open_calibration(path, *, band_centres_nm=None, illuminant: str | None = Non
                     "a calibration for the session's bands",
                 )
         for name, array in arrays.items():
+            # Read before the checksum, which then hashes them in memory: each byte read once.
             if isinstance(array, _StoredArray) and array.nbytes <= IN_MEMORY_BYTES:
                 arrays[name] = array.read()
-        if not any(isinstance(array, _StoredArray) for array in arrays.values()):
-            os.close(fd)  # everything is in memory: hold no open file
-            fd = None
-        return CalibrationFile(path, fd, header, arrays, illuminant)
+        if _checksum(header, arrays) != header["checksum"]:
+            raise CalibrationFileError(
+                path,
+                "does not match its checksum: tampered or corrupted",
+                "the contents the checksum was computed from",
+            )
+        if stored is not None and not any(isinstance(array, _StoredArray) for array in arrays.values()):
+            stored.close()  # everything is in memory: hold no open file
+            stored = None
+        return CalibrationFile(path, stored, header, arrays, illuminant)
     except BaseException:
-        if fd is not None:
-            os.close(fd)
+        if stored is not None:
+            stored.close()
         raise
 
 
@@ -614,7 +765,8 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
       `open_calibration(path).noise_model`; absent from format versions 1 and 2).
 
     Raises:
-      CalibrationFileError: missing, not an .npz or truncated, missing arrays or header, another
+      CalibrationFileError: missing, neither HDF5 nor .npz, truncated or corrupted, missing
+        or unexpected arrays or header, datasets not stored as save_calibration stores them, another
         format, a newer format version, a checksum mismatch (tampered or corrupted), arrays that
         disagree with the header, a patch that is not a boolean mask, a "noise_model" that is
         not a valid noise model for its bands, other band centres than `band_centres_nm`, or

@@ -31,7 +31,7 @@ class Folder:
     """The case's folder and the shared inputs it may copy."""
 
     tmp: pathlib.Path
-    workspace: pathlib.Path  # session/ and cal.npz (tests/test_cli.py)
+    workspace: pathlib.Path  # session/ and cal.h5 (tests/test_cli.py)
     cube_cal: pathlib.Path  # a calibration for 40 x 48 x 16 cubes (tests/batch_support.py)
 
     def session(self) -> pathlib.Path:
@@ -42,9 +42,9 @@ class Folder:
         return target
 
     def calibration(self) -> pathlib.Path:
-        target = self.tmp / "cal.npz"
+        target = self.tmp / "cal.h5"
         if not target.exists():
-            shutil.copyfile(self.workspace / "cal.npz", target)
+            shutil.copyfile(self.workspace / "cal.h5", target)
         return target
 
     def edit_manifest(self, change) -> pathlib.Path:
@@ -155,7 +155,7 @@ def session_case(id, change, problem, command="calibrate"):
         named = change(f)
         session = f.session()
         if command == "calibrate":
-            return ["calibrate", str(session), "-o", str(f.tmp / "new.npz")], str(named)
+            return ["calibrate", str(session), "-o", str(f.tmp / "new.h5")], str(named)
         return ["evaluate", str(session), "-c", str(f.calibration()), "--out", str(f.tmp / "evaluation")], str(named)
 
     return Case(id, command, prepare, problem)
@@ -243,7 +243,7 @@ def check_case(case: Case, workspace, cal, tmp_path, capsys) -> None:
     one line naming the input and the problem, the exit status, no traceback, nothing new or
     partial on disk (for a `correct` batch: only OUT's manifest changed, recording the failure).
     workspace, cal: the fixtures of tests/conftest.py; capsys: pytest's."""
-    f = Folder(tmp_path / "case", workspace, tmp_path / "cube-cal.npz")
+    f = Folder(tmp_path / "case", workspace, tmp_path / "cube-cal.h5")
     f.tmp.mkdir()
     shutil.copyfile(cal, f.cube_cal)
     if case.batch:

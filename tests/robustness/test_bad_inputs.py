@@ -27,6 +27,7 @@ from spherejax_hw import profile as hw_profile
 from spherejax import io
 from tests.batch_support import NAMES, frame
 from tests.hw.support import write_profile
+from tests.helpers import calibration_entries, write_calibration_entries
 from tests.robustness.catalogue import (
     Case, Folder, acquire_case, check_case, correct_case, edited_profile, evaluate_with_calibration, huge_tiff,
     parameters, session_case, snapshot, truncate, write_any_tiff, write_file,
@@ -37,16 +38,15 @@ from tests.robustness.catalogue import (
 
 
 def _calibration_bytes(f: Folder) -> dict[str, np.ndarray]:
-    with np.load(f.workspace / "cal.npz", allow_pickle=False) as stored:
-        return {name: stored[name] for name in stored.files}
+    return calibration_entries(f.workspace / "cal.h5")
 
 
 def _tampered_calibration(f: Folder) -> pathlib.Path:
     arrays = _calibration_bytes(f)
     arrays["coeffs"] = arrays["coeffs"].copy()
     arrays["coeffs"][0, 0] += 1e-3
-    np.savez(f.tmp / "tampered.npz", **arrays)
-    return f.tmp / "tampered.npz"
+    write_calibration_entries(f.tmp / "tampered.h5", arrays)
+    return f.tmp / "tampered.h5"
 
 
 def _newer_calibration(f: Folder) -> pathlib.Path:
@@ -54,14 +54,34 @@ def _newer_calibration(f: Folder) -> pathlib.Path:
     header = json.loads(bytes(arrays["header"]).decode())
     header["format_version"] = 99
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
-    np.savez(f.tmp / "newer.npz", **arrays)
-    return f.tmp / "newer.npz"
+    write_calibration_entries(f.tmp / "newer.h5", arrays)
+    return f.tmp / "newer.h5"
+
+
+def _edited_calibration(name: str, change):
+    """The workspace's calibration with its entries changed by `change(entries)`, in HDF5."""
+    def make(f: Folder) -> pathlib.Path:
+        arrays = _calibration_bytes(f)
+        change(arrays)
+        write_calibration_entries(f.tmp / name, arrays)
+        return f.tmp / name
+
+    return make
+
+
+def _old_npz_truncated(f: Folder) -> pathlib.Path:
+    """The workspace's calibration as a format version 3 .npz, cut in half (its zip directory gone)."""
+    arrays = _calibration_bytes(f)
+    header = {**json.loads(bytes(arrays["header"]).decode()), "format_version": 3}
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    write_calibration_entries(f.tmp / "old.npz", arrays)
+    return truncate(f.tmp / "old.npz", 0.5)
 
 
 def _other_bands_calibration(f: Folder) -> pathlib.Path:
-    calibration, _ = io.load_calibration(f.workspace / "cal.npz")
-    io.save_calibration(f.tmp / "other.npz", calibration, instrument_id="x", band_centres_nm=list(range(410, 711, 20)))
-    return f.tmp / "other.npz"
+    calibration, _ = io.load_calibration(f.workspace / "cal.h5")
+    io.save_calibration(f.tmp / "other.h5", calibration, instrument_id="x", band_centres_nm=list(range(410, 711, 20)))
+    return f.tmp / "other.h5"
 
 
 def _frames(f: Folder, name: str) -> pathlib.Path:
@@ -83,7 +103,7 @@ CATALOGUE: list[Case] = [
          "simulate", lambda f: (["simulate", str(f.tmp / "s")], str(f.tmp / "s")),
          "could not be written", file_size_limit=256 * 1024),
     # ---- calibrate: sessions
-    Case("session-missing", "calibrate", lambda f: (["calibrate", str(f.tmp / "absent"), "-o", str(f.tmp / "c.npz")],
+    Case("session-missing", "calibrate", lambda f: (["calibrate", str(f.tmp / "absent"), "-o", str(f.tmp / "c.h5")],
                                                     str(f.tmp / "absent")), "no such"),
     session_case("manifest-missing", lambda f: (f.session() / "manifest.json").unlink() or f.session() / "manifest.json", "manifest.json"),
     session_case("manifest-not-json", lambda f: write_file("session/manifest.json", "{ not json")(f.session() and f), "JSON"),
@@ -120,19 +140,26 @@ CATALOGUE: list[Case] = [
     ] and f.session() / "manifest.json", "target regions"),
     # ---- calibrate: the output
     Case("calibrate-into-read-only-folder", "calibrate",
-         lambda f: ((f.tmp / "locked").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "locked" / "c.npz")],
-                    str(f.tmp / "locked" / "c.npz")), "Operation not permitted", read_only="locked"),
+         lambda f: ((f.tmp / "locked").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "locked" / "c.h5")],
+                    str(f.tmp / "locked" / "c.h5")), "Operation not permitted", read_only="locked"),
     Case("calibrate-full-disk", "calibrate",
-         lambda f: (["calibrate", str(f.session()), "-o", str(f.tmp / "c.npz")], str(f.tmp / "c.npz")),
+         lambda f: (["calibrate", str(f.session()), "-o", str(f.tmp / "c.h5")], str(f.tmp / "c.h5")),
          "File too large", file_size_limit=64 * 1024),
     Case("calibrate-onto-a-folder", "calibrate",
-         lambda f: ((f.tmp / "c.npz").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "c.npz")], str(f.tmp / "c.npz")),
+         lambda f: ((f.tmp / "c.h5").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "c.h5")], str(f.tmp / "c.h5")),
          "Is a directory"),
     # ---- evaluate: calibration files
-    evaluate_with_calibration("calibration-missing", lambda f: f.tmp / "none.npz", "no such"),
-    evaluate_with_calibration("calibration-empty", write_file("empty.npz", b""), "npz"),
-    evaluate_with_calibration("calibration-not-npz", write_file("text.npz", "hello"), "npz"),
-    evaluate_with_calibration("calibration-truncated", lambda f: truncate(f.calibration(), 0.5), "npz"),
+    evaluate_with_calibration("calibration-missing", lambda f: f.tmp / "none.h5", "no such"),
+    evaluate_with_calibration("calibration-empty", write_file("empty.h5", b""), "is empty"),
+    evaluate_with_calibration("calibration-not-npz", write_file("text.npz", "hello"), "neither HDF5 nor an .npz"),
+    evaluate_with_calibration("calibration-one-line-text", write_file("text.h5", "dark = 0\n"), "neither HDF5 nor an .npz"),
+    evaluate_with_calibration("calibration-truncated", lambda f: truncate(f.calibration(), 0.5), "truncated"),
+    evaluate_with_calibration("calibration-missing-dataset", _edited_calibration("no-white.h5", lambda a: a.pop("white")), "has no array ['white']"),
+    evaluate_with_calibration("calibration-dataset-wrong-shape", _edited_calibration(
+        "short.h5", lambda a: a.update(dark=a["dark"][:-1])), "array 'dark' has shape"),
+    evaluate_with_calibration("calibration-header-not-json", _edited_calibration(
+        "bad-header.h5", lambda a: a.update(header=np.frombuffer(b"{format", np.uint8))), "not UTF-8 JSON"),
+    evaluate_with_calibration("calibration-old-npz-truncated", _old_npz_truncated, "truncated or corrupted"),
     evaluate_with_calibration("calibration-tampered", _tampered_calibration, "checksum"),
     evaluate_with_calibration("calibration-newer-version", _newer_calibration, "99"),
     evaluate_with_calibration("calibration-other-bands", _other_bands_calibration, "bands"),
@@ -152,8 +179,8 @@ CATALOGUE: list[Case] = [
         (f.tmp / "elsewhere").mkdir() or (f.tmp / "out" / "in" / "esc").symlink_to(f.tmp / "elsewhere")
         or f.cube("in/esc/y.tif")), "would be written outside OUT"),
     Case("calibration-missing-for-correct", "correct", lambda f: (
-        f.cube("in/a.tif") and ["correct", "-c", str(f.tmp / "none.npz"), str(f.tmp / "in"), "-o", str(f.tmp / "out2")],
-        str(f.tmp / "none.npz")), "no such"),
+        f.cube("in/a.tif") and ["correct", "-c", str(f.tmp / "none.h5"), str(f.tmp / "in"), "-o", str(f.tmp / "out2")],
+        str(f.tmp / "none.h5")), "no such"),
     # ---- acquire: profiles
     acquire_case("profile-missing", lambda f: f.tmp / "none.toml", "no such"),
     acquire_case("profile-empty", write_file("empty.toml", ""), "instrument"),

@@ -43,6 +43,7 @@ import spherejax as sj
 from spherejax import archive, cli, io
 from tests.robustness import catalogue
 from tests.robustness.catalogue import Case, Folder, correct_case, read_only, snapshot, write_file
+from tests.helpers import calibration_entries, write_calibration_entries
 from tests.batch_support import KINDS, NAMES, holds_lock, wait_until, frame, make_calibration, outputs_of, read_exr
 
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
@@ -90,21 +91,16 @@ def _correct(argv, capsys) -> tuple[int, str, str]:
     return status, captured.out, captured.err
 
 
-def _calibration_arrays(path: pathlib.Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as stored:
-        return {name: stored[name] for name in stored.files}
-
-
 def _forge_calibration(source: pathlib.Path, target: pathlib.Path, change) -> pathlib.Path:
     """A copy of `source` with `change(header, arrays)` applied and a valid checksum: only the
-    content checks can refuse it."""
-    arrays = _calibration_arrays(source)
+    content checks can refuse it. HDF5, or an .npz if `change` makes it format version 1 to 3."""
+    arrays = calibration_entries(source)
     header = json.loads(bytes(arrays.pop("header")).decode())
     change(header, arrays)
     for name, array in arrays.items():
         header["arrays"][name] = {**header["arrays"].get(name, {}), "shape": list(array.shape), "dtype": array.dtype.str}
     header["checksum"] = io.calibration_files._checksum(header, arrays)
-    np.savez(target, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+    write_calibration_entries(target, {"header": np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays})
     return target
 
 
@@ -165,13 +161,13 @@ def _other_bands_calibration(f: Folder) -> pathlib.Path:
     """A valid calibration of 15 bands for 40 x 48 pixels."""
     rng = np.random.default_rng(0)
     calibration, bands, instrument = make_calibration(rng, bands=[int(n[:-2]) for n in NAMES][:15])
-    io.save_calibration(f.tmp / "b15.npz", calibration, instrument_id=instrument, band_centres_nm=bands)
-    return f.tmp / "b15.npz"
+    io.save_calibration(f.tmp / "b15.h5", calibration, instrument_id=instrument, band_centres_nm=bands)
+    return f.tmp / "b15.h5"
 
 
 def _offset_forged(change):
     def make(f: Folder) -> pathlib.Path:
-        return _forge_calibration(f.cube_cal, f.tmp / "forged.npz", change)
+        return _forge_calibration(f.cube_cal, f.tmp / "forged.h5", change)
 
     return make
 
@@ -205,8 +201,8 @@ def _correct_into_read_only_out(f: Folder):
 
 def _calibrate_over_existing(f: Folder):
     """An existing CAL must survive a calibrate that cannot finish writing its replacement."""
-    target = f.tmp / "c.npz"
-    shutil.copyfile(f.workspace / "cal.npz", target)
+    target = f.tmp / "c.h5"
+    shutil.copyfile(f.workspace / "cal.h5", target)
     return ["calibrate", str(f.session()), "-o", str(target)], str(target)
 
 
@@ -231,7 +227,7 @@ ROUND_TWO: list[Case] = [
     correct_case("correct-full-disk-mid-outputs", lambda f: f.cube("in/big.tif"), "could not be written",
                   file_size_limit=64 * 1024),
     Case("calibrate-full-disk-at-once", "calibrate",
-         lambda f: (["calibrate", str(f.session()), "-o", str(f.tmp / "c.npz")], str(f.tmp / "c.npz")),
+         lambda f: (["calibrate", str(f.session()), "-o", str(f.tmp / "c.h5")], str(f.tmp / "c.h5")),
          "File too large", file_size_limit=1),
     Case("calibrate-full-disk-over-an-existing-file", "calibrate", _calibrate_over_existing, "File too large",
          file_size_limit=16 * 1024),
@@ -295,15 +291,15 @@ def test_a_second_correct_on_a_locked_out_is_refused(second, cal, long_batch, tm
 
 @pytest.mark.slow
 def test_two_calibrates_writing_one_file_leave_a_whole_file(workspace, tmp_path):
-    target = tmp_path / "cal.npz"
+    target = tmp_path / "cal.h5"
     runs = [_start("calibrate", workspace / "session", "-o", target) for _ in range(2)]
     for process in runs:
         _, err = process.communicate(timeout=300)
         assert process.returncode == 0, err.decode()
     calibration, header = io.load_calibration(target)  # whole, its checksum verified
-    reference, _ = io.load_calibration(workspace / "cal.npz")
+    reference, _ = io.load_calibration(workspace / "cal.h5")
     np.testing.assert_allclose(np.asarray(calibration.coeffs), np.asarray(reference.coeffs), rtol=1e-4, atol=1e-5)
-    assert os.listdir(tmp_path) == ["cal.npz"]  # no temporary left by either
+    assert os.listdir(tmp_path) == ["cal.h5"]  # no temporary left by either
 
 
 # --------------------------------------------------------------------------------------------
@@ -521,10 +517,10 @@ def test_an_unusual_valid_layout_is_corrected_as_the_plain_one(layout, cal, refe
 def test_tiny_and_one_row_images_are_corrected(shape, tmp_path, capsys):
     height, width = shape
     patch = (slice(0, 1), slice(0, 1)) if width == 2 else (slice(0, 1), slice(0, 64))
-    calibration = _calibration_of_shape(tmp_path / "cal.npz", height, width, patch)
+    calibration = _calibration_of_shape(tmp_path / "cal.h5", height, width, patch)
     raw = frame(np.random.default_rng(8), (height, width, 16))
     io.write_frame(tmp_path / "cube.tif", raw, channel_names=NAMES)
-    status, stdout, err = _correct(["correct", "-c", tmp_path / "cal.npz", tmp_path / "cube.tif", "-o", tmp_path / "out"], capsys)
+    status, stdout, err = _correct(["correct", "-c", tmp_path / "cal.h5", tmp_path / "cube.tif", "-o", tmp_path / "out"], capsys)
     assert status == 0, err
     expected = sj.correct(raw, calibration)
     np.testing.assert_array_equal(read_exr(tmp_path / "out" / "cube.reflectance.exr")[0], np.asarray(expected.reflectance))
@@ -582,6 +578,7 @@ def test_a_format_version_1_calibration_still_corrects(cal, reference, tmp_path,
         assert not arrays["wiener_offset"].any()
         del arrays["wiener_offset"]
         del header["arrays"]["wiener_offset"]
+        del header["noise_model"]  # added in version 3
         header["format_version"] = 1
 
     old = _forge_calibration(cal, tmp_path / "v1.npz", version_1)
@@ -593,7 +590,7 @@ def test_a_format_version_1_calibration_still_corrects(cal, reference, tmp_path,
 
 @pytest.mark.parametrize("change", [_wrong_shape_offset, _nan_offset], ids=["wrong-shape", "nan"])
 def test_a_forged_wiener_offset_is_refused_by_load_calibration(change, cal, tmp_path):
-    path = _forge_calibration(cal, tmp_path / "forged.npz", change)
+    path = _forge_calibration(cal, tmp_path / "forged.h5", change)
     with pytest.raises(io.CalibrationFileError) as raised:
         io.load_calibration(path)
     message = str(raised.value)

@@ -40,7 +40,7 @@ import spherejax as sj
 from spherejax_hw.profile import ProfileError, load_profile
 from spherejax import archive, fused, io
 from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
-from tests.helpers import write_with_oiio
+from tests.helpers import calibration_entries, write_calibration_entries, write_with_oiio
 
 
 def fuzz(examples: int):
@@ -394,10 +394,21 @@ def _calibration(rng) -> sj.Calibration:
 
 @pytest.fixture(scope="module")
 def valid_calibration(scratch) -> Valid:
-    path = scratch / "valid-cal.npz"
+    path = scratch / "valid-cal.h5"
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(io.calibration_files, "_utc_now", lambda: CREATED)  # the same header on every run
         io.save_calibration(path, _calibration(np.random.default_rng(2)), instrument_id="sim", band_centres_nm=BANDS)
+    return Valid(path, path.read_bytes())
+
+
+@pytest.fixture(scope="module")
+def valid_old_calibration(scratch, valid_calibration) -> Valid:
+    """The valid calibration as the format version 3 writer wrote it: an .npz (np.savez)."""
+    header, arrays = _valid_entries(valid_calibration)
+    header = {**header, "format_version": 3}
+    header["checksum"] = io.calibration_files._checksum(header, arrays)
+    path = scratch / "valid-cal-v3.npz"
+    write_calibration_entries(path, {"header": np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays})
     return Valid(path, path.read_bytes())
 
 
@@ -414,23 +425,38 @@ def load_calibration_checked(path: pathlib.Path, content: bytes | None = None):
 
 
 @fuzz(200)
-@given(content=st.binary(max_size=600) | st.binary(max_size=600).map(lambda b: b"PK\x03\x04" + b))
+@given(content=st.binary(max_size=600) | st.binary(max_size=600).map(lambda b: b"PK\x03\x04" + b)
+       | st.binary(max_size=600).map(lambda b: io.calibration_files.HDF5_SIGNATURE + b))
 def test_calibration_of_arbitrary_bytes(scratch, content):
-    load_calibration_checked(scratch / "bytes.npz", content)
+    load_calibration_checked(scratch / "bytes.h5", content)
+
+
+def _loads_as_saved(result, valid: Valid) -> None:
+    """What loads from a damaged file must be the calibration that was saved."""
+    if not isinstance(result, Exception):
+        original, _ = io.load_calibration(valid.path)
+        for name in io.CALIBRATION_ARRAYS:
+            np.testing.assert_array_equal(np.asarray(getattr(result[0], name)), np.asarray(getattr(original, name)))
 
 
 @fuzz(800)
 @given(data=st.data())
 def test_calibration_with_damaged_bytes(scratch, valid_calibration, data):
-    """Damage aimed at the zip structures (local headers, directory, end record) and the .npy
-    headers as well as anywhere: what loads must be the calibration that was saved."""
-    hotspots = offsets_of(valid_calibration.content, b"PK\x03\x04", b"PK\x01\x02", b"PK\x05\x06", b"\x93NUMPY", b'"format', b'"saturation')
+    """Damage aimed at the HDF5 structures (superblock, B-trees, local and global heaps, symbol
+    table nodes) and the header's JSON as well as anywhere."""
+    hotspots = offsets_of(valid_calibration.content, b"\x89HDF", b"TREE", b"HEAP", b"SNOD", b"GCOL", b'"format', b'"saturation')
     content = data.draw(damaged(valid_calibration.content, hotspots))
-    result = load_calibration_checked(scratch / "damaged.npz", content)
-    if not isinstance(result, Exception):
-        original, _ = io.load_calibration(valid_calibration.path)
-        for name in io.CALIBRATION_ARRAYS:
-            np.testing.assert_array_equal(np.asarray(getattr(result[0], name)), np.asarray(getattr(original, name)))
+    _loads_as_saved(load_calibration_checked(scratch / "damaged.h5", content), valid_calibration)
+
+
+@fuzz(300)
+@given(data=st.data())
+def test_old_npz_calibration_with_damaged_bytes(scratch, valid_old_calibration, data):
+    """An old .npz: damage aimed at the zip structures (local headers, directory, end record)
+    and the .npy headers as well as anywhere."""
+    hotspots = offsets_of(valid_old_calibration.content, b"PK\x03\x04", b"PK\x01\x02", b"PK\x05\x06", b"\x93NUMPY", b'"format', b'"saturation')
+    content = data.draw(damaged(valid_old_calibration.content, hotspots))
+    _loads_as_saved(load_calibration_checked(scratch / "damaged.npz", content), valid_old_calibration)
 
 
 def _npy(array: np.ndarray) -> bytes:
@@ -439,10 +465,9 @@ def _npy(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def _valid_entries(calibration_bytes: bytes) -> tuple[dict, dict]:
-    """(header, arrays) of the valid calibration."""
-    with np.load(pyio.BytesIO(calibration_bytes), allow_pickle=False) as stored:
-        arrays = {name: stored[name] for name in stored.files}
+def _valid_entries(valid: Valid) -> tuple[dict, dict]:
+    """(header, arrays) of a valid calibration file."""
+    arrays = calibration_entries(valid.path)
     return json.loads(arrays.pop("header").tobytes().decode("utf-8")), arrays
 
 
@@ -484,15 +509,21 @@ def test_calibration_zip_of_arbitrary_members(scratch, members):
     load_calibration_checked(path)
 
 
+#: Arrays HDF5 stores: as `npy_arrays`, byte strings in place of numpy's unicode ones.
+stored_arrays = hnp.arrays(
+    st.sampled_from((np.float32, np.float64, np.dtype(">f4"), np.uint16, np.int64, np.bool_, np.complex64, np.dtype("S2"))),
+    hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=4),
+) | st.sampled_from((np.zeros((2, 3), "V3"), np.zeros((0, 0), np.float32), np.zeros((4, 5, 0), np.float32)))
+
+
 def _save_forged(path: pathlib.Path, header, arrays: dict) -> None:
-    """Write an .npz as save_calibration would, with a correct checksum when the header allows
-    one: what a third-party writer or a forger produces."""
+    """Write an HDF5 file as save_calibration would, with a correct checksum when the header
+    allows one: what a third-party writer or a forger produces."""
     if isinstance(header, dict):
         with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
             header = {**header, "checksum": io.calibration_files._checksum(header, arrays)}
     encoded = json.dumps(header, allow_nan=True).encode("utf-8")
-    with open(path, "wb") as file:
-        np.savez(file, header=np.frombuffer(encoded, dtype=np.uint8), **arrays)
+    write_calibration_entries(path, {"header": np.frombuffer(encoded, dtype=np.uint8), **arrays}, "hdf5")
 
 
 @st.composite
@@ -509,7 +540,7 @@ def forged_calibrations(draw, header, arrays):
             old = arrays[name]
             arrays[name] = draw(hnp.arrays(old.dtype, old.shape))
         else:
-            arrays[name] = draw(npy_arrays)
+            arrays[name] = draw(stored_arrays)
     header = json.loads(json.dumps(header))
     header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in arrays.items()}
     if draw(st.booleans()):
@@ -525,8 +556,8 @@ def test_calibration_forged_with_a_valid_checksum(scratch, valid_calibration, da
     """A checksum that matches proves nothing about the contents: arrays of any shape, dtype or
     value and any header values must still load into a valid Calibration or be refused; what
     loads holds exactly the arrays written."""
-    header, arrays = data.draw(forged_calibrations(*_valid_entries(valid_calibration.content)))
-    path = scratch / "forged.npz"
+    header, arrays = data.draw(forged_calibrations(*_valid_entries(valid_calibration)))
+    path = scratch / "forged.h5"
     _save_forged(path, header, arrays)
     result = load_calibration_checked(path)
     if not isinstance(result, Exception):
@@ -535,20 +566,20 @@ def test_calibration_forged_with_a_valid_checksum(scratch, valid_calibration, da
             np.testing.assert_array_equal(np.asarray(getattr(calibration, name)), arrays[name])
 
 
-def _with_header_text(calibration_bytes: bytes, old: str, new: str) -> bytes:
-    """The valid calibration with its header's JSON text edited (checksum left as it was)."""
-    header, arrays = _valid_entries(calibration_bytes)
+def _with_header_text(valid: Valid, old: str, new: str) -> bytes:
+    """The valid calibration (HDF5) with its header's JSON text edited (checksum left as it was)."""
+    header, arrays = _valid_entries(valid)
     text = json.dumps(header)
     assert old in text
-    buffer = pyio.BytesIO()
-    np.savez(buffer, header=np.frombuffer(text.replace(old, new, 1).encode(), dtype=np.uint8), **arrays)
-    return buffer.getvalue()
+    path = valid.path.with_name("edited-header.h5")
+    write_calibration_entries(path, {"header": np.frombuffer(text.replace(old, new, 1).encode(), dtype=np.uint8), **arrays}, "hdf5")
+    return path.read_bytes()
 
 
-def _with_directory_edit(calibration_bytes: bytes, offset: int, value: int) -> bytes:
-    """The valid calibration with one byte of every zip central-directory entry set."""
-    data = bytearray(calibration_bytes)
-    for entry in offsets_of(calibration_bytes, b"PK\x01\x02"):
+def _with_directory_edit(valid: Valid, offset: int, value: int) -> bytes:
+    """The valid old (.npz) calibration with one byte of every zip central-directory entry set."""
+    data = bytearray(valid.content)
+    for entry in offsets_of(valid.content, b"PK\x01\x02"):
         data[entry + offset] = value
     return bytes(data)
 
@@ -561,10 +592,10 @@ def _zip_of(members: dict, compression=zipfile.ZIP_STORED) -> bytes:
     return buffer.getvalue()
 
 
-def _damaged_deflate(calibration_bytes: bytes) -> bytes:
-    """np.savez_compressed of the valid calibration, bytes inside the dark frame's deflate
-    stream overwritten (its zip entry intact)."""
-    header, arrays = _valid_entries(calibration_bytes)
+def _damaged_deflate(valid: Valid) -> bytes:
+    """np.savez_compressed of the valid old (.npz) calibration, bytes inside the dark frame's
+    deflate stream overwritten (its zip entry intact)."""
+    header, arrays = _valid_entries(valid)
     buffer = pyio.BytesIO()
     np.savez_compressed(buffer, header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
     data = bytearray(buffer.getvalue())
@@ -573,7 +604,7 @@ def _damaged_deflate(calibration_bytes: bytes) -> bytes:
     return bytes(data)
 
 
-def _huge_compressed_shape(calibration_bytes: bytes) -> bytes:
+def _huge_compressed_shape(valid: Valid) -> bytes:
     """A deflated member whose .npy header claims 10^16 floats (35 PiB)."""
     text = "{'descr': '<f4', 'fortran_order': False, 'shape': (100000000000, 100000), }"
     text += " " * (117 - len(text)) + "\n"
@@ -583,44 +614,44 @@ def _huge_compressed_shape(calibration_bytes: bytes) -> bytes:
 
 CALIBRATION_REGRESSIONS = {
     # OverflowError: math.isfinite of an integer beyond float range.
-    "number-beyond-float": lambda valid: _with_header_text(valid, '"saturation": 16383', f'"saturation": {HUGE}'),
+    "number-beyond-float": lambda new, old: _with_header_text(new, '"saturation": 16383', f'"saturation": {HUGE}'),
     # ValueError naming no file: int() refuses 4300+ digits.
-    "5000-digit-integer": lambda valid: _with_header_text(valid, '"saturation": 16383', f'"saturation": {VAST}'),
+    "5000-digit-integer": lambda new, old: _with_header_text(new, '"saturation": 16383', f'"saturation": {VAST}'),
     # RecursionError in json.
-    "nested-100000-deep": lambda valid: _with_header_text(valid, '"metadata": {', '"metadata": {"x": ' + "[" * 100_000 + "]" * 100_000 + ","),
+    "nested-100000-deep": lambda new, old: _with_header_text(new, '"metadata": {', '"metadata": {"x": ' + "[" * 100_000 + "]" * 100_000 + ","),
     # ValueError naming no file: the checksum's strict JSON refuses NaN.
-    "nan-in-metadata": lambda valid: _with_header_text(valid, '"metadata": {', '"metadata": {"x": NaN,'),
+    "nan-in-metadata": lambda new, old: _with_header_text(new, '"metadata": {', '"metadata": {"x": NaN,'),
     # RuntimeError: "File ... is encrypted, password required for extraction".
-    "encrypted-member": lambda valid: _with_directory_edit(valid, 8, 1),
+    "encrypted-member": lambda new, old: _with_directory_edit(old, 8, 1),
     # NotImplementedError: "That compression method is not supported".
-    "unknown-compression": lambda valid: _with_directory_edit(valid, 10, 99),
+    "unknown-compression": lambda new, old: _with_directory_edit(old, 10, 99),
     # zlib.error: "Error -3 while decompressing data".
-    "damaged-deflate-stream": _damaged_deflate,
+    "damaged-deflate-stream": lambda new, old: _damaged_deflate(old),
     # tokenize.TokenError out of numpy's .npy header parser.
-    "npy-header-not-a-dict": lambda valid: _zip_of({"header.npy": _npy(np.zeros((), np.float32)).replace(b"{'descr'", b"z'descr'")}),
+    "npy-header-not-a-dict": lambda new, old: _zip_of({"header.npy": _npy(np.zeros((), np.float32)).replace(b"{'descr'", b"z'descr'")}),
     # TypeError: memoryview cannot cast an empty array.
-    "empty-header-array": lambda valid: _zip_of({"header.npy": _npy(np.zeros((0, 0), np.float32))}),
+    "empty-header-array": lambda new, old: _zip_of({"header.npy": _npy(np.zeros((0, 0), np.float32))}),
     # MemoryError: the claimed shape was allocated before reading.
-    "huge-compressed-shape": _huge_compressed_shape,
+    "huge-compressed-shape": lambda new, old: _huge_compressed_shape(old),
 }
 
 
 @pytest.mark.parametrize("damage", list(CALIBRATION_REGRESSIONS))
-def test_calibration_regressions(scratch, valid_calibration, damage):
+def test_calibration_regressions(scratch, valid_calibration, valid_old_calibration, damage):
     """Found by the properties above; each raised something other than CalibrationFileError."""
     path = scratch / f"regression-{damage}.npz"
-    result = load_calibration_checked(path, CALIBRATION_REGRESSIONS[damage](valid_calibration.content))
+    result = load_calibration_checked(path, CALIBRATION_REGRESSIONS[damage](valid_calibration, valid_old_calibration))
     assert isinstance(result, CalibrationFileError)
 
 
-@pytest.mark.parametrize("dtype", ["V4", "<U1", "c8"])
+@pytest.mark.parametrize("dtype", ["V4", "S1", "c8"])
 def test_calibration_of_non_numbers_is_refused(scratch, valid_calibration, dtype):
     """A checksummed file whose dark frame holds raw bytes, strings or complex numbers: JAX's
     TypeError (naming no file) before the fix."""
-    header, arrays = _valid_entries(valid_calibration.content)
+    header, arrays = _valid_entries(valid_calibration)
     arrays["dark"] = np.zeros(arrays["dark"].shape, dtype)
     header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in arrays.items()}
-    path = scratch / f"dark-{dtype}.npz"
+    path = scratch / f"dark-{dtype}.h5"
     _save_forged(path, header, arrays)
     result = load_calibration_checked(path)
     assert isinstance(result, CalibrationFileError) and "array 'dark' has dtype" in str(result)
@@ -628,10 +659,10 @@ def test_calibration_of_non_numbers_is_refused(scratch, valid_calibration, dtype
 
 def test_calibration_in_big_endian_byte_order_loads(scratch, valid_calibration):
     """">f4" arrays (a big-endian writer): JAX's TypeError before the fix; now the same values."""
-    header, arrays = _valid_entries(valid_calibration.content)
+    header, arrays = _valid_entries(valid_calibration)
     swapped = {name: array.astype(array.dtype.newbyteorder(">")) for name, array in arrays.items()}
     header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in swapped.items()}
-    path = scratch / "big-endian.npz"
+    path = scratch / "big-endian.h5"
     _save_forged(path, header, swapped)
     calibration, _ = load_calibration_checked(path)
     for name, array in arrays.items():

@@ -17,6 +17,7 @@ import pytest
 import spherejax
 from spherejax_hw import profile as hw_profile
 from spherejax import archive, cli, io
+from tests.helpers import calibration_entries
 from tests.hw.support import write_profile
 from tests.batch_support import NAMES, frame
 
@@ -67,8 +68,7 @@ class _Touch:
 
 
 def test_a_calibration_file_carrying_a_pickle_is_refused_unopened(workspace, tmp_path):
-    with np.load(workspace / "cal.npz", allow_pickle=False) as stored:
-        arrays = {name: stored[name] for name in stored.files}
+    arrays = calibration_entries(workspace / "cal.h5")  # written as an old .npz below
     marker = tmp_path / "pwned"
     payload = np.empty(1, dtype=object)
     payload[0] = _Touch(marker)
