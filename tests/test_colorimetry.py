@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import colorimetry, spectra
+from spherejax import spectra
 from spherejax.grid import WAVELENGTHS_NM
 
 ILLUMINANTS = ["D65", "A", "F2"]
