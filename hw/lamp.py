@@ -28,7 +28,11 @@ import json
 import math
 import os
 import pathlib
-from typing import Callable
+from typing import Annotated, Callable, Literal
+
+from spherejax import jsontext
+from spherejax.io import atomic
+from spherejax.io.documents import AwareTime, Document, Expect, check_document, integer, number
 
 from .errors import InstrumentError
 
@@ -37,7 +41,6 @@ FORMAT = "hw.lamp/1"
 #: Warm-up checks kept in the state file (the session manifests keep each session's own).
 MAX_WARMUPS = 50
 
-_KEYS = ("format", "hours", "on_since", "ignitions", "warmups")
 
 
 class LampStateError(InstrumentError, ValueError):
@@ -47,6 +50,25 @@ class LampStateError(InstrumentError, ValueError):
 
 class LampError(InstrumentError, RuntimeError):
     """A lamp record out of order (switching on a lamp recorded as on, or off one recorded off)."""
+
+
+class _Warmup(Document):
+    """One passed warm-up check (`Lamp.record_warmup`)."""
+
+    at: AwareTime
+    drift_percent: Annotated[number(), Expect("a finite number")]
+    minutes: Annotated[number(gt=0), Expect("a finite number of minutes > 0")]
+    warmed_up_s: Annotated[number(ge=0), Expect("a finite number of seconds >= 0")]
+
+
+class _State(Document):
+    """The state file (module docstring); only "hours" is required."""
+
+    format: Annotated[Literal[FORMAT], Expect(json.dumps(FORMAT))] = FORMAT
+    hours: Annotated[number(ge=0), Expect("the lamp's hours, a finite number >= 0")]
+    on_since: AwareTime | None = None
+    ignitions: integer(0) = 0
+    warmups: Annotated[list[Annotated[_Warmup, Expect("a warm-up check: an object with at, drift_percent, minutes, warmed_up_s")]], Expect("a list of warm-up checks")] = []
 
 
 def _utc_now() -> datetime.datetime:
@@ -78,35 +100,12 @@ class Lamp:
 
     # --- state file ----------------------------------------------------------------------------
 
-    def _bad(self, key: str, value, expected: str) -> LampStateError:
-        return LampStateError(f"{self.state_file}: lamp state {key}={value!r}, expected {expected}")
-
-    def _time(self, key: str, value) -> datetime.datetime:
-        expected = "an ISO 8601 time with a UTC offset"
-        if not isinstance(value, str):
-            raise self._bad(key, value, expected)
-        try:
-            parsed = datetime.datetime.fromisoformat(value)
-        except ValueError:
-            raise self._bad(key, value, expected) from None
-        if parsed.tzinfo is None:
-            raise self._bad(key, value, expected)
-        return parsed.astimezone(datetime.timezone.utc)
-
-    def _number(self, key: str, value, expected: str, *, positive: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise self._bad(key, value, expected)
-        if value < 0 or (positive and value == 0):
-            raise self._bad(key, value, expected)
-        return float(value)
+    def _error(self, location: str, problem: str, expected: str | None) -> LampStateError:
+        return LampStateError(f"{self.state_file}: lamp state {location} {problem}, expected {expected}")
 
     def _read(self) -> dict:
         """The validated state: hours (float), on_since (datetime | None), ignitions (int),
         warmups (list of dicts)."""
-        # Imported here, not at the top: spherejax's package pulls in JAX, which reading the lamp
-        # does not otherwise need.
-        from spherejax import jsontext
-
         try:
             data = self.state_file.read_bytes()
         except FileNotFoundError:
@@ -119,33 +118,13 @@ class Lamp:
             raise LampStateError(f"{self.state_file}: lamp state {error.problem}; expected a JSON object with \"hours\"") from None
         if not isinstance(raw, dict):
             raise LampStateError(f"{self.state_file}: lamp state is a JSON {type(raw).__name__}, expected an object with \"hours\"")
-        unknown = sorted(set(raw) - set(_KEYS))
-        if unknown:
-            raise self._bad(unknown[0], raw[unknown[0]], f"only the keys {', '.join(_KEYS)}")
-        if "format" in raw and raw["format"] != FORMAT:
-            raise self._bad("format", raw["format"], repr(FORMAT))
-        if "hours" not in raw:
-            raise LampStateError(f"{self.state_file}: lamp state has no \"hours\", expected the lamp's hours (a number >= 0)")
-        hours = self._number("hours", raw["hours"], "a finite number of hours >= 0")
-        on_since = raw.get("on_since")
-        if on_since is not None:
-            on_since = self._time("on_since", on_since)
-        ignitions = raw.get("ignitions", 0)
-        if isinstance(ignitions, bool) or not isinstance(ignitions, int) or ignitions < 0:
-            raise self._bad("ignitions", ignitions, "an integer >= 0")
-        warmups = raw.get("warmups", [])
-        if not isinstance(warmups, list):
-            raise self._bad("warmups", warmups, "a list of warm-up checks")
-        for k, entry in enumerate(warmups):
-            if not isinstance(entry, dict) or set(entry) != {"at", "drift_percent", "minutes", "warmed_up_s"}:
-                raise self._bad(f"warmups[{k}]", entry, "an object with at, drift_percent, minutes, warmed_up_s")
-            self._time(f"warmups[{k}].at", entry["at"])
-            drift = entry["drift_percent"]
-            if isinstance(drift, bool) or not isinstance(drift, (int, float)) or not math.isfinite(drift):
-                raise self._bad(f"warmups[{k}].drift_percent", drift, "a finite number")
-            self._number(f"warmups[{k}].minutes", entry["minutes"], "a finite number of minutes > 0", positive=True)
-            self._number(f"warmups[{k}].warmed_up_s", entry["warmed_up_s"], "a finite number of seconds >= 0")
-        return {"hours": hours, "on_since": on_since, "ignitions": ignitions, "warmups": warmups}
+        state = check_document(_State, raw, error=self._error, unknown="key")
+        return {
+            "hours": float(state.hours),
+            "on_since": state.on_since,
+            "ignitions": state.ignitions,
+            "warmups": raw.get("warmups", []),  # as stored: they are written back unchanged
+        }
 
     def _write(self, state: dict) -> None:
         """Replace the state file atomically: a reader (or a crash) sees the old file or the new."""
@@ -157,9 +136,6 @@ class Lamp:
             "warmups": state["warmups"][-MAX_WARMUPS:],
         }
         text = json.dumps(record, indent=2) + "\n"
-        # Imported here: the lamp's readers need nothing of JAX, which spherejax.io brings.
-        from spherejax.io import atomic
-
         atomic.write_atomic(self.state_file, text)
 
     # --- records -------------------------------------------------------------------------------

@@ -57,19 +57,25 @@ one `ProfileError` line naming the file and the key: a missing key, an unknown k
 pass silently, nor a camera option the backend does not take), two bands on one slot, a slot beyond
 the wheel's count or on its open slot, a band on a wheel the profile does not define, a path that
 leaves the profile's folder, a [noise] value out of range or one of gain_e_per_count and
-read_noise_counts without the other.
+read_noise_counts without the other. The tables are declared as documents
+(spherejax.io.documents): strict types, so a TOML boolean or float is never taken for an integer.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 import pathlib
 import re
 import tomllib
 from collections.abc import Mapping
+from typing import Annotated, Any, Literal
 
-from .camera import PROFILE_OPTIONS
+import pydantic
+from pydantic import AfterValidator
+from spherejax.io.documents import Document, Expect, NonEmptyStr, Rectangle, check_document, integer, number, refuse
+
+from .camera import PROFILE_OPTIONS, ProfileOption
 from .errors import InstrumentError
 
 #: Positions of each filter wheel model (Thorlabs: pcount accepts only 6 or 12).
@@ -193,177 +199,181 @@ class Profile:
         return None
 
 
-class _Table:
-    """One TOML table being checked: every access names the key in errors."""
+# The profile as documents (spherejax.io.documents), tables and keys in the order they are checked.
 
-    def __init__(self, path, data, where: str):
-        self.path, self.where = path, where
-        if not isinstance(data, dict):
-            raise ProfileError(path, where or None, f"is {_show(data)}", "a table")
-        self.data = data
+_Port = Annotated[str, pydantic.Field(min_length=1), Expect("a serial port path or pyserial URL")]
+_WheelModel = Annotated[Literal[tuple(WHEEL_POSITIONS)], Expect(f"one of {sorted(WHEEL_POSITIONS)}")]
+# Which slots exist depends on the wheel's model: the range is checked with it (_Wheel below).
+_Slot = Annotated[int, Expect("a slot 1..12 of the FW212C, 1..6 of the FW102C")]
+_MoveTimeout = Annotated[number(gt=0), Expect("seconds > 0 (a slow-mode move takes up to about 7 s)")]
+_ShutterModel = Annotated[Literal[SHUTTER_MODELS], Expect(f"one of {list(SHUTTER_MODELS)}")]
+_Backend = Annotated[Literal[CAMERA_BACKENDS], Expect(f"one of {list(CAMERA_BACKENDS)}")]
+_Table = Expect("a table")
 
-    def key(self, name: str) -> str:
-        return f"{self.where}.{name}" if self.where else name
 
-    def only(self, allowed, *, expected: str | None = None) -> None:
-        unknown = sorted(set(self.data) - set(allowed))
-        if unknown:
-            raise ProfileError(self.path, self.key(unknown[0]), "is not a known key", expected or f"one of {sorted(allowed)}")
+def _band_place(value: list) -> tuple[str, int]:
+    if not (len(value) == 2 and isinstance(value[0], str) and type(value[1]) is int):
+        raise ValueError("not [wheel, slot]")
+    return value[0], value[1]
 
-    def get(self, name: str, kind, expected: str, *, default=dataclasses.MISSING, check=None):
-        if name not in self.data:
-            if default is dataclasses.MISSING:
-                raise ProfileError(self.path, self.key(name), "is missing", expected)
-            return default
-        value = self.data[name]
-        # A TOML boolean is a Python int: refuse it wherever a number is expected (kind may be a
-        # tuple such as (int, float), which `kind in (int, float)` would not catch).
-        ok = isinstance(value, kind) and not (isinstance(value, bool) and kind is not bool)
-        if ok and isinstance(value, (int, float)) and not isinstance(value, bool):
-            try:
-                ok = math.isfinite(value)
-            except OverflowError:  # a TOML integer beyond float range: float() of it would raise
-                ok = False
-        if not ok or (check is not None and not check(value)):
-            raise ProfileError(self.path, self.key(name), f"is {_show(value)}", expected)
+
+_BandPlace = Annotated[list, AfterValidator(_band_place), Expect("[wheel, slot] with a wheel of [wheels] and its slot number")]
+_SampleId = Annotated[str, pydantic.Field(pattern=r"^[A-Za-z0-9._-]+$"), Expect("a name of letters, digits, '.', '_' or '-'")]
+_ProfileRectangle = Annotated[Rectangle, Expect("[r0, r1, c0, c1], integers with r0 < r1 and c0 < c1")]
+
+
+class _Instrument(Document):
+    id: NonEmptyStr
+
+
+class _Wheel(Document):
+    port: _Port
+    model: _WheelModel
+    open_slot: _Slot
+    move_timeout_s: _MoveTimeout = 20.0
+
+    @pydantic.model_validator(mode="after")
+    def _slot_of_the_model(self):
+        count = WHEEL_POSITIONS[self.model]
+        if not 1 <= self.open_slot <= count:
+            raise refuse(f"is {self.open_slot}", f"a slot 1..{count} of the {self.model}", ("open_slot",))
+        return self
+
+
+class _Shutter(Document):
+    port: _Port
+    model: _ShutterModel
+
+
+class _CameraBackend(Document):
+    backend: _Backend
+
+
+def _option_type(option: ProfileOption):
+    """A [camera] option (hw.camera.PROFILE_OPTIONS) as a field type: its TOML kind, checked."""
+    kinds = option.kinds if isinstance(option.kinds, tuple) else (option.kinds,)
+    kind = number() if float in kinds else kinds[0]  # (int, float): any finite number
+
+    def check(value):
+        if option.check is not None and not option.check(value):
+            raise ValueError("refused by the backend's check")
         return value
 
-    def table(self, name: str, *, required: bool = True) -> _Table:
-        if name not in self.data and not required:
-            return _Table(self.path, {}, self.key(name))
-        if name not in self.data:
-            raise ProfileError(self.path, self.key(name), "is missing", "a table")
-        return _Table(self.path, self.data[name], self.key(name))
+    return Annotated[kind, AfterValidator(check), Expect(option.expected)]
 
 
-def _show(value) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _rect(table: _Table, name: str):
-    value = table.get(
-        name, list, "[r0, r1, c0, c1], integers with r0 < r1 and c0 < c1", default=None,
-        check=lambda v: len(v) == 4 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in v)
-        and v[0] < v[1] and v[2] < v[3],
+#: Per backend, its [camera] table: "backend" and the options its constructor takes.
+_CAMERA_TABLES = {
+    backend: pydantic.create_model(
+        f"_Camera_{backend}", __base__=Document, backend=(_Backend, ...),
+        **{name: (_option_type(option) | None, None) for name, option in options.items()},
     )
-    return None if value is None else tuple(value)
+    for backend, options in PROFILE_OPTIONS.items()
+}
 
 
-def _wheels(root: _Table) -> dict[str, WheelConfig]:
-    table = root.table("wheels")
-    if not table.data:
-        raise ProfileError(table.path, "wheels", "defines no wheel", "[wheels.NAME] tables")
-    wheels = {}
-    for name in table.data:
-        wheel = table.table(name)
-        wheel.only({"port", "model", "open_slot", "move_timeout_s"})
-        port = wheel.get("port", str, "a serial port path or pyserial URL", check=bool)
-        model = wheel.get("model", str, f"one of {sorted(WHEEL_POSITIONS)}", check=lambda m: m in WHEEL_POSITIONS)
-        count = WHEEL_POSITIONS[model]
-        open_slot = wheel.get("open_slot", int, f"a slot 1..{count} of the {model}", check=lambda s: 1 <= s <= count)
-        move_timeout_s = float(wheel.get(
-            "move_timeout_s", (int, float), "seconds > 0 (a slow-mode move takes up to about 7 s)",
-            default=20.0, check=lambda v: v > 0,
-        ))
-        wheels[name] = WheelConfig(name, port, model, open_slot, move_timeout_s)
-    return wheels
+class _Acquisition(Document):
+    frames_averaged: integer(1) = AcquisitionSettings.frames_averaged
+    dark_frames: integer(1) = AcquisitionSettings.dark_frames
+    target_level: Annotated[number(gt=0, lt=1), Expect("a fraction of full scale in (0, 1)")] = AcquisitionSettings.target_level
+    target_percentile: Annotated[number(gt=0, le=100), Expect("a percentile in (0, 100]")] = AcquisitionSettings.target_percentile
+    warmup_drift_percent: Annotated[number(gt=0), Expect("a percentage > 0")] = AcquisitionSettings.warmup_drift_percent
+    warmup_interval_s: Annotated[number(ge=0), Expect("seconds >= 0")] = AcquisitionSettings.warmup_interval_s
+    warmup_checks: integer(1) = AcquisitionSettings.warmup_checks
+    warmup_timeout_s: Annotated[number(gt=0), Expect("seconds > 0")] = AcquisitionSettings.warmup_timeout_s
 
 
-def _camera(root: _Table) -> CameraConfig:
+class _Layout(Document):
+    white_patch: _ProfileRectangle | None = None
+    holder: _ProfileRectangle | None = None
+
+
+class _Lamp(Document):
+    state_file: Annotated[str, Expect("a file name")] | None = None  # None: "<profile stem>.lamp.json"
+
+
+class _Sample(Document):
+    id: _SampleId
+    set: Annotated[Literal[SETS], Expect(f"one of {list(SETS)}")] = "test"
+    background: NonEmptyStr = "unknown"
+
+
+class _Noise(Document):
+    gain_e_per_count: Annotated[number(gt=0), Expect("electrons per count, a number > 0")] | None = None
+    read_noise_counts: Annotated[number(ge=0), Expect("one frame's read noise in counts rms, a number >= 0")] | None = None
+    white_reflectance_u: Annotated[number(ge=0), Expect("a relative standard uncertainty >= 0 (0.003 for 0.3 %)")] | None = None
+
+    @pydantic.model_validator(mode="after")
+    def _both_or_neither(self):
+        if (self.gain_e_per_count is None) != (self.read_noise_counts is None):
+            given, missing = (
+                ("gain_e_per_count", "read_noise_counts") if self.read_noise_counts is None
+                else ("read_noise_counts", "gain_e_per_count")
+            )
+            raise refuse(f"is missing ({given} is given)", "both gain_e_per_count and read_noise_counts, or neither", (missing,))
+        return self
+
+
+class _Profile(Document):
+    instrument: Annotated[_Instrument, _Table]
+    wheels: Annotated[dict[str, Annotated[_Wheel, _Table]], pydantic.Field(min_length=1), Expect("a table of [wheels.NAME] tables")]
+    shutter: Annotated[_Shutter, _Table]
+    camera: Annotated[dict[str, Any], _Table]  # its keys depend on the backend: _CAMERA_TABLES
+    bands: Annotated[dict[str, _BandPlace], pydantic.Field(min_length=1), Expect('a table of lines "NM = [WHEEL, SLOT]"')]
+    layout: Annotated[_Layout, _Table] = _Layout()
+    lamp: Annotated[_Lamp, _Table] = _Lamp()
+    samples: Annotated[list[Annotated[_Sample, _Table]], Expect("[[samples]] tables")] = []
+    acquisition: Annotated[_Acquisition, _Table] = _Acquisition()
+    noise: Annotated[_Noise, _Table] = _Noise()
+
+    @pydantic.model_validator(mode="after")
+    def _bands_on_slots(self):
+        owner = {}
+        for key, (wheel, slot) in self.bands.items():
+            at = ("bands", key)
+            if not re.fullmatch(r"[1-9]\d{2,3}", key):
+                raise refuse("is not a band centre", "an integer wavelength in nm", at)
+            if wheel not in self.wheels:
+                raise refuse(f"names wheel {wheel!r}", f"one of the profile's wheels {sorted(self.wheels)}", at)
+            config = self.wheels[wheel]
+            count = WHEEL_POSITIONS[config.model]
+            if not 1 <= slot <= count:
+                raise refuse(f"names slot {slot} of wheel {wheel!r}", f"a slot 1..{count} of its {config.model}", at)
+            if slot == config.open_slot:
+                raise refuse(f"names slot {slot}, wheel {wheel!r}'s open slot", "a slot holding a filter", at)
+            if (wheel, slot) in owner:
+                raise refuse(f"names wheel {wheel!r} slot {slot}, already band {owner[(wheel, slot)]}", "one band per slot", at)
+            owner[(wheel, slot)] = int(key)
+        return self
+
+    @pydantic.model_validator(mode="after")
+    def _unique_samples(self):
+        seen = set()
+        for index, sample in enumerate(self.samples):
+            if sample.id in seen or sample.id in ("dark", "white"):
+                raise refuse(f"is {sample.id!r}, already taken", "a unique sample id", ("samples", index, "id"))
+            seen.add(sample.id)
+        return self
+
+
+def _profile_error(path, location: str, problem: str, expected: str | None) -> ProfileError:
+    return ProfileError(path, location or None, problem, expected)
+
+
+def _camera(path, table: Mapping) -> CameraConfig:
     """[camera]: the backend and the options passed to its constructor, each checked against
     what that backend declares (hw.camera.PROFILE_OPTIONS), so that a typo or an option of
     another backend is refused here, before any device is opened, not as a TypeError later."""
-    table = root.table("camera")
-    backend = table.get("backend", str, f"one of {list(CAMERA_BACKENDS)}", check=lambda b: b in CAMERA_BACKENDS)
+    error = functools.partial(_profile_error, path)
+    present = {"backend": table["backend"]} if "backend" in table else {}
+    backend = check_document(_CameraBackend, present, error=error, where="camera").backend
     declared = PROFILE_OPTIONS[backend]
-    table.only(
-        {"backend", *declared},
-        expected=f"an option of the {backend!r} backend: one of {sorted(declared)}" if declared
+    checked = check_document(
+        _CAMERA_TABLES[backend], table, error=error, where="camera", unknown="key",
+        unknown_expected=f"an option of the {backend!r} backend: one of {sorted(declared)}" if declared
         else f"no option: the {backend!r} backend takes none",
     )
-    options = {
-        name: table.get(name, option.kinds, option.expected, check=option.check)
-        for name, option in declared.items() if name in table.data
-    }
-    return CameraConfig(backend, options)
-
-
-def _bands(root: _Table, wheels: Mapping[str, WheelConfig]) -> dict[int, tuple[str, int]]:
-    table = root.table("bands")
-    if not table.data:
-        raise ProfileError(table.path, "bands", "lists no band", 'lines "NM = [WHEEL, SLOT]"')
-    bands, owner = {}, {}
-    for key in table.data:
-        if not re.fullmatch(r"[1-9]\d{2,3}", key):
-            raise ProfileError(table.path, f"bands.{key}", "is not a band centre", "an integer wavelength in nm")
-        value = table.get(
-            key, list, f"[wheel, slot] with a wheel of [wheels] ({', '.join(wheels)})",
-            check=lambda v: len(v) == 2 and isinstance(v[0], str) and isinstance(v[1], int) and not isinstance(v[1], bool),
-        )
-        wheel, slot = value
-        if wheel not in wheels:
-            raise ProfileError(table.path, f"bands.{key}", f"names wheel {wheel!r}", f"one of the profile's wheels {sorted(wheels)}")
-        config = wheels[wheel]
-        if not 1 <= slot <= config.positions:
-            raise ProfileError(
-                table.path, f"bands.{key}", f"names slot {slot} of wheel {wheel!r}",
-                f"a slot 1..{config.positions} of its {config.model}",
-            )
-        if slot == config.open_slot:
-            raise ProfileError(
-                table.path, f"bands.{key}", f"names slot {slot}, wheel {wheel!r}'s open slot",
-                "a slot holding a filter",
-            )
-        if (wheel, slot) in owner:
-            raise ProfileError(
-                table.path, f"bands.{key}", f"names wheel {wheel!r} slot {slot}, already band {owner[(wheel, slot)]}",
-                "one band per slot",
-            )
-        owner[(wheel, slot)] = int(key)
-        bands[int(key)] = (wheel, slot)
-    return dict(sorted(bands.items()))
-
-
-def _acquisition(root: _Table) -> AcquisitionSettings:
-    table = root.table("acquisition", required=False)
-    defaults = AcquisitionSettings()
-    table.only({f.name for f in dataclasses.fields(AcquisitionSettings)})
-    positive_int = lambda v: v >= 1  # noqa: E731
-    return AcquisitionSettings(
-        frames_averaged=table.get("frames_averaged", int, "an integer >= 1", default=defaults.frames_averaged, check=positive_int),
-        dark_frames=table.get("dark_frames", int, "an integer >= 1", default=defaults.dark_frames, check=positive_int),
-        target_level=float(table.get("target_level", (int, float), "a fraction of full scale in (0, 1)", default=defaults.target_level, check=lambda v: 0 < v < 1)),
-        target_percentile=float(table.get("target_percentile", (int, float), "a percentile in (0, 100]", default=defaults.target_percentile, check=lambda v: 0 < v <= 100)),
-        warmup_drift_percent=float(table.get("warmup_drift_percent", (int, float), "a percentage > 0", default=defaults.warmup_drift_percent, check=lambda v: v > 0)),
-        warmup_interval_s=float(table.get("warmup_interval_s", (int, float), "seconds >= 0", default=defaults.warmup_interval_s, check=lambda v: v >= 0)),
-        warmup_checks=table.get("warmup_checks", int, "an integer >= 1", default=defaults.warmup_checks, check=positive_int),
-        warmup_timeout_s=float(table.get("warmup_timeout_s", (int, float), "seconds > 0", default=defaults.warmup_timeout_s, check=lambda v: v > 0)),
-    )
-
-
-def _noise(root: _Table) -> NoiseSettings:
-    table = root.table("noise", required=False)
-    table.only({f.name for f in dataclasses.fields(NoiseSettings)})
-
-    def number(name: str, expected: str, check):
-        value = table.get(name, (int, float), expected, default=None, check=check)
-        return None if value is None else float(value)
-
-    gain = number("gain_e_per_count", "electrons per count, a number > 0", lambda v: v > 0)
-    read_noise = number("read_noise_counts", "one frame's read noise in counts rms, a number >= 0", lambda v: v >= 0)
-    if (gain is None) != (read_noise is None):
-        given, missing = ("gain_e_per_count", "read_noise_counts") if read_noise is None else ("read_noise_counts", "gain_e_per_count")
-        raise ProfileError(
-            table.path, table.key(missing), f"is missing ({given} is given)",
-            "both gain_e_per_count and read_noise_counts, or neither",
-        )
-    return NoiseSettings(
-        gain_e_per_count=gain, read_noise_counts=read_noise,
-        white_reflectance_u=number(
-            "white_reflectance_u", "a relative standard uncertainty >= 0 (0.003 for 0.3 %)", lambda v: v >= 0
-        ),
-    )
+    return CameraConfig(backend, {name: getattr(checked, name) for name in declared if name in table})
 
 
 def _inside(path: pathlib.Path, key: str, value: str) -> pathlib.Path:
@@ -397,58 +407,44 @@ def load_profile(path) -> Profile:
         # TOMLDecodeError is a ValueError; so is int() refusing an integer of more than 4300
         # digits, and arrays nested thousands deep raise RecursionError.
         raise ProfileError(path, None, f"is not valid TOML: {error}", "an instrument profile (TOML)") from None
-    root = _Table(path, data, "")
-    root.only({"instrument", "wheels", "shutter", "camera", "bands", "acquisition", "layout", "lamp", "samples", "noise"})
-
-    instrument = root.table("instrument")
-    instrument.only({"id"})
-    instrument_id = instrument.get("id", str, "a non-empty string", check=bool)
-
-    wheels = _wheels(root)
-    shutter_table = root.table("shutter")
-    shutter_table.only({"port", "model"})
-    shutter = ShutterConfig(
-        port=shutter_table.get("port", str, "a serial port path or pyserial URL", check=bool),
-        model=shutter_table.get("model", str, f"one of {list(SHUTTER_MODELS)}", check=lambda m: m in SHUTTER_MODELS),
-    )
-    camera = _camera(root)
-    backend = camera.backend
-    bands = _bands(root, wheels)
-
-    layout_table = root.table("layout", required=False)
-    layout_table.only({"white_patch", "holder"})
-    layout = Layout(_rect(layout_table, "white_patch"), _rect(layout_table, "holder"))
-    if backend != "sim" and (layout.white_patch is None or layout.holder is None):
+    doc = check_document(_Profile, data, error=functools.partial(_profile_error, path), unknown="key")
+    camera = _camera(path, doc.camera)
+    layout = Layout(doc.layout.white_patch, doc.layout.holder)
+    if camera.backend != "sim" and (layout.white_patch is None or layout.holder is None):
         raise ProfileError(
             path, "layout", "does not give white_patch and holder",
             "[layout] white_patch and holder rectangles for a real camera",
         )
-
-    lamp_table = root.table("lamp", required=False)
-    lamp_table.only({"state_file"})
-    state_file = lamp_table.get("state_file", str, "a file name", default=f"{path.stem}.lamp.json")
-    lamp_state_file = _inside(path, "lamp.state_file", state_file)
-
-    samples, seen = [], set()
-    plans = data.get("samples", [])
-    if not isinstance(plans, list):
-        raise ProfileError(path, "samples", f"is {_show(plans)}", "[[samples]] tables")
-    for index, plan in enumerate(plans):
-        table = _Table(path, plan, f"samples[{index}]")
-        table.only({"id", "set", "background"})
-        sample_id = table.get("id", str, "a name of letters, digits, '.', '_' or '-'", check=lambda v: _SAFE_ID.fullmatch(v) is not None)
-        if sample_id in seen or sample_id in ("dark", "white"):
-            raise ProfileError(path, f"samples[{index}].id", f"is {sample_id!r}, already taken", "a unique sample id")
-        seen.add(sample_id)
-        samples.append(SamplePlan(
-            sample_id,
-            table.get("set", str, f"one of {list(SETS)}", default="test", check=lambda v: v in SETS),
-            table.get("background", str, "a non-empty string", default="unknown", check=bool),
-        ))
+    state_file = doc.lamp.state_file if doc.lamp.state_file is not None else f"{path.stem}.lamp.json"
+    acquisition = doc.acquisition
     return Profile(
-        path=path, instrument_id=instrument_id, wheels=wheels, shutter=shutter, camera=camera,
-        bands=bands, acquisition=_acquisition(root), layout=layout, lamp_state_file=lamp_state_file,
-        samples=tuple(samples), noise=_noise(root),
+        path=path,
+        instrument_id=doc.instrument.id,
+        wheels={
+            name: WheelConfig(name, wheel.port, wheel.model, wheel.open_slot, float(wheel.move_timeout_s))
+            for name, wheel in doc.wheels.items()
+        },
+        shutter=ShutterConfig(doc.shutter.port, doc.shutter.model),
+        camera=camera,
+        bands={int(key): place for key, place in sorted(doc.bands.items(), key=lambda item: int(item[0]))},
+        acquisition=AcquisitionSettings(
+            frames_averaged=acquisition.frames_averaged,
+            dark_frames=acquisition.dark_frames,
+            target_level=float(acquisition.target_level),
+            target_percentile=float(acquisition.target_percentile),
+            warmup_drift_percent=float(acquisition.warmup_drift_percent),
+            warmup_interval_s=float(acquisition.warmup_interval_s),
+            warmup_checks=acquisition.warmup_checks,
+            warmup_timeout_s=float(acquisition.warmup_timeout_s),
+        ),
+        layout=layout,
+        lamp_state_file=_inside(path, "lamp.state_file", state_file),
+        samples=tuple(SamplePlan(sample.id, sample.set, sample.background) for sample in doc.samples),
+        noise=NoiseSettings(
+            *(None if value is None else float(value) for value in (
+                doc.noise.gain_e_per_count, doc.noise.read_noise_counts, doc.noise.white_reflectance_u
+            ))
+        ),
     )
 
 

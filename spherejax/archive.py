@@ -110,11 +110,13 @@ import socket
 import stat
 import time
 from collections.abc import Callable, Iterable, Sequence
+from typing import Annotated
 
 import numpy as np
 
 from . import interrupt, io
 from .io import envi, spectral_layout
+from .io.documents import Checksum, Document, Expect, NonEmptyStr, Sha256, check_document, choice, located
 from .grid import WAVELENGTHS_NM
 
 MANIFEST_NAME = "manifest.jsonl"
@@ -813,6 +815,31 @@ def read_manifest(out_root) -> dict[str, dict]:
     return records
 
 
+_Status = choice("done", "failed")
+
+
+class _Record(Document):
+    """One line of OUT/manifest.jsonl, as `FileResult.to_json` writes it."""
+
+    name: NonEmptyStr
+    input: NonEmptyStr
+    status: _Status
+    input_sha256: Sha256 | None
+    outputs: Annotated[dict[str, Sha256], Expect("an object: output path -> SHA-256")]
+    calibration_checksum: Checksum | None
+    software_version: NonEmptyStr | None
+    reason: NonEmptyStr | None = None
+
+
+def _is_record(record: dict, path: pathlib.Path) -> bool:
+    """Whether a manifest line is a record as `FileResult.to_json` writes it."""
+    try:
+        check_document(_Record, record, error=located(BatchError, path))
+    except BatchError:
+        return False
+    return True
+
+
 def _link_or(error: OSError) -> str:
     """The reason an os.open with O_NOFOLLOW failed, in words: ELOOP means a symbolic link."""
     return "it is a symbolic link" if error.errno == errno.ELOOP else str(error.strerror)
@@ -935,7 +962,9 @@ def is_done(record: dict | None, spec: InputSpec, out_root: pathlib.Path, calibr
     """True if `record` says `spec` is done with this calibration, its input is unchanged and
     every output of `output_format` is recorded and there with its checksum (a batch resumed in
     another format redoes its inputs)."""
-    if not record or record.get("status") != "done" or spec.problem is not None:
+    if not record or spec.problem is not None or not _is_record(record, out_root / MANIFEST_NAME):
+        return False  # a line another writer or a damaged file left is redone, not trusted
+    if record["status"] != "done":
         return False
     if record.get("calibration_checksum") != calibration_checksum:
         return False

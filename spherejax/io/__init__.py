@@ -11,7 +11,8 @@ The package's modules, one job each (their names are all available here, as befo
 
     errors             SpherejaxFileError and its kinds, the one-line messages
     atomic             the one way every writer puts a file in place; temporary names
-    documents          canonical and readable JSON; `_Fields`, the checks of a document's keys
+    documents          canonical and readable JSON; documents declared as pydantic models and
+                       checked into one-line messages (`check_document`)
     frames             camera frames (TIFF) and `AtomicImageWriter`
     cubes              cubes read by rows (`CubeReader`), OpenEXR and PNG outputs
     spectral_layout    the reflectance EXR's spectral layout (Fichet et al. 2021): channel names

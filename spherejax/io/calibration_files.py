@@ -9,21 +9,25 @@ import hashlib
 import json
 import math
 import pathlib
-import re
 import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterator, Mapping
+from typing import Annotated, Any
 
 import h5py
 import numpy as np
+import pydantic
 
 from .. import jsontext
 from ..grid import N_WAVELENGTHS
 from ..pipeline import Calibration
 from ..uncertainty import NoiseModel
 from .atomic import atomic_file
-from .documents import _Fields, _canonical_json, _check_format, _describe_bands, _is_int, _json_value, _readable_json, _utc_now
+from .documents import (
+    BandCentres, Checksum, Document, Expect, JsonObject, NonEmptyStr, PositiveNumber, Timestamp, _canonical_json,
+    _check_format, _describe_bands, _json_value, _readable_json, _utc_now, check_document, located,
+)
 from .errors import CalibrationFileError, SpherejaxFileError, _one_line, _show
 
 CALIBRATION_FORMAT = "spherejax-calibration"
@@ -42,10 +46,6 @@ CALIBRATION_ARRAYS = {
 }
 #: The arrays of an older calibration format version, where they differ from CALIBRATION_ARRAYS.
 _OLDER_CALIBRATION_ARRAYS = {1: tuple(name for name in CALIBRATION_ARRAYS if name != "wiener_offset")}
-_CALIBRATION_KEYS = frozenset(
-    ("format format_version software_version instrument_id band_centres_nm illuminant observer "
-     "saturation created arrays metadata noise_model checksum").split()
-)
 #: The calibration format version that added the header's "noise_model".
 _NOISE_MODEL_SINCE = 3
 
@@ -84,29 +84,59 @@ def _array_entry(name: str, array: np.ndarray) -> dict:
     }
 
 
+class _ArrayEntry(Document):
+    """How the header describes one array."""
+
+    shape: Annotated[list[Annotated[int, pydantic.Field(ge=0)]], Expect("a list of integers >= 0")]
+    dtype: NonEmptyStr
+    description: NonEmptyStr
+
+
+_Entry = Annotated[_ArrayEntry, Expect("the array's shape, dtype and description")]
+
+
+class _ArraysV1(Document):
+    dark: _Entry
+    white: _Entry
+    patch: _Entry
+    coeffs: _Entry
+    wiener: _Entry
+
+
+class _Arrays(_ArraysV1):
+    wiener_offset: _Entry
+
+
+class _CalibrationHeader(Document):
+    """The header of a calibration file (the docstring of spherejax.io), fields in checking order."""
+
+    format: str
+    format_version: int
+    software_version: NonEmptyStr
+    instrument_id: NonEmptyStr
+    illuminant: NonEmptyStr
+    observer: NonEmptyStr
+    band_centres_nm: BandCentres
+    saturation: Annotated[PositiveNumber | None, Expect("a number > 0 or null")]
+    created: Timestamp
+    metadata: JsonObject
+    checksum: Checksum
+    arrays: Annotated[_Arrays, Expect(f"an object describing {list(CALIBRATION_ARRAYS)}")]
+    noise_model: Any = None  # checked by noise_model_of, against NoiseModel.from_json
+
+
+class _CalibrationHeaderV1(_CalibrationHeader):
+    arrays: Annotated[_ArraysV1, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[1])}")]
+
+
 def _check_calibration_header(path, header) -> None:
     """Check the header's fields, format and version first (a newer file may differ in the rest)."""
     if not isinstance(header, dict):
         raise CalibrationFileError(path, f"has a header of {_show(header)}", "a JSON object")
-    fields = _Fields(header, file=path, error=CalibrationFileError, where="header")
-    _check_format(fields, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION)
-    fields.only(_CALIBRATION_KEYS)
-    for key in ("software_version", "instrument_id", "illuminant", "observer"):
-        fields.string(key)
-    fields.increasing_ints("band_centres_nm", "band centres in nm: integers from 1 to 100000, increasing", maximum=100_000)
-    fields.number("saturation", allow_null=True)
-    fields.timestamp("created")
-    fields.mapping("metadata")
-    fields.value("checksum", '"sha256:" and 64 hex digits', _is_sha256)
-    names = _calibration_arrays(header)
-    described = fields.child("arrays", f"an object describing {list(names)}")
-    described.only(frozenset(names))
-    for name in names:
-        array = described.child(name, "the array's shape, dtype and description")
-        array.only(frozenset({"shape", "dtype", "description"}))
-        array.value("shape", "a list of integers >= 0", _is_shape)
-        array.string("dtype")
-        array.string("description")
+    error = located(CalibrationFileError, path)
+    version = _check_format(header, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, error=error, where="header")
+    model = _CalibrationHeaderV1 if version in _OLDER_CALIBRATION_ARRAYS else _CalibrationHeader
+    check_document(model, header, error=error, where="header")
     noise_model_of(path, header)
 
 
@@ -149,14 +179,6 @@ def noise_model_of(path, header: Mapping) -> NoiseModel | None:
             problem = problem[:237] + "..."
         raise CalibrationFileError(path, f"header.noise_model is not valid: {problem}", expected) from None
     return model
-
-
-def _is_sha256(value) -> bool:
-    return isinstance(value, str) and re.fullmatch("sha256:[0-9a-f]{64}", value) is not None
-
-
-def _is_shape(value) -> bool:
-    return isinstance(value, list) and all(_is_int(n) and n >= 0 for n in value)
 
 
 def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) -> None:
