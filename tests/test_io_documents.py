@@ -206,7 +206,7 @@ def test_check_format_returns_the_version():
 
 
 def _document_models():
-    from hw import lamp, profile
+    from spherejax_hw import lamp, profile
     from spherejax import archive
     from spherejax.io import calibration_files, sessions
 
