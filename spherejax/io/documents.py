@@ -95,8 +95,6 @@ def _describe_bands(bands: Sequence[int]) -> str:
     return f"{bands} nm"
 
 
-
-
 # ------------------------------------------------------------------------------------------------
 # Declaring a document
 
