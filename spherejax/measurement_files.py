@@ -97,6 +97,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .colorimetry import OBSERVERS
 from .grid import N_WAVELENGTHS
 from .io import atomic
 from .io.cgats import cgats_text as _cgats_table
@@ -340,7 +341,7 @@ def cgats_text(results: Sequence[RegionResult], *, input_path, instrument_id: st
     from . import __version__
 
     first = results[0].measurement
-    angle = _OBSERVER_ANGLE[first.observer]
+    angle = _OBSERVER_ANGLE[OBSERVERS[first.observer]]  # the observer's canonical name ("1964" too)
     instrument = "integrating-sphere multispectral camera" + (f" {instrument_id}" if instrument_id else "")
     keywords = {
         "ORIGINATOR": f"spherejax {__version__}",

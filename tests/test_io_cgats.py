@@ -25,3 +25,10 @@ def test_keywords_fields_and_counts():
         "BEGIN_DATA_FORMAT", "SAMPLE_ID\tLAB_L", "END_DATA_FORMAT", "NUMBER_OF_SETS\t2", "BEGIN_DATA",
         "1\t50.5", "2\t0.1", "END_DATA",
     ]
+
+
+def test_a_keyword_value_stays_on_its_line_and_text_fields_are_printable():
+    text = cgats_text({"DESCRIPTOR": 'regions of a\nb"c.tif'}, ["SAMPLE_NAME"], [["x"]])
+    assert text.splitlines()[1] == 'DESCRIPTOR\t"regions of a b""c.tif"'
+    with pytest.raises(ValueError, match="printable"):
+        cgats_text({}, ["SAMPLE_NAME"], [["a\nb"]])

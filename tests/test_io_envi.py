@@ -108,3 +108,14 @@ def test_pixels_of_another_type_and_a_reflectance_without_wavelengths_are_refuse
         envi.open_lazy(tmp_path / "double.hdr", kind="lab", chunk_bytes=1 << 20)
     with pytest.raises(io.SpherejaxFileError, match="plain.hdr: is 7 x 5.*6 x 5"):
         envi.open_lazy(tmp_path / "plain.hdr", kind="lab", chunk_bytes=1 << 20, shape=(6, 5))
+
+
+def test_a_newline_or_brace_in_a_value_cannot_break_the_header(tmp_path, pixels):
+    """A source file named with a newline and braces: the header still reads, one field a line."""
+    import spectral
+
+    source = "in/a}\nlines = 1 {b.tif"
+    write(tmp_path / "a.hdr", pixels, attributes={"spherejax:source": source})
+    image = spectral.open_image(str(tmp_path / "a.hdr"))
+    assert (image.nrows, image.ncols, image.nbands) == (7, 5, 31)
+    assert image.metadata["spherejax source"] == "in/a) lines = 1 (b.tif"

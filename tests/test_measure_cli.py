@@ -8,6 +8,7 @@ bands to 31 wavelengths), so the module needs no simulated session.
 import csv
 import json
 import pathlib
+import types
 
 import numpy as np
 import pytest
@@ -437,3 +438,11 @@ class TestCGATS:
         grey = expected(files, NOISE, "grey")
         np.testing.assert_array_equal(np.array([float(v) for v in data[0][5:]]), grey.reflectance.tolist())
 
+
+
+def test_cgats_names_the_observer_by_its_angle_whatever_its_alias():
+    """A calibration may name its observer "1964": the CGATS file still says 10 degrees."""
+    measurement = types.SimpleNamespace(observer="1964", illuminant="D65", lab=np.zeros(3), reflectance=np.zeros(31))
+    row = measurement_files.RegionResult("a", (0, 1, 0, 1), measurement)
+    text = measurement_files.cgats_text([row], input_path="x.tif", instrument_id=None, created="2026-01-01T00:00:00+00:00")
+    assert 'OBSERVER_ANGLE\t"10"' in text.splitlines()

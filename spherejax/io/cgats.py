@@ -47,6 +47,12 @@ def _quoted(text: str) -> str:
     return '"' + text.replace('"', '""') + '"'
 
 
+def _one_line(text: str) -> str:
+    """A keyword's value on one line: CGATS is read line by line, and a control character (a
+    newline in a file name, say) would end the value early."""
+    return "".join(c if c.isprintable() else " " for c in text)
+
+
 def _field(value) -> str:
     """One data cell: an int as is, a float in shortest round-trip form, text bare or quoted."""
     if isinstance(value, bool):
@@ -58,6 +64,8 @@ def _field(value) -> str:
             raise ValueError(f"a CGATS number must be finite, not {value!r}")
         return repr(value)
     text = str(value)
+    if not text.isprintable():
+        raise ValueError(f"a CGATS text field must be printable, not {text!r}")
     bare = text and not any(c.isspace() or c in "\"'#" for c in text) and not _NUMBER_LIKE.fullmatch(text)
     return text if bare else _quoted(text)
 
@@ -66,8 +74,9 @@ def cgats_text(keywords: Mapping[str, str | int | float], fields: Sequence[str],
     """The CGATS.17 text of one table.
 
     Args:
-      keywords: header keyword -> value, in order (values written quoted, as strings); keywords
-        that CGATS.17 does not define are declared first with KEYWORD lines.
+      keywords: header keyword -> value, in order (values written quoted, as strings, control
+        characters as spaces); keywords that CGATS.17 does not define are declared first with
+        KEYWORD lines.
       fields: the data format: field names (letters, digits and "_", no spaces).
       rows: one sequence of len(fields) values per sample: int, float (finite) or str.
 
@@ -76,7 +85,7 @@ def cgats_text(keywords: Mapping[str, str | int | float], fields: Sequence[str],
 
     Raises:
       ValueError: a malformed field or keyword name, a row of the wrong length, a number that is
-        not finite.
+        not finite, a text field with a control character.
     """
     for name in [*keywords, *fields]:
         if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name):
@@ -85,7 +94,7 @@ def cgats_text(keywords: Mapping[str, str | int | float], fields: Sequence[str],
     for name, value in keywords.items():
         if name not in STANDARD_KEYWORDS:
             lines.append(f"KEYWORD\t{_quoted(name)}")
-        lines.append(f"{name}\t{_quoted(str(value))}")
+        lines.append(f"{name}\t{_quoted(_one_line(str(value)))}")
     lines += [f"NUMBER_OF_FIELDS\t{len(fields)}", "BEGIN_DATA_FORMAT", "\t".join(fields), "END_DATA_FORMAT"]
     lines += [f"NUMBER_OF_SETS\t{len(rows)}", "BEGIN_DATA"]
     for index, row in enumerate(rows):

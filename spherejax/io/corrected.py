@@ -35,7 +35,7 @@ def _chunk_rows(width: int, channels: int, itemsize: int) -> int:
     return max(1, CHUNK_BYTES // max(1, width * channels * itemsize))
 
 
-def _exr_header(path: pathlib.Path) -> tuple[oiio.ImageSpec, dict]:
+def _image_header(path: pathlib.Path) -> tuple[oiio.ImageSpec, dict]:
     image = oiio.ImageInput.open(str(path))
     if image is None:
         raise SpherejaxFileError(path, f"cannot be read: {oiio.geterror() or 'not an image'}", _EXPECTED)
@@ -95,14 +95,14 @@ def _lazy_quality(path: pathlib.Path, shape: tuple[int, int]):
     import dask
     import dask.array as da
 
-    spec, _ = _exr_header(path)
+    spec, _ = _image_header(path)
     if (spec.height, spec.width) != shape:
         raise SpherejaxFileError(path, f"is {spec.height} x {spec.width}", f"the reflectance's {shape[0]} x {shape[1]}")
     return da.from_delayed(dask.delayed(_read_png, pure=True)(str(path)), shape=shape, dtype=np.uint8)
 
 
 def _reflectance_exr(path: pathlib.Path):
-    spec, attributes = _exr_header(path)
+    spec, attributes = _image_header(path)
     names = list(spec.channelnames)
     wavelengths = wavelengths_of_channels(names)
     if wavelengths is None:
@@ -114,7 +114,7 @@ def _reflectance_exr(path: pathlib.Path):
 
 
 def _lab_exr(path: pathlib.Path, shape: tuple[int, int]):
-    spec, _ = _exr_header(path)
+    spec, _ = _image_header(path)
     names = list(spec.channelnames)
     if sorted(names) != sorted(labelled.LAB_LABELS):
         raise SpherejaxFileError(path, f"has channels {names}", 'the channels "L*", "a*", "b*"')

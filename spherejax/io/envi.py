@@ -18,7 +18,9 @@ What `spherejax correct --format envi` writes for each output (reflectance, Lab)
     data ignore value = -9999          flagged pixels (quality != 0), NaN in the EXR outputs
     reflectance scale factor = 1       (reflectance only) reflectance factors 0..1
     spherejax calibration checksum = sha256:...   and the other spherejax attributes, one per
-                                       line ("spherejax:name_of_it" becomes "spherejax name of it")
+                                       line ("spherejax:name_of_it" becomes "spherejax name of it";
+                                       control characters as spaces, braces as parentheses: ENVI
+                                       headers have no escapes)
 
 Both files are written under temporary names (`spherejax.io.atomic`) and renamed into place
 together, the data first and the header last, once every row is written.
@@ -62,6 +64,13 @@ def _attribute_name(key: str) -> str:
     return key
 
 
+def _header_value(text: str) -> str:
+    """A header value on one line and outside braces: ENVI has no escapes, and a newline or a
+    brace (in a file name, say) would end the value or a {...} block early."""
+    text = "".join(c if c.isprintable() else " " for c in text)
+    return text.replace("{", "(").replace("}", ")")
+
+
 def data_path(header_path) -> pathlib.Path:
     """N.img for N.hdr: the name Spectral Python, ENVI and GDAL look for first."""
     return pathlib.Path(header_path).with_suffix(".img")
@@ -80,7 +89,7 @@ class EnviWriter:
             raise ValueError(f"band_names: {len(band_names)} names for {channels} channels")
         self.height, self.width, self.channels = height, width, channels
         self.header = {
-            "description": description,
+            "description": _header_value(description),
             "samples": width, "lines": height, "bands": channels, "header offset": 0,
             "file type": "ENVI Standard", "data type": _FLOAT32, "interleave": "bip", "byte order": 0,
         }
@@ -91,7 +100,7 @@ class EnviWriter:
         self.header["band names"] = list(band_names)
         self.header["data ignore value"] = IGNORE_VALUE
         for name, value in (attributes or {}).items():
-            self.header[_header_key(name)] = str(value)
+            self.header[_header_key(name)] = _header_value(str(value))
         self._next_row = 0
         self._digest = hashlib.sha256()
         self._temps = {self.data_path: temp_sibling(self.data_path), self.header_path: temp_sibling(self.header_path)}
