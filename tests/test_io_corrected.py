@@ -1,6 +1,8 @@
 """`spherejax.open_corrected`: a batch's outputs as an xarray Dataset, lazily, in row chunks;
 both reflectance namings (the spectral layout, and the older "400nm"), and one-line refusals."""
 
+import warnings
+
 import numpy as np
 import OpenImageIO as oiio
 import pytest
@@ -11,6 +13,13 @@ from spherejax.grid import WAVELENGTHS_NM
 from spherejax.io import corrected
 
 from .batch_support import NAMES, frame
+
+
+def channel_names(path) -> list[str]:
+    image = oiio.ImageInput.open(str(path))
+    names = list(image.spec().channelnames)
+    image.close()
+    return names
 
 
 @pytest.fixture(scope="module")
@@ -87,3 +96,31 @@ def test_refusals_name_the_file(batch, tmp_path):
     broken.write_bytes(b"not an image")
     with pytest.raises(io.SpherejaxFileError, match="y.reflectance.exr: cannot be read"):
         spherejax.open_corrected(broken)
+
+
+def test_a_spectral_image_of_another_name_opens(batch, tmp_path):
+    """A reflectance in the spectral layout that spherejax did not name (colour-science wrote it),
+    and an ENVI image under its own name."""
+    import colour
+
+    stem, expected, _ = batch
+    reflectance = np.asarray(expected.reflectance)[:4, :6]
+    components = {"T": (WAVELENGTHS_NM.astype(float), np.nan_to_num(reflectance))}
+    specification = colour.io.Specification_Fichet2021(is_emissive=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", colour.utilities.ColourRuntimeWarning)  # its sRGB preview's shape notice
+        colour.io.write_spectral_image_Fichet2021(components, str(tmp_path / "scan.exr"), "float32", specification)
+    assert {"R", "G", "B"} <= set(channel_names(tmp_path / "scan.exr"))  # colour's RGB preview, as the layout allows
+    ds = spherejax.open_corrected(tmp_path / "scan.exr")
+    np.testing.assert_array_equal(ds["wavelength"], WAVELENGTHS_NM.astype(float))
+    np.testing.assert_array_equal(ds["reflectance"].values, np.nan_to_num(reflectance))
+    assert set(ds.data_vars) == {"reflectance"}
+
+    from spherejax.io import envi
+
+    with envi.EnviWriter(tmp_path / "scan2.hdr", reflectance.shape, description="t", band_names=["b"] * 31,
+                         wavelengths_nm=WAVELENGTHS_NM.tolist()) as writer:
+        writer.write_rows(0, reflectance)
+        writer.commit()
+    for given in ("scan2.hdr", "scan2.img"):
+        np.testing.assert_array_equal(spherejax.open_corrected(tmp_path / given)["reflectance"].values, reflectance)

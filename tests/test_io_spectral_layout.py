@@ -50,3 +50,10 @@ def test_other_spellings_read(names, wavelengths):
 @pytest.mark.parametrize("names", [[], ["R", "G", "B"], ["T.400nm", "L*"], ["S0.400nm"], ["T.nm"], ["T.,nm"]])
 def test_anything_else_is_not_a_reflectance_image(names):
     assert spectral_layout.wavelengths_of_channels(names) is None
+
+
+def test_reflective_channels_leave_out_a_preview_and_keep_their_indices():
+    assert spectral_layout.reflective_channels(["B", "G", "R", "T.400nm", "T.410nm"]) == {3: 400.0, 4: 410.0}
+    assert spectral_layout.reflective_channels(["410nm", "400nm"]) == {0: 410.0, 1: 400.0}
+    assert spectral_layout.reflective_channels(["400nm", "R"]) is None  # older names: all or none
+    assert spectral_layout.reflective_channels(["L*", "a*", "b*"]) is None

@@ -19,7 +19,7 @@ import OpenImageIO as oiio
 from .. import labelled
 from . import envi
 from .errors import SpherejaxFileError
-from .spectral_layout import wavelengths_of_channels
+from .spectral_layout import reflective_channels
 
 #: Bytes of one chunk of rows (about): big enough that dask's per-task cost is small, small
 #: enough that a few chunks in flight per thread stay far below memory.
@@ -104,13 +104,13 @@ def _lazy_quality(path: pathlib.Path, shape: tuple[int, int]):
 def _reflectance_exr(path: pathlib.Path):
     spec, attributes = _image_header(path)
     names = list(spec.channelnames)
-    wavelengths = wavelengths_of_channels(names)
-    if wavelengths is None:
+    channels = reflective_channels(names)
+    if channels is None:
         raise SpherejaxFileError(path, f"has channels {names[:4]}{'...' if len(names) > 4 else ''}",
                                  'reflectance channels named "T.400nm".. (Fichet et al. 2021) or "400nm"..')
     # OpenEXR keeps channels in name order, which is not wavelength order once the digits differ.
-    order = tuple(int(i) for i in np.argsort(wavelengths, kind="stable"))
-    return _lazy_exr(path, spec, order), [wavelengths[i] for i in order], attributes
+    order = tuple(sorted(channels, key=lambda index: channels[index]))
+    return _lazy_exr(path, spec, order), [channels[index] for index in order], attributes
 
 
 def _lab_exr(path: pathlib.Path, shape: tuple[int, int]):
@@ -137,10 +137,11 @@ def open_corrected(path):
 
     Args:
       path: N.reflectance.exr (Fichet et al. 2021 layout, or the older "400nm" names),
-        N.reflectance.hdr / .img (ENVI), N.lab.*, N.quality.png, or N.
+        N.reflectance.hdr / .img (ENVI), N.lab.*, N.quality.png, or N; or any spectral EXR or
+        ENVI file of reflectance (its own name, no siblings).
 
     Returns:
-      Dataset with reflectance (y, x, wavelength) float32, wavelength in nm; lab (y, x, lab) and
+      Dataset with reflectance (y, x, wavelength) float32, wavelength in nm; lab (y, x, lab_channel) and
       quality (y, x) uint8 when their files are beside it; attrs: the reflectance file's header
       (spherejax:calibration_checksum, spherejax:source, ...). Pixels are dask arrays; `.load()`
       or `.values` reads them.
@@ -151,6 +152,9 @@ def open_corrected(path):
     path = pathlib.Path(path)
     stem = _stem(path)
     exr, hdr = stem.with_name(stem.name + ".reflectance.exr"), stem.with_name(stem.name + ".reflectance.hdr")
+    if stem == path and path.is_file():
+        # A spectral image named otherwise ("scan.exr", "scan.hdr"): read as the reflectance.
+        exr, hdr = (path, hdr) if path.suffix.lower() == ".exr" else (exr, path.with_suffix(".hdr"))
     if exr.is_file():
         reflectance, wavelengths, attributes = _reflectance_exr(exr)
     elif hdr.is_file():

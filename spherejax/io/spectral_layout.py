@@ -52,6 +52,21 @@ def _wavelength_nm(match: re.Match) -> float:
     return number * (scale / 1e-9)  # exact for nm (1e-9 / 1e-9 == 1.0)
 
 
+def reflective_channels(names: Sequence[str]) -> dict[int, float] | None:
+    """{channel index: wavelength in nm} of an image's reflectance channels: those named in the
+    layout ("T.400nm"), other channels (an RGB preview, which the layout allows beside the
+    spectrum) left out; else, when every name is one, the older "400nm" names; else None."""
+    found = {}
+    for index, name in enumerate(names):
+        match = _REFLECTIVE.fullmatch(name)
+        if match is not None and match.group("number").strip(","):
+            found[index] = _wavelength_nm(match)
+    if found:
+        return found
+    older = wavelengths_of_channels(names)
+    return None if older is None else dict(enumerate(older))
+
+
 def wavelengths_of_channels(names: Sequence[str]) -> list[float] | None:
     """The wavelengths in nm of reflectance channels named in the layout ("T.400nm") or as
     spherejax named them before it ("400nm"); None unless every name is one or the other."""
@@ -72,5 +87,6 @@ __all__ = [
     "LAYOUT_VERSION",
     "LAYOUT_VERSION_ATTRIBUTE",
     "reflectance_channel_names",
+    "reflective_channels",
     "wavelengths_of_channels",
 ]
