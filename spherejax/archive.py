@@ -615,14 +615,17 @@ def _output_folder(out_root: pathlib.Path, name: str) -> tuple[pathlib.Path, lis
     return folder, created
 
 
-def _remove_outputs(out_root: pathlib.Path, name: str) -> None:
-    """Remove the outputs of `name` an earlier run left, so a failed input has none in OUT
-    (the manifest says it failed). Nothing is touched outside OUT."""
+def _remove_outputs(out_root: pathlib.Path, name: str, keep: Sequence[str] = ()) -> None:
+    """Remove the outputs of `name` an earlier run left, but those of the kinds in `keep`: all of
+    them for a failed input (the manifest says it failed), those of the other format for one just
+    corrected (the manifest lists what it wrote). Nothing is touched outside OUT."""
     root = out_root.resolve()
     path = root / name
     if ".." in pathlib.PurePosixPath(name).parts or not path.parent.resolve().is_relative_to(root):
         return
     for kind in _ALL_OUTPUT_KINDS:
+        if kind in keep:
+            continue
         output = path.parent / f"{path.name}.{kind}"
         if output.is_file() or output.is_symlink():
             output.unlink(missing_ok=True)
@@ -756,6 +759,8 @@ def correct_input(
             folder, created = _output_folder(out_root, source.name)
             stem = pathlib.PurePosixPath(source.name).name
             written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression, output_format)
+        # An earlier run in the other format left files the manifest will no longer list.
+        _remove_outputs(out_root, source.name, keep=OUTPUT_KINDS_BY_FORMAT[output_format])
         outputs = {
             path.resolve().relative_to(out_root.resolve()).as_posix(): digest
             for path, digest in written.items()

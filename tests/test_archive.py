@@ -509,10 +509,12 @@ def test_resume_in_envi_verifies_envi_outputs(cal, tmp_path, rng, capsys):
     (out / "a.reflectance.img").write_bytes(b"damaged")
     status, stdout, _ = run([*argv, "--format", "envi", "--resume"], capsys)
     assert stdout.strip() == "1 corrected, 0 skipped (already done), 0 failed"
-    # The same batch resumed in the other format has none of its outputs: redone.
+    # The same batch resumed in the other format has none of its outputs: redone, and the files
+    # of the first format go (the manifest lists only the new ones).
     status, stdout, _ = run([*argv, "--resume"], capsys)
     assert stdout.strip() == "1 corrected, 0 skipped (already done), 0 failed"
-    assert (out / "a.reflectance.exr").is_file()
+    assert sorted(outputs_of(out)) == sorted(f"a.{kind}" for kind in archive.OUTPUT_KINDS)
+    assert sorted(archive.read_manifest(out)["a"]["outputs"]) == sorted(outputs_of(out))
 
 
 def test_unknown_output_format_is_refused_before_anything(cal, tmp_path, rng, capsys):
