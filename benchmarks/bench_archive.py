@@ -71,8 +71,15 @@ Data
     the bad-pixel path is exercised and checked. Each is written with `io.write_frame` (16-bit
     deflate TIFF, channels "400nm"..), by a pool of processes (2.6 s per 1-MP file).
 
+Formats
+    --format exr (the default, what `spherejax correct` writes) or envi (`--format envi`: the
+    reflectance and Lab as ENVI images instead of EXR). With envi the reference writes its
+    reflectance and Lab with Spectral Python's `envi.save_image` (BIP float32, NaN as the data
+    ignore value, the wavelengths in the header), and the I/O floor writes the same; the PNGs
+    are as above.
+
 Run:
-    python benchmarks/bench_archive.py [--files 200] [--size 1024] [--json PATH]
+    python benchmarks/bench_archive.py [--files 200] [--size 1024] [--format exr|envi] [--json PATH]
     python benchmarks/bench_archive.py --files 6 --size 256 --skip-workers     # smoke test
 Options: --distinct N, --workdir DIR (the file system to test: a temporary folder is made in
 it and removed unless --keep), --keep, --skip-workers, --skip-diagnostic. A 200 x 1024 run needs
@@ -98,6 +105,8 @@ import time
 
 import h5py
 import numpy as np
+import spectral
+from spectral.io import envi as spectral_envi
 import OpenImageIO as oiio
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -105,6 +114,7 @@ from harness import OtherProcessesLoad, machine_info, write_record  # noqa: E402
 from reference import LAB_TOLERANCE, REFLECTANCE_TOLERANCE, SATURATION, reference_constants, reference_correct  # noqa: E402
 
 from spherejax import archive, io  # noqa: E402
+from spherejax.io.envi import IGNORE_VALUE  # noqa: E402
 from spherejax.grid import BAND_CENTRES_NM, WAVELENGTHS_NM  # noqa: E402
 from spherejax.pipeline import (  # noqa: E402
     QUALITY_PATCH_UNUSABLE,
@@ -114,6 +124,7 @@ from spherejax.pipeline import (  # noqa: E402
 
 BAND_NAMES = [f"{nm}nm" for nm in BAND_CENTRES_NM.tolist()]
 REFLECTANCE_NAMES = io.reflectance_channel_names(WAVELENGTHS_NM.tolist())  # as spherejax writes them
+ENVI_IGNORE_VALUE = IGNORE_VALUE  # flagged pixels in ENVI outputs, as spherejax writes them
 LAB_NAMES = ["L*", "a*", "b*"]  # spherejax's names ("a" alone would be taken for alpha)
 STRIP_PX = 32  # the white-patch strip beside the holder (ExperimentDesign.strip_px)
 INPUT_NOISE_DN = 8.0  # per-file variation of the inputs (module docstring, Data)
@@ -261,21 +272,41 @@ def write_image(path, pixels: np.ndarray, channel_names, compression: str | None
         raise OSError(f"{path}: could not be written: {detail or output.geterror()}")
 
 
-def write_four(stem: pathlib.Path, arrays: dict, fsync: bool = False, steps: dict | None = None) -> None:
-    """The four outputs of one input, named as spherejax names them ("<stem>.<kind>"); with
-    `fsync`, each file is fsynced once written. `steps` collects seconds per step (kind, fsync)."""
-    paths = {kind: stem.parent / f"{stem.name}.{kind}" for kind in archive.OUTPUT_KINDS}
-    writes = {
-        "reflectance.exr": (arrays["reflectance"], REFLECTANCE_NAMES, io.DEFAULT_EXR_COMPRESSION),
-        "lab.exr": (arrays["lab"], LAB_NAMES, io.DEFAULT_EXR_COMPRESSION),
-        "quality.png": (arrays["quality"][..., None], ["quality"], None),
-        "preview.png": (arrays["preview"], ["R", "G", "B"], None),
-    }
-    for kind, (pixels, names, compression) in writes.items():
+def write_envi(header_path: pathlib.Path, pixels: np.ndarray, band_names, wavelengths=None) -> None:
+    """One plain ENVI write with Spectral Python's `save_image` (header + BIP float32 data), NaN
+    as the data ignore value as spherejax writes it; no temporary file, no fsync."""
+    metadata = {"band names": list(band_names), "data ignore value": ENVI_IGNORE_VALUE}
+    if wavelengths is not None:
+        metadata.update({"wavelength": list(wavelengths), "wavelength units": "Nanometers"})
+    data = np.where(np.isnan(pixels), np.float32(ENVI_IGNORE_VALUE), pixels).astype(np.float32)
+    spectral_envi.save_image(str(header_path), data, metadata=metadata, interleave="bip", ext=".img",
+                             dtype=np.float32, force=True)
+
+
+def write_outputs(stem: pathlib.Path, arrays: dict, output_format: str = "exr", fsync: bool = False,
+                  steps: dict | None = None) -> None:
+    """One input's outputs in `output_format`, named as spherejax names them ("<stem>.<kind>");
+    with `fsync`, each file is fsynced once written. `steps` collects seconds per step."""
+    paths = {kind: stem.parent / f"{stem.name}.{kind}" for kind in archive.OUTPUT_KINDS_BY_FORMAT[output_format]}
+    if output_format == "exr":
+        writes = {
+            "reflectance.exr": lambda: write_image(paths["reflectance.exr"], arrays["reflectance"], REFLECTANCE_NAMES,
+                                                   io.DEFAULT_EXR_COMPRESSION),
+            "lab.exr": lambda: write_image(paths["lab.exr"], arrays["lab"], LAB_NAMES, io.DEFAULT_EXR_COMPRESSION),
+        }
+    else:
+        writes = {
+            "reflectance.envi": lambda: write_envi(paths["reflectance.hdr"], arrays["reflectance"], REFLECTANCE_NAMES,
+                                                   WAVELENGTHS_NM.tolist()),
+            "lab.envi": lambda: write_envi(paths["lab.hdr"], arrays["lab"], LAB_NAMES),
+        }
+    writes["quality.png"] = lambda: write_image(paths["quality.png"], arrays["quality"][..., None], ["quality"])
+    writes["preview.png"] = lambda: write_image(paths["preview.png"], arrays["preview"], ["R", "G", "B"])
+    for step, write in writes.items():
         start = time.perf_counter()
-        write_image(paths[kind], pixels, names, compression)
+        write()
         if steps is not None:
-            steps.setdefault(kind, []).append(time.perf_counter() - start)
+            steps.setdefault(step, []).append(time.perf_counter() - start)
     if fsync:
         start = time.perf_counter()
         for path in paths.values():
@@ -286,6 +317,20 @@ def write_four(stem: pathlib.Path, arrays: dict, fsync: bool = False, steps: dic
                 os.close(fd)
         if steps is not None:
             steps.setdefault("fsync", []).append(time.perf_counter() - start)
+
+
+def read_outputs(stem: pathlib.Path, output_format: str) -> dict:
+    """The four output arrays of one input as written (ENVI's ignore value back to NaN)."""
+    name = lambda kind: stem.parent / f"{stem.name}.{kind}"  # noqa: E731
+    arrays = {"quality": read_image(name("quality.png"), oiio.UINT8)[..., 0],
+              "preview": read_image(name("preview.png"), oiio.UINT8)}
+    for output in ("reflectance", "lab"):
+        if output_format == "exr":
+            arrays[output] = read_image(name(f"{output}.exr"), oiio.FLOAT)
+        else:
+            pixels = np.asarray(spectral.open_image(str(name(f"{output}.hdr"))).load(), dtype=np.float32)
+            arrays[output] = np.where(pixels == ENVI_IGNORE_VALUE, np.float32(np.nan), pixels)
+    return arrays
 
 
 # --------------------------------------------------------------------------------------------
@@ -328,7 +373,7 @@ def reference_outputs(raw: np.ndarray, calibration: dict) -> dict:
     }
 
 
-def reference_batch(inputs: list, out: pathlib.Path, calibration_path) -> list[float]:
+def reference_batch(inputs: list, out: pathlib.Path, calibration_path, output_format: str = "exr") -> list[float]:
     """Correct every input into `out` the plain way; returns each file's seconds."""
     calibration = load_reference_calibration(calibration_path)
     out.mkdir(parents=True, exist_ok=True)
@@ -336,7 +381,7 @@ def reference_batch(inputs: list, out: pathlib.Path, calibration_path) -> list[f
     for path in inputs:
         start = time.perf_counter()
         raw = read_image(path, oiio.UINT16)
-        write_four(out / pathlib.Path(path).stem, reference_outputs(raw, calibration))
+        write_outputs(out / pathlib.Path(path).stem, reference_outputs(raw, calibration), output_format)
         seconds.append(time.perf_counter() - start)
     return seconds
 
@@ -345,18 +390,7 @@ def reference_batch(inputs: list, out: pathlib.Path, calibration_path) -> list[f
 # The I/O floor
 
 
-def load_floor_arrays(stem: pathlib.Path) -> dict:
-    """The four output arrays to write for every input: the reference's outputs of one capture."""
-    name = lambda kind: stem.parent / f"{stem.name}.{kind}"  # noqa: E731
-    return {
-        "reflectance": read_image(name("reflectance.exr"), oiio.FLOAT),
-        "lab": read_image(name("lab.exr"), oiio.FLOAT),
-        "quality": read_image(name("quality.png"), oiio.UINT8)[..., 0],
-        "preview": read_image(name("preview.png"), oiio.UINT8),
-    }
-
-
-def io_floor(inputs: list, out: pathlib.Path, arrays: dict, fsync: bool) -> tuple[list[float], dict]:
+def io_floor(inputs: list, out: pathlib.Path, arrays: dict, fsync: bool, output_format: str = "exr") -> tuple[list[float], dict]:
     """Read (decode) every input and write the precomputed `arrays` as its four outputs.
 
     Returns each file's seconds and the seconds of each step per file (read, each output,
@@ -368,7 +402,7 @@ def io_floor(inputs: list, out: pathlib.Path, arrays: dict, fsync: bool) -> tupl
         start = time.perf_counter()
         read_image(path, oiio.UINT16)
         steps["read"].append(time.perf_counter() - start)
-        write_four(out / pathlib.Path(path).stem, arrays, fsync=fsync, steps=steps)
+        write_outputs(out / pathlib.Path(path).stem, arrays, output_format, fsync=fsync, steps=steps)
         seconds.append(time.perf_counter() - start)
     return seconds, steps
 
@@ -393,7 +427,8 @@ def _spherejax_batch(job: dict, executor=None) -> tuple[list[float], float]:
         seconds.append(result.seconds)
 
     start = time.perf_counter()
-    archive.run_batch([job["inputs_dir"]], job["out"], job["calibration"], on_result=on_result, executor=executor)
+    archive.run_batch([job["inputs_dir"]], job["out"], job["calibration"], output_format=job["output_format"],
+                      on_result=on_result, executor=executor)
     return seconds, time.perf_counter() - start
 
 
@@ -406,13 +441,13 @@ def child_run(kind: str, job: dict) -> dict:
     cpu_0 = _cpu_s()
     if kind == "reference":
         start = time.perf_counter()
-        seconds = reference_batch(inputs, out, job["calibration"])
+        seconds = reference_batch(inputs, out, job["calibration"], job["output_format"])
         wall = time.perf_counter() - start
     elif kind in ("floor", "floor-fsync"):
-        arrays = load_floor_arrays(pathlib.Path(job["floor_stem"]))  # not timed: precomputed
+        arrays = read_outputs(pathlib.Path(job["floor_stem"]), job["output_format"])  # not timed: precomputed
         cpu_0 = _cpu_s()
         start = time.perf_counter()
-        seconds, steps = io_floor(inputs, out, arrays, fsync=kind == "floor-fsync")
+        seconds, steps = io_floor(inputs, out, arrays, fsync=kind == "floor-fsync", output_format=job["output_format"])
         wall = time.perf_counter() - start
         record["median_step_s"] = {step: statistics.median(t) for step, t in steps.items()}
     elif kind == "spherejax":
@@ -489,7 +524,8 @@ def run_in_child(kind: str, job: dict, workdir: pathlib.Path) -> dict:
 # Agreement of the reference with spherejax, on the first capture, through the files
 
 
-def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib.Path) -> tuple[dict, pathlib.Path]:
+def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib.Path,
+                    output_format: str = "exr") -> tuple[dict, pathlib.Path]:
     """Correct the first input both ways and compare the files; raise if they disagree.
 
     Returns the agreement figures and the reference outputs' stem (the I/O floor writes them).
@@ -497,25 +533,24 @@ def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib
     calibration = load_reference_calibration(calibration_path)
     reference_stem = folder / "reference" / first_input.stem
     reference_stem.parent.mkdir(parents=True)
-    write_four(reference_stem, reference_outputs(read_image(first_input, oiio.UINT16), calibration))
-    summary = archive.run_batch([first_input], folder / "spherejax", calibration_path)
+    write_outputs(reference_stem, reference_outputs(read_image(first_input, oiio.UINT16), calibration), output_format)
+    summary = archive.run_batch([first_input], folder / "spherejax", calibration_path, output_format=output_format)
     if summary.corrected != 1:
         raise RuntimeError(f"spherejax did not correct {first_input}: {summary.failed}")
     spherejax_stem = folder / "spherejax" / first_input.stem
 
-    def read(stem, kind, sample_type):
-        path = stem.parent / f"{stem.name}.{kind}"
-        return read_image(path, sample_type), channel_names_of(path)
+    def channels(stem):
+        if output_format == "exr":
+            return [channel_names_of(stem.parent / f"{stem.name}.{output}.exr") for output in ("reflectance", "lab")]
+        headers = [spectral.open_image(str(stem.parent / f"{stem.name}.{output}.hdr")).metadata
+                   for output in ("reflectance", "lab")]
+        return [[float(nm) for nm in header.get("wavelength", [])] + header.get("band names", []) for header in headers]
 
-    ours, theirs = {}, {}
-    for kind, sample_type in (("reflectance.exr", oiio.FLOAT), ("lab.exr", oiio.FLOAT),
-                              ("quality.png", oiio.UINT8), ("preview.png", oiio.UINT8)):
-        ours[kind], names = read(spherejax_stem, kind, sample_type)
-        theirs[kind], reference_names = read(reference_stem, kind, sample_type)
-        if names != reference_names:
-            raise AssertionError(f"{kind}: spherejax's channels are {names}, the reference's {reference_names}")
-    quality = ours["quality.png"][..., 0]
-    differing = int(np.count_nonzero(quality != theirs["quality.png"][..., 0]))
+    if channels(spherejax_stem) != channels(reference_stem):
+        raise AssertionError(f"channels differ: spherejax's {channels(spherejax_stem)}, the reference's {channels(reference_stem)}")
+    ours, theirs = read_outputs(spherejax_stem, output_format), read_outputs(reference_stem, output_format)
+    quality = ours["quality"]
+    differing = int(np.count_nonzero(quality != theirs["quality"]))
     if differing:
         raise AssertionError(f"quality images differ in {differing} pixels")
     valid = quality == 0
@@ -523,10 +558,10 @@ def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib
         raise AssertionError("no valid pixel to compare")
     diff = lambda kind: float(np.max(np.abs(ours[kind][valid] - theirs[kind][valid])))  # noqa: E731
     agreement = {
-        "reflectance_max_abs_diff": diff("reflectance.exr"),
-        "lab_max_abs_diff": diff("lab.exr"),
-        "preview_max_level_diff": int(np.max(np.abs(ours["preview.png"].astype(int) - theirs["preview.png"]))),
-        "preview_pixels_differing": int(np.count_nonzero(np.any(ours["preview.png"] != theirs["preview.png"], axis=-1))),
+        "reflectance_max_abs_diff": diff("reflectance"),
+        "lab_max_abs_diff": diff("lab"),
+        "preview_max_level_diff": int(np.max(np.abs(ours["preview"].astype(int) - theirs["preview"]))),
+        "preview_pixels_differing": int(np.count_nonzero(np.any(ours["preview"] != theirs["preview"], axis=-1))),
         "valid_pixels": int(valid.sum()),
         "bad_pixels": int((~valid).sum()),
     }
@@ -538,7 +573,8 @@ def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib
     if bad:
         raise AssertionError("spherejax and the reference disagree: " + "; ".join(bad))
     agreement["output_bytes_per_file"] = sum(
-        (reference_stem.parent / f"{reference_stem.name}.{kind}").stat().st_size for kind in archive.OUTPUT_KINDS
+        (reference_stem.parent / f"{reference_stem.name}.{kind}").stat().st_size
+        for kind in archive.OUTPUT_KINDS_BY_FORMAT[output_format]
     )
     return agreement, reference_stem
 
@@ -584,7 +620,8 @@ def print_report(record: dict) -> None:
     mp = record["megapixels_per_file"]
     print(f"\nspherejax correct vs numpy + colour-science: {record['files']} files of "
           f"{record['size']} x {record['size']} x 16 uint16 ({mp:.3f} MP each, "
-          f"{record['files'] * mp:.1f} MP), {record['distinct']} distinct simulated captures")
+          f"{record['files'] * mp:.1f} MP), {record['distinct']} distinct simulated captures, "
+          f"{record.get('output_format', 'exr').upper()} outputs")
     print(f"machine: {info['cpu_model']}, {info['nproc']} CPUs, jax {info['jax']}, numpy {info['numpy']}, "
           f"colour-science {info['colour-science']}, OpenImageIO {oiio.__version__}")
     a = record["agreement"]
@@ -657,6 +694,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="folder (file system) to work in; a temporary folder is made in it (default: the system's)")
     parser.add_argument("--keep", action="store_true", help="keep the work folder (inputs, calibration, check outputs)")
     parser.add_argument("--json", metavar="PATH", help="also write the results here")
+    parser.add_argument("--format", choices=archive.OUTPUT_FORMATS, default="exr",
+                        help="the outputs' format for every run, spherejax's --format (default exr)")
     parser.add_argument("--skip-workers", action="store_true", help="leave out the 2-worker dask run")
     parser.add_argument("--skip-diagnostic", action="store_true", help="leave out the fsync no-op diagnostic run")
     parser.add_argument("--child", help=argparse.SUPPRESS)  # internal: one timed run
@@ -696,7 +735,7 @@ def main(argv=None) -> int:
 
         print("checking that the reference agrees with spherejax on the first capture ...", flush=True)
         start = time.perf_counter()
-        agreement, reference_stem = check_agreement(inputs[0], calibration_path, workdir / "check")
+        agreement, reference_stem = check_agreement(inputs[0], calibration_path, workdir / "check", args.format)
         setup["check_s"] = time.perf_counter() - start
         need = int(1.2 * args.files * agreement["output_bytes_per_file"])
         free = shutil.disk_usage(workdir).free
@@ -706,6 +745,7 @@ def main(argv=None) -> int:
         job = {
             "inputs_dir": str(inputs_dir), "calibration": str(calibration_path),
             "floor_stem": str(reference_stem), "jax_cache": str(workdir / "jax-cache"),
+            "output_format": args.format,
         }
         kinds = [k for k in RUN_LABELS
                  if not (args.skip_workers and k == "workers") and not (args.skip_diagnostic and k == "spherejax-nofsync")]
@@ -720,6 +760,7 @@ def main(argv=None) -> int:
             "benchmark": "bench_archive",
             "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "files": args.files, "size": args.size, "bands": len(BAND_NAMES), "distinct": args.distinct,
+            "output_format": args.format,
             "megapixels_per_file": megapixels,
             "input_bytes_per_file": sum(p.stat().st_size for p in inputs) / len(inputs),
             "input_noise_dn": INPUT_NOISE_DN, "seed": SEED,
