@@ -371,11 +371,8 @@ def check_cgats_path(path, other_outputs: Sequence[pathlib.Path] = ()) -> None:
     for other in other_outputs:
         if path.absolute() == pathlib.Path(other).absolute():
             raise SpherejaxFileError(path, "is also the measurement's CSV or JSON file", "--cgats FILE another file than OUT.csv and OUT.json")
-    if path.name in ("", ".", "..") or path.is_dir():
-        raise SpherejaxFileError(path, "is a folder", "--cgats FILE: a file to write the CGATS.17 text to")
-    if not path.parent.is_dir():
-        problem = "is in a folder that does not exist" if not path.parent.exists() else "is in something that is not a folder"
-        raise SpherejaxFileError(path, problem, "--cgats FILE in an existing folder")
+    _require_file_in_a_folder(path, "--cgats FILE: a file to write the CGATS.17 text to",
+                              "--cgats FILE in an existing folder")
 
 
 # ---------------------------------------------------------------------------------------- files
@@ -392,16 +389,22 @@ def output_paths(base) -> tuple[pathlib.Path, pathlib.Path]:
     return base.with_name(base.name + ".csv"), base.with_name(base.name + ".json")
 
 
+def _require_file_in_a_folder(path: pathlib.Path, as_a_file: str, in_a_folder: str) -> None:
+    """SpherejaxFileError unless `path` can name a new file: not a folder, in an existing folder;
+    the expected texts say how the option should be given."""
+    if path.name in ("", ".", "..") or path.is_dir():
+        raise SpherejaxFileError(path, "is a folder", as_a_file)
+    if not path.parent.is_dir():
+        problem = "is in a folder that does not exist" if not path.parent.exists() else "is in something that is not a folder"
+        raise SpherejaxFileError(path, problem, in_a_folder)
+
+
 def check_output_base(base) -> None:
     """SpherejaxFileError unless OUT is a base path (not a folder) in an existing folder."""
-    base = pathlib.Path(base)
-    if base.name in ("", ".", "..") or base.is_dir():
-        raise SpherejaxFileError(
-            base, "is a folder", "a base path: -o FOLDER/NAME writes FOLDER/NAME.csv and FOLDER/NAME.json"
-        )
-    if not base.parent.is_dir():
-        problem = "is in a folder that does not exist" if not base.parent.exists() else "is in something that is not a folder"
-        raise SpherejaxFileError(base, problem, "OUT in an existing folder (-o OUT writes OUT.csv and OUT.json)")
+    _require_file_in_a_folder(
+        pathlib.Path(base), "a base path: -o FOLDER/NAME writes FOLDER/NAME.csv and FOLDER/NAME.json",
+        "OUT in an existing folder (-o OUT writes OUT.csv and OUT.json)",
+    )
 
 
 def write_files(files: Mapping[pathlib.Path, bytes]) -> None:

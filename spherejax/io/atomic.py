@@ -50,9 +50,21 @@ def is_temp_sibling(name: str, of: str | None = None) -> bool:
     return re.fullmatch(rf"\.{stem}\.[0-9a-f]{{12}}\.tmp", name) is not None
 
 
+def open_exclusive(path: os.PathLike | str, mode: str = "wb", *, encoding: str | None = None) -> IO:
+    """Create `path` with O_EXCL (OSError if it exists, a link included) and `NEW_FILE_MODE` less
+    the umask, open for writing: mode "wb", "w+b" (readable too) or "w" (text, UTF-8 unless
+    `encoding` says otherwise). Step 1 of every write here."""
+    if mode not in ("wb", "w+b", "w"):
+        raise ValueError(f"mode: expected 'wb', 'w+b' or 'w', got {mode!r}")
+    access = os.O_RDWR if "+" in mode else os.O_WRONLY
+    descriptor = os.open(path, access | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
+    text = {"encoding": encoding or "utf-8"} if mode == "w" else {}
+    return os.fdopen(descriptor, mode, **text)  # owns the descriptor from here
+
+
 def create_exclusive(path: os.PathLike | str) -> None:
     """Create `path` empty with O_EXCL and `NEW_FILE_MODE` less the umask (OSError if it exists)."""
-    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE))
+    open_exclusive(path).close()
 
 
 def fsync_folder(folder: os.PathLike | str) -> None:
@@ -80,15 +92,11 @@ def atomic_file(path: os.PathLike | str, mode: str = "wb", *, encoding: str | No
     Raises:
       OSError: from creating, writing or renaming (the caller words it for its file kind).
     """
-    if mode not in ("wb", "w+b", "w"):
-        raise ValueError(f"mode: expected 'wb', 'w+b' or 'w', got {mode!r}")
     path = pathlib.Path(path)
     temporary = temp_sibling(path)
-    access = os.O_RDWR if "+" in mode else os.O_WRONLY
-    descriptor = os.open(temporary, access | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
+    handle = open_exclusive(temporary, mode, encoding=encoding)
     try:
-        text = {"encoding": encoding or "utf-8"} if mode == "w" else {}
-        with os.fdopen(descriptor, mode, **text) as handle:  # owns the descriptor from here
+        with handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
@@ -125,8 +133,7 @@ def write_together(files: Mapping[os.PathLike | str, bytes]) -> None:
             path = pathlib.Path(path)
             temporaries[path] = temp_sibling(path)
             try:
-                descriptor = os.open(temporaries[path], os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
-                with os.fdopen(descriptor, "wb") as handle:
+                with open_exclusive(temporaries[path]) as handle:
                     handle.write(payload)
                     handle.flush()
                     os.fsync(handle.fileno())

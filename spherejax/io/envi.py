@@ -40,7 +40,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .atomic import NEW_FILE_MODE, create_exclusive, fsync_folder, temp_sibling
+from .atomic import create_exclusive, fsync_folder, open_exclusive, temp_sibling
 from .errors import SpherejaxFileError
 
 #: The value flagged pixels hold in ENVI outputs ("data ignore value"): NaN is not a value every
@@ -107,8 +107,7 @@ class EnviWriter:
         self._data = None
         try:
             create_exclusive(self._temps[self.header_path])
-            descriptor = os.open(self._temps[self.data_path], os.O_WRONLY | os.O_CREAT | os.O_EXCL, NEW_FILE_MODE)
-            self._data = os.fdopen(descriptor, "wb")
+            self._data = open_exclusive(self._temps[self.data_path])
         except OSError as error:
             self.abort()
             raise SpherejaxFileError(self.header_path, f"could not be written: {error}") from None
