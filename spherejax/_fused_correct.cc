@@ -764,8 +764,15 @@ static PyObject* correct_arrays(PyObject*, PyObject* args) {
   Py_RETURN_NONE;
 }
 
+// ffi_api_version() -> (major, minor): the XLA FFI API version of the headers this was compiled
+// against, which XLA compares with its own when the handler is registered (setup.py).
+static PyObject* ffi_api_version(PyObject*, PyObject*) {
+  return Py_BuildValue("(ii)", XLA_FFI_API_MAJOR, XLA_FFI_API_MINOR);
+}
+
 static PyMethodDef methods[] = {
     {"handler", handler, METH_NOARGS, "The XLA FFI handler of the fused correction, as a capsule."},
+    {"ffi_api_version", ffi_api_version, METH_NOARGS, "The XLA FFI API version compiled against, (major, minor)."},
     {"correct_arrays", correct_arrays, METH_VARARGS, "The fused correction on C-contiguous buffers, without XLA."},
     {nullptr, nullptr, 0, nullptr},
 };

@@ -11,8 +11,10 @@ it is tested against (tests/test_fused.py), and it is what runs:
 - on GPUs and any platform other than CPU (`jax.lax.platform_dependent` picks at lowering time);
 - in float64 (a float64 calibration or raw), and for raw other than uint16 or float32;
 - when the extension was not built (no C++ compiler at install: setup.py builds it as optional),
-  or when the environment variable SPHEREJAX_FUSED is "0" (to compare the two, or to rule the
-  kernel out when something looks wrong).
+  when the running jaxlib refuses it (compiled against newer XLA FFI headers than that jaxlib
+  speaks: setup.py says when this can happen; `unavailable_reason` says so, and it is logged
+  once), or when the environment variable SPHEREJAX_FUSED is "0" (to compare the two, or to rule
+  the kernel out when something looks wrong).
 
 With `intermediates=True` the main outputs still come from the kernel, so that they do not depend
 on what else was asked for; the cubes it never forms (v, v_stage1, v_stage2) come from the
@@ -40,6 +42,7 @@ the kernel once per mapped element.
 from __future__ import annotations
 
 import functools
+import logging
 import os
 from collections.abc import Callable
 
@@ -65,17 +68,58 @@ RAW_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
 SWITCH = "SPHEREJAX_FUSED"
 
 
+_log = logging.getLogger(__name__)
+
+
+def _try_register(register: Callable) -> str | None:
+    """Register the kernel with XLA through `register` (jax.ffi.register_ffi_target's signature);
+    None if XLA took it, else why not, in one line.
+
+    The CPU backend is started first: before it exists jax only queues a registration, and a
+    handler XLA refuses would then fail whatever first starts the backend instead of here.
+    XLA refuses a handler compiled against a newer FFI API than its own (setup.py).
+    """
+    jax.devices("cpu")
+    try:
+        register(TARGET, _fused_correct.handler(), platform="cpu")
+    except Exception as error:  # noqa: BLE001 -- XLA's refusal (JaxRuntimeError) or any other: the kernel is then not used
+        import jaxlib
+
+        major, minor = _fused_correct.ffi_api_version()
+        message = " ".join(str(error).split("\n")[0].split()).rstrip(".")
+        return (
+            f"the fused kernel (XLA FFI API {major}.{minor}) was refused by jaxlib {jaxlib.__version__}: {message}; "
+            "correct runs its jax.numpy path (the same numbers, slower). Rebuild the kernel against this jaxlib: "
+            "pip install --no-build-isolation --force-reinstall --no-deps spherejax (from its source)"
+        )
+    return None
+
+
 @functools.cache
-def _register() -> bool:
+def _registration() -> str | None:
+    """Registers the kernel once per process: None if registered, else the reason it is not."""
     if _fused_correct is None:
-        return False
-    jax.ffi.register_ffi_target(TARGET, _fused_correct.handler(), platform="cpu")
-    return True
+        return "the fused kernel was not built (no C++17 compiler or no jaxlib headers at install: setup.py)"
+    reason = _try_register(jax.ffi.register_ffi_target)
+    if reason is not None:
+        _log.warning("%s", reason)
+    return reason
+
+
+def _register() -> bool:
+    return _registration() is None
 
 
 def built() -> bool:
     """True if the compiled kernel was built and imported."""
     return _fused_correct is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why `correct` does not use the kernel on CPU, in one line, or None where it does."""
+    if switch() == "0":
+        return f"{SWITCH}=0 switches the fused kernel off"
+    return _registration()
 
 
 #: Values of `mode`: the kernel with the best code the CPU runs, or its portable code only.
@@ -100,8 +144,9 @@ def switch() -> str:
 
 
 def enabled() -> bool:
-    """True if `correct` uses the kernel on CPU: built, and not switched off by SPHEREJAX_FUSED=0."""
-    return built() and switch() != "0"
+    """True if `correct` uses the kernel on CPU: built, taken by the running jaxlib's XLA, and not
+    switched off by SPHEREJAX_FUSED=0."""
+    return built() and switch() != "0" and _register()
 
 
 def mode(raw_dtype, compute_dtype, bands: int) -> str | None:
@@ -281,5 +326,6 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
 
 __all__ = [
     "TARGET", "MAX_BANDS", "SWITCH", "SWITCH_VALUES", "AUTO", "PORTABLE", "built", "enabled", "mode", "switch",
+    "unavailable_reason",
     "correct_pixels", "correct_arrays", "kernel_constants",
 ]
