@@ -7,10 +7,14 @@ import pytest
 
 from spherejax import angles
 
+from .helpers import ulp_bound
+
 #: Largest error allowed, in units in the last place of the exact value's dtype (see the module).
 ULP = {np.float32: 2.0, np.float64: 4.0}
-#: atan2 rounds three more times (to degrees, + 45, mirrored into its octant) in float32.
-ULP_ATAN2 = {np.float32: 3.0, np.float64: 4.0}
+#: atan2 rounds three more times (to degrees, + 45, mirrored into its octant) in float32. On a
+#: GPU float32 measured 3.28 ulp (an H200, jax 0.11.2), the reduced ratio's division being a
+#: reciprocal and a multiply there (XLA's GPU float32 division): 3.5 on any backend but the CPU.
+ULP_ATAN2 = {np.float32: ulp_bound(cpu=3.0, gpu=3.5), np.float64: 4.0}
 
 
 def ulp_error(got, exact, dtype):

@@ -18,9 +18,15 @@ import pytest
 import spherejax as sj
 from spherejax import buffers, fused, pipeline
 
+from .helpers import cpu_only
+
 SIZE, BANDS = 256, 16
 
-pytestmark = pytest.mark.skipif(not fused.enabled(), reason="the reuse is part of the fused CPU kernel's path")
+pytestmark = [
+    pytest.mark.skipif(not fused.enabled(), reason="the reuse is part of the fused CPU kernel's path"),
+    cpu_only("correct reuses outputs' memory, stages NumPy frames and hands them to the fused kernel "
+             "only for arrays on the CPU (pipeline._recyclable, pipeline._direct, buffers.stageable)"),
+]
 
 
 @pytest.fixture(autouse=True)

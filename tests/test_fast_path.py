@@ -22,6 +22,8 @@ import spherejax as sj
 from spherejax import allocator, colorimetry, fused, pipeline
 from spherejax.flatfield import white_signal_usable
 
+from .helpers import cpu_only, ulp_bound
+
 HIGHEST = jax.lax.Precision.HIGHEST
 
 
@@ -78,7 +80,10 @@ class TestCubeRoot:
         # float64: the Newton correction is evaluated in float64 itself, so its own rounding
         # (y*y, the division, the subtraction) leaves up to 3 ulp; which points reach 3 depends
         # on the CPU's exp/log code (AVX2 here, 0.1 % of points; 2 ulp on AVX-512 machines).
-        assert np.max(np.abs(fast - exact) / ulp) <= {np.float32: 1, np.float64: 3}[dtype]
+        # float32 on a GPU: 1.07 ulp measured (an H200, jax 0.11.2; the Newton step's division is
+        # a reciprocal and a multiply there): 1.25 on any backend but the CPU.
+        float32_bound = ulp_bound(cpu=1, gpu=1.25)
+        assert np.max(np.abs(fast - exact) / ulp) <= {np.float32: float32_bound, np.float64: 3}[dtype]
 
     def test_lab_of_the_whites_and_greys(self, dtype):
         """Exact points: the white is L* 100 and Y/Yn = 1/8 is L* 116/2 - 16 = 42."""
@@ -231,6 +236,7 @@ FAULTS_SCRIPT = textwrap.dedent("""
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings are Linux-only")
+@cpu_only("page faults of XLA's CPU buffers, which come from glibc malloc, and spherejax's reuse of them")
 def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting():
     """A 768 x 768 correction writes blocks above glibc's mmap threshold (32 MiB; the reflectance
     is 73 MB). By default `correct` reuses the memory of outputs the caller dropped
@@ -253,6 +259,7 @@ def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting(
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="page-fault counts from getrusage on Linux")
+@cpu_only("page faults of the jax.numpy path's block loop and output reuse, which run on CPU only")
 @pytest.mark.parametrize("dtype_name", ["float32", "float64"])
 def test_the_jax_numpy_path_does_not_page_fault_image_sized_temporaries(dtype_name):
     """The jax.numpy path (kernel off, or float64) on CPU runs in blocks of pixels
@@ -365,6 +372,7 @@ class TestBlocks:
         plain = jax.jit(lambda c: jax.jvp(lambda c: pipeline._pixel_outputs(*arrays[:4], c, *arrays[5:], saturation=16383.0)[1], (c,), (jnp.ones_like(c),))[1])
         np.testing.assert_allclose(forward(coeffs), plain(coeffs), rtol=1e-10, atol=1e-9)
 
+    @cpu_only("correct lowers the block loop for the CPU only (jax.lax.platform_dependent), and the fused kernel is CPU-only")
     def test_correct_runs_in_blocks_on_cpu_and_agrees_with_the_kernel(self, monkeypatch):
         """An image above CPU_BLOCK_PIXELS through `correct` with the kernel off, against the kernel."""
         rng = np.random.default_rng(4)
