@@ -8,7 +8,7 @@ the same numbers).
 Which jaxlib's headers, and why any jaxlib from spherejax's lower bound on is sound:
 
 - XLA's FFI has a stable binary interface with a version (XLA_FFI_API_MAJOR.MINOR in
-  xla/ffi/api/c_api.h; 0.3 in jaxlib 0.9.2 to 0.11.1, 0.4 in 0.11.2, 0.5 in 0.12). A handler
+  xla/ffi/api/c_api.h; 0.3 in jaxlib 0.9.2 to 0.11.1, 0.4 in 0.11.2, 0.5 in 0.12.0). A handler
   records the version of the headers it was compiled against, and XLA registers a handler whose
   version lies between its own minimum (0.1 today; XLA keeps an old version working for at least
   12 months) and its own version. So a kernel compiled against jaxlib N's headers runs under jaxlib
@@ -16,7 +16,7 @@ Which jaxlib's headers, and why any jaxlib from spherejax's lower bound on is so
 - Hence the headers are taken from the jaxlib of the environment spherejax is being installed into
   when it already has one (the jaxlib the kernel will run with; under pip's build isolation this
   is found through the interpreter's own site-packages, which the isolated build can still name),
-  and otherwise from the build requirement's jaxlib (pyproject.toml: `jaxlib>=0.9.2`, which the
+  and otherwise from the build requirement's jaxlib (pyproject.toml: `jaxlib>=0.10.2`, which the
   resolver takes as the newest, the one it then installs beside jax).
 - If a kernel still meets an older jaxlib (a jax downgraded after the install, a wheel built
   elsewhere), XLA refuses it at registration and spherejax runs the jax.numpy path, saying why
