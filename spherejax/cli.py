@@ -510,6 +510,11 @@ def cmd_measure(args) -> int:
     measurement_files.check_output_base(base)
     if args.cgats is not None:
         measurement_files.check_cgats_path(args.cgats, measurement_files.output_paths(base))
+    csv_path, json_path = measurement_files.output_paths(base)
+    outputs = {"OUT.csv": csv_path, "OUT.json": json_path}
+    if args.cgats is not None:
+        outputs["--cgats FILE"] = args.cgats
+    io.refuse_overlaps(outputs, {"the input cube": args.input, "the calibration (-c)": args.calibration})
 
     calibration_file = io.open_calibration(args.calibration)
     try:
@@ -562,7 +567,6 @@ def cmd_measure(args) -> int:
                      "instrument_id": header.get("instrument_id")},
         noise_model=measurement_files.noise_model_summary(noise, noise_source),
     )
-    csv_path, json_path = measurement_files.output_paths(base)
     files = {csv_path: measurement_files.csv_text(rows).encode(),
              json_path: measurement_files.json_text(document).encode()}
     if args.cgats is not None:

@@ -28,7 +28,9 @@ UTF-8, a header row, then one row per region in the order given:
     R400, R410, ..., R700           mean reflectance, 400..700 nm step 10 (31 columns)
     u_R400, ..., u_R700             its standard uncertainties (31 columns)
 
-`pixels` is the number of pixels averaged; `excluded_pixels` those of the rectangle that
+A name starting with =, +, -, @, a tab or a carriage return is written with a leading single
+quote, so that a spreadsheet shows it as text rather than running it as a formula (OWASP, CSV
+injection); the JSON keeps every name exactly. `pixels` is the number of pixels averaged; `excluded_pixels` those of the rectangle that
 `correct` flags (saturated, not finite, no usable flat field) and that were left out. Numbers
 are written in full precision (Python's shortest round-trip form); a cell without a value (no
 noise model, no reference) is empty.
@@ -77,7 +79,9 @@ The regions as colour quality-control software exchanges spectral measurements: 
     SPECTRAL_BANDS "31", SPECTRAL_START_NM "400", SPECTRAL_END_NM "700", SPECTRAL_NORM "1"
     SAMPLE_ID SAMPLE_NAME LAB_L LAB_A LAB_B nm400 nm410 ... nm700
 
-one line per region in the order given: SAMPLE_ID 1, 2, ...; SAMPLE_NAME the region's name;
+one line per region in the order given: SAMPLE_ID 1, 2, ...; SAMPLE_NAME the region's name as
+one token (`cgats_sample_names`: readers split data lines on whitespace, so spaces become "_",
+and a name made equal to an earlier one gets "_2");
 reflectance factors (0..1, white standard 1), numbers in full precision like the CSV's. The
 uncertainties are in the CSV and JSON only (CGATS.17 has no fields for them).
 
@@ -93,6 +97,7 @@ import dataclasses
 import io as _text_io
 import math
 import pathlib
+import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -248,6 +253,17 @@ def _cell(x) -> str:
     return "" if x is None else repr(x)
 
 
+#: First characters that make a spreadsheet read a cell as a formula (OWASP, "CSV Injection").
+_FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def _inert_text(text: str) -> str:
+    """A text cell a spreadsheet shows as text: one starting like a formula gets a leading single
+    quote, as OWASP recommends (a region named "=HYPERLINK(...)" or "-2+3" stays a name). The
+    JSON keeps the name exactly."""
+    return "'" + text if text.startswith(_FORMULA_STARTS) else text
+
+
 def csv_text(results: Sequence[RegionResult]) -> str:
     """The CSV file's text (module docstring)."""
     buffer = _text_io.StringIO()
@@ -260,7 +276,7 @@ def csv_text(results: Sequence[RegionResult]) -> str:
         expanded = [None if u is None else COVERAGE_FACTOR * u for u in lab_u]
         de_u = _known(r.delta_e_u)
         writer.writerow([
-            r.name, m.pixels, m.excluded, m.illuminant,
+            _inert_text(r.name), m.pixels, m.excluded, m.illuminant,
             *map(_cell, m.lab.tolist()), *map(_cell, lab_u), *map(_cell, expanded),
             _cell(r.delta_e), _cell(de_u), _cell(None if de_u is None else COVERAGE_FACTOR * de_u),
             *map(_cell, m.reflectance.tolist()), *map(_cell, refl_u),
@@ -358,10 +374,32 @@ def cgats_text(results: Sequence[RegionResult], *, input_path, instrument_id: st
     }
     fields = ["SAMPLE_ID", "SAMPLE_NAME", "LAB_L", "LAB_A", "LAB_B", *(f"nm{nm}" for nm in WAVELENGTHS_NM)]
     rows = []
-    for number, r in enumerate(results, start=1):
+    for number, (r, name) in enumerate(zip(results, cgats_sample_names([r.name for r in results])), start=1):
         m = r.measurement
-        rows.append([number, r.name, *m.lab.tolist(), *m.reflectance.tolist()])
+        rows.append([number, name, *m.lab.tolist(), *m.reflectance.tolist()])
     return _cgats_table(keywords, fields, rows)
+
+
+def cgats_sample_names(names: Sequence[str]) -> list[str]:
+    """SAMPLE_NAME of each region: one token, unique in the file.
+
+    CGATS.17 allows a quoted name with spaces, but the readers colour labs use split data lines
+    on whitespace (colour-science's `read_sds_from_xrite_file` names each spectrum by the second
+    token; X-Rite's readers likewise), so "red wool" and "red cotton" both came back as `"red`,
+    one measurement lost. A name that is one token (no whitespace, no quote) is written as it
+    is; in others each run of whitespace becomes "_" and a quote "'"; a name that would then
+    repeat an earlier one gets "_2", "_3", ... The CSV and JSON keep the names exactly.
+    """
+    tokens, taken = [], set()
+    for name in names:
+        token = re.sub(r"[\s\"'#]+", "_", name.strip()) or "region"
+        candidate, count = token, 1
+        while candidate in taken:
+            count += 1
+            candidate = f"{token}_{count}"
+        taken.add(candidate)
+        tokens.append(candidate)
+    return tokens
 
 
 def check_cgats_path(path, other_outputs: Sequence[pathlib.Path] = ()) -> None:
@@ -424,6 +462,7 @@ __all__ = [
     "cgats_text",
     "check_cgats_path",
     "check_output_base",
+    "cgats_sample_names",
     "csv_header",
     "csv_text",
     "default_base",

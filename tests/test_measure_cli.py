@@ -7,6 +7,7 @@ bands to 31 wavelengths), so the module needs no simulated session.
 
 import csv
 import json
+import os
 import pathlib
 import types
 
@@ -337,6 +338,35 @@ class TestRefused:
         argv = [*self.base_args(root), "--region", f"s={r},{r + 1},{c},{c + 1}"]
         self.refuse(argv, capsys, folder, "--region", "flagged")
 
+    @pytest.mark.parametrize("target", ["input", "input via ..", "input via a link", "calibration", "hard link to the input"])
+    def test_cgats_file_that_is_an_input_is_refused_and_the_input_kept(self, setup, capsys, target):
+        """`measure ... --cgats mp/a.tif` overwrote the input cube with CGATS text (exit 0): the
+        path was compared with OUT.csv and OUT.json only. Each spelling of an input is refused."""
+        root, folder = setup
+        sample = folder / "a.tif"
+        sample.write_bytes((root / "sample.tif").read_bytes())
+        cal = folder / "cal.h5"
+        cal.write_bytes((root / "cal.h5").read_bytes())
+        (folder / "sub").mkdir()
+        paths = {
+            "input": sample, "input via ..": folder / "sub" / ".." / "a.tif", "calibration": cal,
+            "input via a link": folder / "link.tif", "hard link to the input": folder / "hard.tif",
+        }
+        (folder / "link.tif").symlink_to(sample)
+        os.link(sample, folder / "hard.tif")
+        before = {p: p.read_bytes() for p in (sample, cal)}
+        argv = ["measure", "-c", str(cal), str(sample), *region_args(), "-o", str(folder / "r"), "--cgats", str(paths[target])]
+        self.refuse(argv, capsys, folder, str(paths[target]), "--cgats FILE is also the")
+        assert {p: p.read_bytes() for p in (sample, cal)} == before
+
+    def test_output_base_whose_csv_is_the_input_is_refused(self, setup, capsys):
+        """-o r with an input named r.csv: OUT.csv would have replaced the input."""
+        root, folder = setup
+        sample = folder / "r.csv"
+        sample.write_bytes((root / "sample.tif").read_bytes())
+        argv = ["measure", "-c", str(root / "cal.h5"), str(sample), *region_args(), "-o", str(folder / "r")]
+        self.refuse(argv, capsys, folder, "r.csv", "OUT.csv is also the input cube")
+
     def test_cgats_file_is_a_folder(self, setup, capsys):
         root, folder = setup
         (folder / "qc").mkdir()
@@ -392,7 +422,7 @@ def test_output_paths_append_the_suffixes():
 def written(files, tmp_path_factory):
     """(the CGATS file, the CSV rows and JSON document) of one `measure --cgats` run."""
     folder = tmp_path_factory.mktemp("cgats")
-    regions = {**REGIONS, "paper white": (14, 18, 4, 12)}  # a name with a space is quoted
+    regions = {**REGIONS, "paper white": (14, 18, 4, 12)}  # a name with a space: one token in CGATS
     argv = ["-q", "measure", "-c", str(files["root"] / "cal.h5"), str(files["root"] / "sample.tif"),
             *region_args(regions), "-o", str(folder / "r"), "--cgats", str(folder / "qc.txt")]
     assert cli.main(argv) == 0
@@ -408,7 +438,7 @@ class TestCGATS:
 
         path, (rows, document) = written
         spectra = colour.io.read_sds_from_xrite_file(str(path))
-        assert list(spectra) == ["grey", "red", '"paper']  # colour's reader splits on whitespace
+        assert list(spectra) == ["grey", "red", "paper_white"]  # colour's reader splits on whitespace
         for entry in document["regions"][:2]:
             sd = spectra[entry["name"]]
             np.testing.assert_array_equal(sd.wavelengths, WAVELENGTHS)
@@ -429,7 +459,7 @@ class TestCGATS:
         fields = lines[lines.index("BEGIN_DATA_FORMAT") + 1].split("\t")
         assert fields == ["SAMPLE_ID", "SAMPLE_NAME", "LAB_L", "LAB_A", "LAB_B", *(f"nm{nm}" for nm in WAVELENGTHS)]
         data = [line.split("\t") for line in lines[lines.index("BEGIN_DATA") + 1 : -1]]
-        assert [row[:2] for row in data] == [["1", "grey"], ["2", "red"], ["3", '"paper white"']]
+        assert [row[:2] for row in data] == [["1", "grey"], ["2", "red"], ["3", "paper_white"]]
         for row, entry in zip(data, document["regions"]):
             lab = np.array([float(v) for v in row[2:5]])
             np.testing.assert_array_equal(lab, entry["lab"])
@@ -446,3 +476,33 @@ def test_cgats_names_the_observer_by_its_angle_whatever_its_alias():
     row = measurement_files.RegionResult("a", (0, 1, 0, 1), measurement)
     text = measurement_files.cgats_text([row], input_path="x.tif", instrument_id=None, created="2026-01-01T00:00:00+00:00")
     assert 'OBSERVER_ANGLE\t"10"' in text.splitlines()
+
+
+def test_names_readers_would_merge_or_run_stay_apart_and_inert(files, tmp_path):
+    """Regions "red wool" and "red cotton" came back from colour-science's X-Rite reader as one
+    spectrum named '"red' (a measurement lost), and a region named "+SUM(A1)" or "@SUM(A1)" went into
+    OUT.csv as a formula a spreadsheet would run (a number-like name is quoted in CGATS, so
+    colour-science keeps its quotes: still one spectrum each). Now: one token each in CGATS, unique; a leading
+    quote in the CSV (OWASP); the exact names in the JSON."""
+    import colour
+
+    names = {"red wool": (6, 12, 2, 10), "red cotton": (6, 12, 12, 20), "red_wool": (14, 18, 4, 12),
+             "+SUM(A1)": (2, 6, 2, 10), "@SUM(A1)": (2, 6, 12, 20), "+3": (14, 18, 12, 20)}
+    argv = ["-q", "measure", "-c", str(files["root"] / "cal.h5"), str(files["root"] / "sample.tif"),
+            *region_args(names), "-o", str(tmp_path / "r"), "--cgats", str(tmp_path / "qc.txt")]
+    assert cli.main(argv) == 0
+    spectra = colour.io.read_sds_from_xrite_file(str(tmp_path / "qc.txt"))
+    assert list(spectra) == ["red_wool", "red_cotton", "red_wool_2", "+SUM(A1)", "@SUM(A1)", '"+3"']
+    with open(tmp_path / "r.csv", newline="", encoding="utf-8") as handle:
+        cells = [row["name"] for row in csv.DictReader(handle)]
+    assert cells == ["red wool", "red cotton", "red_wool", "'+SUM(A1)", "'@SUM(A1)", "'+3"]
+    document = json.loads((tmp_path / "r.json").read_text(encoding="utf-8"))
+    assert [entry["name"] for entry in document["regions"]] == list(names)
+    reflectance = {entry["name"]: entry["reflectance"] for entry in document["regions"]}
+    np.testing.assert_array_equal(spectra["red_cotton"].values, reflectance["red cotton"])
+
+
+def test_cgats_sample_names():
+    names = measurement_files.cgats_sample_names(["a b", "a_b", "a\tb", ' "q" ', "x#y", "", "a_b_2"])
+    assert names == ["a_b", "a_b_2", "a_b_3", "_q_", "x_y", "region", "a_b_2_2"]
+    assert len(set(names)) == len(names)

@@ -139,6 +139,7 @@ from __future__ import annotations
 
 from .errors import CalibrationFileError, SessionError, SpherejaxFileError
 from .atomic import is_temp_sibling, temp_sibling
+from .ownership import refuse_overlaps
 from .frames import (
     AtomicImageWriter,
     frame_spec,
@@ -191,6 +192,7 @@ from .spectral_layout import reflectance_channel_names, wavelengths_of_channels
 __all__ = [
     "temp_sibling",
     "is_temp_sibling",
+    "refuse_overlaps",
     "write_simulated_session",
     "SpherejaxFileError",
     "SessionError",
