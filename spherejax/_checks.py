@@ -13,15 +13,50 @@ import numpy as np
 
 
 def as_array(name: str, x) -> jax.Array:
-    """`jnp.asarray(x)`, turning a conversion failure into a ValueError naming `name`."""
+    """`jnp.asarray(x)`, turning a conversion failure into a ValueError naming `name`, and
+    refusing what the conversion would silently change: complex values (`require_real`) and
+    float64 values beyond float32's range when JAX computes in float32 (`require_representable`)."""
+    if isinstance(x, np.ndarray):
+        require_real(name, x)
+        require_representable(name, x)
     try:
         if isinstance(x, np.ndarray) and x.dtype == jax.dtypes.canonicalize_dtype(x.dtype):
             # What jnp.asarray does for such an array, at half the time: it measured 5.1 ms
             # against 2.4 ms for a 32 MB uint16 cube, the raw input of every correction.
             return jax.device_put(x)
-        return jnp.asarray(x)
+        array = jnp.asarray(x)
     except (TypeError, ValueError) as error:
         raise ValueError(f"{name}: expected an array, got {type(x).__name__} ({error})") from None
+    require_real(name, array)
+    return array
+
+
+def require_real(name: str, x) -> None:
+    """Raise if `x` holds complex numbers: every quantity of spherejax is real, and a cast to a
+    real dtype would drop the imaginary part without a word."""
+    if jnp.iscomplexobj(x):
+        raise ValueError(f"{name}: expected real numbers, got {x.dtype} (complex: the imaginary part would be dropped)")
+
+
+def require_representable(name: str, x: np.ndarray) -> None:
+    """Raise if float64 values of `x` would become infinities in the float32 JAX computes in
+    by default (float64 off): 1e300 is finite, its float32 is not."""
+    if x.dtype != np.float64 or jax.dtypes.canonicalize_dtype(x.dtype) == np.float64 or x.size == 0:
+        return
+    limit = float(np.finfo(np.float32).max)
+    # fmin/fmax skip NaN and make no temporary: one pass over the array, no copy.
+    extreme = max(abs(float(np.fmin.reduce(x, axis=None))), abs(float(np.fmax.reduce(x, axis=None))))
+    if not extreme > limit:
+        return
+    if not np.isfinite(extreme):  # infinities (not finite anyway): the largest finite value decides
+        finite = np.abs(x[np.isfinite(x)])
+        extreme = float(finite.max()) if finite.size else 0.0
+    if extreme > limit:
+        raise ValueError(
+            f"{name}: values up to {extreme:.3g} overflow float32 (largest {limit:.3g}), the precision "
+            "JAX computes in by default; rescale them, or enable float64 with "
+            "jax.config.update('jax_enable_x64', True)"
+        )
 
 
 def band_array(name: str, x) -> jax.Array:

@@ -95,9 +95,15 @@ class Calibration(eqx.Module):
     def __check_init__(self):
         # Unknown names raise here, at construction, rather than at the first correction.
         colorimetry.tristimulus_weights(self.illuminant, observer=self.observer)
+        # jnp.asarray keeps complex values and a later cast drops their imaginary part; the patch
+        # has a dtype check of its own (a boolean mask or real weights).
+        for name in ("dark", "white", "coeffs", "wiener", "wiener_offset"):
+            _checks.require_real(name, getattr(self, name))
         if self.dark.ndim != 3:
             raise ValueError(f"dark: expected shape (H, W, B), got {tuple(self.dark.shape)}")
         height, width, bands = self.dark.shape
+        if 0 in self.dark.shape:
+            raise ValueError(f"dark: expected at least one pixel and one band, got shape {tuple(self.dark.shape)}")
         _checks.require_shape("white", self.white, self.dark.shape, "the dark frame's (H, W, B)")
         if self.patch is not None:
             _checks.require_mask_or_weights("patch", self.patch, (height, width))

@@ -119,3 +119,29 @@ def test_a_newline_or_brace_in_a_value_cannot_break_the_header(tmp_path, pixels)
     image = spectral.open_image(str(tmp_path / "a.hdr"))
     assert (image.nrows, image.ncols, image.nbands) == (7, 5, 31)
     assert image.metadata["spherejax source"] == "in/a) lines = 1 (b.tif"
+
+
+@pytest.mark.parametrize("field, value, fragment", [
+    ("samples", "2000000", "describes 1736000000"), ("lines", "2000000", "describes 1240000000"),
+    ("header offset", "-100", "has header offset = -100"), ("header offset", "100000000000", "describes 100000004340"),
+    ("data type", "6", "holds complex64 pixels (data type = 6)"), ("bands", "0", "has bands = 0"),
+    ("lines", "6", "holds 4340 bytes"),
+])
+def test_a_damaged_header_is_refused_in_one_line(tmp_path, pixels, field, value, fragment):
+    """Sizes, offset or data type that do not describe the data file: Spectral Python mapped the
+    file to None and open_corrected raised "AttributeError: 'NoneType' object has no attribute
+    'dtype'" (samples or lines 2e6, header offset -100 or 1e11, data type 6)."""
+    import re
+
+    import spherejax as sj
+
+    write(tmp_path / "a.reflectance.hdr", pixels)
+    header = (tmp_path / "a.reflectance.hdr").read_text()
+    damaged, count = re.subn(rf"^{field} = .*$", f"{field} = {value}", header, flags=re.M)
+    assert count == 1
+    (tmp_path / "a.reflectance.hdr").write_text(damaged)
+    with pytest.raises(io.SpherejaxFileError) as raised:
+        envi.open_lazy(tmp_path / "a.reflectance.hdr", kind="reflectance", chunk_bytes=1 << 20)
+    assert fragment in str(raised.value) and "\n" not in str(raised.value)
+    with pytest.raises(io.SpherejaxFileError, match=re.escape(fragment)):
+        sj.open_corrected(tmp_path / "a")

@@ -177,6 +177,43 @@ class EnviWriter:
         self.abort()
 
 
+def _check_header_against_data(header_path: pathlib.Path, image, kind: str) -> None:
+    """Refuse a header whose sizes, offset or data type do not describe its data file as
+    spherejax writes it (float32, no gaps): Spectral Python maps such a file to None or past its
+    end (samples 2e6, header offset -100 or 1e11, data type 6 raised AttributeError here)."""
+    metadata = image.metadata
+    expected = f"a float32 ENVI {kind} image written by spherejax correct --format envi"
+    fields = {}
+    for name in ("samples", "lines", "bands", "header offset", "data type"):
+        try:
+            fields[name] = int(metadata.get(name, "0" if name == "header offset" else ""))
+        except ValueError:
+            raise SpherejaxFileError(header_path, f"has {name} = {metadata.get(name)!r}", f"{expected}: an integer") from None
+    for name in ("samples", "lines", "bands"):
+        if fields[name] < 1:
+            raise SpherejaxFileError(header_path, f"has {name} = {fields[name]}", f"{expected}: {name} >= 1")
+    if fields["header offset"] < 0:
+        raise SpherejaxFileError(header_path, f"has header offset = {fields['header offset']}", f"{expected}: an offset >= 0")
+    if fields["data type"] != 4:
+        from spectral.io.envi import envi_to_dtype  # ENVI's data type codes, Spectral Python's table
+
+        code = str(fields["data type"])
+        held = np.dtype(envi_to_dtype[code]).name if code in envi_to_dtype else "unknown"
+        raise SpherejaxFileError(header_path, f"holds {held} pixels (data type = {code})", f"float32 {kind} (data type = 4)")
+    data_path = pathlib.Path(image.filename)
+    try:
+        size = data_path.stat().st_size
+    except OSError as error:
+        raise SpherejaxFileError(data_path, f"cannot be read: {error.strerror or error}", f"the data file of {header_path}") from None
+    needed = fields["header offset"] + fields["samples"] * fields["lines"] * fields["bands"] * 4
+    if size != needed:
+        raise SpherejaxFileError(
+            data_path, f"holds {size} bytes where its header ({header_path.name}: {fields['lines']} lines x "
+            f"{fields['samples']} samples x {fields['bands']} bands of float32 after {fields['header offset']} bytes) "
+            f"describes {needed}", expected,
+        )
+
+
 def open_lazy(header_path, *, kind: str, chunk_bytes: int, shape: tuple[int, int] | None = None):
     """An ENVI output as (dask array (H, W, C) float32 with NaN for the data ignore value,
     wavelengths in nm or None, attributes); `kind` names it in messages ("reflectance", "lab").
@@ -199,9 +236,17 @@ def open_lazy(header_path, *, kind: str, chunk_bytes: int, shape: tuple[int, int
         raise SpherejaxFileError(header_path, f"cannot be read as ENVI: it starts with {magic!r}", f"{expected} (a header starting with ENVI)")
     try:
         image = spectral.open_image(str(header_path))
-        pixels = image.open_memmap(interleave="bip", writable=False)
     except Exception as error:  # noqa: BLE001 -- Spectral Python raises many kinds for a bad header
         raise SpherejaxFileError(header_path, f"cannot be read as ENVI: {' '.join(str(error).split())}", expected) from None
+    _check_header_against_data(header_path, image, kind)
+    try:
+        pixels = image.open_memmap(interleave="bip", writable=False)
+    except Exception as error:  # noqa: BLE001 -- numpy's memmap refuses in several ways
+        pixels, reason = None, " ".join(str(error).split())
+    else:
+        reason = "Spectral Python could not map it"
+    if pixels is None:  # Spectral Python returns None for a layout it cannot map
+        raise SpherejaxFileError(header_path, f"cannot be read as ENVI: {reason}", expected)
     if pixels.dtype != np.float32:
         raise SpherejaxFileError(header_path, f"holds {pixels.dtype} pixels", f"float32 {kind} (data type = 4)")
     if shape is not None and tuple(pixels.shape[:2]) != tuple(shape):

@@ -1,0 +1,85 @@
+"""The catalogue of bad inputs, round three (the issue "Reliability, round three"): values the
+Python API took and silently changed, each refused now with a ValueError naming the argument.
+
+The round's file reproducers live beside the code they test: `measure` outputs that are inputs,
+CGATS names readers merge and CSV formulas in tests/test_measure_cli.py, damaged ENVI headers in
+tests/test_io_envi.py, the ownership check itself in tests/test_io_ownership.py.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import spherejax as sj
+
+H, W, B = 4, 5, 3
+
+
+def _calibration(**changes) -> sj.Calibration:
+    fields = dict(dark=np.zeros((H, W, B), np.float32), white=np.ones((H, W, B), np.float32),
+                  patch=np.ones((H, W), bool), coeffs=np.zeros((B, 4), np.float32),
+                  wiener=np.full((31, B), 1.0 / B, np.float32))
+    fields.update(changes)
+    return sj.Calibration(**fields)
+
+
+@pytest.mark.parametrize("field, value", [
+    ("dark", np.zeros((H, W, B), np.complex64)), ("white", np.ones((H, W, B)) + 1j),
+    ("coeffs", np.zeros((B, 4)) + 0j), ("wiener", np.full((31, B), 0.3 + 0.1j)),
+    ("wiener_offset", np.zeros(31, np.complex128)),
+])
+def test_a_complex_calibration_array_is_refused(field, value):
+    """sj.Calibration(dark=complex) kept only the real part, without a word."""
+    with pytest.raises(ValueError, match=rf"^{field}: expected real numbers, got complex(64|128) "):
+        _calibration(**{field: value})
+
+
+def test_complex_responses_or_raw_are_refused():
+    """sj.fit_wiener(V + 5j V, R) fitted the real part; correct likewise."""
+    rng = np.random.default_rng(0)
+    V, R = rng.uniform(0.1, 1.0, (40, 16)), rng.uniform(0.1, 0.9, (40, 31))
+    with pytest.raises(ValueError, match=r"^responses: expected real numbers, got complex128 "):
+        sj.fit_wiener(V + 5j * V, R)
+    with pytest.raises(ValueError, match=r"^reflectances: expected real numbers"):
+        sj.fit_wiener(V, R + 0j)
+    with pytest.raises(ValueError, match=r"^raw: expected real numbers"):
+        sj.correct(np.ones((H, W, B), np.complex64), _calibration())
+
+
+@pytest.mark.parametrize("shape", [(H, W, 0), (0, W, B), (H, 0, B)])
+def test_a_calibration_without_bands_or_pixels_is_refused_naming_dark(shape):
+    """A 0-band calibration failed inside correct with "zero-size array to reduction operation
+    min", naming no argument."""
+    bands = shape[2]
+    with pytest.raises(ValueError, match=rf"^dark: expected at least one pixel and one band, got shape \({shape[0]}, {shape[1]}, {bands}\)"):
+        sj.Calibration(dark=np.zeros(shape, np.float32), white=np.ones(shape, np.float32),
+                       patch=np.ones(shape[:2], bool), coeffs=np.zeros((bands, 4), np.float32),
+                       wiener=np.zeros((31, bands), np.float32))
+
+
+OVERFLOW_SCRIPT = """
+import numpy as np, spherejax as sj
+rng = np.random.default_rng(0)
+V, R = rng.uniform(0.1, 1.0, (40, 16)), rng.uniform(0.1, 0.9, (40, 31))
+try:
+    sj.fit_wiener(V * 1e300, R)
+except ValueError as error:
+    print(error)
+fit = sj.fit_wiener(V * 1e30, R)  # inside float32's range: fitted
+print(np.isfinite(np.asarray(fit.matrix)).all())
+"""
+
+
+def test_float64_values_beyond_float32_are_named_not_called_non_finite():
+    """With float64 off (JAX's default; this suite turns it on, hence a child process),
+    sj.fit_wiener(V * 1e300, R) said "target 0 has a non-finite value" of values all finite."""
+    done = subprocess.run([sys.executable, "-c", OVERFLOW_SCRIPT], capture_output=True, text=True, timeout=300,
+                          env={"JAX_ENABLE_X64": "0", "JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr
+    message, fitted = done.stdout.strip().splitlines()
+    assert message.startswith("responses: values up to 1e+300 overflow float32 (largest 3.4e+38)")
+    assert "jax_enable_x64" in message and fitted == "True"
