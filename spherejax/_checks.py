@@ -160,6 +160,21 @@ def require_mask_or_weights(name: str, mask, shape: tuple[int, ...]) -> None:
         raise ValueError(f"{name}: the weights select no pixel; expected at least one weight > 0")
 
 
+def require_finite(name: str, x) -> None:
+    """Raise if a concrete `x` holds a NaN or an infinity (tracers, under jit, grad or vmap, pass
+    unchecked). For parameters, not per-pixel data: data with NaN is flagged pixel by pixel."""
+    if isinstance(x, jax.core.Tracer):
+        return
+    values = np.asarray(x)
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        index = np.unravel_index(int(bad[0]), values.shape)
+        raise ValueError(
+            f"{name}: {bad.size} entries are not finite (the first, {values[index]}, at {tuple(int(i) for i in index)}); "
+            "expected finite numbers"
+        )
+
+
 def is_concrete(x) -> bool:
     """True when `x` holds values now (not a tracer inside jit, grad or vmap)."""
     return not isinstance(x, jax.core.Tracer)

@@ -53,6 +53,11 @@ QUALITY_WHITE_NOT_ABOVE_DARK = 4  #: white <= dark (or not finite) in some band:
 QUALITY_PATCH_UNUSABLE = 8  #: the white-patch ratio of some band is not finite: whole image bad
 
 
+#: The calibration's parameters every pixel goes through: a NaN or infinity in any of them makes
+#: every output NaN while the quality flags, which describe pixels, stay 0. Refused when concrete.
+PARAMETERS = ("coeffs", "wiener", "wiener_offset")
+
+
 class Calibration(eqx.Module):
     """Everything `correct` needs, as a pytree (its arrays are leaves; the names are static).
 
@@ -118,6 +123,8 @@ class Calibration(eqx.Module):
         )
         if self.saturation is not None and not float(self.saturation) > 0:
             raise ValueError(f"saturation: expected a level > 0 or None, got {self.saturation!r}")
+        for name in PARAMETERS:
+            _checks.require_finite(name, getattr(self, name))
 
     @property
     def bands(self) -> int:

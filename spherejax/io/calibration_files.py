@@ -603,7 +603,7 @@ class CalibrationFile:
             if patch != dark[:2]:
                 raise ValueError(f"patch: expected shape {dark[:2]} (one entry per image pixel), got {patch}")
             self.image_shape, self.bands = dark[:2], dark[2]
-            for name in ("wiener", "wiener_offset"):
+            for name in ("coeffs", "wiener", "wiener_offset"):  # pipeline.PARAMETERS
                 # Small arrays read whole: a NaN or infinity there makes every reflectance NaN.
                 bad = np.flatnonzero(~np.isfinite(np.asarray(self._value(name), np.float64)))
                 if bad.size:

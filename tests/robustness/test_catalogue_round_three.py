@@ -8,9 +8,11 @@ tests/test_io_envi.py, the ownership check itself in tests/test_io_ownership.py.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 
@@ -83,3 +85,18 @@ def test_float64_values_beyond_float32_are_named_not_called_non_finite():
     message, fitted = done.stdout.strip().splitlines()
     assert message.startswith("responses: values up to 1e+300 overflow float32 (largest 3.4e+38)")
     assert "jax_enable_x64" in message and fitted == "True"
+
+
+@pytest.mark.parametrize("field, shape, index, value", [
+    ("coeffs", (B, 4), (1, 0), np.nan), ("wiener", (31, B), (4, 2), np.inf), ("wiener_offset", (31,), (7,), -np.inf),
+])
+def test_a_calibration_with_a_parameter_not_finite_is_refused(field, shape, index, value):
+    """sj.Calibration(coeffs with one NaN) was taken: every reflectance NaN, every quality flag 0,
+    against the rule that a pixel is NaN exactly where quality flags it. Under jit the values
+    are traced and pass, as every value of the per-pixel path does."""
+    array = np.zeros(shape, np.float32)
+    array[index] = value
+    with pytest.raises(ValueError, match=rf"^{field}: 1 entries are not finite \(the first, {value}, at {re.escape(str(index))}\)"):
+        _calibration(**{field: array})
+    traced = jax.jit(lambda a: _calibration(**{field: a}).bands)(array)
+    assert traced == B

@@ -192,6 +192,18 @@ def _nan_offset(header, arrays):
     arrays["wiener_offset"][4] = np.nan
 
 
+def _nan_coefficient(header, arrays):
+    """Round three, reproducer 5: one Stage II coefficient NaN made every reflectance NaN while
+    correct said "done", exit 0, every quality flag 0."""
+    arrays["coeffs"] = arrays["coeffs"].copy()
+    arrays["coeffs"][5, 0] = np.nan
+
+
+def _infinite_wiener(header, arrays):
+    arrays["wiener"] = arrays["wiener"].copy()
+    arrays["wiener"][10, 3] = np.inf
+
+
 def _correct_into_read_only_out(f: Folder):
     """An earlier batch in OUT, then OUT made read-only: --resume on a new input."""
     catalogue.baseline_batch(f)
@@ -220,6 +232,10 @@ ROUND_TWO: list[Case] = [
     _correct_with_calibration("correct-calibration-wiener-offset-wrong-shape",
                               _offset_forged(_wrong_shape_offset), "wiener_offset"),
     _correct_with_calibration("correct-calibration-wiener-offset-nan", _offset_forged(_nan_offset), "wiener_offset"),
+    _correct_with_calibration("correct-calibration-coeffs-nan", _offset_forged(_nan_coefficient),
+                              "coeffs: 1 entries are not finite"),
+    _correct_with_calibration("correct-calibration-wiener-inf", _offset_forged(_infinite_wiener),
+                              "wiener: 1 entries are not finite"),
     # ---- environment: a read-only OUT, a full disk at several points
     Case("correct-into-read-only-out", "correct", _correct_into_read_only_out, "Operation not permitted", read_only="out"),
     correct_case("correct-full-disk-at-the-first-output", lambda f: f.cube("in/big.tif"), "could not be written",
