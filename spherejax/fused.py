@@ -79,7 +79,10 @@ def _try_register(register: Callable) -> str | None:
     handler XLA refuses would then fail whatever first starts the backend instead of here.
     XLA refuses a handler compiled against a newer FFI API than its own (setup.py).
     """
-    jax.devices("cpu")
+    try:
+        jax.devices("cpu")
+    except RuntimeError as error:  # JAX_PLATFORMS without "cpu" (a GPU-only process)
+        return f"the fused kernel runs on XLA's CPU backend, which this process does not have ({error})"
     try:
         register(TARGET, _fused_correct.handler(), platform="cpu")
     except Exception as error:  # noqa: BLE001 -- XLA's refusal (JaxRuntimeError) or any other: the kernel is then not used

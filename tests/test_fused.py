@@ -459,3 +459,16 @@ def test_the_kernel_is_compiled_against_ffi_headers_the_running_jaxlib_takes(mon
     assert (major, minor) >= (0, 3)  # jaxlib 0.10.2's
     assert fused.unavailable_reason() is None
     assert fused.enabled()
+
+
+@pytest.mark.skipif(not fused.built(), reason="the fused kernel was not built")
+def test_a_process_without_the_cpu_backend_is_told_why_not_an_error(monkeypatch):
+    """JAX_PLATFORMS=cuda (a GPU-only process) has no CPU backend: jax.devices("cpu") raises,
+    and registering the kernel must say so instead of failing `correct`."""
+    def no_cpu(backend=None):
+        raise RuntimeError("Unknown backend cpu. Available: ['cuda']")
+
+    monkeypatch.setattr(jax, "devices", no_cpu)
+    reason = fused._try_register(lambda *args, **kwargs: pytest.fail("registered without a CPU backend"))
+    assert reason == ("the fused kernel runs on XLA's CPU backend, which this process does not have "
+                      "(Unknown backend cpu. Available: ['cuda'])")
