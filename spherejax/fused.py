@@ -90,11 +90,13 @@ def _try_register(register: Callable) -> str | None:
 
         major, minor = _fused_correct.ffi_api_version()
         message = " ".join(str(error).split("\n")[0].split()).rstrip(".")
-        return (
+        reason = (
             f"the fused kernel (XLA FFI API {major}.{minor}) was refused by jaxlib {jaxlib.__version__}: {message}; "
             "correct runs its jax.numpy path (the same numbers, slower). Rebuild the kernel against this jaxlib: "
             "pip install --no-build-isolation --force-reinstall --no-deps spherejax (from its source)"
         )
+        _log.warning("%s", reason)  # unexpected, and it costs speed: said once (`_registration` caches)
+        return reason
     return None
 
 
@@ -103,10 +105,7 @@ def _registration() -> str | None:
     """Registers the kernel once per process: None if registered, else the reason it is not."""
     if _fused_correct is None:
         return "the fused kernel was not built (no C++17 compiler or no jaxlib headers at install: setup.py)"
-    reason = _try_register(jax.ffi.register_ffi_target)
-    if reason is not None:
-        _log.warning("%s", reason)
-    return reason
+    return _try_register(jax.ffi.register_ffi_target)
 
 
 def _register() -> bool:

@@ -429,7 +429,9 @@ def test_a_kernel_the_running_jaxlib_refuses_runs_the_plain_path(monkeypatch, ca
         assert (name, platform) == (fused.TARGET, "cpu")
         raise RuntimeError(xla_refusal)
 
-    reason = fused._try_register(refuse)
+    with caplog.at_level("WARNING", logger="spherejax.fused"):
+        reason = fused._try_register(refuse)
+    assert caplog.messages == [reason]  # said once, on the log, when it happens
     major, minor = fused._fused_correct.ffi_api_version()
     assert reason.startswith(f"the fused kernel (XLA FFI API {major}.{minor}) was refused by jaxlib ")
     assert "the handler's API version (0.5) is incompatible with the framework's API version (0.3)" in reason
@@ -462,13 +464,15 @@ def test_the_kernel_is_compiled_against_ffi_headers_the_running_jaxlib_takes(mon
 
 
 @pytest.mark.skipif(not fused.built(), reason="the fused kernel was not built")
-def test_a_process_without_the_cpu_backend_is_told_why_not_an_error(monkeypatch):
+def test_a_process_without_the_cpu_backend_is_told_why_not_an_error(monkeypatch, caplog):
     """JAX_PLATFORMS=cuda (a GPU-only process) has no CPU backend: jax.devices("cpu") raises,
     and registering the kernel must say so instead of failing `correct`."""
     def no_cpu(backend=None):
         raise RuntimeError("Unknown backend cpu. Available: ['cuda']")
 
     monkeypatch.setattr(jax, "devices", no_cpu)
-    reason = fused._try_register(lambda *args, **kwargs: pytest.fail("registered without a CPU backend"))
+    with caplog.at_level("WARNING", logger="spherejax.fused"):
+        reason = fused._try_register(lambda *args, **kwargs: pytest.fail("registered without a CPU backend"))
+    assert caplog.messages == []  # expected there: nothing to warn about
     assert reason == ("the fused kernel runs on XLA's CPU backend, which this process does not have "
                       "(Unknown backend cpu. Available: ['cuda'])")
