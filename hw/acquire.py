@@ -137,8 +137,10 @@ class Journal:
     def records(self) -> list[dict]:
         if not self.path.is_file():
             return []
+        from spherejax import io
+
         records = []
-        for line in self.path.read_bytes().split(b"\n"):
+        for line in io.read_lines(self.path):  # streamed: a journal truncated to gigabytes is not read whole
             try:
                 # jsontext: a damaged line (not UTF-8, nested thousands deep) is skipped like a
                 # torn one; json.loads raised RecursionError on deep nesting.
@@ -150,8 +152,11 @@ class Journal:
         return records
 
     def append(self, record: dict) -> None:
-        # O_NOFOLLOW: a symbolic link in the journal's place must not redirect the append.
-        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+        from spherejax import io
+
+        # open_regular: a symbolic link in the journal's place must not redirect the append (O_NOFOLLOW),
+        # and a FIFO there must not make the acquisition wait for a reader.
+        fd = io.open_regular(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
         try:
             size = os.fstat(fd).st_size
             prefix = b""

@@ -178,15 +178,9 @@ def _is_hidden(path: pathlib.Path) -> bool:
     return path.name.startswith(".")
 
 
-#: What a file that is neither a regular file nor a folder is, by its stat mode. Such a file is
-#: refused by what it is and never opened: opening a FIFO for reading blocks until a writer comes,
-#: a character device such as /dev/zero reads forever.
-_SPECIAL_FILES = (
-    (stat.S_ISFIFO, "a FIFO"),
-    (stat.S_ISSOCK, "a socket"),
-    (stat.S_ISCHR, "a character device"),
-    (stat.S_ISBLK, "a block device"),
-)
+# A file that is neither a regular file nor a folder (io.plain_files.SPECIAL_FILES) is refused by
+# what it is and never opened: opening a FIFO for reading blocks until a writer comes, a character
+# device such as /dev/zero reads forever.
 _EXPECTED_INPUT = "a cube file or a folder"
 
 _Identity = tuple[int, int]  # (st_dev, st_ino): one file or folder, however many names it has
@@ -196,17 +190,9 @@ def _identity(st: os.stat_result) -> _Identity:
     return (st.st_dev, st.st_ino)
 
 
-def _file_kind(mode: int) -> str:
-    """What a file that is not a regular file is: "a FIFO", "a socket", ..., "a folder"."""
-    for is_kind, what in _SPECIAL_FILES:
-        if is_kind(mode):
-            return what
-    return "a folder" if stat.S_ISDIR(mode) else "not a regular file"
-
-
 def _special_file_problem(path, mode: int) -> str:
     """"PATH: is a FIFO (expected a cube file or a folder)" for a FIFO, socket or device."""
-    return str(io.SpherejaxFileError(path, f"is {_file_kind(mode)}", _EXPECTED_INPUT))
+    return str(io.SpherejaxFileError(path, f"is {io.file_kind(mode)}", _EXPECTED_INPUT))
 
 
 def _stat_problem(path: pathlib.Path, error: OSError) -> str:
@@ -512,7 +498,7 @@ def input_checksum(spec: InputSpec, max_bytes: tuple[int, str] | None = None) ->
         with open(fd, "rb") as handle:
             mode = os.fstat(fd).st_mode
             if not stat.S_ISREG(mode):
-                raise io.SpherejaxFileError(file, f"is {_file_kind(mode)}", "a cube file")
+                raise io.SpherejaxFileError(file, f"is {io.file_kind(mode)}", "a cube file")
             size = os.fstat(fd).st_size
             if max_bytes is not None and size > max_bytes[0]:
                 raise io.SpherejaxFileError(
@@ -810,7 +796,8 @@ def read_manifest(out_root) -> dict[str, dict]:
     records: dict[str, dict] = {}
     if not path.is_file():
         return records
-    for line in path.read_bytes().split(b"\n"):
+    # Streamed: a manifest truncated up to gigabytes (sparse, no newline) was read whole.
+    for line in io.read_lines(path):
         try:
             record = json.loads(line)
         except (ValueError, RecursionError):  # RecursionError: arrays nested thousands deep
@@ -858,7 +845,8 @@ class Manifest:
         # O_NOFOLLOW: a symbolic link planted as OUT's manifest must not make us append to the
         # file it points at, outside OUT (tests/robustness/test_security.py).
         try:
-            self.fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+            # open_regular: a FIFO in the manifest's place made `--resume` wait forever for a reader.
+            self.fd = io.open_regular(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
         except OSError as error:
             raise BatchError(self.path, f"cannot be opened: {_link_or(error)}", "a regular file inside OUT") from None
         # A run killed mid-write may have left a line without its newline: end it, so the next
@@ -895,7 +883,8 @@ class OutputLock:
             try:
                 # O_NOFOLLOW: the lock is written (the holder's pid); a symbolic link planted in
                 # its place must not redirect that write to a file outside OUT.
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+                # open_regular: a FIFO in the lock's place made `correct` wait forever on its read.
+                fd = io.open_regular(self.path, os.O_RDWR | os.O_CREAT)
             except OSError as error:
                 raise BatchError(self.path, f"cannot be created: {_link_or(error)}", "a regular file in a writable OUT") from None
             try:
@@ -956,7 +945,7 @@ def _remove_temporaries(out_root: pathlib.Path) -> int:
 
 def _sha256_file(path: pathlib.Path) -> str | None:
     try:
-        with open(path, "rb") as handle:
+        with open(io.open_regular(path, os.O_RDONLY), "rb") as handle:  # a FIFO there: None, at once
             return hashlib.file_digest(handle, "sha256").hexdigest()
     except OSError:
         return None

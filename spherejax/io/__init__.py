@@ -140,6 +140,7 @@ from __future__ import annotations
 from .errors import CalibrationFileError, SessionError, SpherejaxFileError
 from .atomic import is_temp_sibling, temp_sibling
 from .ownership import refuse_overlaps
+from .plain_files import file_kind, open_regular, read_lines
 from .frames import (
     AtomicImageWriter,
     frame_spec,
@@ -193,6 +194,9 @@ __all__ = [
     "temp_sibling",
     "is_temp_sibling",
     "refuse_overlaps",
+    "file_kind",
+    "open_regular",
+    "read_lines",
     "write_simulated_session",
     "SpherejaxFileError",
     "SessionError",

@@ -8,7 +8,9 @@ tests/test_io_envi.py, the ownership check itself in tests/test_io_ownership.py.
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 import subprocess
 import sys
 
@@ -100,3 +102,28 @@ def test_a_calibration_with_a_parameter_not_finite_is_refused(field, shape, inde
         _calibration(**{field: array})
     traced = jax.jit(lambda a: _calibration(**{field: a}).bands)(array)
     assert traced == B
+
+
+@pytest.mark.parametrize("planted", [".spherejax.lock", "manifest.jsonl"])
+def test_a_fifo_in_place_of_the_lock_or_the_manifest_is_refused_at_once(cal, tmp_path, planted):
+    """`mkfifo OUT/.spherejax.lock` made `correct` wait forever (a read of the lock), and
+    `mkfifo OUT/manifest.jsonl` made `--resume` wait forever (an open for appending). Now one
+    line naming the file and what it is, at once; the FIFO is left as it was."""
+    from spherejax import io
+    from tests.batch_support import NAMES, frame
+
+    (tmp_path / "in").mkdir()
+    io.write_frame(tmp_path / "in" / "a.tif", frame(np.random.default_rng(3)), channel_names=NAMES)
+    out = tmp_path / "out"
+    out.mkdir()
+    os.mkfifo(out / planted)
+    command = [sys.executable, "-m", "spherejax.cli", "-q", "correct", "-c", str(cal), str(tmp_path / "in"),
+               "-o", str(out), "--resume"]
+    done = subprocess.run(command, env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert str(out / planted) in lines[0] and "it is a FIFO" in lines[0], lines[0]
+    assert stat.S_ISFIFO(os.lstat(out / planted).st_mode)
+    assert not (out / "a.reflectance.exr").exists()
