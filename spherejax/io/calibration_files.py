@@ -21,7 +21,8 @@ import pydantic
 
 from .. import jsontext
 from ..grid import N_WAVELENGTHS
-from ..pipeline import Calibration
+from .._checks import require_finite
+from ..pipeline import PARAMETERS, Calibration
 from ..uncertainty import NoiseModel
 from .atomic import atomic_file
 from .documents import (
@@ -603,14 +604,10 @@ class CalibrationFile:
             if patch != dark[:2]:
                 raise ValueError(f"patch: expected shape {dark[:2]} (one entry per image pixel), got {patch}")
             self.image_shape, self.bands = dark[:2], dark[2]
-            for name in ("coeffs", "wiener", "wiener_offset"):  # pipeline.PARAMETERS
+            for name in PARAMETERS:
                 # Small arrays read whole: a NaN or infinity there makes every reflectance NaN.
-                bad = np.flatnonzero(~np.isfinite(np.asarray(self._value(name), np.float64)))
-                if bad.size:
-                    raise ValueError(
-                        f"{name}: {bad.size} entries are not finite (the first at flat index "
-                        f"{int(bad[0])}); expected finite numbers"
-                    )
+                # The check Calibration makes when built, here before any frame is read.
+                require_finite(name, self._value(name))
             from ..pipeline import patch_bounding_box
 
             self.patch_box = patch_bounding_box(self._value("patch"))
