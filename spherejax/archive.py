@@ -70,12 +70,24 @@ already taken by another input of the batch, fails.
 
 Safety
 ------
+Before any work, every output is checked against every input and the calibration (resolved
+paths, and (st_dev, st_ino) where the file exists, so links and `..` hide nothing), and every
+output name already taken by a file is checked against what spherejax owns: the outputs OUT's
+manifest records, and those a killed run claimed in its lock file (`OutputLock`). A file
+spherejax did not write refuses the batch in one line naming it; it is never replaced, and
+clean-up (a failed input's outputs, the other format's files) removes only owned files
+(`_claim_outputs`).
+
 Every output is written under a temporary name beside it (created with O_EXCL) and renamed into
-place when complete. An input that fails has none of its outputs left in OUT. OUT/manifest.jsonl
+place when complete. An input that fails has none of its outputs left in OUT. An input's hash and
+its pixels are one file: the name must still lead to the file hashed (st_dev, st_ino) once the
+pixels are read, else the input fails (a file swapped in mid-correction). OUT/manifest.jsonl
 gets one JSON line per finished input (`FileResult.to_json`), appended with a single write and
 fsync: the last line of an input wins. Without --resume an OUT holding a manifest is refused.
 With it, an input is skipped when its last line is "done" with the same input and calibration
-checksums and every output is present with the recorded SHA-256; anything else is redone.
+checksums, the same software version and settings (`output_settings`: illuminant, format, EXR
+compression) and every output is present with the recorded SHA-256; anything else is redone.
+Hashing and reading the manifest are safe points (below): a signal never waits for them.
 
 OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run and the holder's pid and
 host (for the message that refuses a second run). The kernel drops the flock when a process dies,
@@ -159,6 +171,9 @@ class InputSpec:
       band_centres_nm: for "bands", the centre of each file.
       instrument_id: a session's instrument, checked against the calibration's; None otherwise.
       problem: set when discovery already knows the input is bad; it then fails with this reason.
+      owned: the files of OUT (paths relative to OUT, POSIX) at this input's output names that
+        OUT's manifest records as written by spherejax: the only ones its clean-up may remove
+        (set by `run_batch`; empty for a fresh OUT).
     """
 
     name: str
@@ -168,6 +183,7 @@ class InputSpec:
     band_centres_nm: tuple[int, ...] = ()
     instrument_id: str | None = None
     problem: str | None = None
+    owned: tuple[str, ...] = ()
 
 
 def _common_folder(paths: Sequence[pathlib.Path]) -> pathlib.Path:
@@ -432,7 +448,8 @@ class FileResult:
     """What became of one input: a manifest line (`to_json`) plus timing for progress.
 
     status is "done" or "failed" (with a one-line `reason`); outputs maps each output's path
-    relative to OUT to its SHA-256 (hex).
+    relative to OUT to its SHA-256 (hex); settings are the options that shape the outputs
+    (`output_settings`), which `--resume` compares.
     """
 
     name: str
@@ -443,6 +460,7 @@ class FileResult:
     calibration_checksum: str | None = None
     software_version: str | None = None
     reason: str | None = None
+    settings: dict | None = None
     megapixels: float = 0.0
     seconds: float = 0.0
 
@@ -456,6 +474,8 @@ class FileResult:
             "software_version": self.software_version,
             "status": self.status,
         }
+        if self.settings is not None:
+            record["settings"] = self.settings
         if self.reason is not None:
             record["reason"] = self.reason
         return record
@@ -482,7 +502,25 @@ def input_checksum(spec: InputSpec, max_bytes: tuple[int, str] | None = None) ->
     """SHA-256 (hex) over the bytes of the input's files, in order. A file larger than
     `max_bytes` is refused before any read (a sparse file claiming a terabyte would be read for
     hours). `max_bytes`: (the limit, the cube it is for, in words), `max_input_bytes`."""
+    return _hash_input(spec, max_bytes)[0]
+
+
+#: What says a name still leads to the file hashed: (st_dev, st_ino). os.replace (how a file is
+#: swapped for another, or a copy lands) gives the name another inode. Bytes appended in place (a
+#: copy still arriving) leave the pixels read those hashed (the image is what its header points
+#: at); the hash recorded then differs from the file's, so --resume corrects it again.
+_FileState = tuple[int, int]
+
+
+def _file_state(st: os.stat_result) -> _FileState:
+    return (st.st_dev, st.st_ino)
+
+
+def _hash_input(spec: InputSpec, max_bytes: tuple[int, str] | None = None) -> tuple[str, tuple[_FileState, ...]]:
+    """(SHA-256 hex over the input's files, each file's `_FileState` as hashed): the state lets
+    `_check_unchanged` prove afterwards that the pixels read came from the bytes hashed."""
     digest = hashlib.sha256()
+    states = []
     for file in spec.files:
         if not _utf8_name(file):
             # OpenImageIO takes paths as UTF-8 text only; refused here, before any read, in words
@@ -496,17 +534,45 @@ def input_checksum(spec: InputSpec, max_bytes: tuple[int, str] | None = None) ->
         # by what it is, before any read.
         fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
         with open(fd, "rb") as handle:
-            mode = os.fstat(fd).st_mode
-            if not stat.S_ISREG(mode):
-                raise io.SpherejaxFileError(file, f"is {io.file_kind(mode)}", "a cube file")
-            size = os.fstat(fd).st_size
-            if max_bytes is not None and size > max_bytes[0]:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise io.SpherejaxFileError(file, f"is {io.file_kind(st.st_mode)}", "a cube file")
+            if max_bytes is not None and st.st_size > max_bytes[0]:
                 raise io.SpherejaxFileError(
-                    file, f"is {size} bytes, more than {max_bytes[1]} can take ({max_bytes[0]} at most)", "a cube file"
+                    file, f"is {st.st_size} bytes, more than {max_bytes[1]} can take ({max_bytes[0]} at most)",
+                    "a cube file",
                 )
-            for block in iter(lambda: handle.read(1 << 20), b""):
-                digest.update(block)
-    return digest.hexdigest()
+            _hash_stream(handle, digest)
+            states.append(_file_state(st))
+    return digest.hexdigest(), tuple(states)
+
+
+def _hash_stream(handle, digest) -> None:
+    """Feed a file to `digest` in 1 MiB blocks, each a safe point (`interrupt.check`): hashing
+    gigabytes never keeps a signal waiting (hashlib.file_digest cannot be interrupted)."""
+    while block := handle.read(1 << 20):
+        interrupt.check()
+        digest.update(block)
+
+
+def _check_unchanged(spec: InputSpec, states: tuple[_FileState, ...]) -> None:
+    """Raise unless each of the input's files is still the file `_hash_input` hashed.
+
+    The hash is taken through one open and the pixels are read through OpenImageIO's own: an
+    input replaced (os.replace) or rewritten in between gave outputs of the new pixels recorded
+    under the old file's hash, which --resume then trusted. Checked once the pixels are read and
+    before the outputs go into place, so such an input fails and leaves nothing.
+    """
+    for file, state in zip(spec.files, states, strict=True):
+        try:
+            now = _file_state(os.stat(file))
+        except OSError as error:
+            now = error.strerror
+        if now != state:
+            raise io.SpherejaxFileError(
+                file, "was replaced while it was corrected: its outputs would not match its hash",
+                "an input left alone until it is corrected; run again with --resume",
+            )
 
 
 def _utf8_name(path) -> bool:
@@ -601,16 +667,18 @@ def _output_folder(out_root: pathlib.Path, name: str) -> tuple[pathlib.Path, lis
     return folder, created
 
 
-def _remove_outputs(out_root: pathlib.Path, name: str, keep: Sequence[str] = ()) -> None:
-    """Remove the outputs of `name` an earlier run left, but those of the kinds in `keep`: all of
+def _remove_outputs(out_root: pathlib.Path, spec: InputSpec, keep: Sequence[str] = ()) -> None:
+    """Remove the outputs of `spec` an earlier run left, but those of the kinds in `keep`: all of
     them for a failed input (the manifest says it failed), those of the other format for one just
-    corrected (the manifest lists what it wrote). Nothing is touched outside OUT."""
+    corrected (the manifest lists what it wrote). Only files OUT's manifest records as
+    spherejax's (`InputSpec.owned`) are removed: a file of the same name that spherejax never
+    wrote is the user's. Nothing is touched outside OUT."""
     root = out_root.resolve()
-    path = root / name
-    if ".." in pathlib.PurePosixPath(name).parts or not path.parent.resolve().is_relative_to(root):
+    path = root / spec.name
+    if ".." in pathlib.PurePosixPath(spec.name).parts or not path.parent.resolve().is_relative_to(root):
         return
     for kind in _ALL_OUTPUT_KINDS:
-        if kind in keep:
+        if kind in keep or f"{spec.name}.{kind}" not in spec.owned:
             continue
         output = path.parent / f"{path.name}.{kind}"
         if output.is_file() or output.is_symlink():
@@ -620,11 +688,13 @@ def _remove_outputs(out_root: pathlib.Path, name: str, keep: Sequence[str] = ())
 def _correct_into(
     cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
     attributes: dict, rows_per_strip: int | None, exr_compression: str, output_format: str = "exr",
+    before_commit: Callable[[], None] | None = None,
 ) -> dict[pathlib.Path, str]:
     """Correct `cube` strip by strip (`stripwise.correct_strips`) into its outputs in
     `output_format` (`OUTPUT_KINDS_BY_FORMAT`), each written under a temporary name and renamed
     into place once complete; on a failure the temporary files go and the outputs already
-    renamed are removed. Returns {path: SHA-256 (hex)} of every file written."""
+    renamed are removed. `before_commit` runs once every strip is written and before anything
+    is renamed: raising there leaves nothing. Returns {path: SHA-256 (hex)} of every file written."""
     from .stripwise import correct_strips
 
     kinds = OUTPUT_KINDS_BY_FORMAT[output_format]
@@ -680,6 +750,8 @@ def _correct_into(
             writers["preview"].write_rows(row0, srgb_preview(arrays["reflectance"]))
         # The last safe point: from here the outputs go into place together.
         interrupt.check()
+        if before_commit is not None:
+            before_commit()
         try:
             for output, writer in writers.items():
                 digests = writer.commit()
@@ -699,6 +771,18 @@ def _remove_empty_folders(created: list[pathlib.Path]) -> None:
             folder.rmdir()  # only if still empty: never another input's outputs
         except OSError:
             break
+
+
+def output_settings(calibration: io.CalibrationFile, output_format: str, exr_compression: str) -> dict:
+    """The options that shape an input's outputs beyond the input and the calibration: the Lab
+    illuminant in effect (the calibration's or --illuminant), the format and, for EXR, its
+    compression. Each manifest record carries them and `--resume` redoes an input whose record
+    holds other ones (`is_done`)."""
+    return {
+        "illuminant": calibration.patch_calibration.illuminant,
+        "format": output_format,
+        "exr_compression": exr_compression if output_format == "exr" else None,
+    }
 
 
 def correct_input(
@@ -733,7 +817,7 @@ def correct_input(
         calibration_checksum = calibration.header["checksum"]
         if source.problem is not None:
             raise ValueError(source.problem)
-        checksum = input_checksum(source, max_input_bytes(calibration))
+        checksum, states = _hash_input(source, max_input_bytes(calibration))
         with _open_input(source, calibration) as cube:
             attributes = {
                 "spherejax:calibration_checksum": calibration_checksum,
@@ -744,9 +828,12 @@ def correct_input(
             }
             folder, created = _output_folder(out_root, source.name)
             stem = pathlib.PurePosixPath(source.name).name
-            written = _correct_into(cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression, output_format)
+            written = _correct_into(
+                cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression, output_format,
+                before_commit=lambda: _check_unchanged(source, states),
+            )
         # An earlier run in the other format left files the manifest will no longer list.
-        _remove_outputs(out_root, source.name, keep=OUTPUT_KINDS_BY_FORMAT[output_format])
+        _remove_outputs(out_root, source, keep=OUTPUT_KINDS_BY_FORMAT[output_format])
         outputs = {
             path.resolve().relative_to(out_root.resolve()).as_posix(): digest
             for path, digest in written.items()
@@ -755,7 +842,8 @@ def correct_input(
         return FileResult(
             name=source.name, source=source.source, status="done", input_sha256=checksum,
             outputs=outputs, calibration_checksum=calibration_checksum,
-            software_version=__version__, megapixels=height * width / 1e6,
+            software_version=__version__, settings=output_settings(calibration, output_format, exr_compression),
+            megapixels=height * width / 1e6,
             seconds=time.perf_counter() - start,
         )
     except interrupt.Interrupted:
@@ -766,7 +854,7 @@ def correct_input(
         raise
     except Exception as error:  # noqa: BLE001 -- the batch boundary: one bad input never stops it
         if source.problem is None:  # (a repeated name's outputs are the other input's)
-            _remove_outputs(out_root, source.name)
+            _remove_outputs(out_root, source)
         _remove_empty_folders(created)
         reason = " ".join(str(error).split()) or type(error).__name__
         if not isinstance(error, (io.SpherejaxFileError, OSError, ValueError)):
@@ -789,22 +877,38 @@ def failed_result(source: InputSpec, reason: str) -> FileResult:
 # --------------------------------------------------------------------------- manifest and lock
 
 
-def read_manifest(out_root) -> dict[str, dict]:
-    """The last manifest record of each input name. Lines that are not whole JSON objects (a run
-    killed during its last write) are ignored."""
+def _manifest_records(out_root) -> Iterable[dict]:
+    """Every line of OUT's manifest that is a JSON object with a name, in order. Lines that are
+    not whole JSON objects (a run killed during its last write) are left out."""
     path = pathlib.Path(out_root) / MANIFEST_NAME
-    records: dict[str, dict] = {}
     if not path.is_file():
-        return records
+        return
     # Streamed: a manifest truncated up to gigabytes (sparse, no newline) was read whole.
-    for line in io.read_lines(path):
+    for line in io.read_lines(path, safe_point=interrupt.check):
         try:
             record = json.loads(line)
         except (ValueError, RecursionError):  # RecursionError: arrays nested thousands deep
             continue
         if isinstance(record, dict) and isinstance(record.get("name"), str):
-            records[record["name"]] = record
-    return records
+            yield record
+
+
+def read_manifest(out_root) -> dict[str, dict]:
+    """The last manifest record of each input name (lines that are not whole JSON objects are
+    ignored)."""
+    return {record["name"]: record for record in _manifest_records(out_root)}
+
+
+def recorded_outputs(out_root) -> set[str]:
+    """Every output path (relative to OUT) any record of OUT's manifest lists: the files in OUT
+    that spherejax wrote, and so the only ones it may replace or remove (module docstring,
+    Safety)."""
+    owned = set()
+    for record in _manifest_records(out_root):
+        outputs = record.get("outputs")
+        if isinstance(outputs, dict):
+            owned.update(name for name in outputs if isinstance(name, str))
+    return owned
 
 
 _Status = choice("done", "failed")
@@ -820,6 +924,7 @@ class _Record(Document):
     outputs: Annotated[dict[str, Sha256], Expect("an object: output path -> SHA-256")]
     calibration_checksum: Checksum | None
     software_version: NonEmptyStr | None
+    settings: Annotated[dict | None, Expect("an object: the settings that shape the outputs")] = None
     reason: NonEmptyStr | None = None
 
 
@@ -871,12 +976,23 @@ class Manifest:
 
 
 class OutputLock:
-    """An exclusive lock on OUT for one run (module docstring): flock on OUT/.spherejax.lock."""
+    """An exclusive lock on OUT for one run (module docstring): flock on OUT/.spherejax.lock.
+
+    The lock file is one JSON object: the holder's "pid" and "host", then "claims", every output
+    path (relative to OUT) the run set out to write, written and fsynced before any of them is
+    (`claim`). A run that ends removes the file; one killed (or failed) leaves it,
+    and the run that takes it over reads its claims (`claimed`): outputs put in place and never
+    recorded in the manifest (a kill between the two) are known as spherejax's, not taken for a
+    user's files in the way. They live here, not in a file of their own, because the lock file is
+    the one file a killed run is known to leave in OUT.
+    """
 
     def __init__(self, out_root: pathlib.Path):
         self.path = out_root / LOCK_NAME
         self.fd: int | None = None
         self.taken_over: str | None = None  # the previous holder, when its lock file was left
+        self.claimed: set[str] = set()  # output paths claimed by runs that left the lock file
+        self.holds_claims = False  # the file holds claims (this run's or carried over)
 
     def acquire(self) -> None:
         while True:
@@ -908,25 +1024,66 @@ class OutputLock:
             left = os.read(fd, 4096)
             if left:
                 self.taken_over = _describe_holder(left)
-            record = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, record.encode(), 0)
+                self.claimed = _read_claims(fd)
             self.fd = fd
+            self._claims: list[str] = []
+            self._write()
+            self.claim(sorted(self.claimed))  # carried over until a run ends
             return
 
-    def release(self) -> None:
+    def _write(self) -> None:
+        """The lock file's one JSON object, written over what was there (it only grows)."""
+        record = {"pid": os.getpid(), "host": socket.gethostname(), "claims": self._claims}
+        data = (json.dumps(record, ensure_ascii=False) + "\n").encode("utf-8", errors="backslashreplace")
+        if os.fstat(self.fd).st_size > len(data):  # only when taking over a longer file
+            os.ftruncate(self.fd, len(data))
+        os.pwrite(self.fd, data, 0)
+
+    def claim(self, outputs: Iterable[str]) -> None:
+        """Record, before writing them, the output paths (relative to OUT) this run may write."""
+        new = [name for name in outputs if name not in self._claims]
+        if new and self.fd is not None:
+            self._claims.extend(new)
+            self._write()
+            os.fsync(self.fd)
+            self.holds_claims = True
+
+    def release(self, keep_claims: bool = False) -> None:
+        """Give up the lock; the file goes unless `keep_claims` (a run that did not end) and it
+        holds claims."""
         if self.fd is not None:
             # Unlink while still holding the lock, so nobody locks a file that is about to go.
-            self.path.unlink(missing_ok=True)
+            if not (keep_claims and self.holds_claims):
+                self.path.unlink(missing_ok=True)
             os.close(self.fd)
             self.fd = None
+
+
+#: The most of a left lock file read for its claims: 10,000 inputs' claims take about 3 MB.
+_MAX_LOCK_BYTES = 64 << 20
+
+
+def _read_claims(fd: int) -> set[str]:
+    """The output paths a lock file left by an earlier run claims (`OutputLock`); none from a file
+    that is not such an object (torn by a kill mid-write, or not spherejax's)."""
+    size = os.fstat(fd).st_size
+    if size > _MAX_LOCK_BYTES:
+        return set()
+    try:
+        record = json.loads(os.pread(fd, size, 0))
+    except (ValueError, RecursionError):
+        return set()
+    claims = record.get("claims") if isinstance(record, dict) else None
+    return {name for name in claims if isinstance(name, str)} if isinstance(claims, list) else set()
 
 
 def _describe_holder(content: bytes) -> str:
     """The holder a lock file names, in one line (it goes into messages); never raises: the file
     may hold anything."""
+    # The holder's pid and host open the object; the claims after them may run past what was read.
+    match = re.match(rb'\{"pid": (\d+), "host": ("(?:[^"\\]|\\.)*")', content)
     try:
-        holder = json.loads(content)
+        holder = {"pid": int(match[1]), "host": json.loads(match[2])} if match else json.loads(content)
         return " ".join(f"pid {holder['pid']} on {holder['host']}".split())
     except (ValueError, TypeError, KeyError, RecursionError):
         return "another process"
@@ -946,21 +1103,32 @@ def _remove_temporaries(out_root: pathlib.Path) -> int:
 def _sha256_file(path: pathlib.Path) -> str | None:
     try:
         with open(io.open_regular(path, os.O_RDONLY), "rb") as handle:  # a FIFO there: None, at once
-            return hashlib.file_digest(handle, "sha256").hexdigest()
+            digest = hashlib.sha256()
+            _hash_stream(handle, digest)
+            return digest.hexdigest()
     except OSError:
         return None
 
 
 def is_done(record: dict | None, spec: InputSpec, out_root: pathlib.Path, calibration_checksum: str,
-            output_format: str = "exr") -> bool:
-    """True if `record` says `spec` is done with this calibration, its input is unchanged and
-    every output of `output_format` is recorded and there with its checksum (a batch resumed in
-    another format redoes its inputs)."""
+            output_format: str = "exr", settings: dict | None = None) -> bool:
+    """True if `record` says `spec` is done with this calibration, this version of spherejax and
+    these `settings` (`output_settings`; None: not compared), its input is unchanged and every
+    output of `output_format` is recorded and there with its checksum (a batch resumed in another
+    format, illuminant or compression redoes its inputs)."""
+    from . import __version__
+
     if not record or spec.problem is not None or not _is_record(record, out_root / MANIFEST_NAME):
         return False  # a line another writer or a damaged file left is redone, not trusted
     if record["status"] != "done":
         return False
     if record.get("calibration_checksum") != calibration_checksum:
+        return False
+    # Each output names the version that wrote it (spherejax:software_version): another version
+    # writes other bytes, and may compute other numbers.
+    if record.get("software_version") != __version__:
+        return False
+    if settings is not None and record.get("settings") != settings:
         return False
     expected = {f"{spec.name}.{kind}" for kind in OUTPUT_KINDS_BY_FORMAT[output_format]}
     outputs = record.get("outputs")
@@ -1041,7 +1209,9 @@ def run_batch(
         raise ValueError(f"exr_compression: expected one of {list(io.EXR_COMPRESSIONS)}, got {exr_compression!r}")
     if output_format not in OUTPUT_FORMATS:
         raise ValueError(f"output_format: expected one of {list(OUTPUT_FORMATS)}, got {output_format!r}")
-    header = load_calibration(calibration_path, illuminant).header
+    calibration = load_calibration(calibration_path, illuminant)
+    header = calibration.header
+    settings = output_settings(calibration, output_format, exr_compression)
     if out_root.exists() and not out_root.is_dir():
         raise BatchError(out_root, "is not a folder", "an output folder (OUT)")
     if not resume and (out_root / MANIFEST_NAME).exists():
@@ -1058,9 +1228,12 @@ def run_batch(
     lock = OutputLock(out_root)
     lock.acquire()
     summary = BatchSummary(taken_over=lock.taken_over)
+    ended = False
     try:
         _remove_temporaries(out_root)
         done = read_manifest(out_root) if resume else {}
+        specs = _claim_outputs(specs, out_root, calibration_path, output_format,
+                               recorded_outputs(out_root) | lock.claimed)
         manifest = Manifest(out_root)
         try:
             if on_start is not None:
@@ -1069,12 +1242,14 @@ def run_batch(
                 pending = []
                 for spec in specs:
                     interrupt.check()  # verifying what is done reads every output: a while
-                    if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"], output_format):
+                    if resume and is_done(done.get(spec.name), spec, out_root, header["checksum"], output_format, settings):
                         summary.skipped += 1
                         if on_result is not None:
                             on_result(spec, None)
                         continue
                     pending.append(spec)
+                lock.claim(f"{spec.name}.{kind}" for spec in pending if spec.problem is None
+                           for kind in OUTPUT_KINDS_BY_FORMAT[output_format])
                 options = {"illuminant": illuminant, "exr_compression": exr_compression, "output_format": output_format}
                 if executor is None:
                     results = _in_process(pending, out_root, calibration_path, options)
@@ -1094,11 +1269,104 @@ def run_batch(
                 stopped.done = summary.corrected + summary.skipped + len(summary.failed)
                 stopped.total = len(specs)
                 raise
+            ended = True
         finally:
             manifest.close()
+    except interrupt.Interrupted:
+        ended = True  # a clean stop: every input is recorded or has left nothing
+        raise
     finally:
-        lock.release()
+        # A run that ended removes its lock file, claims and all; after any other error the
+        # claims stay for the next run (as after a kill): outputs may be in place unrecorded.
+        lock.release(keep_claims=not ended)
     return summary
+
+
+def _claim_outputs(specs: list[InputSpec], out_root: pathlib.Path, calibration_path: pathlib.Path,
+                   output_format: str, owned: set[str]) -> list[InputSpec]:
+    """Check, before any work, that no output can touch a file spherejax does not own, and give
+    each input the files of OUT it may remove (`InputSpec.owned`).
+
+    Refused (BatchError, one line naming the file):
+    - an output that is an input of the batch or the calibration, however named (resolved path,
+      or (st_dev, st_ino) where it exists: `OUT` being the inputs' folder made a.tif's Lab output
+      replace the input a.lab.exr);
+    - an output name where a file already is that neither OUT's manifest nor the claims of a
+      killed run record (`owned`, `OutputLock.claimed`): a file spherejax did not write is the user's, never replaced
+      and never removed. One exception, for a manifest whose last record was torn by a kill
+      (which leaves the outputs in place unrecorded): in an OUT that holds a manifest, the
+      outputs of an input whose reflectance output names that very input as its source
+      (spherejax:source, `_written_for`) are taken as spherejax's.
+    Files of the other format at an input's names are left alone unless the manifest records them.
+    """
+    has_manifest = os.path.lexists(out_root / MANIFEST_NAME)
+    owned = set(owned)
+    protected: dict = {}
+    for spec in specs:
+        for file in spec.files:
+            protected[os.path.realpath(file)] = spec.source
+            with contextlib.suppress(OSError):
+                protected[_identity(os.stat(file))] = spec.source
+    protected[os.path.realpath(calibration_path)] = f"the calibration ({calibration_path})"
+    with contextlib.suppress(OSError):
+        protected[_identity(os.stat(calibration_path))] = f"the calibration ({calibration_path})"
+    in_the_way = []
+    claimed = []
+    for spec in specs:
+        if spec.problem is None:
+            for kind in OUTPUT_KINDS_BY_FORMAT[output_format]:
+                relative = f"{spec.name}.{kind}"
+                path = out_root / relative
+                other = protected.get(os.path.realpath(path))
+                if other is None:
+                    with contextlib.suppress(OSError):
+                        other = protected.get(_identity(os.stat(path)))
+                if other is not None:
+                    raise BatchError(
+                        path, f"is the output {relative} of {spec.source}, and also the input {other}",
+                        "an OUT whose outputs are no inputs: choose another OUT",
+                    )
+                if os.path.lexists(path) and relative not in owned:
+                    if not (has_manifest and _written_for(out_root, spec)):
+                        in_the_way.append(path)
+                    else:
+                        owned.add(relative)
+        mine = tuple(f"{spec.name}.{kind}" for kind in _ALL_OUTPUT_KINDS if f"{spec.name}.{kind}" in owned)
+        claimed.append(dataclasses.replace(spec, owned=mine) if mine else spec)
+    if in_the_way:
+        more = f" (and {len(in_the_way) - 1} more)" if len(in_the_way) > 1 else ""
+        raise BatchError(
+            in_the_way[0],
+            f"is in the way of an output{more}: OUT's manifest does not record it as written by spherejax, "
+            "so it is not replaced",
+            "no file at an output's name but spherejax's own: move it, or choose another OUT",
+        )
+    return claimed
+
+
+def _written_for(out_root: pathlib.Path, spec: InputSpec) -> bool:
+    """Whether `spec`'s reflectance output in OUT (EXR or ENVI) says spherejax wrote it from this
+    input: its spherejax:source attribute (header field "spherejax source") is `spec.source`."""
+    import OpenImageIO as oiio
+
+    base = out_root / spec.name
+    exr = base.parent / f"{base.name}.reflectance.exr"
+    with contextlib.suppress(OSError):
+        os.close(io.open_regular(exr, os.O_RDONLY))  # a FIFO or a link there: not ours, at once
+        image = oiio.ImageInput.open(str(exr))
+        if image is not None:
+            try:
+                return image.spec().get_string_attribute("spherejax:source") == spec.source
+            finally:
+                image.close()
+    header = base.parent / f"{base.name}.reflectance.hdr"
+    with contextlib.suppress(OSError):
+        fd = io.open_regular(header, os.O_RDONLY)
+        with open(fd, "rb") as handle:
+            text = handle.read(1 << 16).decode("utf-8", errors="replace")
+        wanted = f"spherejax source = {envi._header_value(spec.source)}"
+        return any(line.strip() == wanted for line in text.splitlines())
+    return False
 
 
 def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_path: pathlib.Path, options: dict):
@@ -1127,6 +1395,8 @@ __all__ = [
     "input_checksum",
     "srgb_preview",
     "read_manifest",
+    "recorded_outputs",
+    "output_settings",
     "is_done",
     "run_batch",
 ]

@@ -7,7 +7,11 @@ end.
   regular file by what it is. O_NOFOLLOW: a symbolic link in the file's place is refused too.
 - A manifest truncated up to gigabytes (`truncate -s 3G`: a sparse file of zeros, no newline) was
   read whole into memory: `read_lines` reads in chunks and drops a line longer than any record,
-  so memory stays bounded whatever the file holds.
+  so memory stays bounded whatever the file holds. It reads only the data a sparse file stores
+  (os.SEEK_DATA / os.SEEK_HOLE): a hole reads as NUL bytes, which no record holds, so the line a
+  hole falls in is dropped unread and a 3 GB hole costs nothing. A caller whose read may be long
+  passes a safe point (`spherejax.interrupt.check`), called between chunks, so that a long file
+  never keeps a signal waiting; one reading while it cleans up after a stop passes none.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from __future__ import annotations
 import errno
 import os
 import stat
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 #: What a file that is neither a regular file nor a folder is, by its stat mode.
 SPECIAL_FILES = (
@@ -61,23 +65,56 @@ def open_regular(path, flags: int, mode: int = 0o666) -> int:
     return fd
 
 
-def read_lines(path, max_line_bytes: int = MAX_LINE_BYTES, chunk_bytes: int = 1 << 20) -> Iterator[bytes]:
+def _data_extents(fd: int, size: int, chunk_bytes: int) -> Iterator[tuple[int, int]]:
+    """(offset, length) of the chunks of data a file of `size` bytes stores, in order, holes
+    left out. A file system without SEEK_DATA gives the whole file as data (its holes then read
+    as NUL bytes: the same lines come out, only slower)."""
+    offset = 0
+    while offset < size:
+        try:
+            start = os.lseek(fd, offset, os.SEEK_DATA)
+            end = min(os.lseek(fd, start, os.SEEK_HOLE), size)
+        except OSError as error:
+            if error.errno == errno.ENXIO:  # no data after offset: the rest is a hole
+                return
+            start, end = offset, size  # SEEK_DATA not supported here
+        for chunk_start in range(start, end, chunk_bytes):
+            yield chunk_start, min(chunk_bytes, end - chunk_start)
+        offset = end
+
+
+def read_lines(path, max_line_bytes: int = MAX_LINE_BYTES, chunk_bytes: int = 1 << 20,
+               safe_point: Callable[[], None] | None = None) -> Iterator[bytes]:
     """The lines of a regular file (`open_regular`), without their newlines, read in chunks; a
     line longer than `max_line_bytes` is skipped whole, so memory stays bounded by about
-    `max_line_bytes + chunk_bytes` whatever the file holds."""
-    with open(open_regular(path, os.O_RDONLY), "rb") as handle:
-        pending, skipping = b"", False
-        while chunk := handle.read(chunk_bytes):
+    `max_line_bytes + chunk_bytes` whatever the file holds. Only stored data is read: a line
+    that a hole of a sparse file falls in is dropped (module docstring). `safe_point`, if
+    given, is called before each chunk (and may raise to stop the read)."""
+    fd = open_regular(path, os.O_RDONLY)
+    try:
+        size = os.fstat(fd).st_size
+        pending, skipping, position = b"", False, 0
+        for offset, length in _data_extents(fd, size, chunk_bytes):
+            if safe_point is not None:
+                safe_point()
+            if offset != position:  # a hole since the last chunk: its line holds NUL bytes
+                pending, skipping = b"", True
+            chunk = os.pread(fd, length, offset)
+            if not chunk:
+                break  # the file shrank while read
+            position = offset + len(chunk)
             *lines, pending = (pending + chunk).split(b"\n")
             for line in lines:
-                if skipping:  # the end of an overlong line
+                if skipping:  # the end of an overlong line, or of one a hole fell in
                     skipping = False
                 elif len(line) <= max_line_bytes:
                     yield line
             if len(pending) > max_line_bytes:
                 pending, skipping = b"", True
-        if pending and not skipping:
+        if pending and not skipping and position >= size:  # (position < size: a hole ends it)
             yield pending
+    finally:
+        os.close(fd)
 
 
 __all__ = ["SPECIAL_FILES", "MAX_LINE_BYTES", "file_kind", "open_regular", "read_lines"]
