@@ -32,9 +32,14 @@ so `write_frame` also stores them as JSON in the ImageDescription tag,
 Cube (an input of `spherejax correct`, `read_cube`)
 ---------------------------------------------------
 A camera frame as above; a multi-page 16-bit TIFF with one single-channel page per band; or an
-OpenEXR with one half or float channel per band. Channel names that all read "<nm>nm" must be the
-calibration's bands and put the channels in band order. A folder of single-channel band frames
-is read with `read_band_files`.
+OpenEXR with one half or float channel per band. Channel names that all give a wavelength,
+"<nm>nm" ("400nm", "420 nm") or the spectral layout's "T.<nm>nm", must be the calibration's
+bands, each named once, and put the channels in band order whatever their order in the file.
+Otherwise a TIFF's channels (or pages) are the bands in their stored order, and an OpenEXR of
+more than one channel is refused, its channel names listed: OpenEXR stores channels sorted by
+name (c0, c1, c10, .., c2), so the order they were written in is lost. A name written twice is
+such a case: OpenImageIO writes "channel1" in place of the second. A folder of single-channel
+band frames is read with `read_band_files`.
 
 Corrected outputs (`write_exr`, `write_png`)
 ---------------------------------------------

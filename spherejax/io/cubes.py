@@ -1,5 +1,21 @@
 """Cubes (inputs of `spherejax correct`: a frame TIFF, a multi-page TIFF, an OpenEXR, or band
-files) read by rows, and the corrected outputs: float32 OpenEXR and 8-bit PNG."""
+files) read by rows, and the corrected outputs: float32 OpenEXR and 8-bit PNG.
+
+How a cube's channels map to bands (`open_cube`):
+
+- Channels that each name a wavelength, "<nm>nm" ("400nm", "420 nm", any case) or the spectral
+  layout's "T.<nm>nm" ("T.400nm", `spectral_layout`), are the bands of those wavelengths, in any
+  order in the file, read back in band order (the calibration's, else increasing wavelength).
+  They must be the calibration's bands, and no wavelength may be named twice.
+- Channels of a TIFF that do not all name a wavelength are the bands in the order they are
+  stored: a TIFF keeps the order they were written in (`write_frame`'s names, other software's
+  "R", "G", "B" or "channel0"...), as do the pages of a multi-page TIFF.
+- Channels of an OpenEXR that do not all name a wavelength are refused (one channel excepted):
+  OpenEXR stores channels sorted by name, so c0..c15 read back as c0, c1, c10..c15, c2..c9, and
+  the order they were written in is lost. A cube written with a name twice ("400nm" twice) is
+  one of them: OpenImageIO writes "channel1" (its index) in place of the second, as it does for
+  an empty name.
+"""
 
 from __future__ import annotations
 
@@ -14,6 +30,7 @@ import OpenImageIO as oiio
 from .documents import _describe_bands
 from .errors import SpherejaxFileError
 from .frames import AtomicImageWriter, _FRAME_EXPECTED, _frame_names_and_attributes, _open_checked_frame, _refuse_undecodable_text, _require_frame_shape, _spec_shape
+from .spectral_layout import wavelengths_of_channels
 
 
 _CUBE_EXPECTED = (
@@ -21,31 +38,121 @@ _CUBE_EXPECTED = (
     "float channel per band"
 )
 _BAND_NAME = re.compile(r"(\d+)\s*nm", re.IGNORECASE)
+_NAMED_BANDS_EXPECTED = (
+    'one channel per band, each named by its own wavelength: "400nm" or "T.400nm"'
+)
+#: OpenImageIO's name for a channel whose name repeats one before it (or is empty).
+_RENAMED_CHANNEL = re.compile(r"channel\d+")
+#: At most this many channel names are listed in a message, each cut to this many characters.
+_NAMES_SHOWN = 40
+_NAME_LENGTH_SHOWN = 40
 
 
-def band_centres_from_names(names: Sequence[str]) -> list[int] | None:
-    """Band centres in nm if every name reads "<integer>nm" ("400nm", "420 nm"), else None."""
+def _wavelength_of_name(name) -> float | None:
+    """The wavelength in nm a channel name gives, "<nm>nm" or "T.<nm>nm", else None (also for
+    a number too large to be finite, or one the layout's parser fails on: "T.e5nm", "T.0Hz")."""
+    text = str(name).strip()
+    match = _BAND_NAME.fullmatch(text)
+    try:
+        nm = float(match.group(1)) if match is not None else (wavelengths_of_channels([text]) or [None])[0]
+    except (ValueError, ArithmeticError):
+        return None
+    return nm if nm is not None and nm < float("inf") else None
+
+
+def band_centres_from_names(names: Sequence[str]) -> list[int | float] | None:
+    """Band centres in nm if every name gives one, "<integer>nm" ("400nm", "420 nm") or the
+    spectral layout's "T.<nm>nm" ("T.400nm", "T.412,5nm"), else None; whole numbers as int."""
     if not names:
         return None
     centres = []
     for name in names:
-        match = _BAND_NAME.fullmatch(str(name).strip())
-        if match is None:
+        nm = _wavelength_of_name(name)
+        if nm is None:
             return None
-        centres.append(int(match.group(1)))
+        centres.append(int(nm) if nm.is_integer() else nm)
     return centres
 
 
+def _show_names(names: Sequence[str]) -> str:
+    """Channel names for a message, in the file's order: "c0, c1, c10" (quoted where needed)."""
+    shown = []
+    for name in names:
+        name = name if len(name) <= _NAME_LENGTH_SHOWN else name[: _NAME_LENGTH_SHOWN - 3] + "..."
+        shown.append(name if re.fullmatch(r"[\w.,*+-]+", name) else json.dumps(name))
+    if len(shown) > _NAMES_SHOWN:
+        shown = [*shown[:_NAMES_SHOWN], f"... ({len(shown)} in all)"]
+    return ", ".join(shown)
+
+
+def _show_nm(nm: float) -> str:
+    return f"{nm:g}"
+
+
 def _channel_names(image: oiio.ImageInput) -> list[str]:
-    """Channel names as written: a TIFF keeps them only in `write_frame`'s ImageDescription JSON."""
+    """Channel names as stored: a TIFF keeps them only in `write_frame`'s ImageDescription JSON.
+
+    Only a TIFF's JSON is read: the channels of an OpenEXR are sorted by name, so names in the
+    order they were written (a converter such as oiiotool copies the ImageDescription) would put
+    the wrong name on each channel.
+    """
     spec = image.spec()
-    try:
-        stored = json.loads(spec.get_string_attribute("ImageDescription"))["channel_names"]
-        if isinstance(stored, list) and len(stored) == spec.nchannels:
-            return [str(name) for name in stored]
-    except (ValueError, TypeError, KeyError, RecursionError):  # not write_frame's JSON
-        pass
+    if image.format_name() == "tiff":
+        try:
+            stored = json.loads(spec.get_string_attribute("ImageDescription"))["channel_names"]
+            if isinstance(stored, list) and len(stored) == spec.nchannels:
+                return [str(name) for name in stored]
+        except (ValueError, TypeError, KeyError, RecursionError):  # not write_frame's JSON
+            pass
     return list(spec.channelnames)
+
+
+def _band_order(path, names: Sequence[str], sorted_by_name: bool, band_centres_nm) -> np.ndarray | None:
+    """The channel index of each band (None: as stored), or raise when the names cannot say
+    which channel is which band (`open_cube`'s rules, in the module docstring)."""
+    centres = band_centres_from_names(names)
+    if centres is None:
+        if sorted_by_name and len(names) > 1:
+            unnamed = [name for name in names if _wavelength_of_name(name) is None]
+            problem = f"has {len(names)} channels {_show_names(names)}"
+            if len(unnamed) < len(names):
+                verb = "names" if len(unnamed) == 1 else "name"
+                problem += f", of which {_show_names(unnamed)} {verb} no wavelength"
+                if any(_RENAMED_CHANNEL.fullmatch(name) for name in unnamed):
+                    problem += ' (OpenImageIO writes "channelN" in place of a repeated or empty channel name)'
+            else:
+                problem += ", named by no wavelength"
+            problem += (
+                "; an OpenEXR stores its channels sorted by name, not in the order they were "
+                "written, so which channel is which band cannot be told"
+            )
+            raise SpherejaxFileError(path, problem, _NAMED_BANDS_EXPECTED)
+        return None
+    seen = {}
+    for name, nm in zip(names, centres):
+        if nm in seen:
+            raise SpherejaxFileError(
+                path,
+                f"has {len(names)} channels {_show_names(names)}, giving {_show_nm(nm)} nm twice "
+                f"({_show_names([seen[nm], name])}), so which of the two is that band cannot be told",
+                _NAMED_BANDS_EXPECTED,
+            )
+        seen[nm] = name
+    if band_centres_nm is None:
+        bands = sorted(centres)
+    else:
+        bands = np.asarray(band_centres_nm).tolist()
+        if sorted(centres) != sorted(bands):
+            whole = all(float(nm).is_integer() for nm in centres)
+            found = _describe_bands(sorted(centres)) if whole else f"{sorted(centres)} nm"
+            raise SpherejaxFileError(
+                path,
+                f"has bands {found}",
+                f"the calibration's bands, {_describe_bands(bands)}",
+            )
+    index = {nm: channel for channel, nm in enumerate(centres)}
+    order = np.asarray([index[nm] for nm in bands])
+    return None if np.array_equal(order, np.arange(len(names))) else order
 
 
 def _sample_kind(path, spec) -> str:
@@ -154,8 +261,11 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
 
     Accepted layouts: a single image with one channel per band (16-bit TIFF, or OpenEXR with half
     or float channels, scanline or tiled), or a multi-page 16-bit TIFF with one single-channel
-    page per band. When the channel names all read "<nm>nm" they must be `band_centres_nm` (in
-    any order: OpenEXR stores channels sorted by name; they are put back in band order).
+    page per band. Channels that all name a wavelength ("400nm", "420 nm", "T.400nm") are the
+    bands of those wavelengths in any order, put back in band order: `band_centres_nm`'s, which
+    they must be, else increasing wavelength; a wavelength named twice is refused. Otherwise a
+    TIFF's channels are the bands in their stored order, and an OpenEXR of more than one channel
+    is refused: it stores its channels sorted by name, so their order is not the band order.
 
     Args:
       path: the file.
@@ -164,7 +274,9 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
 
     Raises:
       SpherejaxFileError: missing, not an image, samples of another type, another size, band count
-        or set of bands. (Damaged pixel data is found by `read_rows`.)
+        or set of bands, a wavelength named twice, an OpenEXR whose channels do not all name a
+        wavelength (the message lists the channel names found). (Damaged pixel data is found by
+        `read_rows`.)
     """
     path = pathlib.Path(path)
     height, width, bands = (int(n) for n in expected_shape)
@@ -198,18 +310,8 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
                 _require_frame_shape(path, _spec_shape(image), (height, width, 1))
             names = []
             planes = [_Plane(image, path, page, 1, _CUBE_EXPECTED) for page in range(pages)]
-        order = None
-        centres = band_centres_from_names(names)
-        if centres is not None and band_centres_nm is not None:
-            expected = [int(b) for b in np.asarray(band_centres_nm).tolist()]
-            if sorted(centres) != expected:
-                raise SpherejaxFileError(
-                    path,
-                    f"has bands {_describe_bands(sorted(centres))}",
-                    f"the calibration's bands, {_describe_bands(expected)}",
-                )
-            order = np.argsort(centres, kind="stable")
-            order = None if np.array_equal(order, np.arange(bands)) else order
+        sorted_by_name = pages == 1 and image.format_name() == "openexr"
+        order = _band_order(path, names, sorted_by_name, band_centres_nm)
     except BaseException:
         image.close()
         raise
