@@ -5,9 +5,12 @@ format versions 1 to 3 are still read (whole)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
+import itertools
 import json
 import math
+import os
 import pathlib
 import tokenize
 import zipfile
@@ -19,7 +22,7 @@ import h5py
 import numpy as np
 import pydantic
 
-from .. import jsontext
+from .. import interrupt, jsontext
 from ..grid import N_WAVELENGTHS
 from .._checks import require_finite
 from ..pipeline import PARAMETERS, Calibration
@@ -62,6 +65,10 @@ def _checksum(header: Mapping, arrays: Mapping) -> str:
     arrays or `_StoredArray`s, hashed block by block so that a calibration larger than memory
     is never read whole) that the header's format version holds; the same in either container.
 
+    Every block of about `_READ_BLOCK` bytes is a safe point (`spherejax.interrupt.check`):
+    verifying a calibration of hundreds of gigabytes takes minutes, and SIGINT / SIGTERM must
+    stop `spherejax correct` within a block rather than after the whole file.
+
     The exact byte sequence is in the docstring of spherejax.io: other software must reproduce it.
     """
     digest = hashlib.sha256(_canonical_json({k: v for k, v in header.items() if k != "checksum"}))
@@ -70,9 +77,14 @@ def _checksum(header: Mapping, arrays: Mapping) -> str:
         digest.update(f"{name} {array.dtype.str} {json.dumps(list(array.shape))}\n".encode("ascii"))
         if isinstance(array, _StoredArray):
             for block in array.blocks():
+                interrupt.check()
                 digest.update(block)
         else:
-            digest.update(np.ascontiguousarray(array).tobytes())
+            # The bytes tobytes() gives (C order, as stored), hashed in place a block at a time.
+            data = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
+            for start in range(0, data.size, _READ_BLOCK):
+                interrupt.check()
+                digest.update(data[start:start + _READ_BLOCK])
     return "sha256:" + digest.hexdigest()
 
 
@@ -254,6 +266,19 @@ _FRAME_ARRAYS = ("dark", "white", "patch")
 # chunks read at most about 1 MiB it does not need. Uncompressed: the frames are noisy float
 # counts that deflate barely shrinks, and rows read at disk speed with no decompression.
 _CHUNK_BYTES = 1 << 20
+#: The most chunks a frame array may be stored in. `save_calibration` writes chunks of about
+#: `_CHUNK_BYTES` (one row where a row is larger): a million of them is a frame of a terabyte, or
+#: of a million rows. A file may describe far more (HDF5's implicit chunk index stores no entry
+#: per chunk: a 48 kB file can declare 10^10 chunks), and every check that lists its chunks
+#: would take hours: such a file is refused before they are counted.
+_MAX_CHUNKS = 1 << 20
+#: How many bytes of a dataset may lie in holes of a sparse file (allocated, never written: they
+#: read as zeros) before it is refused, when they are more than half of it too. A calibration is
+#: written whole, but a file system may store runs of zeros as holes (ZFS with compression, `cp
+#: --sparse=always`): an all-zero dark frame of an ordinary sensor is kept, while reading this
+#: many bytes of holes takes well under a second.
+_UNWRITTEN_ALLOWANCE = 256 << 20
+_EXPECTED_WHOLE = "a calibration written whole by spherejax calibrate"
 _EXPECTED_FILE = "a spherejax calibration file (HDF5; an .npz archive before format version 4)"
 
 
@@ -293,11 +318,20 @@ class _StoredArray:
         self.nbytes = math.prod(self.shape) * self.dtype.itemsize
 
     def read_rows(self, row0: int, row1: int) -> np.ndarray:
-        """Rows row0:row1 of the first axis, as a new array."""
+        """Rows row0:row1 of the first axis, as a new array, read about `_READ_BLOCK` bytes at a
+        time with a safe point (`spherejax.interrupt.check`) between blocks: a whole frame of a
+        large calibration (the patch crop's rows, `CalibrationFile.calibration`) can take a
+        while, and a stop request must not wait for it. A read of one block (a strip) has none."""
         out = np.empty((row1 - row0, *self.shape[1:]), dtype=self.dtype)
-        if out.size:  # HDF5 refuses an empty selection
-            with _hdf5_errors(self.path):
-                self._dataset.read_direct(out, np.s_[row0:row1])
+        if not out.size:  # HDF5 refuses an empty selection
+            return out
+        rows = max(1, _READ_BLOCK // max(self.row_bytes, 1))
+        with _hdf5_errors(self.path):
+            for start in range(row0, row1, rows):
+                if start != row0:
+                    interrupt.check()
+                stop = min(start + rows, row1)
+                self._dataset.read_direct(out, np.s_[start:stop], np.s_[start - row0:stop - row0])
         return out
 
     def read(self) -> np.ndarray:
@@ -336,8 +370,13 @@ def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, di
     `_StoredArray`, none read yet. Only plain datasets whose data lie whole in the file are
     taken: no links (an external link reads another file), groups, external or virtual storage,
     filters (compression: spherejax writes none), and every byte of the data written (a chunk
-    never written reads as zeros, and a forged shape could ask for terabytes)."""
-    with _hdf5_errors(path):
+    never written reads as zeros, and a forged shape could ask for terabytes).
+
+    "Written" is what the file really stores, not what HDF5 allocated (`_check_written`): a
+    48 kB file can declare 100000 x 100000 x 16 frames allocated early and never written (a
+    sparse file of 1.3 TB), which the checksum would read for hours, or data past the file's end
+    (a truncated copy). Both are refused here, before any data is read."""
+    with _hdf5_errors(path), _descriptor(path, stored) as fd:
         header = stored.attrs["header"] if "header" in stored.attrs else None
         if isinstance(header, str):
             # h5py decodes UTF-8 with surrogateescape: bytes that are not UTF-8 come back as
@@ -368,6 +407,13 @@ def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, di
             allocated = array.nbytes
             if dataset.chunks is not None:
                 count = math.prod(-(-n // c) for n, c in zip(array.shape, dataset.chunks))
+                if count > _MAX_CHUNKS:  # before HDF5 is asked anything that lists the chunks
+                    raise CalibrationFileError(
+                        path, f"dataset {name!r} of shape {list(array.shape)} is stored in {count} chunks "
+                        f"of shape {list(dataset.chunks)}",
+                        f"at most {_MAX_CHUNKS} chunks of whole rows, about {_CHUNK_BYTES} bytes each, "
+                        "as save_calibration writes them",
+                    )
                 allocated = count * math.prod(dataset.chunks) * array.dtype.itemsize
             stored_bytes = dataset.id.get_storage_size()
             if stored_bytes != allocated:
@@ -375,13 +421,130 @@ def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, di
                     path, f"dataset {name!r} of shape {list(array.shape)} holds {stored_bytes} of its {allocated} bytes",
                     "every byte of its data written",
                 )
+            _check_written(path, fd, name, dataset, allocated)
             arrays[name] = array
     return header, arrays
 
 
+@contextlib.contextmanager
+def _descriptor(path: pathlib.Path, stored: h5py.File) -> Iterator[int]:
+    """A descriptor of the open HDF5 file for `_check_written`'s lseek calls: the one HDF5 reads
+    through (so a file replaced meanwhile is never the one checked), its offset restored after
+    (HDF5 reads with pread, but nothing here relies on it); or, for a driver that has none, the
+    path opened anew."""
+    try:
+        fd = stored.id.get_vfd_handle()
+    except (OSError, ValueError, RuntimeError, TypeError, NotImplementedError):
+        fd = None
+    if isinstance(fd, int) and fd >= 0:
+        position = os.lseek(fd, 0, os.SEEK_CUR)
+        try:
+            yield fd
+        finally:
+            os.lseek(fd, position, os.SEEK_SET)
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        yield fd
+    finally:
+        os.close(fd)
+
+
+def _storage_ranges(dataset: h5py.Dataset) -> list[tuple[int, int]] | None:
+    """The byte ranges [start, end) of the file that hold the dataset's data, as HDF5 allocated
+    them (its one range, or one per chunk; at most `_MAX_CHUNKS`, checked before), merged where
+    they touch; None where this HDF5 cannot list chunks. Unallocated chunks are absent (the
+    storage size check counts them)."""
+    if dataset.chunks is None:
+        offset = dataset.id.get_offset()
+        return [] if offset is None else [(offset, offset + dataset.id.get_storage_size())]
+    ranges = []
+    if hasattr(dataset.id, "chunk_iter"):  # HDF5 1.12.3 / 1.14 on: one pass over the chunk index
+        dataset.id.chunk_iter(lambda info: ranges.append((info.byte_offset, info.byte_offset + info.size)))
+    elif not hasattr(dataset.id, "get_chunk_info_by_coord"):
+        return None
+    else:
+        corners = itertools.product(*(range(0, n, c) for n, c in zip(dataset.shape, dataset.chunks)))
+        for index, corner in enumerate(corners):
+            if index % 4096 == 4095:
+                interrupt.check()
+            info = dataset.id.get_chunk_info_by_coord(corner)
+            if info.byte_offset is not None:
+                ranges.append((info.byte_offset, info.byte_offset + info.size))
+    merged: list[tuple[int, int]] = []
+    for start, end in sorted(ranges):
+        if merged and start <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], end))
+        else:
+            merged.append((start, end))
+    return merged
+
+
+def _data_bytes(fd: int, start: int, end: int) -> int:
+    """How many bytes of [start, end) the file stores as data: not in holes of a sparse file
+    (allocated by HDF5, never written), found with lseek's SEEK_DATA / SEEK_HOLE, one pair of
+    calls per stretch of data. Where the file system or platform cannot tell, all of it."""
+    seek_data, seek_hole = getattr(os, "SEEK_DATA", None), getattr(os, "SEEK_HOLE", None)
+    if seek_data is None or seek_hole is None:
+        return end - start
+    total, position = 0, start
+    for step in itertools.count():
+        if position >= end:
+            break
+        if step % 4096 == 4095:  # a file of many small stretches: still a safe point
+            interrupt.check()
+        try:
+            data = os.lseek(fd, position, seek_data)
+        except OSError as error:
+            if error.errno == errno.ENXIO:  # no data from here to the file's end
+                break
+            if error.errno in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+                return end - start  # holes are not reported here
+            raise
+        if data >= end:
+            break
+        hole = os.lseek(fd, data, seek_hole)
+        total += min(hole, end) - data
+        position = hole
+    return total
+
+
+def _check_written(path: pathlib.Path, fd: int, name: str, dataset: h5py.Dataset, allocated: int) -> None:
+    """Refuse a dataset whose declared data the file does not store, before any of it is read.
+
+    HDF5's storage size counts what it allocated, and allocating writes nothing: a dataset
+    created with early allocation and never written lies in a hole of a sparse file (reading as
+    zeros), and one of a file cut short lies past its end. Refused:
+    - any byte past the file's end (reading it fails, after all the bytes before it were read);
+    - more than half of its bytes in holes, when they are more than `_UNWRITTEN_ALLOWANCE`
+      (a little of them is no cost, and zeros a file system stored as holes are still data).
+    """
+    if not allocated:
+        return
+    size = os.fstat(fd).st_size
+    ranges = _storage_ranges(dataset)
+    if ranges is None:
+        return  # the checksum's reads are still safe points
+    last = max((end for _, end in ranges), default=0)
+    written = sum(_data_bytes(fd, start, min(end, size)) for start, end in ranges if start < size)
+    unwritten = allocated - written
+    if last > size:
+        reason = f"its data run to byte {last}, past the file's end at byte {size}: the file was cut short"
+    elif unwritten > _UNWRITTEN_ALLOWANCE and 2 * unwritten > allocated:
+        reason = f"the other {unwritten} were allocated but never written (holes of a sparse file)"
+    else:
+        return
+    declared = " x ".join(map(str, dataset.shape)) or "1"
+    raise CalibrationFileError(
+        path, f"dataset {name!r} declares {declared} values ({allocated} bytes) but the file stores only "
+        f"{written} bytes of them; {reason}",
+        _EXPECTED_WHOLE,
+    )
+
+
 def _read_npz(path: pathlib.Path) -> tuple[bytes | None, dict[str, np.ndarray]]:
     """The header's bytes (None when absent) and every array of an .npz calibration file (format
-    versions 1 to 3), read whole by numpy, never unpickled."""
+    versions 1 to 3), read whole (`_read_npy`), never unpickled."""
     expected = 'a "header" entry: a uint8 array of UTF-8 JSON'
     try:
         # Opened here, not by np.load, which leaves its own file unclosed when the zip is refused.
@@ -389,9 +552,7 @@ def _read_npz(path: pathlib.Path) -> tuple[bytes | None, dict[str, np.ndarray]]:
             foreign = sorted(name for name in archive.zip.namelist() if not name.endswith(".npy"))
             if foreign:
                 raise CalibrationFileError(path, f"holds entries that are not .npy arrays: {foreign}", "an .npz of arrays")
-            for name in archive.files:
-                _check_npy_size(archive.zip, name + ".npy")
-            entries = {name: archive[name] for name in archive.files}
+            entries = {name: _read_npy(archive.zip, name + ".npy") for name in archive.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError, zlib.error,
             SyntaxError, tokenize.TokenError, TypeError, RecursionError) as error:
         # zipfile raises RuntimeError for an encrypted member (NotImplementedError, a subclass,
@@ -409,21 +570,34 @@ def _read_npz(path: pathlib.Path) -> tuple[bytes | None, dict[str, np.ndarray]]:
     return None if header is None else header.tobytes(), entries
 
 
-def _check_npy_size(archive: zipfile.ZipFile, member: str) -> None:
-    """Refuse a member whose .npy header describes another size than the member holds, before
-    numpy allocates the array it describes (a damaged shape could ask for terabytes), or one of
-    Python objects (pickles)."""
+def _read_npy(archive: zipfile.ZipFile, member: str) -> np.ndarray:
+    """The array of one .npy member, as np.load reads it (dtype and byte order as stored, C or
+    Fortran order), refusing before any allocation a member whose .npy header describes
+    another size than the member holds (a damaged shape could ask for terabytes) or one of
+    Python objects (pickles). The data are read `_READ_BLOCK` bytes at a time with a safe point
+    (`spherejax.interrupt.check`) between blocks: a large member takes a while to inflate."""
     info = archive.getinfo(member)
     with archive.open(info) as data:
         version = np.lib.format.read_magic(data)
         read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
         if read_header is None:
             raise ValueError(f"member {member!r} has .npy version {version}")
-        shape, _, dtype = read_header(data)
+        shape, fortran_order, dtype = read_header(data)
         if dtype.hasobject:
             raise ValueError(f"member {member!r} holds Python objects")
         if any(n < 0 for n in shape) or data.tell() + math.prod(shape) * dtype.itemsize != info.file_size:
             raise ValueError(f"member {member!r} does not hold the array its header describes")
+        array = np.empty(math.prod(shape), dtype)
+        if array.nbytes:
+            raw = array.view(np.uint8)
+            for start in range(0, raw.size, _READ_BLOCK):
+                if start:
+                    interrupt.check()
+                block = data.read(min(_READ_BLOCK, raw.size - start))
+                if len(block) != min(_READ_BLOCK, raw.size - start):
+                    raise ValueError(f"member {member!r} ends before the array its header describes")
+                raw[start:start + len(block)] = np.frombuffer(block, np.uint8)
+    return array.reshape(shape[::-1]).transpose() if fortran_order else array.reshape(shape)
 
 
 def _decode_header(path, raw: bytes | None, container: str) -> dict:
@@ -714,9 +888,16 @@ def open_calibration(path, *, band_centres_nm=None, illuminant: str | None = Non
     arrays up to `IN_MEMORY_BYTES`; the checksum is verified block by block. An .npz of format
     versions 1 to 3 is read whole.
 
+    Before any data is read, each dataset's declared size is checked against what the file
+    really stores (`_check_written`): a file declaring terabytes it never wrote is refused at
+    once rather than checksummed for hours. Each block read or hashed is a safe point of
+    `spherejax.interrupt`: inside `interrupt.stop_requests()`, SIGINT / SIGTERM stop a long
+    verification with `interrupt.Interrupted` within a block.
+
     Args: as `load_calibration`, and illuminant: the Lab illuminant of the calibrations it
       gives, instead of the one the file names (None = the file's).
-    Raises: as `load_calibration`.
+    Raises: as `load_calibration`; and `interrupt.Interrupted` on a stop request (SIGINT, SIGTERM
+      inside `interrupt.stop_requests()`).
     """
     path = pathlib.Path(path)
     if not path.is_file():
@@ -785,8 +966,9 @@ def load_calibration(path, *, band_centres_nm=None) -> tuple[Calibration, dict]:
 
     Raises:
       CalibrationFileError: missing, neither HDF5 nor .npz, truncated or corrupted, missing
-        or unexpected arrays or header, datasets not stored as save_calibration stores them, another
-        format, a newer format version, a checksum mismatch (tampered or corrupted), arrays that
+        or unexpected arrays or header, datasets not stored as save_calibration stores them
+        (filtered, in more chunks than it writes, or whose declared data the file does not store:
+        past its end, or allocated and never written), another format, a newer format version, a checksum mismatch (tampered or corrupted), arrays that
         disagree with the header, a patch that is not a boolean mask, a "noise_model" that is
         not a valid noise model for its bands, other band centres than `band_centres_nm`, or
         contents that are not a valid `Calibration`.
