@@ -521,6 +521,42 @@ def _remove_stale_staging(out: pathlib.Path) -> None:
                 shutil.rmtree(entry, ignore_errors=True)
 
 
+def _check_ownership(profile: Profile, out: pathlib.Path, partial: pathlib.Path, *, emulate: bool) -> None:
+    """Before anything is opened or removed: SESSION and SESSION.partial, the folders `acquire`
+    creates and removes whole, are not links (the session is renamed into place, which would
+    replace a link; the work folder would be written through one), and neither is, nor holds at
+    any depth, the profile or the lamp state file it reads and updates (io.ownership.refuse_holding,
+    by resolved path and (st_dev, st_ino)). AcquisitionError, one line naming the folder."""
+    from spherejax.io import SpherejaxFileError, ownership
+
+    inputs = {"the profile (--profile)": profile.path}
+    if not emulate:  # emulated, the lamp state lives in SESSION.partial, spherejax's own
+        inputs["the profile's lamp state file"] = profile.lamp_state_file
+    folders = {"-o SESSION": out, "SESSION.partial": partial}
+    try:
+        for label, folder in folders.items():
+            if folder.is_symlink():
+                raise SpherejaxFileError(
+                    folder, f"{label} is a symbolic link (to {os.readlink(folder)})",
+                    f"{label} a folder spherejax makes, not a link",
+                )
+        ownership.refuse_holding(folders, inputs)
+    except SpherejaxFileError as error:
+        raise AcquisitionError(str(error)) from None
+
+
+def _is_work_folder(partial: pathlib.Path) -> bool:
+    """True if `partial` is a folder an acquisition made (it holds its profile.json, or only the
+    temporary name of one): what `acquire` may remove."""
+    from spherejax.io import atomic
+
+    if partial.is_symlink() or not partial.is_dir():
+        return False
+    if (partial / "profile.json").is_file():
+        return True
+    return all(atomic.is_temp_sibling(entry.name, "profile.json") for entry in partial.iterdir())
+
+
 def _profile_identity(profile: Profile) -> dict:
     return {
         "instrument_id": profile.instrument_id,
@@ -558,8 +594,10 @@ def acquire(
 
     Raises:
       ProfileError: a profile that is invalid, before anything is opened.
-      AcquisitionError: a device check failed (before anything moved), or a fault stopped the
-        run (what was captured stays in SESSION.partial for --resume).
+      AcquisitionError: SESSION or SESSION.partial a symbolic link, or holding the profile or
+        its lamp state file (before anything is opened); a device check failed (before anything
+        moved), or a fault stopped the run (what was captured stays in SESSION.partial for
+        --resume).
     """
     from spherejax.io import atomic
 
@@ -569,10 +607,14 @@ def acquire(
     partial = out.with_name(out.name + PARTIAL_SUFFIX)
     if emulate and profile.camera.backend != "sim":
         profile = dataclasses.replace(profile, camera=dataclasses.replace(profile.camera, backend="sim", options={}))
+    _check_ownership(profile, out, partial, emulate=emulate)
     if resume:
         _remove_stale_staging(out)
         if (out / "manifest.json").is_file():
-            shutil.rmtree(partial, ignore_errors=True)  # a run killed after writing the session
+            if _is_work_folder(partial):
+                shutil.rmtree(partial, ignore_errors=True)  # a run killed after writing the session
+            elif os.path.lexists(partial):
+                settings.log(f"{partial}: not an acquisition's work folder (no profile.json): left as it is")
             settings.log(f"{out}: the session is already complete")
             return out
         if not partial.is_dir():

@@ -29,6 +29,15 @@ status 2, and nothing written. `correct` goes on past bad inputs: each is logged
 reason, and the run ends with a summary and exit status 1 if any failed. Everything is computed before the first byte is written, and
 every file is written to a temporary name and renamed into place.
 
+Each command writes and deletes only what it created (`spherejax.io.ownership`): before any work
+every output is checked against every input, the calibration and the other outputs, by resolved
+path and (st_dev, st_ino), so links and `..` cannot hide an overlap. `calibrate -o CAL` may put
+CAL beside the session's files, never over one, and replaces only a spherejax calibration;
+`evaluate` and `study` refuse an --out DIR that is the session's folder or its frames folder, and
+replace only the files of an earlier run there (its metrics.json or study.json beside them);
+`simulate` and `demo` refuse a session folder that is a link or ends in ".."; `demo` replaces
+only what an earlier demo wrote. Anything else in the way is refused in one line naming it.
+
 `correct` and `acquire` stop cleanly on SIGINT (Ctrl-C) or SIGTERM (spherejax.interrupt): at the
 next safe point, with what was finished kept and recorded, nothing half-written left and OUT's
 lock released, one line ("spherejax: interrupted after N of M inputs; run again with --resume")
@@ -42,6 +51,7 @@ import contextlib
 import datetime
 import io as _bytes_io
 import json
+import os
 import pathlib
 import sys
 import time
@@ -187,6 +197,66 @@ def _save_calibration(path, calibration, report, session) -> None:
     )
 
 
+#: The record of an earlier run that `evaluate` and `study` leave in their output folder, and the
+#: keys it holds (evaluate.to_json, cmd_study's payload): the tables and figures beside one are
+#: that run's, which a new run may replace (io.ownership.earlier_run).
+_EVALUATION_RECORD = ("metrics.json", frozenset({"band_centres_nm", "markov_kappa", "metrics"}))
+_STUDY_RECORD = ("study.json", frozenset({"objective_start", "objective_end", "closed_form", "study"}))
+_STUDY_FILES = ("study.txt", "study.csv", "study.json", "study-calibration.h5")
+
+
+def _session_files(session) -> dict[str, pathlib.Path]:
+    """What each file of a loaded session is -> its path: the manifest and every frame."""
+    files = {"the session's manifest": session.manifest_path}
+    for frame in session.frames:
+        files[f"the session's frame {frame.id!r}"] = session.frame_path(frame)
+    return files
+
+
+def _inputs(session, calibration=None) -> dict[str, pathlib.Path]:
+    """Every input of a command on `session` (and -c CAL): what no output may be."""
+    inputs = {"the session folder": session.path, **_session_files(session)}
+    if calibration:
+        inputs["the calibration (-c)"] = pathlib.Path(calibration)
+    return inputs
+
+
+def _check_calibration_output(path, label: str, inputs) -> None:
+    """Before any work: a calibration to be written at `path` is none of `inputs`, and replaces
+    nothing but a spherejax calibration (io.ownership)."""
+    from .io import ownership
+
+    ownership.refuse_overlaps({label: path}, inputs)
+    ownership.refuse_in_the_way(
+        {label: path}, replaceable=ownership.not_a_calibration,
+        expected=f"{label} a new file, or a spherejax calibration to replace",
+    )
+
+
+def _evaluation_names(session) -> list[str]:
+    """The files `_evaluation_files` writes for `session` (Tables 3, 5 and 6 need test captures)."""
+    tables = ["table1", "table4"] + (["table3", "table5", "table6"] if session.frames_with(role="sample", set="test") else [])
+    return ["tables.txt", *(f"{name}.csv" for name in sorted(tables)), "metrics.json", "figure5.png", "figure6.png"]
+
+
+def _check_output_folder(out_dir, names, record, *, label: str, inputs, holding) -> None:
+    """Before any work: `out_dir` and the files `names` it will hold (io.ownership.check_output_folder).
+    Files already there are replaced when an earlier run of the command left them (its `record`
+    beside them) and, for a calibration, when it is one."""
+    from .io import ownership
+
+    out_dir = pathlib.Path(out_dir)
+    record_name, keys = record
+    earlier = ownership.earlier_run(out_dir / record_name, keys)
+
+    def replaceable(path: pathlib.Path) -> str | None:
+        if path.suffix == ".h5":
+            return ownership.not_a_calibration(path)
+        return None if earlier else f"a file spherejax did not write (no earlier run's {record_name} beside it)"
+
+    ownership.check_output_folder(out_dir, names, label=label, inputs=inputs, holding=holding, replaceable=replaceable)
+
+
 def _calibrate_noise_options(args) -> None:
     """--gain, --read-noise and --white-reflectance-u as numbers on `args` (None when not given);
     ValueError (one line: exit status 2, nothing written) for a value that is not a finite number
@@ -216,6 +286,8 @@ def cmd_calibrate(args) -> int:
 
     _calibrate_noise_options(args)  # before any work
     session = io.load_session(args.session)
+    # CAL may go beside the session's files, never over one, nor over a file spherejax did not write.
+    _check_calibration_output(args.output, "-o CAL", _inputs(session))
     progress = _Progress(1, args.quiet)
     calibration, report = _calibrate(session, args, progress)
     _save_calibration(args.output, calibration, report, session)
@@ -241,13 +313,15 @@ def cmd_evaluate(args) -> int:
     from . import io
 
     session = io.load_session(args.session)
+    out = args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-evaluation"))
+    _check_output_folder(out, _evaluation_names(session), _EVALUATION_RECORD, label="--out DIR" if args.out else "SESSION-evaluation",
+                         inputs=_inputs(session, args.calibration), holding=_session_files(session))
     steps = 1 if args.calibration else 2
     progress = _Progress(steps, args.quiet)
     if args.calibration:
         calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
     else:
         calibration, _ = _calibrate(session, args, progress)
-    out = args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-evaluation"))
     _evaluate(session, calibration, out, progress, args.quiet)
     return 0
 
@@ -260,6 +334,9 @@ def cmd_study(args) -> int:
         raise ValueError(f"--response-weight: expected a value >= 0, got {args.response_weight}")
     if args.max_steps < 1:
         raise ValueError(f"--max-steps: expected a positive number of BFGS iterations, got {args.max_steps}")
+    out = pathlib.Path(args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-study")))
+    _check_output_folder(out, _STUDY_FILES, _STUDY_RECORD, label="--out DIR" if args.out else "SESSION-study",
+                         inputs=_inputs(session, args.calibration), holding=_session_files(session))
     progress = _Progress(4 if args.calibration is None else 3, args.quiet)
     if args.calibration:
         calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
@@ -288,7 +365,6 @@ def cmd_study(args) -> int:
         "objective_end": result.objective_end, "steps": result.steps, "converged": result.converged,
         "closed_form": closed.metrics, "study": studied.metrics,
     }
-    out = pathlib.Path(args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-study")))
     _write_files(out, {"study.txt": text.encode(), "study.csv": csv.encode(),
                        "study.json": json.dumps(payload, indent=2).encode()})
     _save_calibration(out / "study-calibration.h5", result.calibration, None, session)
@@ -590,10 +666,24 @@ def cmd_demo(args) -> int:
 
     out = pathlib.Path(args.out)
     session_dir = out / "session"
+    # Before any work: a session already there is reused (read only), else OUT/session must be new
+    # or empty; OUT/calibration.h5 and OUT/evaluation/ replace only what an earlier demo wrote.
+    reuse = (session_dir / "manifest.json").exists()
+    if os.path.lexists(out) and not out.is_dir():
+        raise io.SpherejaxFileError(out, "--out DIR is in the way: it is not a folder", "--out DIR a folder, or a new name")
+    session = io.load_session(session_dir) if reuse else None
+    if session is None:
+        io.check_new_session_folder(session_dir)
+    inputs = {"the session folder (OUT/session)": session_dir, **({} if session is None else _session_files(session))}
+    _check_calibration_output(out / "calibration.h5", "OUT/calibration.h5", inputs)
+    names = _evaluation_names(session) if session is not None else [
+        "tables.txt", *(f"table{n}.csv" for n in (1, 3, 4, 5, 6)), "metrics.json", "figure5.png", "figure6.png"]
+    _check_output_folder(out / "evaluation", names, _EVALUATION_RECORD, label="OUT/evaluation",
+                         inputs={**inputs, "OUT/calibration.h5": out / "calibration.h5"},
+                         holding={} if session is None else _session_files(session))
     progress = _Progress(3, args.quiet)
     progress.start(f"simulating the paper's experiment (seed {args.seed}) into {session_dir}")
-    if (session_dir / "manifest.json").exists():
-        session = io.load_session(session_dir)
+    if session is not None:
         progress.done("reusing the session already there")
     else:
         session = io.write_simulated_session(session_dir, seed=args.seed)
@@ -706,7 +796,10 @@ def build_parser() -> argparse.ArgumentParser:
                               "on noisy reflectance; none: fastest, largest)")
     scale = correct.add_mutually_exclusive_group()
     scale.add_argument("--workers", type=int, metavar="N",
-                       help="start a local dask.distributed cluster of N single-threaded worker processes")
+                       help="start a local dask.distributed cluster of N single-threaded worker processes, "
+                            "one per core: N in 1..the cores this process may use (its CPU affinity), no more "
+                            "(refused before any work); its scratch space is a temporary spherejax-dask-* folder, "
+                            "removed when the run ends")
     scale.add_argument("--scheduler", metavar="ADDRESS", help="use a running dask.distributed scheduler")
     correct.set_defaults(run=cmd_correct)
 

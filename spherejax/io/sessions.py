@@ -419,8 +419,21 @@ def _frame_entries(manifest_path, frames) -> list[tuple[dict, np.ndarray]]:
 
 
 def check_new_session_folder(path) -> None:
-    """Raise SessionError unless `path` is absent or an empty folder (where a session may go)."""
+    """Raise SessionError unless `path` is absent or an empty folder (where a session may go).
+
+    The session is renamed into place at `path` (`write_session`), which replaces an empty folder
+    and nothing else: a symbolic link there (to an empty folder or to nothing) is refused, as is a
+    name ending in ".." (it names a folder that exists, the one above), so that such a path fails
+    here, before the work, and not at the rename after it.
+    """
     path = pathlib.Path(path)
+    if path.is_symlink():
+        raise SessionError(
+            path, f"is a symbolic link (to {os.readlink(path)})",
+            "a new or empty folder: the session would replace the link, which spherejax did not make",
+        )
+    if path.name == "..":
+        raise SessionError(path, f"names the folder {os.path.realpath(path)} through '..'", "a new or empty folder")
     if path.exists() and not (path.is_dir() and not any(path.iterdir())):
         raise SessionError(
             path, "already exists and is not an empty folder", "a new or empty folder"
