@@ -9,7 +9,9 @@
 //
 // It computes exactly the equations of the plain path, in float32, pixel by pixel:
 //   quality  bits: 1 saturated (finite raw >= saturation in some band), 2 raw not finite,
-//            4 white - dark not finite and > 0 in some band, 8 the image's p not finite
+//            4 white - dark not finite and > 0 in some band, 8 the image's p not finite,
+//            16 v below -kBelowDarkLimit in some band whose raw is finite and white - dark
+//            finite and > 0
 //   v        = (raw - dark) / (white - dark)                         (Eq. 10)
 //   v_tilde  = (c1 p + c2) v + c3 p + c4                              (Eq. 17 and 23)
 //   [reflectance | XYZ] = v_tilde @ projection + bias                 (the affine Wiener estimate
@@ -61,6 +63,8 @@ constexpr int64_t kBlock = 32;                  // pixels whose XYZ are turned i
 constexpr int64_t kChunk = 8192;                // pixels per thread-pool task
 constexpr float kLabEpsilon = 216.0f / 24389.0f;
 constexpr float kLabKappa = 24389.0f / 27.0f;
+// pipeline.BELOW_DARK_LIMIT (its comment says why 2 %): the same number, or the bits differ.
+constexpr float kBelowDarkLimit = 0.02f;
 
 // GCC/Clang vector extension: 16 floats. Compiled for each target of `target_clones` below, it
 // is one zmm register with AVX-512, two ymm with AVX2, four xmm otherwise.
@@ -125,9 +129,11 @@ SPHEREJAX_INLINE uint8_t pixel_stage2(const Problem& pr, const Raw* r, const flo
     const float value = static_cast<float>(r[b]);
     const float signal = w[b] - d[b];
     const bool value_finite = std::isfinite(value);
-    bits |= (value_finite & (value >= pr.saturation)) | (!value_finite << 1) |
-            ((!(signal > 0.0f) | !std::isfinite(signal)) << 2);
-    tilde[b] = a[b] * ((value - d[b]) / signal) + c[b];
+    const bool flat_field_ok = (signal > 0.0f) & std::isfinite(signal);
+    const float v = (value - d[b]) / signal;
+    bits |= (value_finite & (value >= pr.saturation)) | (!value_finite << 1) | (!flat_field_ok << 2) |
+            ((value_finite & flat_field_ok & (v < -kBelowDarkLimit)) << 4);
+    tilde[b] = a[b] * v + c[b];
   }
   return static_cast<uint8_t>(bits);
 }
@@ -161,9 +167,11 @@ SPHEREJAX_AVX512_TARGET inline uint8_t pixel_stage2_16(const Problem& pr, const 
       _mm512_cmp_ps_mask(signal, zero, _CMP_GT_OQ) &
       _mm512_cmp_ps_mask(_mm512_sub_ps(signal, signal), zero, _CMP_EQ_OQ);
   const __m512 v = _mm512_div_ps(_mm512_sub_ps(value, dark), signal);
+  const __mmask16 below_dark =
+      _mm512_mask_cmp_ps_mask(flat_field_ok & value_finite, v, _mm512_set1_ps(-kBelowDarkLimit), _CMP_LT_OQ);
   _mm512_store_ps(tilde, _mm512_fmadd_ps(_mm512_loadu_ps(a), v, _mm512_loadu_ps(c)));
   return static_cast<uint8_t>((saturated != 0) | ((value_finite != 0xFFFF) << 1) |
-                              ((flat_field_ok != 0xFFFF) << 2));
+                              ((flat_field_ok != 0xFFFF) << 2) | ((below_dark != 0) << 4));
 }
 #endif
 
@@ -263,9 +271,10 @@ SPHEREJAX_AVX2_TARGET inline uint8_t pixel_stage2_16_avx2(const Problem& pr, con
   const __m256 infinity = _mm256_set1_ps(INFINITY);
   // The flags of both halves as lane masks, turned into bits once.
   __m256 saturated = zero, value_finite = _mm256_cmp_ps(zero, zero, _CMP_EQ_OQ), flat_field_ok = value_finite;
+  __m256 below_dark = zero;
   for (int half = 0; half < 2; ++half) {
     const int64_t o = 8 * half;
-    __m256 value;
+    __m256 value, finite = _mm256_cmp_ps(zero, zero, _CMP_EQ_OQ);  // lanes of finite raw values
     if constexpr (std::is_same_v<Raw, uint16_t>) {
       const __m128i counts = _mm_loadu_si128(reinterpret_cast<const __m128i*>(r + o));
       value = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(counts));
@@ -274,20 +283,23 @@ SPHEREJAX_AVX2_TARGET inline uint8_t pixel_stage2_16_avx2(const Problem& pr, con
     } else {
       value = _mm256_loadu_ps(r + o);
       // x - x == 0 exactly when x is finite.
-      const __m256 finite = _mm256_cmp_ps(_mm256_sub_ps(value, value), zero, _CMP_EQ_OQ);
+      finite = _mm256_cmp_ps(_mm256_sub_ps(value, value), zero, _CMP_EQ_OQ);
       value_finite = _mm256_and_ps(value_finite, finite);
       saturated = _mm256_or_ps(saturated, _mm256_and_ps(finite, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ)));
     }
     const __m256 dark = _mm256_loadu_ps(d + o);
     const __m256 signal = _mm256_sub_ps(_mm256_loadu_ps(w + o), dark);
     // 0 < signal < inf: positive and finite (NaN fails both).
-    flat_field_ok = _mm256_and_ps(flat_field_ok, _mm256_and_ps(_mm256_cmp_ps(signal, zero, _CMP_GT_OQ),
-                                                               _mm256_cmp_ps(signal, infinity, _CMP_LT_OQ)));
+    const __m256 band_ok = _mm256_and_ps(_mm256_cmp_ps(signal, zero, _CMP_GT_OQ), _mm256_cmp_ps(signal, infinity, _CMP_LT_OQ));
+    flat_field_ok = _mm256_and_ps(flat_field_ok, band_ok);
     const __m256 v = _mm256_div_ps(_mm256_sub_ps(value, dark), signal);
+    below_dark = _mm256_or_ps(below_dark, _mm256_and_ps(_mm256_and_ps(band_ok, finite),
+                                                         _mm256_cmp_ps(v, _mm256_set1_ps(-kBelowDarkLimit), _CMP_LT_OQ)));
     _mm256_store_ps(tilde + o, _mm256_fmadd_ps(_mm256_loadu_ps(a + o), v, _mm256_loadu_ps(c + o)));
   }
   return static_cast<uint8_t>((_mm256_movemask_ps(saturated) != 0) | ((_mm256_movemask_ps(value_finite) != 0xFF) << 1) |
-                              ((_mm256_movemask_ps(flat_field_ok) != 0xFF) << 2));
+                              ((_mm256_movemask_ps(flat_field_ok) != 0xFF) << 2) |
+                              ((_mm256_movemask_ps(below_dark) != 0) << 4));
 }
 
 // lab_f of N vectors of 8 values, without a division: the cube root of x as x y^2, where y = x^(-1/3) comes

@@ -51,6 +51,18 @@ QUALITY_SATURATED = 1  #: raw at or above the saturation level in some band
 QUALITY_NONFINITE = 2  #: raw NaN or infinite in some band (float input)
 QUALITY_WHITE_NOT_ABOVE_DARK = 4  #: white <= dark (or not finite) in some band: no flat field
 QUALITY_PATCH_UNUSABLE = 8  #: the white-patch ratio of some band is not finite: whole image bad
+QUALITY_BELOW_DARK = 16  #: raw below the dark level by more than noise allows in some band
+
+#: The flat-fielded response (Eq. 10) below which a band's raw value is taken as below the dark
+#: level by more than noise allows (`QUALITY_BELOW_DARK`): v < -BELOW_DARK_LIMIT, i.e. raw more
+#: than 2 % of the white standard's signal (white - dark) below the dark frame. A pixel at the dark
+#: level varies by its read and dark-current noise, a few counts, against a white signal of
+#: thousands of counts in any usable exposure: 2 % is tens of standard deviations away, so noise
+#: alone never reaches it, while a raw value of -1000 counts (a float input gone wrong, a dark
+#: frame taken under other conditions than the captures) does, and would otherwise come out as a
+#: reflectance far below 0 with quality 0. The fused CPU kernel (_fused_correct.cc,
+#: kBelowDarkLimit) uses the same number.
+BELOW_DARK_LIMIT = 0.02
 
 
 #: The calibration's parameters every pixel goes through: a NaN or infinity in any of them makes
@@ -272,11 +284,14 @@ def _saturation_level(raw, calibration: Calibration):
 
 
 def _pixel_flags(raw, raw_f, dark, white, saturation, no_flat_field=None):
-    """Per-pixel (saturated, non-finite, no flat field) flags, each (..., H, W) bool.
+    """Per-pixel (saturated, non-finite, no flat field, below dark) flags, each (..., H, W) bool.
 
     A pixel is flagged if any band is: reflectance mixes all bands. +inf counts as non-finite,
     not as saturated, so the bits say what went wrong. no_flat_field: `_no_flat_field(dark,
-    white)` when the caller already has it (`_flat_field_mask`), else None.
+    white)` when the caller already has it (`_flat_field_mask`), else None. Below dark: the
+    flat-fielded response (raw - dark) / (white - dark) of some band with a finite raw value and a
+    usable flat field is below -BELOW_DARK_LIMIT, computed as Eq. 10 computes it, so that the
+    fused kernel's bits are these bits.
     """
     pixel_shape = jnp.broadcast_shapes(raw.shape, dark.shape)[:-1]
     if jnp.issubdtype(raw.dtype, jnp.integer):
@@ -289,7 +304,9 @@ def _pixel_flags(raw, raw_f, dark, white, saturation, no_flat_field=None):
         saturated = jnp.any(jnp.isfinite(raw_f) & (raw_f >= saturation), axis=-1)
     if no_flat_field is None:
         no_flat_field = _no_flat_field(dark, white)
-    return saturated, nonfinite, jnp.broadcast_to(no_flat_field, pixel_shape)
+    # A finite raw value only: -inf is non-finite (bit 2), not below dark, as +inf is not saturated.
+    below_dark = jnp.any(jnp.isfinite(raw_f) & (flat_field_unchecked(raw_f, dark, white) < -BELOW_DARK_LIMIT), axis=-1)
+    return saturated, nonfinite, jnp.broadcast_to(no_flat_field, pixel_shape), below_dark
 
 
 def _no_flat_field(dark, white):
@@ -383,8 +400,8 @@ _masks = _RememberedByIdentity(4)
 
 
 def _patch_flags(raw, raw_f, dark, white, saturation):
-    saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation)
-    return saturated | nonfinite | no_flat_field
+    saturated, nonfinite, no_flat_field, below_dark = _pixel_flags(raw, raw_f, dark, white, saturation)
+    return saturated | nonfinite | no_flat_field | below_dark
 
 
 @functools.partial(jax.jit, static_argnames=("box_shape", "raw_is_box"))
@@ -483,12 +500,13 @@ def _project_good_pixels_jvp(primals, tangents):
 
 def _quality(raw, raw_f, dark, white, p, saturation, no_flat_field=None):
     """(..., H, W) uint8 bit mask of the QUALITY_* flags (no_flat_field: see `_pixel_flags`)."""
-    saturated, nonfinite, no_flat_field = _pixel_flags(raw, raw_f, dark, white, saturation, no_flat_field)
+    saturated, nonfinite, no_flat_field, below_dark = _pixel_flags(raw, raw_f, dark, white, saturation, no_flat_field)
     patch_unusable = jnp.any(~jnp.isfinite(p), axis=-1)  # (...,)
     return (
         saturated.astype(jnp.uint8) * QUALITY_SATURATED
         | nonfinite.astype(jnp.uint8) * QUALITY_NONFINITE
         | no_flat_field.astype(jnp.uint8) * QUALITY_WHITE_NOT_ABOVE_DARK
+        | below_dark.astype(jnp.uint8) * QUALITY_BELOW_DARK
         | jnp.broadcast_to(patch_unusable[..., None, None], saturated.shape).astype(jnp.uint8)
         * QUALITY_PATCH_UNUSABLE
     )
@@ -1046,6 +1064,8 @@ __all__ = [
     "QUALITY_NONFINITE",
     "QUALITY_WHITE_NOT_ABOVE_DARK",
     "QUALITY_PATCH_UNUSABLE",
+    "QUALITY_BELOW_DARK",
+    "BELOW_DARK_LIMIT",
     "Calibration",
     "CorrectionResult",
     "correct",

@@ -42,12 +42,18 @@ def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, s
     white[10, 11, 2 % bands] = dark[10, 11, 2 % bands]  # white == dark
     white[12, 13, 3 % bands] = dark[12, 13, 3 % bands] - 5  # white < dark
     raw[(*index, 12, 13, 0)] = saturation  # saturated and no flat field: two bits
+    # Below the dark level: by 7 % of the white signal (a dark frame 700 counts too high) ...
+    dark[2, 21, 1 % bands] += 700
+    raw[(*index, 2, 21, 1 % bands)] = 0
+    # ... and by 0.5 %, which noise allows: not flagged.
+    raw[(*index, 0, 22, 2 % bands)] = np.floor(dark[0, 22, 2 % bands] - 0.005 * (white - dark)[0, 22, 2 % bands])
     if raw_dtype == np.float32:
         white[14, 15, 1 % bands] = np.nan
         white[16, 17, 0] = np.inf
         raw[(*index, 6, 7, 0)] = np.nan
         raw[(*index, 8, 9, bands - 1)] = -np.inf
         raw[(*index, 18, 19, 0)] = np.inf
+        raw[(*index, 1, 20, 0)] = -1000.0  # a raw value of -1000 counts: v about -0.11
     raw = raw.astype(raw_dtype)
     patch = np.zeros((height, width), bool)
     patch[height // 2 - 4:height // 2 + 4, width // 2 - 5:width // 2 + 5] = True
@@ -123,10 +129,12 @@ def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype, kernel_mode
     quality = np.asarray(kernel.quality)
     assert quality[3, 4] == sj.QUALITY_SATURATED
     assert quality[10, 11] == quality[12, 13] - sj.QUALITY_SATURATED == sj.QUALITY_WHITE_NOT_ABOVE_DARK
+    assert quality[2, 21] == sj.QUALITY_BELOW_DARK and quality[0, 22] == 0
     if raw_dtype == np.float32:
         assert quality[6, 7] == quality[8, 9] == quality[18, 19] == sj.QUALITY_NONFINITE
         assert quality[14, 15] == quality[16, 17] == sj.QUALITY_WHITE_NOT_ABOVE_DARK
-    assert (quality != 0).sum() == (8 if raw_dtype == np.float32 else 3)
+        assert quality[1, 20] == sj.QUALITY_BELOW_DARK
+    assert (quality != 0).sum() == (10 if raw_dtype == np.float32 else 4)
 
 
 @pytestmark_kernel

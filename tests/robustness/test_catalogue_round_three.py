@@ -127,3 +127,35 @@ def test_a_fifo_in_place_of_the_lock_or_the_manifest_is_refused_at_once(cal, tmp
     assert str(out / planted) in lines[0] and "it is a FIFO" in lines[0], lines[0]
     assert stat.S_ISFIFO(os.lstat(out / planted).st_mode)
     assert not (out / "a.reflectance.exr").exists()
+
+
+def test_a_raw_value_far_below_the_dark_level_is_flagged_not_reported_as_good():
+    """A raw value of -1000 counts gave reflectance -0.14 with quality 0; beyond
+    BELOW_DARK_LIMIT of the white signal below the dark frame it is flagged, on every route,
+    while a value below dark by what noise allows is not."""
+    dark = np.full((H, W, B), 100.0, np.float32)
+    white = np.full((H, W, B), 10100.0, np.float32)
+    raw = np.full((H, W, B), 5100.0, np.float32)
+    raw[0, 1, 2] = -1000.0  # v = -0.11
+    raw[1, 1, 0] = 100.0 - 0.01 * 10000.0  # v = -0.01: within what noise allows
+    calibration = _calibration(dark=dark, white=white, patch=np.eye(H, W, dtype=bool))
+    result = sj.correct(raw, calibration)
+    quality = np.asarray(result.quality)
+    assert quality[0, 1] == sj.QUALITY_BELOW_DARK and quality[1, 1] == 0
+    assert (quality != 0).sum() == 1
+    assert np.isnan(np.asarray(result.reflectance)[0, 1]).all()
+    assert np.isfinite(np.asarray(result.reflectance)[1, 1]).all()
+
+
+def test_a_patch_pixel_below_dark_is_left_out_of_the_patch_ratio():
+    """A flagged pixel carries no information: in the white patch it counts as a NaN one does."""
+    dark = np.full((H, W, B), 100.0, np.float32)
+    white = np.full((H, W, B), 10100.0, np.float32)
+    rng = np.random.default_rng(0)
+    raw = rng.uniform(8000, 9000, (H, W, B)).astype(np.float32)
+    calibration = _calibration(dark=dark, white=white, patch=np.ones((H, W), bool))
+    below, missing = raw.copy(), raw.copy()
+    below[2, 3, 1], missing[2, 3, 1] = -1000.0, np.nan
+    np.testing.assert_array_equal(np.asarray(sj.patch_ratio(below, calibration)),
+                                  np.asarray(sj.patch_ratio(missing, calibration)))
+    assert not np.array_equal(np.asarray(sj.patch_ratio(below, calibration)), np.asarray(sj.patch_ratio(raw, calibration)))
