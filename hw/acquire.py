@@ -60,7 +60,7 @@ from .camera import Camera, CameraError, open_camera
 from .errors import HardwareError, InstrumentError
 from .filterbank import FilterBank, WheelCountMismatch
 from .filterwheel import FilterWheel
-from .lamp import Lamp
+from .lamp import Lamp, LampStateError
 from .profile import Profile, load_profile
 from .shutter import Shutter
 
@@ -628,6 +628,10 @@ def acquire(
     operator.check_can_prompt()
     config = profile.acquisition
     lamp_file = partial / "lamp.json" if emulate else profile.lamp_state_file
+    # The lamp's record is read and checked before anything opens or moves: a damaged one (a
+    # time stamp without its time zone, say) is refused in one line (LampStateError) that names
+    # the file, not as a stopped acquisition whose "run again with --resume" would not mend it.
+    Lamp(lamp_file).is_on
 
     with contextlib.ExitStack() as stack:
         instrument = connect(profile, stack, emulate=emulate, lamp_state_file=lamp_file)
@@ -647,7 +651,14 @@ def acquire(
         except AcquisitionError:  # already says why and what was kept (the warm-up's)
             instrument.shutter.make_safe()
             raise
-        except (InstrumentError, OSError) as error:  # a device, the lamp's record or the disk
+        except LampStateError as error:  # the record damaged during the run: mend it first
+            instrument.shutter.make_safe()
+            kept = len(journal.done_images())
+            raise AcquisitionStopped(
+                f"acquisition stopped: {' '.join(str(error).split())}; {kept} band images kept in "
+                f"{partial} (mend or remove the lamp state file {lamp_file}, then run again with --resume)"
+            ) from None
+        except (InstrumentError, OSError) as error:  # a device or the disk
             instrument.shutter.make_safe()
             kept = len(journal.done_images())
             raise AcquisitionStopped(

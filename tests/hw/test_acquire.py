@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from spherejax_hw import acquire
+from spherejax_hw import acquire, lamp
 from spherejax import cli, io
 from tests.helpers import no_compilation_cache_writes
 
@@ -321,6 +321,30 @@ def test_a_lamp_record_that_breaks_mid_run_stops_it_like_a_device_fault(tmp_path
     message = str(stopped.value)
     assert "\n" not in message and "lamp.json" in message and "--resume" in message
     assert state["shutter"].closed and partial.is_dir() and not out.exists()
+
+
+def test_a_lamp_record_with_a_naive_time_is_refused_before_anything_opens(tmp_path):
+    """A lamp state whose on_since has no time zone stopped the run with "run again with
+    --resume", which cannot mend it; it is refused in one line, naming the file, before any
+    device opens, and the kept partial acquisition is left as it was."""
+    profile = write_profile(tmp_path, samples=SAMPLES[:1])
+    out, partial = tmp_path / "session", tmp_path / "session.partial"
+
+    def break_the_lamp_record(instrument):
+        instrument.lamp.state_file.write_text('{"format": "spherejax-lamp", "hours": "many"')
+
+    with pytest.raises(acquire.AcquisitionStopped):
+        run_acquire(profile, out, on_instrument=break_the_lamp_record)
+    lamp_file = partial / "lamp.json"
+    lamp_file.write_text(json.dumps({"format": lamp.FORMAT, "hours": 1.5, "on_since": "2026-11-26T09:00:00"}))
+    before = {path: path.read_bytes() for path in partial.rglob("*") if path.is_file()}
+    opened = []
+    with pytest.raises(lamp.LampStateError) as refused:
+        run_acquire(profile, out, resume=True, on_instrument=opened.append)
+    message = str(refused.value)
+    assert "\n" not in message and str(lamp_file) in message and "on_since" in message
+    assert "--resume" not in message and opened == []
+    assert {path: path.read_bytes() for path in partial.rglob("*") if path.is_file()} == before
 
 
 def test_every_hw_error_has_one_root():
