@@ -841,7 +841,10 @@ def main(argv=None) -> int:
         from . import fused
 
         fused.switch()
-        return args.run(args)
+        # SIGTERM, like SIGINT, unwinds through the clean-up wherever a command is (`correct` and
+        # `acquire` turn both into stop requests at their safe points instead).
+        with interrupt.at_once():
+            return args.run(args)
     except interrupt.Interrupted as stopped:
         # A stop request honoured at a safe point (`correct`, `acquire`): what was finished is
         # kept and recorded, what was under way removed; the exit status a shell gives a process

@@ -15,6 +15,12 @@ is nothing left to stop) and exits as it would have.
 Blocking waits that could last indefinitely (an operator prompt) run inside `immediately()`: a
 signal there raises `Interrupted` at once rather than after the wait.
 
+Commands without safe points of their own (calibrate, evaluate, study, simulate, demo, measure)
+run inside `at_once()`: SIGINT and SIGTERM raise `Interrupted` wherever the program is, as Python
+does for SIGINT alone (KeyboardInterrupt). Python's default for SIGTERM is death without a word,
+which skips every `finally`: temporary files stayed behind. Raised, the stop unwinds through the
+same clean-up as any error, and the command line prints one line and exits 130 or 143.
+
 The state is per process and only the main thread may install handlers (a Python rule): outside
 `stop_requests()` -- a dask worker, a library caller -- `check()` never raises.
 """
@@ -42,12 +48,13 @@ class Interrupted(BaseException):
     far the run got, in `unit`s, once the code that knows has filled them in.
     """
 
-    def __init__(self, signum: int):
+    def __init__(self, signum: int, resumable: bool = True):
         super().__init__(signum)
         self.signum = signum
         self.done: int | None = None
         self.total: int | None = None
         self.unit = "inputs"
+        self.resumable = resumable  # whether the command has a --resume to suggest
 
     @property
     def exit_status(self) -> int:
@@ -55,6 +62,8 @@ class Interrupted(BaseException):
 
     def message(self) -> str:
         """The one line the command line prints."""
+        if not self.resumable:
+            return "spherejax: interrupted; nothing half-written was left"
         if self.done is None or self.total is None:
             return "spherejax: interrupted; run again with --resume"
         return f"spherejax: interrupted after {self.done} of {self.total} {self.unit}; run again with --resume"
@@ -110,4 +119,26 @@ def immediately() -> Iterator[None]:
         _raise_now = before
 
 
-__all__ = ["SIGNALS", "Interrupted", "check", "immediately", "requested", "stop_requests"]
+def _raise_at_once(signum, frame) -> None:
+    raise Interrupted(signum, resumable=False)
+
+
+@contextlib.contextmanager
+def at_once() -> Iterator[None]:
+    """SIGINT and SIGTERM raise `Interrupted` (not resumable) at once inside the block (module
+    docstring); `stop_requests()` inside it takes over for its own block. Outside the main thread
+    it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
+    try:
+        for signum in SIGNALS:
+            signal.signal(signum, _raise_at_once)
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+__all__ = ["SIGNALS", "Interrupted", "at_once", "check", "immediately", "requested", "stop_requests"]

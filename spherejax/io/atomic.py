@@ -94,7 +94,16 @@ def atomic_file(path: os.PathLike | str, mode: str = "wb", *, encoding: str | No
     """
     path = pathlib.Path(path)
     temporary = temp_sibling(path)
-    handle = open_exclusive(temporary, mode, encoding=encoding)
+    try:
+        handle = open_exclusive(temporary, mode, encoding=encoding)
+    except OSError:
+        raise  # nothing created (a name already there is not ours to remove)
+    except BaseException:
+        # A stop raised at once (spherejax.interrupt.at_once) just as the file was created: it is
+        # ours (its name is new and random), and must not outlive the stop.
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+        raise
     try:
         with handle:
             yield handle

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import json
+import pathlib
 import os
 import shutil
 import signal
@@ -279,3 +280,43 @@ def test_a_sparse_manifest_is_read_by_its_data_and_stops_on_a_signal(tmp_path):
         os.kill(os.getpid(), signal.SIGINT)
         with pytest.raises(interrupt.Interrupted):
             archive.read_manifest(tmp_path)
+
+
+_SIGTERM_WHILE_WRITING = """
+import os, signal, sys, time
+from spherejax import cli
+from spherejax.io import atomic
+
+opened = atomic.open_exclusive
+
+def open_then_terminated(path, *args, **kwargs):
+    handle = opened(path, *args, **kwargs)
+    os.kill(os.getpid(), signal.SIGTERM)  # the stop lands while the temporary file is written
+    time.sleep(0.5)
+    return handle
+
+atomic.open_exclusive = open_then_terminated
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("command", ["calibrate", "evaluate"])
+def test_sigterm_in_a_command_without_safe_points_leaves_nothing_half_written(workspace, tmp_path, command):
+    """Reproducer 9's variant for the commands without safe points of their own: Python's
+    default SIGTERM killed them without a word, leaving the temporary file being written."""
+    import subprocess
+    import sys
+
+    session = tmp_path / "session"
+    shutil.copytree(workspace / "session", session)
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = ({"calibrate": ["calibrate", session, "-o", out / "cal.h5"],
+             "evaluate": ["evaluate", session, "-c", workspace / "cal.h5", "--out", out / "evaluation"]})[command]
+    process = subprocess.run([sys.executable, "-c", _SIGTERM_WHILE_WRITING, "-q", *map(str, argv)],
+                             env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True, timeout=300)
+    assert process.returncode == 143, process.stderr.decode()
+    assert process.stderr.decode().strip().splitlines() == ["spherejax: interrupted; nothing half-written was left"]
+    left = [p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()]
+    assert not [name for name in left if io.is_temp_sibling(pathlib.Path(name).name)], left
+    assert not (out / "cal.h5").exists()
