@@ -651,19 +651,14 @@ def acquire(
         except AcquisitionError:  # already says why and what was kept (the warm-up's)
             instrument.shutter.make_safe()
             raise
-        except LampStateError as error:  # the record damaged during the run: mend it first
+        except (InstrumentError, OSError) as error:  # a device, the lamp's record or the disk
             instrument.shutter.make_safe()
-            kept = len(journal.done_images())
+            # A lamp record damaged during the run is not mended by --resume: say what is first.
+            remedy = (f"mend or remove the lamp state file {lamp_file}, then run again with --resume"
+                      if isinstance(error, LampStateError) else "run again with --resume to complete it")
             raise AcquisitionStopped(
-                f"acquisition stopped: {' '.join(str(error).split())}; {kept} band images kept in "
-                f"{partial} (mend or remove the lamp state file {lamp_file}, then run again with --resume)"
-            ) from None
-        except (InstrumentError, OSError) as error:  # a device or the disk
-            instrument.shutter.make_safe()
-            kept = len(journal.done_images())
-            raise AcquisitionStopped(
-                f"acquisition stopped: {' '.join(str(error).split())}; {kept} band images kept in "
-                f"{partial} (run again with --resume to complete it)"
+                f"acquisition stopped: {' '.join(str(error).split())}; {len(journal.done_images())} band "
+                f"images kept in {partial} ({remedy})"
             ) from None
         except interrupt.Interrupted as stopped:
             # SIGINT or SIGTERM (spherejax.interrupt), seen between band images: the journal and

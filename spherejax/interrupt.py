@@ -95,15 +95,11 @@ def stop_requests() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread() or _active:
         yield
         return
-    previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
     _pending, _active = None, True
     try:
-        for signum in SIGNALS:
-            signal.signal(signum, _handler)
-        yield
+        with _handling(_handler):
+            yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
         _pending, _active = None, False
 
 
@@ -131,14 +127,21 @@ def at_once() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    with _handling(_raise_at_once):
+        yield
+
+
+@contextlib.contextmanager
+def _handling(handler) -> Iterator[None]:
+    """`handler` for every signal of SIGNALS inside the block; the handlers before it after."""
     previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
     try:
         for signum in SIGNALS:
-            signal.signal(signum, _raise_at_once)
+            signal.signal(signum, handler)
         yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        for signum, before in previous.items():
+            signal.signal(signum, before)
 
 
 __all__ = ["SIGNALS", "Interrupted", "at_once", "check", "immediately", "requested", "stop_requests"]
