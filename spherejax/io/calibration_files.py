@@ -655,6 +655,23 @@ class _FailureKeepingFile:
         return self._file.tell()
 
 
+def _require_usable_patch(path, dark: np.ndarray, white: np.ndarray, patch: np.ndarray) -> None:
+    """Refuse a calibration whose white patch has, in some band, no pixel with a usable flat field
+    (white - dark finite and > 0, Eq. 10): the patch ratio (Eq. 14-15) of every image would be
+    NaN there, and every pixel of every image flagged (QUALITY_PATCH_UNUSABLE), so such a file
+    is no calibration. (Frames with unusable pixels elsewhere stay valid: those pixels are
+    flagged one by one, and a `Calibration` of a strip of rows may hold only such pixels.)"""
+    signal = white.astype(np.float64) - dark.astype(np.float64)
+    usable = np.asarray(patch, bool)[..., None] & np.isfinite(signal) & (signal > 0)
+    bands = np.flatnonzero(~usable.any(axis=(0, 1)))
+    if bands.size:
+        raise CalibrationFileError(
+            path, f"no pixel of the white patch has white - dark finite and > 0 in band(s) {bands.tolist()} "
+            "(counted from 0): every image's patch ratio would be NaN and every pixel flagged",
+            "a white patch whose white frame lies above the dark frame in every band",
+        )
+
+
 def save_calibration(
     path, calibration: Calibration, *, instrument_id: str, band_centres_nm, metadata=None,
     noise_model: NoiseModel | None = None,
@@ -713,6 +730,7 @@ def save_calibration(
     header = _json_value(path, header, CalibrationFileError, "the header")
     header["checksum"] = _checksum(header, arrays)
     _check_calibration_contents(path, header, arrays)  # refuse to write what load would refuse
+    _require_usable_patch(path, arrays["dark"], arrays["white"], arrays["patch"])
 
     try:
         # h5py writes the temporary file through its handle ("w+b": h5py's file-object driver
@@ -788,6 +806,8 @@ class CalibrationFile:
             if self.patch_box is None:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
             self._patch_calibration = self._crop(*self.patch_box)
+            crop = self._patch_calibration
+            _require_usable_patch(path, np.asarray(crop.dark), np.asarray(crop.white), np.asarray(crop.patch))
         self._noise_model = noise_model_of(path, header)
         self._file = file
 

@@ -24,7 +24,7 @@ import pytest
 
 import spherejax
 from spherejax import cli, interrupt, io
-from tests.batch_support import NAMES, frame
+from tests.batch_support import NAMES, frame, make_calibration
 from tests.helpers import calibration_entries
 
 SPARSE_SHAPE = (100_000, 100_000, 16)
@@ -315,3 +315,36 @@ def test_sigterm_while_correct_verifies_the_calibration_stops_it_within_a_block(
     assert line.startswith("spherejax: interrupted"), line
     assert len(reads) <= 2, reads  # the read the signal came in, and at most the one under way
     assert not out.exists()
+
+
+@pytest.mark.parametrize("damage", ["dark_nan", "white_at_dark"])
+def test_a_calibration_whose_patch_has_no_usable_pixel_is_refused_when_saved_and_opened(tmp_path, damage, monkeypatch):
+    """Non-finite dark or white frames across the white patch made every image's patch ratio
+    NaN and every pixel flagged, yet the file was saved, opened and `correct` said "done"."""
+    rng = np.random.default_rng(0)
+    calibration, bands, instrument = make_calibration(rng)
+    dark, white = np.array(calibration.dark), np.array(calibration.white)
+    patch = np.asarray(calibration.patch, bool)
+    if damage == "dark_nan":
+        dark[patch, 3] = np.nan
+    else:
+        white[patch, 3] = dark[patch, 3]
+    broken = spherejax.Calibration(dark=dark, white=white, patch=calibration.patch, coeffs=calibration.coeffs,
+                            wiener=calibration.wiener, wiener_offset=calibration.wiener_offset,
+                            saturation=calibration.saturation)
+    path = tmp_path / "cal.h5"
+    with pytest.raises(io.CalibrationFileError, match=r"no pixel of the white patch has white - dark finite and > 0 "
+                                                       r"in band\(s\) \[3\]"):
+        io.save_calibration(path, broken, instrument_id=instrument, band_centres_nm=bands)
+    assert not path.exists()
+    # Written by something else (this check switched off), it is refused when opened too.
+    good = tmp_path / "good.h5"
+    io.save_calibration(good, calibration, instrument_id=instrument, band_centres_nm=bands)
+    from spherejax.io import calibration_files
+
+    with monkeypatch.context() as patched:
+        patched.setattr(calibration_files, "_require_usable_patch", lambda *args: None)
+        io.save_calibration(path, broken, instrument_id=instrument, band_centres_nm=bands)
+    with pytest.raises(io.CalibrationFileError, match="no pixel of the white patch"):
+        io.open_calibration(path)
+    io.open_calibration(good).close()
