@@ -55,6 +55,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 
 from spherejax import interrupt, jsontext
+from spherejax.io.plain_files import read_small
 
 from .camera import Camera, CameraError, open_camera
 from .errors import HardwareError, InstrumentError
@@ -492,9 +493,11 @@ def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
             return
         raise AcquisitionError(f"{partial}: holds no profile.json: not an acquisition spherejax can resume")
     try:
-        before = jsontext.loads(saved.read_bytes())
+        before = jsontext.loads(read_small(saved, 1 << 20))
     except jsontext.JSONTextError as error:
         raise AcquisitionError(f"{saved}: {error.problem}: not an acquisition spherejax can resume") from None
+    except OSError as error:
+        raise AcquisitionError(f"{saved}: cannot be read: {error.strerror}: not an acquisition spherejax can resume") from None
     now = _profile_identity(profile)
     if before != now:
         changed = sorted(k for k in now if before.get(k) != now[k])

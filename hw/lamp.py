@@ -32,6 +32,7 @@ from typing import Annotated, Callable, Literal
 
 from spherejax import jsontext
 from spherejax.io import atomic
+from spherejax.io.plain_files import read_small
 from spherejax.io.documents import AwareTime, Document, Expect, check_document, integer, number
 
 from .errors import InstrumentError
@@ -107,9 +108,13 @@ class Lamp:
         """The validated state: hours (float), on_since (datetime | None), ignitions (int),
         warmups (list of dicts)."""
         try:
-            data = self.state_file.read_bytes()
+            # Bounded (the record is a few kilobytes) and never waiting on a FIFO in its place.
+            data = read_small(self.state_file, 1 << 20)
         except FileNotFoundError:
             return {"hours": 0.0, "on_since": None, "ignitions": 0, "warmups": []}
+        except OSError as error:
+            raise LampStateError(f"{self.state_file}: lamp state cannot be read: {error.strerror}; "
+                                 "expected a JSON object with \"hours\"") from None
         try:
             # The parser every file spherejax reads goes through: a file written here and then
             # damaged (bad bytes, deep nesting, huge integers) is refused like any user file.

@@ -73,6 +73,7 @@ from typing import Annotated, Any, Literal
 
 import pydantic
 from pydantic import AfterValidator
+from spherejax.io.plain_files import read_small
 from spherejax.io.documents import Document, Expect, NonEmptyStr, Rectangle, check_document, integer, number, refuse
 
 from .camera import PROFILE_OPTIONS, ProfileOption
@@ -398,10 +399,13 @@ def load_profile(path) -> Profile:
     """
     path = pathlib.Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        # Bounded, and a FIFO refused at once: a profile is a few kilobytes.
+        data = tomllib.loads(read_small(path, 1 << 20).decode("utf-8"))
     except FileNotFoundError:
         raise ProfileError(path, None, "no such file", "an instrument profile (TOML)") from None
-    except (OSError, UnicodeDecodeError) as error:
+    except OSError as error:
+        raise ProfileError(path, None, f"cannot be read: {error.strerror or error}", "an instrument profile (TOML)") from None
+    except UnicodeDecodeError as error:
         raise ProfileError(path, None, f"cannot be read: {error}", "an instrument profile (TOML)") from None
     except (ValueError, RecursionError) as error:
         # TOMLDecodeError is a ValueError; so is int() refusing an integer of more than 4300

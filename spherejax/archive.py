@@ -586,10 +586,13 @@ def _utf8_name(path) -> bool:
 
 def max_input_bytes(calibration: io.CalibrationFile) -> tuple[int, str]:
     """The most bytes one input file may hold: the calibration's cube in 64-bit samples, twice
-    over (any layout, compression that grew the data, metadata), and 64 MiB to spare."""
+    over (any layout, compression that grew the data, metadata), and 64 MiB to spare
+    (`io.frames.image_byte_limit`, the limit every cube reader applies)."""
+    from .io.frames import image_byte_limit
+
     height, width = calibration.image_shape
     cube = f"a {height} x {width} x {calibration.bands} cube"
-    return 2 * height * width * calibration.bands * 8 + (64 << 20), cube
+    return image_byte_limit((height, width, calibration.bands)), cube
 
 
 def _open_input(spec: InputSpec, calibration: io.CalibrationFile) -> io.CubeReader:

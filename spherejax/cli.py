@@ -591,6 +591,12 @@ def cmd_measure(args) -> int:
     if args.cgats is not None:
         outputs["--cgats FILE"] = args.cgats
     io.refuse_overlaps(outputs, {"the input cube": args.input, "the calibration (-c)": args.calibration})
+    # A regular file there is an earlier measurement's, replaced; a FIFO, device, folder or link
+    # is not spherejax's, and was replaced by the new file (a FIFO, exit 0).
+    from .io import ownership
+
+    ownership.refuse_in_the_way(outputs, replaceable=lambda path: None,
+                                expected="new files, or regular files an earlier measurement wrote")
 
     calibration_file = io.open_calibration(args.calibration)
     try:

@@ -145,7 +145,7 @@ from __future__ import annotations
 from .errors import CalibrationFileError, SessionError, SpherejaxFileError
 from .atomic import is_temp_sibling, temp_sibling
 from .ownership import refuse_overlaps
-from .plain_files import file_kind, open_regular, read_lines
+from .plain_files import file_kind, open_regular, read_lines, read_small
 from .frames import (
     AtomicImageWriter,
     frame_spec,
@@ -202,6 +202,7 @@ __all__ = [
     "file_kind",
     "open_regular",
     "read_lines",
+    "read_small",
     "write_simulated_session",
     "SpherejaxFileError",
     "SessionError",

@@ -29,7 +29,10 @@ import numpy as np
 import OpenImageIO as oiio
 from .documents import _describe_bands
 from .errors import SpherejaxFileError
-from .frames import AtomicImageWriter, _FRAME_EXPECTED, _frame_names_and_attributes, _open_checked_frame, _refuse_undecodable_text, _require_frame_shape, _spec_shape
+from .frames import (
+    AtomicImageWriter, _FRAME_EXPECTED, _frame_names_and_attributes, _open_checked_frame, _refuse_undecodable_text,
+    _require_frame_shape, _spec_shape, require_image_file,
+)
 from .spectral_layout import wavelengths_of_channels
 
 
@@ -280,8 +283,7 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
     """
     path = pathlib.Path(path)
     height, width, bands = (int(n) for n in expected_shape)
-    if not path.is_file():
-        raise SpherejaxFileError(path, "no such file", _CUBE_EXPECTED)
+    require_image_file(path, _CUBE_EXPECTED, (height, width, bands))
     image = oiio.ImageInput.open(str(path))
     if image is None:
         raise SpherejaxFileError(path, f"is not a readable image: {oiio.geterror()}", _CUBE_EXPECTED)
@@ -327,6 +329,7 @@ def open_band_files(paths: Sequence, *, expected_shape: Sequence[int]) -> CubeRe
     try:
         for path in paths:
             path = pathlib.Path(path)
+            require_image_file(path, _FRAME_EXPECTED, (height, width, 1))
             image = _open_checked_frame(path)
             planes.append(_Plane(image, path, 0, 1, _FRAME_EXPECTED))
             _require_frame_shape(path, _spec_shape(image), (height, width, 1))

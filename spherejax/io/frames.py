@@ -9,6 +9,7 @@ import hashlib
 import json
 import os
 import pathlib
+import stat
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -16,6 +17,7 @@ import OpenImageIO as oiio
 
 from .atomic import create_exclusive, fsync_folder, temp_sibling
 from .errors import SpherejaxFileError, _show
+from .plain_files import file_kind
 
 _FRAME_EXPECTED = "a single-page 16-bit TIFF of shape (H, W, C)"
 _RESERVED_ATTRIBUTES = ("ImageDescription",)
@@ -43,11 +45,37 @@ def _refuse_undecodable_text(expected: str):
     return decorate
 
 
+def image_byte_limit(shape) -> int:
+    """The most bytes an image file of `shape` (H, W, C) may hold: its samples as 64-bit values,
+    twice over (any layout, compression that grew the data, metadata), and 64 MiB to spare."""
+    return 2 * int(np.prod([int(n) for n in shape])) * 8 + (64 << 20)
+
+
+def require_image_file(path: pathlib.Path, expected: str, shape=None) -> None:
+    """Refuse, before OpenImageIO opens it, a path that is missing, not a regular file (a FIFO
+    would be waited on, a device read forever) or, given the `shape` (H, W, C) it must have,
+    larger than `image_byte_limit` (OpenImageIO tries its readers in turn on a file it does not
+    know, and some read all of it: a 5 GB sparse file took minutes)."""
+    try:
+        found = os.stat(path)
+    except FileNotFoundError:
+        raise SpherejaxFileError(path, "no such file", expected) from None
+    except OSError as error:
+        raise SpherejaxFileError(path, f"cannot be read: {error.strerror}", expected) from None
+    if not stat.S_ISREG(found.st_mode):
+        raise SpherejaxFileError(path, f"is {file_kind(found.st_mode)}", expected)
+    if shape is not None and found.st_size > image_byte_limit(shape):
+        what = " x ".join(str(int(n)) for n in shape)
+        raise SpherejaxFileError(
+            path, f"is {found.st_size} bytes, more than a {what} image can take ({image_byte_limit(shape)} at most)",
+            expected,
+        )
+
+
 @_refuse_undecodable_text(_FRAME_EXPECTED)
 def _open_checked_frame(path: pathlib.Path) -> oiio.ImageInput:
     """An open ImageInput on a checked camera frame (one page, uint16 samples); the caller closes it."""
-    if not path.is_file():
-        raise SpherejaxFileError(path, "no such file", _FRAME_EXPECTED)
+    require_image_file(path, _FRAME_EXPECTED)
     image = oiio.ImageInput.open(str(path))
     if image is None:
         problem = f"is not a readable image: {oiio.geterror()}"

@@ -32,6 +32,11 @@ SPECIAL_FILES = (
 #: The longest line `read_lines` keeps: a manifest or journal record is a few kilobytes.
 MAX_LINE_BYTES = 1 << 20
 
+#: The most bytes `read_small` reads of a document spherejax reads whole (a session's manifest,
+#: an instrument profile, the lamp's state): they are kilobytes, a session of ten thousand frames
+#: a few megabytes. One of gigabytes (`truncate -s 3G manifest.json`) was read into memory whole.
+MAX_DOCUMENT_BYTES = 64 << 20
+
 
 def file_kind(mode: int) -> str:
     """What a file that is not a regular file is: "a FIFO", "a socket", ..., "a folder"."""
@@ -63,6 +68,36 @@ def open_regular(path, flags: int, mode: int = 0o666) -> int:
         os.close(fd)
         raise OSError(errno.EINVAL, f"it is {file_kind(found)}", str(path))
     return fd
+
+
+def read_small(path, max_bytes: int = MAX_DOCUMENT_BYTES) -> bytes:
+    """The bytes of a regular file read whole, after checking it holds at most `max_bytes`. Opened
+    with O_NONBLOCK, so a FIFO or device is refused at once by what it is, never waited on. A
+    symbolic link is followed: this is for documents spherejax reads (a profile may well be a
+    link), never writes.
+
+    Raises:
+      OSError: as os.open does (FileNotFoundError); for a FIFO, socket, device or folder, one
+        whose strerror says what it is; for a file over `max_bytes`, EFBIG with "it is N bytes,
+        more than such a file holds".
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        found = os.fstat(fd).st_mode
+        if not stat.S_ISREG(found):
+            raise OSError(errno.EINVAL, f"it is {file_kind(found)}", str(path))
+        size = os.fstat(fd).st_size
+        if size > max_bytes:
+            raise OSError(errno.EFBIG, f"it is {size} bytes, more than such a file holds ({max_bytes} at most)", str(path))
+        chunks, total = [], 0
+        while chunk := os.read(fd, min(1 << 20, max_bytes + 1 - total)):
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > max_bytes:  # grew while read
+                raise OSError(errno.EFBIG, f"it grew past {max_bytes} bytes while read", str(path))
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def _data_extents(fd: int, size: int, chunk_bytes: int) -> Iterator[tuple[int, int]]:
@@ -117,4 +152,4 @@ def read_lines(path, max_line_bytes: int = MAX_LINE_BYTES, chunk_bytes: int = 1 
         os.close(fd)
 
 
-__all__ = ["SPECIAL_FILES", "MAX_LINE_BYTES", "file_kind", "open_regular", "read_lines"]
+__all__ = ["SPECIAL_FILES", "MAX_LINE_BYTES", "MAX_DOCUMENT_BYTES", "file_kind", "open_regular", "read_lines", "read_small"]

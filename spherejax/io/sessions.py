@@ -24,7 +24,8 @@ from .documents import (
     shape,
 )
 from .errors import SessionError, SpherejaxFileError, _reraise_as, _show
-from .frames import _FRAME_EXPECTED, _require_frame_shape, frame_spec, read_frame, write_frame
+from .plain_files import read_small
+from .frames import _FRAME_EXPECTED, _require_frame_shape, frame_spec, read_frame, require_image_file, write_frame
 
 SESSION_FORMAT = "spherejax-session"
 SESSION_FORMAT_VERSION = 1
@@ -347,9 +348,10 @@ def _parse_manifest(doc, *, manifest_path: pathlib.Path, root: pathlib.Path) -> 
 
 def _read_manifest(manifest_path: pathlib.Path):
     try:
-        data = manifest_path.read_bytes()
+        # Bounded, and a FIFO refused at once: a 3 GB sparse manifest.json was read whole.
+        data = read_small(manifest_path)
     except OSError as error:
-        raise SessionError(manifest_path, f"cannot be read: {error.strerror}") from None
+        raise SessionError(manifest_path, f"cannot be read: {error.strerror}", "the manifest of a spherejax session") from None
     try:
         # Not json.loads: jsontext also turns bad UTF-8, 4300-digit integers and deep nesting
         # into the one-line problem.
@@ -366,11 +368,15 @@ def _check_frame_file(session: Session, frame: FrameInfo) -> None:
         raise SessionError(
             file, f"resolves to {resolved}, outside the session folder", "frame files inside it"
         )
-    if not file.is_file():
+    if not file.exists():
         raise SessionError(
             file, f"no such file (frame {frame.id!r} in {MANIFEST_NAME})", _FRAME_EXPECTED
         )
     with _reraise_as(SessionError):
+        # A FIFO or device named as a frame: refused by what it is, never opened; a frame far
+        # larger than the session's image shape could ever need, before OpenImageIO reads it.
+        require_image_file(file, f"{_FRAME_EXPECTED}, frame {frame.id!r} in {MANIFEST_NAME}",
+                           (*session.image_shape, session.bands))
         _require_frame_shape(file, frame_spec(file), (*session.image_shape, session.bands))
 
 
@@ -388,7 +394,7 @@ def load_session(path) -> Session:
         problem = "is not a folder" if root.exists() else "no such folder"
         raise SessionError(root, problem, f"a session folder holding {MANIFEST_NAME}")
     manifest_path = root / MANIFEST_NAME
-    if not manifest_path.is_file():
+    if not manifest_path.exists():
         raise SessionError(manifest_path, "no such file", "the manifest of a spherejax session")
     session = _parse_manifest(_read_manifest(manifest_path), manifest_path=manifest_path, root=root)
     for frame in session.frames:
