@@ -57,3 +57,10 @@ def test_reflective_channels_leave_out_a_preview_and_keep_their_indices():
     assert spectral_layout.reflective_channels(["410nm", "400nm"]) == {0: 410.0, 1: 400.0}
     assert spectral_layout.reflective_channels(["400nm", "R"]) is None  # older names: all or none
     assert spectral_layout.reflective_channels(["L*", "a*", "b*"]) is None
+
+
+@pytest.mark.parametrize("name", ["T.0Hz", "T.e5nm", "T.0nm", "T.1e400nm", "T.0,0mm"])
+def test_a_name_the_grammar_admits_but_that_gives_no_wavelength_is_none_not_an_error(name):
+    """"T.0Hz" raised ZeroDivisionError and "T.e5nm" ValueError out of the readers of outputs."""
+    assert spectral_layout.wavelengths_of_channels([name]) is None
+    assert spectral_layout.reflective_channels([name, "T.500nm"]) == {1: 500.0}

@@ -14,6 +14,7 @@ Files written before spherejax followed the layout name their channels ``400nm``
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 
@@ -44,12 +45,20 @@ def reflectance_channel_names(wavelengths_nm: Sequence[float]) -> list[str]:
     return names
 
 
-def _wavelength_nm(match: re.Match) -> float:
-    number = float(match.group("number").replace(",", "."))
+def _wavelength_nm(match: re.Match) -> float | None:
+    """The wavelength a matched name gives, None where it gives none: the grammar admits "T.e5nm"
+    (no digits before the exponent: float() refuses it), "T.0Hz" (a zero frequency: a division by
+    zero) and numbers that overflow; such a channel is named by no wavelength, not an error."""
+    try:
+        number = float(match.group("number").replace(",", "."))
+    except ValueError:
+        return None
     scale = _SI_PREFIX[match.group("prefix") or ""]
     if match.group("unit") == "Hz":
-        return _SPEED_OF_LIGHT / (number * scale) * 1e9
-    return number * (scale / 1e-9)  # exact for nm (1e-9 / 1e-9 == 1.0)
+        nm = _SPEED_OF_LIGHT / (number * scale) * 1e9 if number * scale > 0 else math.inf
+    else:
+        nm = number * (scale / 1e-9)  # exact for nm (1e-9 / 1e-9 == 1.0)
+    return nm if math.isfinite(nm) and nm > 0 else None
 
 
 def reflective_channels(names: Sequence[str]) -> dict[int, float] | None:
@@ -59,8 +68,8 @@ def reflective_channels(names: Sequence[str]) -> dict[int, float] | None:
     found = {}
     for index, name in enumerate(names):
         match = _REFLECTIVE.fullmatch(name)
-        if match is not None and match.group("number").strip(","):
-            found[index] = _wavelength_nm(match)
+        if match is not None and match.group("number").strip(",") and (nm := _wavelength_nm(match)) is not None:
+            found[index] = nm
     if found:
         return found
     older = wavelengths_of_channels(names)
@@ -75,7 +84,9 @@ def wavelengths_of_channels(names: Sequence[str]) -> list[float] | None:
     wavelengths = []
     for name in names:
         if (match := _REFLECTIVE.fullmatch(name)) is not None and match.group("number").strip(","):
-            wavelengths.append(_wavelength_nm(match))
+            if (nm := _wavelength_nm(match)) is None:
+                return None
+            wavelengths.append(nm)
         elif (match := _LEGACY.fullmatch(name)) is not None:
             wavelengths.append(float(match.group("number")))
         else:
