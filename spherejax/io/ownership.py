@@ -179,16 +179,14 @@ def earlier_run(record: os.PathLike | str, keys: frozenset[str] | set[str]) -> b
     every one of `keys`: the record an earlier run of a command left beside its other outputs
     (evaluate's metrics.json, study's study.json), by which those outputs are known to be its own."""
     from .. import jsontext
-    from .plain_files import open_regular
+    from .plain_files import read_small
 
+    if os.path.islink(record):
+        return False  # a link is nothing spherejax wrote
     try:
-        descriptor = open_regular(record, os.O_RDONLY)
+        data = read_small(record, MAX_RECORD_BYTES)
     except OSError:
         return False
-    with os.fdopen(descriptor, "rb") as file:
-        if os.fstat(file.fileno()).st_size > MAX_RECORD_BYTES:
-            return False
-        data = file.read(MAX_RECORD_BYTES + 1)
     try:
         document = jsontext.loads(data)
     except ValueError:
