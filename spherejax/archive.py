@@ -89,8 +89,9 @@ checksums, the same software version and settings (`output_settings`: illuminant
 compression) and every output is present with the recorded SHA-256; anything else is redone.
 Hashing and reading the manifest are safe points (below): a signal never waits for them.
 
-OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run and the holder's pid and
-host (for the message that refuses a second run). The kernel drops the flock when a process dies,
+OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run, and one JSON object: the
+holder's pid and host (for the message that refuses a second run) and the outputs the run claims
+before writing them (`OutputLock`). The kernel drops the flock when a process dies,
 so a crashed or killed run never leaves OUT locked: its lock file is simply taken over. This is
 sturdier than "is that pid alive", which a reused pid fools. Temporary files left by a killed run
 are removed when the next run takes the lock.
