@@ -483,13 +483,11 @@ def _camera_noise(profile: Profile, camera: Camera) -> dict:
 
 
 def _check_resume(partial: pathlib.Path, profile: Profile) -> None:
-    from spherejax.io import atomic
-
     saved = partial / "profile.json"
     if not saved.is_file():
         # A run killed between creating the folder and renaming profile.json into place left
         # nothing to keep (at most the temporary, half written): the resumed run starts afresh.
-        if all(atomic.is_temp_sibling(entry.name, "profile.json") for entry in partial.iterdir()):
+        if _is_work_folder(partial):
             return
         raise AcquisitionError(f"{partial}: holds no profile.json: not an acquisition spherejax can resume")
     try:

@@ -506,19 +506,15 @@ def input_checksum(spec: InputSpec, max_bytes: tuple[int, str] | None = None) ->
     return _hash_input(spec, max_bytes)[0]
 
 
-#: What says a name still leads to the file hashed: (st_dev, st_ino). os.replace (how a file is
-#: swapped for another, or a copy lands) gives the name another inode. Bytes appended in place (a
-#: copy still arriving) leave the pixels read those hashed (the image is what its header points
-#: at); the hash recorded then differs from the file's, so --resume corrects it again.
-_FileState = tuple[int, int]
+# What says a name still leads to the file hashed is its identity, `_identity` (st_dev, st_ino):
+# os.replace (how a file is swapped for another, or a copy lands) gives the name another inode.
+# Bytes appended in place (a copy still arriving) leave the pixels read those hashed (the image is
+# what its header points at); the hash recorded then differs from the file's, so --resume
+# corrects it again.
 
 
-def _file_state(st: os.stat_result) -> _FileState:
-    return (st.st_dev, st.st_ino)
-
-
-def _hash_input(spec: InputSpec, max_bytes: tuple[int, str] | None = None) -> tuple[str, tuple[_FileState, ...]]:
-    """(SHA-256 hex over the input's files, each file's `_FileState` as hashed): the state lets
+def _hash_input(spec: InputSpec, max_bytes: tuple[int, str] | None = None) -> tuple[str, tuple[_Identity, ...]]:
+    """(SHA-256 hex over the input's files, each file's `_identity` as hashed): the state lets
     `_check_unchanged` prove afterwards that the pixels read came from the bytes hashed."""
     digest = hashlib.sha256()
     states = []
@@ -544,7 +540,7 @@ def _hash_input(spec: InputSpec, max_bytes: tuple[int, str] | None = None) -> tu
                     "a cube file",
                 )
             _hash_stream(handle, digest)
-            states.append(_file_state(st))
+            states.append(_identity(st))
     return digest.hexdigest(), tuple(states)
 
 
@@ -556,7 +552,7 @@ def _hash_stream(handle, digest) -> None:
         digest.update(block)
 
 
-def _check_unchanged(spec: InputSpec, states: tuple[_FileState, ...]) -> None:
+def _check_unchanged(spec: InputSpec, states: tuple[_Identity, ...]) -> None:
     """Raise unless each of the input's files is still the file `_hash_input` hashed.
 
     The hash is taken through one open and the pixels are read through OpenImageIO's own: an
@@ -566,7 +562,7 @@ def _check_unchanged(spec: InputSpec, states: tuple[_FileState, ...]) -> None:
     """
     for file, state in zip(spec.files, states, strict=True):
         try:
-            now = _file_state(os.stat(file))
+            now = _identity(os.stat(file))
         except OSError as error:
             now = error.strerror
         if now != state:
