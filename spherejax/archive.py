@@ -893,22 +893,30 @@ def _manifest_records(out_root) -> Iterable[dict]:
             yield record
 
 
+def _manifest_state(out_root) -> tuple[dict[str, dict], set[str]]:
+    """One pass over OUT's manifest: (the last record of each input name, every output path any
+    record lists). Lines that are not whole JSON objects are ignored."""
+    last: dict[str, dict] = {}
+    owned: set[str] = set()
+    for record in _manifest_records(out_root):
+        last[record["name"]] = record
+        outputs = record.get("outputs")
+        if isinstance(outputs, dict):
+            owned.update(name for name in outputs if isinstance(name, str))
+    return last, owned
+
+
 def read_manifest(out_root) -> dict[str, dict]:
     """The last manifest record of each input name (lines that are not whole JSON objects are
     ignored)."""
-    return {record["name"]: record for record in _manifest_records(out_root)}
+    return _manifest_state(out_root)[0]
 
 
 def recorded_outputs(out_root) -> set[str]:
     """Every output path (relative to OUT) any record of OUT's manifest lists: the files in OUT
     that spherejax wrote, and so the only ones it may replace or remove (module docstring,
     Safety)."""
-    owned = set()
-    for record in _manifest_records(out_root):
-        outputs = record.get("outputs")
-        if isinstance(outputs, dict):
-            owned.update(name for name in outputs if isinstance(name, str))
-    return owned
+    return _manifest_state(out_root)[1]
 
 
 _Status = choice("done", "failed")
@@ -1231,9 +1239,9 @@ def run_batch(
     ended = False
     try:
         _remove_temporaries(out_root)
-        done = read_manifest(out_root) if resume else {}
-        specs = _claim_outputs(specs, out_root, calibration_path, output_format,
-                               recorded_outputs(out_root) | lock.claimed)
+        last, recorded = _manifest_state(out_root)  # one read of the manifest, streamed
+        done = last if resume else {}
+        specs = _claim_outputs(specs, out_root, calibration_path, output_format, recorded | lock.claimed)
         manifest = Manifest(out_root)
         try:
             if on_start is not None:
