@@ -7,17 +7,34 @@ the other way. Only argparse is imported here: the devices load when the command
 
 from __future__ import annotations
 
-import sys
+import logging
 
-from spherejax import interrupt
-from spherejax.cli import EXIT_BAD_INPUT
+from spherejax import console, interrupt
+from spherejax.cli import EXIT_BAD_INPUT, add_output_option
 
 
 def add_command(commands) -> None:
     """Add `acquire` to the command line's subparsers (`commands`, an argparse subparsers action)."""
-    acquire = commands.add_parser("acquire", help="drive the instrument through the acquisition protocol into a session")
+    acquire = commands.add_parser(
+        "acquire", help="drive the instrument through the acquisition protocol into a session",
+        description=(
+            "Drive the instrument described by an instrument profile (camera, filter wheels or a tunable\n"
+            "filter, shutter, lamp) through the acquisition protocol: dark and white frames, the training,\n"
+            "test and target captures the profile lists, each band at its exposure, into a session folder\n"
+            "that calibrate, evaluate and correct read. Operator steps (place the white board, the next\n"
+            "sample) are prompted; --yes answers them. Ctrl-C stops between band images and keeps what was\n"
+            "captured; --resume completes the session without retaking it."
+        ),
+        epilog=(
+            "examples:\n"
+            "  spherejax acquire --profile lab.toml -o session-2026-11-26\n"
+            "  spherejax acquire --profile lab.toml -o session-2026-11-26 --resume\n"
+            "  spherejax acquire --profile lab.toml -o demo-session --emulate --yes   # no hardware"
+        ),
+    )
     acquire.add_argument("--profile", required=True, metavar="FILE", help="instrument profile (TOML)")
-    acquire.add_argument("-o", "--output", required=True, metavar="SESSION", help="session folder to write")
+    add_output_option(acquire, dest="output", metavar="SESSION", required=True, old_spelling=True,
+                      help="session folder to write (new, or an interrupted one with --resume)")
     acquire.add_argument("--yes", action="store_true", help="answer every operator prompt as done (scripts, tests)")
     acquire.add_argument("--emulate", action="store_true",
                          help="emulated wheels and shutter on pseudo-terminals and the simulated camera: no hardware")
@@ -32,26 +49,19 @@ def run_acquire(args) -> int:
     from . import acquire
 
     bar = None
-    if not args.quiet and sys.stderr.isatty():
-        from tqdm import tqdm
-
-        bar = tqdm(unit="image", file=sys.stderr, dynamic_ncols=True, desc="band images")
+    if not args.quiet and console.on_terminal():
+        bar = console.bar(unit="image", desc="band images")
 
     def progress(done: int, total: int) -> None:
         if bar is not None:
             bar.total = total
             bar.n = done
             bar.refresh()
-        elif not args.quiet and (done == total or done % 16 == 0):
-            print(f"spherejax: {done}/{total} band images", file=sys.stderr, flush=True)
+        elif done == total or done % 16 == 0:
+            console.say(f"spherejax: {done}/{total} band images")
 
     def log(line: str) -> None:
-        if args.quiet:
-            return
-        if bar is not None:
-            bar.write(f"spherejax: {line}", file=sys.stderr)
-        else:
-            print(f"spherejax: {line}", file=sys.stderr, flush=True)
+        console.say(f"spherejax: {line}")  # through tqdm.write while the bar is drawn (spherejax.console)
 
     settings = acquire.Settings(log=log, progress=progress)
     try:
@@ -61,10 +71,10 @@ def run_acquire(args) -> int:
                 operator=acquire.Operator(yes=args.yes), settings=settings,
             )
     except acquire.AcquisitionStopped as error:
-        print(f"spherejax: {error}", file=sys.stderr)
+        console.say(f"spherejax: {error}", logging.ERROR)
         return 1
     except acquire.AcquisitionError as error:
-        print(f"spherejax: error: {error}", file=sys.stderr)
+        console.say(f"spherejax: error: {error}", logging.ERROR)
         return EXIT_BAD_INPUT
     finally:
         if bar is not None:

@@ -406,7 +406,9 @@ def load_profile(path) -> Profile:
     except OSError as error:
         raise ProfileError(path, None, f"cannot be read: {error.strerror or error}", "an instrument profile (TOML)") from None
     except UnicodeDecodeError as error:
-        raise ProfileError(path, None, f"cannot be read: {error}", "an instrument profile (TOML)") from None
+        # Python's codec words ("'utf-8' codec can't decode byte 0x80 in position 0") in plain ones.
+        problem = f"is not UTF-8 text: byte {error.start} (0x{error.object[error.start]:02x}) cannot be decoded"
+        raise ProfileError(path, None, problem, "an instrument profile (TOML, UTF-8 text)") from None
     except (ValueError, RecursionError) as error:
         # TOMLDecodeError is a ValueError; so is int() refusing an integer of more than 4300
         # digits, and arrays nested thousands deep raise RecursionError.

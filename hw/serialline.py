@@ -35,8 +35,11 @@ timeouts and protocol errors leave the port open, so a caller can still make the
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
+import os
 import re
+import stat
 import threading
 import time
 
@@ -51,7 +54,8 @@ try:  # tcflush on a vanished pty raises termios.error, which is not an OSError.
 except ImportError:  # pragma: no cover - Windows has no termios
     _PORT_FAILURES = (serial.SerialException, OSError)
 
-__all__ = ["PromptedSerialDevice", "ERROR_MARKERS", "POLL_S", "DRAIN_QUIET_S"]
+__all__ = ["PromptedSerialDevice", "ERROR_MARKERS", "POLL_S", "DRAIN_QUIET_S", "PORT_EXPECTED", "open_problem",
+           "failure_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +69,10 @@ DRAIN_QUIET_S = 0.05
 ERROR_MARKERS = ("Command error", "CMD_")
 
 _LINE_BREAK = re.compile(r"[\r\n]")
+#: What a port should be, for the messages of one that cannot be opened or fails.
+PORT_EXPECTED = "a serial port: a terminal device such as /dev/ttyUSB0, or a pyserial URL such as socket://host:port"
+#: The most characters of pyserial's own words kept in a message.
+_DETAIL_LENGTH = 160
 _LEADING_PROMPTS = re.compile(r"^[\s>]+")
 
 
@@ -72,6 +80,78 @@ def _text(raw: bytes) -> str:
     # NULs are line noise the units emit on open. Non-ASCII bytes become U+FFFD, which _printable
     # rejects; messages show the raw bytes, so nothing is lost by replacing them here.
     return raw.replace(b"\x00", b"").decode("ascii", errors="replace")
+
+
+def _errno_of(exc: BaseException) -> int | None:
+    """The errno behind a pyserial failure: its own, its cause's, or the one pyserial wrote into
+    its text ("Could not configure port: (25, 'Inappropriate ioctl for device')")."""
+    for candidate in (exc, exc.__cause__, exc.__context__):
+        number = getattr(candidate, "errno", None)
+        if isinstance(number, int):
+            return number
+        args = getattr(candidate, "args", ())
+        if args and isinstance(args[0], int):  # termios.error(5, 'Input/output error')
+            return args[0]
+    found = re.search(r"\[Errno (\d+)\]|\((\d+), '", str(exc))
+    return int(found.group(1) or found.group(2)) if found else None
+
+
+def _pyserial_words(exc: BaseException, port: str) -> str:
+    """pyserial's message as a short detail: one line, no "[Errno N]", the port not repeated."""
+    args = getattr(exc, "args", ())
+    # (errno, words): termios.error(5, 'Input/output error'), SerialException(2, "could not open
+    # port ..."): the words, not the tuple.
+    words = args[1] if len(args) == 2 and isinstance(args[0], int) and isinstance(args[1], str) else exc
+    text = " ".join(str(words).split())
+    text = re.sub(r"\[Errno \d+\]\s*", "", text)
+    text = re.sub(r"^could not open port\s*(?:" + re.escape(port) + r")?\s*:?\s*", "", text)
+    text = text.replace(f"'{port}'", "").replace(port, "").replace("  ", " ")
+    text = re.sub(r"\s*:\s*(?=:|$)", "", text).strip(" :")
+    return text if len(text) <= _DETAIL_LENGTH else text[: _DETAIL_LENGTH - 3] + "..."
+
+
+def open_problem(port: str, exc: BaseException) -> str:
+    """Why pyserial could not open `port`, in plain words, then what was expected (`PortError`'s
+    problem: "cannot open port: there is no such device ... (expected a serial port: ...)")."""
+    number = _errno_of(exc)
+    if number in (errno.ENOENT, errno.ENXIO, errno.ENODEV):
+        what = "there is no such device (not plugged in, switched off, or named otherwise)"
+    elif number == errno.EISDIR:
+        what = "it is a folder, not a serial device"
+    elif number == errno.ENOTTY:
+        try:
+            mode = os.stat(port).st_mode
+        except OSError:
+            mode = 0
+        kind = ("a regular file" if stat.S_ISREG(mode) else
+                "a device that is not a terminal" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+                "a FIFO" if stat.S_ISFIFO(mode) else "something other than a terminal")
+        what = f"it is {kind}, not a serial port (it takes no serial settings)"
+    elif number in (errno.EACCES, errno.EPERM):
+        what = ("permission denied: this user may not read and write it (on Linux, join the group "
+                "that owns it, often dialout)")
+    elif number in (errno.EBUSY, errno.EAGAIN) or "exclusively lock" in str(exc):
+        what = "it is busy: another program has it open"
+    elif isinstance(exc, ValueError):
+        what = f"it is neither a device path nor a URL pyserial knows ({_pyserial_words(exc, port)})"
+    else:
+        detail = _pyserial_words(exc, port)
+        what = f"it could not be opened (pyserial: {detail})" if detail else "it could not be opened"
+    return f"cannot open port: {what} (expected {PORT_EXPECTED})"
+
+
+def failure_problem(port: str, exc: BaseException) -> str:
+    """What a port's failure mid-session means (`PortError`'s problem: "port failed: the device is
+    gone ..."), pyserial's words as a detail."""
+    number = _errno_of(exc)
+    detail = _pyserial_words(exc, port)
+    if number in (errno.EIO, errno.ENXIO, errno.ENODEV) or "returned no data" in str(exc):
+        what = "the device is gone: unplugged or switched off (or another program took the port)"
+    elif number == errno.EBADF:
+        what = "the port was closed under it"
+    else:
+        what = "the port stopped working"
+    return f"port failed: {what}" + (f" (pyserial: {detail})" if detail else "") + " (expected a device that stays connected)"
 
 
 def _printable(line: str) -> bool:
@@ -187,7 +267,7 @@ class PromptedSerialDevice:
                 )
             except (*_PORT_FAILURES, ValueError) as exc:
                 # ValueError: pyserial's answer to an unknown URL scheme or an unsupported setting.
-                raise PortError(self.port, None, f"cannot open port: {exc}") from exc
+                raise PortError(self.port, None, open_problem(self.port, exc)) from exc
             try:
                 self._drain()
                 self._on_connect()
@@ -370,4 +450,4 @@ class PromptedSerialDevice:
             raise DeviceTimeout(self.port, command, f"write timed out: {exc}") from exc
         except _PORT_FAILURES as exc:
             self._close_quietly()
-            raise PortError(self.port, command, f"port failed: {exc}") from exc
+            raise PortError(self.port, command, failure_problem(self.port, exc)) from exc

@@ -107,4 +107,6 @@ class Shutter(PromptedSerialDevice):
                     self.connect()
                 self.close_shutter()
         except Exception as exc:  # noqa: BLE001 - best effort by contract
-            log.warning("%s: could not make the shutter safe: %s", self.port, exc)
+            # A driver error names the port already: "PORT: could not make the shutter safe: its words".
+            reason = str(exc).removeprefix(f"{self.port}: ")
+            log.warning("%s: could not make the shutter safe: %s", self.port, reason)

@@ -14,13 +14,15 @@ Layers. Each module imports only modules of its own layer or of the layers below
 
 1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, wiener_estimation,
    pipeline, uncertainty, consistency, markov, angles, fused (the CPU kernel), buffers, grid,
-   spectra, allocator, jsontext (a parser of text it is given), labelled (the xarray names of the
-   outputs), _checks.
+   spectra, allocator, jsontext (a parser of text it is given), number_text (numbers in the
+   shortest text of their precision, JSON values and CSV tables as text), labelled (the xarray
+   names of the outputs), _checks.
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
    a path they open): calibrate, evaluate, study, simulate, stripwise, measurement, monte_carlo,
    simulated_targets, figures.
 3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.atomic, the one way
-   every writer puts a file in place), measurement_files, archive, cluster, interrupt, cli; and the
+   every writer puts a file in place), measurement_files, archive, cluster, interrupt, console (the
+   command line's messages and progress), cli and __main__ (`python -m spherejax`); and the
    instrument, hw/ (installed as spherejax_hw), which uses spherejax and which spherejax never
    imports: it adds `spherejax acquire` to cli through the "spherejax.commands" entry points.
 """

@@ -18,6 +18,8 @@ Inputs (`discover_inputs`)
 - A FIFO, socket or device (given, or named like a cube inside a folder) is refused by what it
   is ("PATH: is a FIFO (expected a cube file or a folder)"), a failed input; it is never opened
   (reading a FIFO waits for a writer, /dev/zero never ends). Discovery looks with os.stat only.
+- Inputs in which discovery finds nothing to correct refuse the batch (`NoInputError`, exit status
+  2: one line naming them and what was searched for) before OUT or its lock is created.
 
 Each physical input is corrected once, however many ways it is named. Folders are known by
 (st_dev, st_ino), so a folder reached again (a link to a folder searched already, the same folder
@@ -45,7 +47,9 @@ prefix: ``OUT/x``). For each input name N:
                        spherejax:input_sha256, spherejax:illuminant
     N.lab.exr          float32, channels "L*", "a*", "b*" under the illuminant, same attributes
                        (not "L", "a", "b": OpenImageIO takes a channel "a" for alpha)
-    N.quality.png      uint8, one channel: the quality bits (pipeline.QUALITY_*), 0 = good
+    N.quality.png      uint8, one channel: the quality bits (pipeline.QUALITY_*), 0 = good, as the
+                       indices of a palette PNG whose palette shows them (`io.quality_png`): 0
+                       black, each flag in its own colour; a tEXt "Description" states the key
     N.preview.png      8-bit sRGB (D65, IEC 61966-2-1 encoding) for browsing, whatever the
                        illuminant; pixels with no reflectance (quality != 0) are magenta
 
@@ -155,6 +159,32 @@ _BAND_FILE = re.compile(r"(?P<prefix>.*?)[_-]?(?P<nm>\d{3,4})nm", re.IGNORECASE)
 
 class BatchError(io.SpherejaxFileError):
     """The batch cannot start: OUT locked, already holding a batch, or not writable."""
+
+
+class NoInputError(BatchError):
+    """The inputs given hold no cube, band files or session to correct (`run_batch`, before OUT
+    is created): "IN1, IN2: no cube found: searched ... (expected at least one ...)"."""
+
+
+#: What discovery looks for in a folder (`_Discovery`), for the message of one that holds none.
+_SEARCHED = (
+    "searched {them} and every folder below (hidden names and OUT left out) for cube files (*.tif, "
+    "*.tiff, *.exr), band files (*<nm>nm.tif, *<nm>nm.tiff) and sessions (folders holding "
+    "manifest.json) with sample or target frames"
+)
+_NAMES_SHOWN = 5
+
+
+def _no_input_error(inputs: Sequence) -> NoInputError:
+    """The error of a batch whose `inputs` (as given) hold nothing to correct."""
+    names = [str(path) for path in inputs]
+    shown = ", ".join(names[:_NAMES_SHOWN])
+    if len(names) > _NAMES_SHOWN:
+        shown += f" and {len(names) - _NAMES_SHOWN} more"
+    return NoInputError(
+        shown, "no cube found: " + _SEARCHED.format(them="it" if len(names) == 1 else "them"),
+        "at least one cube, set of band files or session with frames to correct",
+    )
 
 
 # ----------------------------------------------------------------------------------------- inputs
@@ -529,7 +559,12 @@ def _hash_input(spec: InputSpec, max_bytes: tuple[int, str] | None = None) -> tu
         # The first read of an input. O_NONBLOCK: should a FIFO have taken the file's place since
         # discovery, the open returns at once instead of waiting for a writer; then it is refused
         # by what it is, before any read.
-        fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
+        except OSError as error:
+            gone = isinstance(error, FileNotFoundError)
+            problem = "no such file (removed or renamed since the batch found it)" if gone else f"cannot be read: {error.strerror}"
+            raise io.SpherejaxFileError(file, problem, "a readable cube file") from None
         with open(fd, "rb") as handle:
             st = os.fstat(fd)
             if not stat.S_ISREG(st.st_mode):
@@ -731,7 +766,7 @@ def _correct_into(
                 band_names=lab_names, attributes=attributes,
             ),
         }
-    openers["quality"] = lambda: io.open_png(paths["quality.png"], (height, width, 1), channel_names=["quality"])
+    openers["quality"] = lambda: io.open_quality_png(paths["quality.png"], (height, width, 1))
     openers["preview"] = lambda: io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"])
     committed: dict[pathlib.Path, str] = {}
     with contextlib.ExitStack() as stack:
@@ -857,6 +892,8 @@ def correct_input(
             _remove_outputs(out_root, source)
         _remove_empty_folders(created)
         reason = " ".join(str(error).split()) or type(error).__name__
+        if isinstance(error, OSError) and error.strerror:  # "[Errno 13] Permission denied: 'PATH'"
+            reason = f"{error.filename or source.source}: {error.strerror}"
         if not isinstance(error, (io.SpherejaxFileError, OSError, ValueError)):
             reason = f"{type(error).__name__}: {reason}"
         return FileResult(
@@ -1205,6 +1242,8 @@ def run_batch(
     Raises (before anything is written):
       CalibrationFileError: a calibration that cannot be read.
       BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked.
+      NoInputError (a BatchError): the inputs hold no cube, band files or session (OUT is not
+        created). Inputs that are all done already are not that: --resume skips them.
     Raises (inside `interrupt.stop_requests()`, on SIGINT or SIGTERM):
       interrupt.Interrupted: at the next safe point, with `done` (inputs finished, skipped or
         failed) and `total`; the input under way has left nothing in OUT, the lock is released,
@@ -1228,6 +1267,8 @@ def run_batch(
             "--resume to continue it, or a new OUT",
         )
     specs = discover_inputs(inputs, out_root, warn=on_warning)
+    if not specs:  # refused before OUT (or its lock) is created: a typo in INPUT leaves nothing
+        raise _no_input_error(inputs)
     try:
         out_root.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -1393,6 +1434,7 @@ __all__ = [
     "OUTPUT_KINDS_BY_FORMAT",
     "PREVIEW_BAD_PIXEL",
     "BatchError",
+    "NoInputError",
     "InputSpec",
     "FileResult",
     "BatchSummary",

@@ -36,6 +36,7 @@ from .polynomial import MIN_SAMPLES, STATUS_NAMES, UNDETERMINED, fit_stage2_deta
 from .uncertainty import NoiseModel
 from .wiener_estimation import METHODS as WIENER_METHODS, EstimatorCovariance, estimator_covariance, fit_wiener
 from .grid import N_WAVELENGTHS
+from .number_text import json_ready
 
 
 @dataclasses.dataclass
@@ -235,12 +236,14 @@ class CalibrationReport:
 
 
 def _plain(x):
-    """A NoiseModel field as JSON: a number (an integral one as int) or a list."""
-    value = np.asarray(x, np.float64)
+    """A NoiseModel field as JSON: a number (an integral one as int) or a list, each the shortest
+    decimal of the field's own precision (`number_text.json_ready`)."""
+    value = np.asarray(x)
     if value.ndim == 0:
         number = float(value)
-        return int(number) if number.is_integer() and abs(number) < 2**53 else number
-    return value.tolist()
+        if number.is_integer() and abs(number) < 2**53:
+            return int(number)
+    return json_ready(value)
 
 
 def noise_model_summary(model: NoiseModel | None) -> dict | None:
@@ -563,7 +566,7 @@ def calibrate_session(
         wiener_method=estimator.method,
         wiener_cross_validation=[cv.as_dict() for cv in estimator.cross_validation],
         stage2_loss=loss,
-        stage2_rms_residual=[float(x) for x in residual],
+        stage2_rms_residual=json_ready(residual),  # the shortest decimals of its precision
         stage2_status=[STATUS_NAMES[int(x)] for x in np.asarray(fit.status)],
         stage2_dropped_samples=[int(x) for x in np.asarray(fit.dropped)],
         unconverged_bands=sorted(fit.problems()),

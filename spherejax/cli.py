@@ -1,13 +1,13 @@
 """The `spherejax` command line (docs/design.md, "The command line").
 
-    spherejax demo [--out DIR] [--seed N]      simulate, calibrate, correct, evaluate
-    spherejax simulate OUT [--seed N]          a synthetic session like the paper's experiment
-    spherejax calibrate SESSION -o CAL [--gain E_PER_COUNT --read-noise COUNTS]
+    spherejax demo [-o DIR] [--seed N]         simulate, calibrate, correct, evaluate
+    spherejax simulate -o DIR [--seed N]       a synthetic session like the paper's experiment
+    spherejax calibrate SESSION -o CAL [--force] [--gain E_PER_COUNT --read-noise COUNTS]
                                                Stage II and Wiener from the training captures,
                                                and the noise model (spherejax.uncertainty)
-    spherejax evaluate SESSION [-c CAL] [--out DIR]
+    spherejax evaluate SESSION [-c CAL] [-o DIR]
                                                the paper's tables (text, CSV, JSON) and figures
-    spherejax study SESSION [-c CAL] [--wiener] [--out DIR]
+    spherejax study SESSION [-c CAL] [--wiener] [-o DIR]
                                                Stage II fitted for ΔE00 consistency, compared with
                                                the closed form on the held-out test captures
     spherejax correct -c CAL INPUT... -o OUT [--resume] [--illuminant NAME] [--format exr|envi]
@@ -23,6 +23,12 @@
                                                them: Lab, reflectance, ± U (k = 2), ΔE00; a table,
                                                OUT.csv and OUT.json, and CGATS.17 text with --cgats
                                                (spherejax.measurement_files)
+    spherejax --version                        the version line; a bare `spherejax` prints help
+
+Conventions (`build_parser` says why argparse): -o/--out names every output path (`--output` and
+`simulate OUT`, the older spellings, still work and are marked deprecated in --help); the global
+options -q, -v and --log-file go before or after the command (`_global_options`); messages go
+through `logging` and progress through tqdm on a terminal (spherejax.console), results to stdout.
 
 Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
 status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
@@ -32,11 +38,13 @@ every file is written to a temporary name and renamed into place.
 Each command writes and deletes only what it created (`spherejax.io.ownership`): before any work
 every output is checked against every input, the calibration and the other outputs, by resolved
 path and (st_dev, st_ino), so links and `..` cannot hide an overlap. `calibrate -o CAL` may put
-CAL beside the session's files, never over one, and replaces only a spherejax calibration;
+CAL beside the session's files, never over one, and replaces only a spherejax calibration, and
+that only with --force;
 `evaluate` and `study` refuse an --out DIR that is the session's folder or its frames folder, and
 replace only the files of an earlier run there (its metrics.json or study.json beside them);
-`simulate` and `demo` refuse a session folder that is a link or ends in ".."; `demo` replaces
-only what an earlier demo wrote. Anything else in the way is refused in one line naming it.
+`simulate` and `demo` refuse a session folder that is a link or ends in ".."; `demo` reuses a
+session only when it is the one asked for (`demo_session_differs`) and replaces only what an
+earlier demo wrote; --log-file appends only to a log spherejax wrote (spherejax.console). Anything else in the way is refused in one line naming it.
 
 `correct` and `acquire` stop cleanly on SIGINT (Ctrl-C) or SIGTERM (spherejax.interrupt): at the
 next safe point, with what was finished kept and recorded, nothing half-written left and OUT's
@@ -51,36 +59,19 @@ import contextlib
 import datetime
 import io as _bytes_io
 import json
+import logging
 import os
 import pathlib
 import sys
-import time
 
-from . import interrupt
+from . import console, interrupt
 from .allocator import keep_freed_memory
+from .console import Steps
 
 EXIT_BAD_INPUT = 2
 
 #: Stage II losses (spherejax.polynomial.LOSSES, repeated so --help needs no JAX import).
 LOSSES = ("l2", "huber", "cauchy", "tukey")
-
-
-class _Progress:
-    """Step lines with timings on stderr: "[2/4] calibrating ... 3.1 s"."""
-
-    def __init__(self, steps: int, quiet: bool = False):
-        self.steps, self.step, self.quiet = steps, 0, quiet
-
-    def start(self, what: str):
-        self.step += 1
-        self.t0 = time.perf_counter()
-        if not self.quiet:
-            print(f"[{self.step}/{self.steps}] {what} ...", file=sys.stderr, flush=True)
-
-    def done(self, detail: str = ""):
-        if not self.quiet:
-            extra = f" ({detail})" if detail else ""
-            print(f"      done in {time.perf_counter() - self.t0:.1f} s{extra}", file=sys.stderr, flush=True)
 
 
 def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
@@ -129,12 +120,17 @@ def _evaluation_files(evaluation) -> dict[str, bytes]:
 def cmd_simulate(args) -> int:
     from . import io
 
-    out = pathlib.Path(args.out)
+    if args.out is not None and args.out_positional is not None:
+        raise ValueError(f"the session folder is given twice, as -o {args.out!r} and as OUT {args.out_positional!r} "
+                         "(expected -o/--out DIR alone)")
+    if args.out is None and args.out_positional is None:
+        raise ValueError("no session folder given (expected -o/--out DIR, the session folder to create)")
+    out = pathlib.Path(args.out if args.out is not None else args.out_positional)
     io.check_new_session_folder(out)  # before minutes of simulation, not after
-    progress = _Progress(1, args.quiet)
-    progress.start(f"simulating a session into {out}")
-    session = io.write_simulated_session(out, seed=args.seed)
-    progress.done(f"{len(session.frames)} captures")
+    with Steps(1, args.quiet) as progress:
+        progress.start(f"simulating a session into {out}")
+        session = io.write_simulated_session(out, seed=args.seed)
+        progress.done(f"{len(session.frames)} captures")
     return 0
 
 
@@ -151,13 +147,12 @@ def _calibrate(session, args, progress):
         white_reflectance_u=getattr(args, "white_reflectance_u", None),
     )
     for band in report.unconverged_bands:
-        print(
-            f"spherejax: warning: Stage II band {int(session.band_centres_nm[band])} nm: "
-            f"{report.stage2_status[band]} ({args.loss} fit)", file=sys.stderr,
+        console.warn(
+            f"Stage II band {int(session.band_centres_nm[band])} nm: {report.stage2_status[band]} ({args.loss} fit)"
         )
     dropped = sum(report.stage2_dropped_samples)
     if dropped:
-        print(f"spherejax: warning: {dropped} non-finite Stage II training samples left out", file=sys.stderr)
+        console.warn(f"{dropped} non-finite Stage II training samples left out")
     progress.done(
         f"reference background {report.reference_background}, {report.training_samples} samples, "
         f"{report.targets} targets"
@@ -221,16 +216,21 @@ def _inputs(session, calibration=None) -> dict[str, pathlib.Path]:
     return inputs
 
 
-def _check_calibration_output(path, label: str, inputs) -> None:
+def _check_calibration_output(path, label: str, inputs, *, force: bool = True) -> None:
     """Before any work: a calibration to be written at `path` is none of `inputs`, and replaces
-    nothing but a spherejax calibration (io.ownership)."""
+    nothing but a spherejax calibration (io.ownership) -- and, with `force` False (`calibrate`
+    without --force), nothing at all: a lab's calibration is replaced only when asked to."""
     from .io import ownership
+    from .io.errors import SpherejaxFileError
 
     ownership.refuse_overlaps({label: path}, inputs)
     ownership.refuse_in_the_way(
         {label: path}, replaceable=ownership.not_a_calibration,
         expected=f"{label} a new file, or a spherejax calibration to replace",
     )
+    if not force and os.path.lexists(path):
+        raise SpherejaxFileError(path, "exists: a spherejax calibration",
+                                 f"{label} a new file, or --force to replace this calibration")
 
 
 def _evaluation_names(session) -> list[str]:
@@ -287,9 +287,9 @@ def cmd_calibrate(args) -> int:
     _calibrate_noise_options(args)  # before any work
     session = io.load_session(args.session)
     # CAL may go beside the session's files, never over one, nor over a file spherejax did not write.
-    _check_calibration_output(args.output, "-o CAL", _inputs(session))
-    progress = _Progress(1, args.quiet)
-    calibration, report = _calibrate(session, args, progress)
+    _check_calibration_output(args.output, "-o CAL", _inputs(session), force=args.force)
+    with Steps(1, args.quiet) as progress:
+        calibration, report = _calibrate(session, args, progress)
     _save_calibration(args.output, calibration, report, session)
     if not args.quiet:
         print(calibrate.noise_model_line(report))
@@ -317,17 +317,17 @@ def cmd_evaluate(args) -> int:
     _check_output_folder(out, _evaluation_names(session), _EVALUATION_RECORD, label="--out DIR" if args.out else "SESSION-evaluation",
                          inputs=_inputs(session, args.calibration), holding=_session_files(session))
     steps = 1 if args.calibration else 2
-    progress = _Progress(steps, args.quiet)
-    if args.calibration:
-        calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
-    else:
-        calibration, _ = _calibrate(session, args, progress)
-    _evaluate(session, calibration, out, progress, args.quiet)
+    with Steps(steps, args.quiet) as progress:
+        if args.calibration:
+            calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
+        else:
+            calibration, _ = _calibrate(session, args, progress)
+        _evaluate(session, calibration, out, progress, args.quiet)
     return 0
 
 
 def cmd_study(args) -> int:
-    from . import evaluate, io, study
+    from . import evaluate, io, number_text, study
 
     session = io.load_session(args.session)
     if args.response_weight < 0:
@@ -337,37 +337,40 @@ def cmd_study(args) -> int:
     out = pathlib.Path(args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-study")))
     _check_output_folder(out, _STUDY_FILES, _STUDY_RECORD, label="--out DIR" if args.out else "SESSION-study",
                          inputs=_inputs(session, args.calibration), holding=_session_files(session))
-    progress = _Progress(4 if args.calibration is None else 3, args.quiet)
-    if args.calibration:
-        calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
-    else:
-        calibration, _ = _calibrate(session, args, progress)
-    progress.start("minimising the mean ΔE00 inconsistency with optimistix (BFGS)")
-    result = study.study_session(session, calibration, fit_wiener=args.wiener, reference=args.reference_background,
-                                 response_weight=args.response_weight, max_steps=args.max_steps)
-    progress.done(f"objective {result.objective_start:.4f} -> {result.objective_end:.4f} in {result.steps} steps"
-                  f"{'' if result.converged else ' (step limit reached)'}")
-    progress.start("evaluating the closed form and the study on the held-out test captures")
-    closed = evaluate.evaluate_session(session, calibration)
-    studied = evaluate.evaluate_session(session, result.calibration)
-    if "test" not in closed.sets:
-        raise ValueError(f"{session.manifest_path}: no test captures (set 'test') to validate the study on")
-    progress.done()
-    header, rows = study.comparison(closed, studied, "test")
-    text = (
-        "Stage II fitted for colour consistency, validated on the held-out test captures "
-        "(Table 6 format)\n" + evaluate.format_table(header, rows) + "\n" + study.verdict(closed, studied, "test") + "\n"
-    )
-    csv = "\n".join(",".join(r) for r in [header, *rows]) + "\n"
-    payload = {
-        "reference_background": result.reference, "fit_wiener": result.fit_wiener,
-        "response_weight": args.response_weight, "objective_start": result.objective_start,
-        "objective_end": result.objective_end, "steps": result.steps, "converged": result.converged,
-        "closed_form": closed.metrics, "study": studied.metrics,
-    }
-    _write_files(out, {"study.txt": text.encode(), "study.csv": csv.encode(),
-                       "study.json": json.dumps(payload, indent=2).encode()})
-    _save_calibration(out / "study-calibration.h5", result.calibration, None, session)
+    # Steps: calibrating (without -c), the BFGS fit, the held-out evaluation, writing the files.
+    with Steps(3 if args.calibration else 4, args.quiet) as progress:
+        if args.calibration:
+            calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
+        else:
+            calibration, _ = _calibrate(session, args, progress)
+        progress.start("minimising the mean ΔE00 inconsistency with optimistix (BFGS)")
+        result = study.study_session(session, calibration, fit_wiener=args.wiener, reference=args.reference_background,
+                                     response_weight=args.response_weight, max_steps=args.max_steps)
+        progress.done(f"objective {result.objective_start:.4f} -> {result.objective_end:.4f} in {result.steps} steps"
+                      f"{'' if result.converged else ' (step limit reached)'}")
+        progress.start("evaluating the closed form and the study on the held-out test captures")
+        closed = evaluate.evaluate_session(session, calibration)
+        studied = evaluate.evaluate_session(session, result.calibration)
+        if "test" not in closed.sets:
+            raise ValueError(f"{session.manifest_path}: no test captures (set 'test') to validate the study on")
+        progress.done()
+        progress.start(f"writing {', '.join(_STUDY_FILES)} into {out}")
+        header, rows = study.comparison(closed, studied, "test")
+        text = (
+            "Stage II fitted for colour consistency, validated on the held-out test captures "
+            "(Table 6 format)\n" + evaluate.format_table(header, rows) + "\n" + study.verdict(closed, studied, "test") + "\n"
+        )
+        csv = number_text.csv_text(header, rows)
+        payload = {
+            "reference_background": result.reference, "fit_wiener": result.fit_wiener,
+            "response_weight": args.response_weight, "objective_start": result.objective_start,
+            "objective_end": result.objective_end, "steps": result.steps, "converged": result.converged,
+            "closed_form": closed.metrics, "study": studied.metrics,
+        }
+        _write_files(out, {"study.txt": text.encode(), "study.csv": csv.encode(),
+                           "study.json": json.dumps(number_text.json_ready(payload), indent=2).encode()})
+        _save_calibration(out / "study-calibration.h5", result.calibration, None, session)
+        progress.done()
     if not args.quiet:
         print(text, end="")
     return 0
@@ -390,10 +393,8 @@ class _BatchProgress:
 
     def start(self, specs) -> None:
         self.total = len(specs)
-        if not self.quiet and sys.stderr.isatty():
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=self.total, unit="file", file=sys.stderr, dynamic_ncols=True)
+        if not self.quiet and console.on_terminal():
+            self.bar = console.bar(total=self.total, unit="file")
 
     def result(self, spec, result) -> None:
         self.index += 1
@@ -405,7 +406,7 @@ class _BatchProgress:
             self.bar.set_postfix_str(f"{rate:.1f} MP/s", refresh=False)
             self.bar.update(1)
             if result is not None and result.status == "failed":
-                self.bar.write(f"spherejax: failed {_one_line(spec.source)}: {_one_line(result.reason)}", file=sys.stderr)
+                console.say(f"spherejax: failed {_one_line(spec.source)}: {_one_line(result.reason)}", logging.WARNING)
             return
         if self.quiet:
             return
@@ -415,7 +416,7 @@ class _BatchProgress:
             what = f"done ({result.megapixels:.2f} MP, {result.seconds:.2f} s)"
         else:
             what = f"failed: {result.reason}"
-        print(f"spherejax: [{self.index}/{self.total}] {_one_line(spec.source)}: {_one_line(what)}", file=sys.stderr, flush=True)
+        console.say(f"spherejax: [{self.index}/{self.total}] {_one_line(spec.source)}: {_one_line(what)}")
 
     def close(self) -> None:
         if self.bar is not None:
@@ -432,9 +433,6 @@ def cmd_correct(args) -> int:
         executor = cluster.DaskExecutor(workers=args.workers, scheduler=args.scheduler)
     progress = _BatchProgress(args.quiet)
 
-    def warn(line: str) -> None:
-        print(f"spherejax: warning: {line}", file=sys.stderr, flush=True)
-
     try:
         # SIGINT / SIGTERM stop the batch at its next safe point (spherejax.interrupt); `main`
         # reports it. Outermost, so that the cluster's start and stop are covered too.
@@ -442,15 +440,15 @@ def cmd_correct(args) -> int:
             summary = archive.run_batch(
                 args.inputs, args.output, args.calibration, resume=args.resume,
                 illuminant=args.illuminant, exr_compression=args.exr_compression, output_format=args.output_format,
-                on_start=progress.start, on_result=progress.result, on_warning=warn, executor=running,
+                on_start=progress.start, on_result=progress.result, on_warning=console.warn, executor=running,
             )
     finally:
         progress.close()
     if summary.taken_over:
-        print(f"spherejax: took over the lock left by {summary.taken_over} (that run ended without releasing it)",
-              file=sys.stderr)
+        console.say(f"spherejax: took over the lock left by {summary.taken_over} (that run ended without releasing it)",
+                    logging.WARNING)
     for failure in summary.failed:
-        print(f"spherejax: failed {_one_line(failure.source)}: {_one_line(failure.reason)}", file=sys.stderr)
+        console.say(f"spherejax: failed {_one_line(failure.source)}: {_one_line(failure.reason)}", logging.ERROR)
     print(summary.line())
     return 1 if summary.failed else 0
 
@@ -618,14 +616,19 @@ def cmd_measure(args) -> int:
     raw = io.read_cube(args.input, expected_shape=shape, band_centres_nm=header["band_centres_nm"])
 
     results = {}
-    for name, rect, given in regions:
-        r0, r1, c0, c1 = rect
-        mask = np.zeros(shape[:2], bool)
-        mask[r0:r1, c0:c1] = True
-        try:
-            results[name] = measure(raw, calibration, mask, noise, illuminant=args.illuminant)
-        except ValueError as error:
-            raise ValueError(f"--region {given!r}: {str(error).removeprefix('mask: ')}") from None
+    # A bar on a terminal only: measure's stderr is otherwise empty unless something is wrong.
+    with Steps(1, args.quiet, lines=False) as progress:
+        progress.start(f"measuring {len(regions)} regions of {args.input}")
+        for done, (name, rect, given) in enumerate(regions):
+            progress.count(done, len(regions))
+            r0, r1, c0, c1 = rect
+            mask = np.zeros(shape[:2], bool)
+            mask[r0:r1, c0:c1] = True
+            try:
+                results[name] = measure(raw, calibration, mask, noise, illuminant=args.illuminant)
+            except ValueError as error:
+                raise ValueError(f"--region {given!r}: {str(error).removeprefix('mask: ')}") from None
+        progress.done()
     rows, label, reference_doc = [], None, None
     if reference is not None and reference[0] == "region":
         against = results[reference[1]]
@@ -660,11 +663,37 @@ def cmd_measure(args) -> int:
     with interrupt.stop_requests():
         measurement_files.write_files(files)
     if note is not None:
-        print(note, file=sys.stderr)
+        console.say(note)
     if not args.quiet:
         print(measurement_files.format_table(rows, reference=label), end="")
         print("written: " + ", ".join(map(str, files)))
     return 0
+
+
+def demo_session_differs(session, seed: int) -> str | None:
+    """None if `session` is the session `spherejax demo --seed SEED` would simulate now: the same
+    seed, instrument model and experiment design (the simulator's defaults) and the same software
+    version; else what differs, in words, for the one-line refusal.
+
+    The comparison is of the manifest's record (`metadata.simulator`, `software_version`) with
+    the defaults as JSON would store them, so a session of another seed, another design or an
+    older spherejax is never taken for this one."""
+    import dataclasses
+
+    from . import __version__, simulate
+
+    recorded = session.metadata.get("simulator") if isinstance(session.metadata, dict) else None
+    if not isinstance(recorded, dict):
+        return "it is not a simulated session (its manifest has no simulator record)"
+    if recorded.get("seed") != seed:
+        return f"it was simulated with seed {recorded.get('seed')!r}, and this run asks for seed {seed}"
+    as_stored = lambda value: json.loads(json.dumps(dataclasses.asdict(value)))  # noqa: E731  tuples -> lists
+    for key, wanted in (("instrument", simulate.InstrumentModel()), ("design", simulate.ExperimentDesign())):
+        if recorded.get(key) != as_stored(wanted):
+            return f"its simulator {key} is not this version's default"
+    if session.software_version != __version__:
+        return f"spherejax {session.software_version} simulated it, and this is spherejax {__version__}"
+    return None
 
 
 def cmd_demo(args) -> int:
@@ -672,14 +701,24 @@ def cmd_demo(args) -> int:
 
     out = pathlib.Path(args.out)
     session_dir = out / "session"
-    # Before any work: a session already there is reused (read only), else OUT/session must be new
-    # or empty; OUT/calibration.h5 and OUT/evaluation/ replace only what an earlier demo wrote.
+    # Before any work: a session already there is reused (read only) when it is the one this run
+    # would simulate (`demo_session_differs`), and refused otherwise -- not replaced: the tables
+    # and calibration beside it were computed from it, and a demo never deletes captures, which in
+    # a real lab's folder cost an afternoon to take. Else OUT/session must be new or empty;
+    # OUT/calibration.h5 and OUT/evaluation/ replace only what an earlier demo wrote.
     reuse = (session_dir / "manifest.json").exists()
     if os.path.lexists(out) and not out.is_dir():
         raise io.SpherejaxFileError(out, "--out DIR is in the way: it is not a folder", "--out DIR a folder, or a new name")
     session = io.load_session(session_dir) if reuse else None
     if session is None:
         io.check_new_session_folder(session_dir)
+    else:
+        differs = demo_session_differs(session, args.seed)
+        if differs is not None:
+            raise io.SpherejaxFileError(
+                session_dir, f"holds a session that is not the one asked for: {differs}",
+                "another -o/--out DIR for this run, or the same settings to reuse it",
+            )
     inputs = {"the session folder (OUT/session)": session_dir, **({} if session is None else _session_files(session))}
     _check_calibration_output(out / "calibration.h5", "OUT/calibration.h5", inputs)
     names = _evaluation_names(session) if session is not None else [
@@ -687,16 +726,16 @@ def cmd_demo(args) -> int:
     _check_output_folder(out / "evaluation", names, _EVALUATION_RECORD, label="OUT/evaluation",
                          inputs={**inputs, "OUT/calibration.h5": out / "calibration.h5"},
                          holding={} if session is None else _session_files(session))
-    progress = _Progress(3, args.quiet)
-    progress.start(f"simulating the paper's experiment (seed {args.seed}) into {session_dir}")
-    if session is not None:
-        progress.done("reusing the session already there")
-    else:
-        session = io.write_simulated_session(session_dir, seed=args.seed)
-        progress.done(f"{len(session.frames)} captures")
-    calibration, report = _calibrate(session, args, progress)
-    _save_calibration(out / "calibration.h5", calibration, report, session)
-    _evaluate(session, calibration, out / "evaluation", progress, args.quiet)
+    with Steps(3, args.quiet) as progress:
+        progress.start(f"simulating the paper's experiment (seed {args.seed}) into {session_dir}")
+        if session is not None:
+            progress.done("reusing the session already there: the same seed, simulator and version")
+        else:
+            session = io.write_simulated_session(session_dir, seed=args.seed)
+            progress.done(f"{len(session.frames)} captures")
+        calibration, report = _calibrate(session, args, progress)
+        _save_calibration(out / "calibration.h5", calibration, report, session)
+        _evaluate(session, calibration, out / "evaluation", progress, args.quiet)
     return 0
 
 
@@ -721,13 +760,140 @@ def add_plugin_commands(commands) -> None:
         entry_point.load()(commands)
 
 
+#: Every option and positional that names a path spherejax writes is -o/--out; the spellings
+#: these replaced still work, say so in --help, and at debug level when used (`_Output`): old
+#: spelling -> its replacement.
+DEPRECATED_SPELLINGS = {"--output": "-o/--out", "OUT": "-o/--out"}
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and examples as written (paragraphs, aligned examples); options wrapped."""
+
+    def __init__(self, prog):
+        super().__init__(prog, max_help_position=34, width=min(100, max(60, _terminal_width())))
+
+
+def _terminal_width() -> int:
+    import shutil
+
+    return shutil.get_terminal_size((100, 24)).columns
+
+
+class _OneLineErrors:
+    """argparse's usage errors as one line, like every other bad input:
+    "spherejax correct: error: the following arguments are required: -c/--calibration (see
+    'spherejax correct --help')", exit status 2."""
+
+    def error(self, message):
+        text = " ".join(str(message).split())
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {text} (see '{self.prog} --help')\n")
+
+
+def _global_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
+    """-q, -v and --log-file on `parser`. On the subcommands (defaults False) they are SUPPRESSed
+    when absent, so that one given before the subcommand is not reset by the subcommand's parser:
+    either position works."""
+    default = (lambda value: value) if defaults else (lambda value: argparse.SUPPRESS)
+    group = parser.add_argument_group("global options (before or after the command)")
+    group.add_argument("-q", "--quiet", action="store_true", default=default(False),
+                       help="only warnings and errors: no progress, tables or summaries")
+    group.add_argument("-v", "--verbose", action="count", default=default(0),
+                       help="debug messages too (each instrument command, library choices)")
+    group.add_argument("--log-file", metavar="FILE", default=default(None),
+                       help="also append every message, with its time, to FILE: a new file or a log "
+                            "spherejax wrote (anything else there is refused)")
+
+
+class _CommandParser(_OneLineErrors, argparse.ArgumentParser):
+    """A subcommand's parser: the global options accepted after the command name too, help laid
+    out by `_HelpFormatter`, usage errors in one line. The instrument package's `acquire` gets
+    the same through the subparsers action."""
+
+    def __init__(self, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(**kwargs)
+        _global_options(self, defaults=False)
+
+
+class _MainParser(_OneLineErrors, argparse.ArgumentParser):
+    pass
+
+
+class _Output(argparse.Action):
+    """An output path option: stores the path; an old spelling (DEPRECATED_SPELLINGS) also
+    leaves a note for `main` to say once the messages are set up."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        if values is None:
+            return  # an optional positional left out: argparse stores its default through here
+        spelling = option_string or self.metavar
+        if spelling in DEPRECATED_SPELLINGS:
+            namespace.deprecated_spellings = (*getattr(namespace, "deprecated_spellings", ()), spelling)
+
+
+def add_output_option(parser, *, dest: str, metavar: str, help: str, required: bool = False,
+                      old_spelling: bool = False, default=None) -> None:
+    """-o/--out on `parser` (and the old --output when `old_spelling`), the one way every
+    command names an output path (also used by the instrument package's `acquire`)."""
+    flags = ["-o", "--out"] + (["--output"] if old_spelling else [])
+    note = " (--output: the old spelling, deprecated)" if old_spelling else ""
+    parser.add_argument(*flags, dest=dest, metavar=metavar, required=required, default=default,
+                        action=_Output, help=help + note)
+
+
+def _version_line() -> str:
+    """ "spherejax 0.1.0 (Python 3.13.0, jax 0.12.0, jaxlib 0.12.0, numpy 2.3.4, OpenImageIO
+    3.1.6)": the versions that decide results, read from the installed metadata (no import)."""
+    import platform
+    from importlib import metadata
+
+    from . import __version__
+
+    parts = [f"Python {platform.python_version()}"]
+    for name in ("jax", "jaxlib", "numpy", "OpenImageIO"):
+        try:
+            parts.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            parts.append(f"{name} not installed")
+    return f"spherejax {__version__} ({', '.join(parts)})"
+
+
+def _command(commands, name: str, *, summary: str, description: str, examples: str):
+    """A subcommand with its one-line summary (in `spherejax --help`), a paragraph of description
+    and examples (in `spherejax NAME --help`)."""
+    return commands.add_parser(name, help=summary, description=description.strip(),
+                               epilog="examples:\n" + examples.strip("\n"))
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    """The command line. argparse, kept over click or typer: the instrument package adds `acquire`
+    through the "spherejax.commands" entry points by calling `add_parser` on this parser's
+    subparsers (a click group would break that contract for every installed plugin), the standard
+    library is one dependency less for a tool labs install on instrument PCs, and what the
+    conventions need -- global options in either position (`_global_options`), one-line usage
+    errors, an option's old spelling noted (`_Output`) -- is a few lines on top of it."""
+    parser = _MainParser(
         prog="spherejax",
-        description="Lighting deviation correction for integrating-sphere multispectral imaging (Zou et al. 2019).",
+        description=(
+            "Lighting deviation correction for integrating-sphere multispectral imaging (Zou et al., Sensors 2019):\n"
+            "Stage I (white board and white patch), Stage II (a per-band polynomial in the response and the\n"
+            "white-patch ratio), Wiener estimation of 31-band reflectance, CIELAB and CIEDE2000."
+        ),
+        epilog=(
+            "Run 'spherejax COMMAND --help' for a command's description, options and examples.\n"
+            "Exit status: 0 done; 1 a batch or acquisition with failed inputs; 2 bad input (one line on\n"
+            "stderr naming the file, the value and what was expected; nothing written); 130/143 stopped by\n"
+            "SIGINT/SIGTERM."
+        ),
+        formatter_class=_HelpFormatter,
     )
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress lines or tables")
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.add_argument("--version", action="version", version=_version_line(),
+                        help="print spherejax's version and those of the libraries that decide its results")
+    _global_options(parser, defaults=True)
+    parser.set_defaults(command=None, deprecated_spellings=())
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_CommandParser,
+                                     title="commands")
 
     def calibration_options(p):
         p.add_argument("--reference-background", metavar="NAME", default=None,
@@ -742,31 +908,53 @@ def build_parser() -> argparse.ArgumentParser:
                        help="manifest field naming each target capture's group (a key of its metadata, "
                             "or id, set, background): cross-validation holds out one group at a time")
 
-    study = commands.add_parser("study", help="fit Stage II end to end for colour consistency and compare on held-out data")
-    study.add_argument("session", metavar="SESSION")
-    study.add_argument("-c", "--calibration", metavar="CAL", help="starting calibration (default: the closed form from SESSION)")
-    study.add_argument("--wiener", action="store_true", help="also optimise the Wiener matrix")
-    study.add_argument("--response-weight", type=float, default=0.01,
-                       help="weight of the paper's response residual (Eq. 21) beside ΔE00 (default 0.01; 0 = colour only)")
-    study.add_argument("--max-steps", type=int, default=300, help="BFGS iterations (default 300)")
-    study.add_argument("--out", metavar="DIR", help="output folder (default SESSION-study beside the session)")
-    calibration_options(study)
-    study.set_defaults(run=cmd_study)
-
-    demo = commands.add_parser("demo", help="simulate, calibrate, correct and evaluate the default experiment")
-    demo.add_argument("--out", default="spherejax-demo", help="output folder (default ./spherejax-demo)")
+    demo = _command(commands, "demo", summary="simulate, calibrate, correct and evaluate the paper's experiment",
+                    description="""
+The main job on an embedded default, start to finish: simulate a session like the paper's
+experiment (training and test captures of colour patches on differently coloured backgrounds,
+targets, dark and white frames), calibrate Stage II and the reflectance estimator from it, correct
+every capture and print Tables 1 and 3-6 with Figures 5 and 6. OUT gets session/, calibration.h5
+and evaluation/. Run again with the same seed, the session is reused; a session of another seed,
+simulator or spherejax version in OUT is refused (choose another OUT), never replaced.""",
+                    examples="""
+  spherejax demo                          # into ./spherejax-demo
+  spherejax demo -o demo-seed1 --seed 1   # another simulated experiment
+  spherejax demo -q -o demo               # tables and figures only in demo/evaluation""")
+    add_output_option(demo, dest="out", metavar="DIR", default="spherejax-demo",
+                      help="output folder: session/, calibration.h5, evaluation/ (default ./spherejax-demo)")
     demo.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
     calibration_options(demo)
     demo.set_defaults(run=cmd_demo)
 
-    simulate = commands.add_parser("simulate", help="write a synthetic session like the paper's experiment")
-    simulate.add_argument("out", metavar="OUT", help="session folder to create (must not exist or be empty)")
+    simulate = _command(commands, "simulate", summary="write a synthetic session like the paper's experiment",
+                        description="""
+Simulate the paper's experiment on a physical model of the sphere, lamp, filters and camera
+(spherejax.simulate) and write it as a session folder: manifest.json and 16-bit TIFF frames, as
+`acquire` writes from the instrument. The same seed gives the same frames.""",
+                        examples="""
+  spherejax simulate -o session-a
+  spherejax simulate -o session-b --seed 7""")
+    add_output_option(simulate, dest="out", metavar="DIR", help="session folder to create (new, or empty)")
+    simulate.add_argument("out_positional", nargs="?", metavar="OUT", action=_Output,
+                          help="the session folder as a positional argument: the old spelling of -o/--out, deprecated")
     simulate.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
     simulate.set_defaults(run=cmd_simulate)
 
-    calibrate = commands.add_parser("calibrate", help="fit Stage II and the Wiener matrix from a session")
-    calibrate.add_argument("session", metavar="SESSION")
-    calibrate.add_argument("-o", "--output", required=True, metavar="CAL", help="calibration file to write (HDF5, conventionally .h5)")
+    calibrate = _command(commands, "calibrate", summary="fit Stage II and the reflectance estimator from a session",
+                         description="""
+Fit Stage II (Eq. 22, or a robust loss) per band from the session's training captures, choose and
+fit the reflectance estimator by cross-validation on its targets, attach the noise model, and write
+one calibration file (HDF5) that `correct`, `measure` and `evaluate -c` read. An existing CAL is
+replaced only with --force, and only when it is a spherejax calibration.""",
+                         examples="""
+  spherejax calibrate session -o cal.h5
+  spherejax calibrate session -o cal.h5 --force --loss huber
+  spherejax calibrate session -o cal.h5 --gain 1.9 --read-noise 3.2""")
+    calibrate.add_argument("session", metavar="SESSION", help="session folder (manifest.json and frames/)")
+    add_output_option(calibrate, dest="output", metavar="CAL", required=True, old_spelling=True,
+                      help="calibration file to write (HDF5, conventionally .h5)")
+    calibrate.add_argument("--force", action="store_true",
+                           help="replace CAL if it exists (it must be a spherejax calibration)")
     calibration_options(calibrate)
     calibrate.add_argument("--gain", metavar="E_PER_COUNT",
                            help="camera gain, electrons per count, for the stored noise model "
@@ -778,18 +966,59 @@ def build_parser() -> argparse.ArgumentParser:
                                 "reflectance, e.g. 0.003 (default: the session's, else 0)")
     calibrate.set_defaults(run=cmd_calibrate)
 
-    evaluate = commands.add_parser("evaluate", help="the paper's tables and figures for a session")
-    evaluate.add_argument("session", metavar="SESSION")
+    evaluate = _command(commands, "evaluate", summary="the paper's tables and figures for a session",
+                        description="""
+Correct every capture of a session with a calibration (-c, or one fitted from the session first)
+and write the paper's tables (tables.txt, table*.csv, metrics.json) and Figures 5 and 6 (PNG)
+into OUT: colour differences (CIEDE2000) of each patch across backgrounds before and after each
+stage, and against the Markov model.""",
+                        examples="""
+  spherejax evaluate session -c cal.h5 -o session-evaluation
+  spherejax evaluate session                 # calibrates first; OUT defaults to SESSION-evaluation""")
+    evaluate.add_argument("session", metavar="SESSION", help="session folder (manifest.json and frames/)")
     evaluate.add_argument("-c", "--calibration", metavar="CAL", help="calibration file (default: calibrate from SESSION)")
-    evaluate.add_argument("--out", metavar="DIR", help="output folder (default SESSION-evaluation beside the session)")
+    add_output_option(evaluate, dest="out", metavar="DIR",
+                      help="output folder (default SESSION-evaluation beside the session)")
     calibration_options(evaluate)
     evaluate.set_defaults(run=cmd_evaluate)
 
-    correct = commands.add_parser("correct", help="batch-correct cube files, sessions and folders into OUT")
+    study = _command(commands, "study",
+                     summary="fit Stage II end to end for colour consistency and compare on held-out data",
+                     description="""
+A differentiable calibration study: starting from the closed form (or -c CAL), minimise the mean
+CIEDE2000 inconsistency of the training patches across backgrounds with optimistix (BFGS), through
+Stage I, Stage II, the estimator and CIELAB, then compare both calibrations on the held-out test
+captures (Table 6 format). OUT gets study.txt, study.csv, study.json and study-calibration.h5.""",
+                     examples="""
+  spherejax study session -o session-study
+  spherejax study session -c cal.h5 --wiener --max-steps 100""")
+    study.add_argument("session", metavar="SESSION", help="session folder with training and test captures")
+    study.add_argument("-c", "--calibration", metavar="CAL", help="starting calibration (default: the closed form from SESSION)")
+    study.add_argument("--wiener", action="store_true", help="also optimise the Wiener matrix")
+    study.add_argument("--response-weight", type=float, default=0.01,
+                       help="weight of the paper's response residual (Eq. 21) beside ΔE00 (default 0.01; 0 = colour only)")
+    study.add_argument("--max-steps", type=int, default=300, help="BFGS iterations (default 300)")
+    add_output_option(study, dest="out", metavar="DIR", help="output folder (default SESSION-study beside the session)")
+    calibration_options(study)
+    study.set_defaults(run=cmd_study)
+
+    correct = _command(commands, "correct", summary="batch-correct cube files, sessions and folders into OUT",
+                       description="""
+Correct every cube found in the INPUTs with one calibration: Stage I, Stage II, the reflectance
+estimator and CIELAB, per pixel. For each input N, OUT gets N.reflectance.exr (31 bands, the
+spectral OpenEXR layout of Fichet et al. 2021) or ENVI files, N.lab, N.quality.png (flags; key
+in the README) and N.preview.png, and a manifest.jsonl recording each input's hash and outputs.
+Bad inputs are reported and skipped; --resume continues an interrupted batch; Ctrl-C stops
+cleanly. --workers or --scheduler spreads the batch over dask.distributed.""",
+                       examples="""
+  spherejax correct -c cal.h5 captures/ -o corrected
+  spherejax correct -c cal.h5 captures/ -o corrected --resume
+  spherejax correct -c cal.h5 a.tif b.tif -o corrected --format envi --workers 2""")
     correct.add_argument("inputs", nargs="+", metavar="INPUT",
                          help="cube files (TIFF, EXR), band-file folders, sessions, or folders to search")
     correct.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (HDF5, or an .npz of format version 1 to 3)")
-    correct.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
+    add_output_option(correct, dest="output", metavar="OUT", required=True, old_spelling=True,
+                      help="output folder (new, or an earlier batch's with --resume)")
     correct.add_argument("--resume", action="store_true",
                          help="continue the batch in OUT: skip inputs whose outputs are verified, redo the rest")
     correct.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
@@ -811,9 +1040,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_plugin_commands(commands)
 
-    measure = commands.add_parser(
-        "measure", help="measure regions of one cube: Lab and reflectance with uncertainties (k = 2), ΔE00"
-    )
+    measure = _command(commands, "measure",
+                       summary="measure regions of one cube: Lab and reflectance with uncertainties (k = 2), ΔE00",
+                       description="""
+Measure named rectangles of one cube as a spectrophotometer measures a spot: the mean corrected
+reflectance (31 bands) and CIELAB of each region with expanded uncertainties (k = 2) from the
+calibration's noise model, and CIEDE2000 against a reference region or L*,a*,b* values. Writes
+OUT.csv and OUT.json, and with --cgats a CGATS.17 file colour quality-control software reads.""",
+                       examples="""
+  spherejax measure -c cal.h5 sample.tif --region std=10,60,10,60 --region batch=10,60,80,130 \\
+      --reference std -o sample --cgats sample.cgats
+  spherejax measure -c cal.h5 sample.tif --region patch=0,40,0,40 --reference 52.1,10.3,-4.2""")
     measure.add_argument("input", metavar="INPUT", help="cube file (16-bit TIFF, EXR) of the calibration's size and bands")
     measure.add_argument("-c", "--calibration", required=True, metavar="CAL", help="calibration file (HDF5, or an .npz of format version 1 to 3)")
     measure.add_argument("--region", action="append", required=True, metavar="NAME=r0,r1,c0,c1",
@@ -822,8 +1059,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="ΔE00 against the region NAME (its uncertainty included) or an exact L*,a*,b*")
     measure.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
                          help="illuminant for Lab (default: the calibration's)")
-    measure.add_argument("-o", "--output", metavar="OUT",
-                         help="writes OUT.csv and OUT.json (default: INPUT's stem + .measure, in this folder)")
+    add_output_option(measure, dest="output", metavar="OUT", old_spelling=True,
+                      help="writes OUT.csv and OUT.json (default: INPUT's stem + .measure, in this folder)")
     measure.add_argument("--cgats", metavar="FILE",
                          help="also write the regions as CGATS.17 text (X-Rite layout: SAMPLE_ID, SAMPLE_NAME, "
                               "LAB_L/A/B, nm400..nm700), as colour quality-control software and ArgyllCMS read")
@@ -837,8 +1074,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _error_line(error: BaseException) -> str:
+    return "spherejax: error: " + _one_line(" ".join(str(error).split()))
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command line on `argv` (default sys.argv[1:]); the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()  # a bare `spherejax`: what it can do, not an error
+        return 0
+    with contextlib.ExitStack() as messages:
+        try:
+            messages.enter_context(console.configured(quiet=args.quiet, verbose=args.verbose, log_file=args.log_file))
+        except (ValueError, OSError) as error:  # --log-file refused: there is no log to say it through
+            print(_error_line(error), file=sys.stderr)
+            return EXIT_BAD_INPUT
+        given = sys.argv[1:] if argv is None else list(argv)
+        console.log.debug("%s; command line: spherejax %s", _version_line(), " ".join(given))
+        # At debug level only (-v, the log file): the default output, the one-line error contract
+        # above all, reads the same whichever spelling a lab's scripts use; --help says it.
+        for spelling in dict.fromkeys(args.deprecated_spellings):
+            console.log.debug("%s is the old spelling of %s; it still works, and may go in a later release",
+                              spelling, DEPRECATED_SPELLINGS[spelling])
+        return _run(args)
+
+
+def _run(args) -> int:
     # Before any JAX work: reuse freed blocks instead of page-faulting fresh ones on every image
     # (spherejax.allocator says why; about 2x on a 1-megapixel correction).
     keep_freed_memory()
@@ -855,14 +1118,13 @@ def main(argv=None) -> int:
         # A stop request honoured at a safe point (`correct`, `acquire`): what was finished is
         # kept and recorded, what was under way removed; the exit status a shell gives a process
         # killed by that signal, 130 for SIGINT, 143 for SIGTERM.
-        print(stopped.message(), file=sys.stderr, flush=True)
+        console.say(stopped.message(), logging.ERROR)
         return stopped.exit_status
     except KeyboardInterrupt:
-        print("spherejax: interrupted", file=sys.stderr)
+        console.say("spherejax: interrupted", logging.ERROR)
         return 130
     except (ValueError, OSError) as error:
-        message = _one_line(" ".join(str(error).split()))
-        print(f"spherejax: error: {message}", file=sys.stderr)
+        console.say(_error_line(error), logging.ERROR)
         return EXIT_BAD_INPUT
 
 

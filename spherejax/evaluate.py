@@ -38,6 +38,7 @@ from .calibrate import RegionMeasurement, measure_frames
 from .colorimetry import delta_e_2000, reflectance_to_lab
 from .consistency import pairwise_delta_e, pairwise_spectral_rms, response_std
 from .markov import fit_markov_kappa, markov_correct
+from .number_text import csv_text, json_ready
 from .pipeline import Calibration
 from .polynomial import stage2
 
@@ -162,14 +163,16 @@ def evaluate_session(session, calibration: Calibration) -> Evaluation:
         raise ValueError(f"{session.path}: no training region with known reflectance to fit the Markov model")
     band_idx = np.searchsorted(np.arange(400, 701, 10), np.asarray(session.band_centres_nm))
     known = np.stack([m.reflectance[band_idx] for m in greys])
-    kappa = np.asarray(fit_markov_kappa(
+    fitted = np.asarray(fit_markov_kappa(
         np.stack([m.v * white_r for m in greys]),
         np.stack([m.holder_v * white_r for m in greys]),
         known, white_r,
-    ), np.float64)
+    ))
+    kappa = fitted.astype(np.float64)
     sets = {name: _assemble(ms, calibration, kappa, white_r) for name, ms in measured.items() if ms}
     metrics = {name: {stage: consistency_metrics(data, stage) for stage in STAGES} for name, data in sets.items()}
-    return Evaluation([int(b) for b in session.band_centres_nm], [float(k) for k in kappa], sets, metrics)
+    # κ as the shortest decimals of the precision it was fitted in (float32 unless x64 is on).
+    return Evaluation([int(b) for b in session.band_centres_nm], json_ready(fitted), sets, metrics)
 
 
 # --------------------------------------------------------------------------------------------
@@ -232,19 +235,17 @@ def format_tables(evaluation: Evaluation) -> str:
 
 
 def tables_csv(evaluation: Evaluation) -> dict[str, str]:
-    """name -> CSV text of each table."""
-    out = {}
-    for name, (_, header, rows) in tables(evaluation).items():
-        out[name] = "\n".join(",".join(f'"{c}"' if "," in str(c) else str(c) for c in r) for r in [header, *rows]) + "\n"
-    return out
+    """name -> CSV text of each table (Python's csv module, `number_text.csv_text`: a label
+    with a comma or a quote is quoted, inner quotes doubled), the numbers as the tables print them."""
+    return {name: csv_text(header, rows) for name, (_, header, rows) in tables(evaluation).items()}
 
 
 def to_json(evaluation: Evaluation) -> str:
-    """The metrics, κ and band centres as JSON text."""
-    return json.dumps(
+    """The metrics, κ and band centres as JSON text, every number the shortest decimal of its
+    precision (`number_text.json_ready`; the metrics are float64, κ as fitted)."""
+    return json.dumps(json_ready(
         {"band_centres_nm": evaluation.band_centres_nm, "markov_kappa": evaluation.kappa, "metrics": evaluation.metrics},
-        indent=2,
-    )
+    ), indent=2)
 
 
 __all__ = [

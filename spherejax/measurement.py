@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks, colorimetry, uncertainty
+from .number_text import json_ready
 from .pipeline import Calibration, _check_calibration, _check_raw, _compute_dtype, correct, patch_ratio, patch_ratio_u
 from .uncertainty import COMMON_SOURCES, ESTIMATOR_SOURCE, PIXEL_SOURCES, NoiseModel
 
@@ -36,7 +37,7 @@ _HIGHEST = jax.lax.Precision.HIGHEST
 
 @dataclasses.dataclass(frozen=True)
 class Measurement:
-    """One region's measurement (`measure`). NumPy arrays, float64.
+    """One region's measurement (`measure`). NumPy arrays, float64 (whatever `precision`).
 
     Fields:
       reflectance: (31,) mean reflectance, 400..700 nm step 10.
@@ -50,6 +51,10 @@ class Measurement:
       reflectance_budget: {source: (31, 31)} each source's part of `reflectance_covariance`
         (`uncertainty.SOURCES`); empty without a noise model.
       lab_budget: {source: (3, 3)} the same for Lab.
+      precision: the floating dtype `measure` computed in (float32; float64 where the image or
+        the calibration is float64 and JAX's x64 is on): the digits the values carry. Files write
+        every number of the measurement as the shortest decimal of its value at this precision
+        (`to_dict`, `spherejax.number_text`), not the float64 digits a float32 result shows.
     """
 
     reflectance: np.ndarray
@@ -63,6 +68,7 @@ class Measurement:
     lab_covariance: np.ndarray | None = None
     reflectance_budget: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     lab_budget: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    precision: np.dtype = np.dtype(np.float64)
 
     @property
     def reflectance_u(self) -> np.ndarray | None:
@@ -113,9 +119,10 @@ class Measurement:
         return float(value), float(u)
 
     def to_dict(self) -> dict:
-        """Plain JSON: the values, standard uncertainties, covariances and the budget."""
+        """Plain JSON: the values, standard uncertainties, covariances and the budget, every
+        number the shortest decimal of its value at `precision` (`number_text.json_ready`)."""
         def listed(x):
-            return None if x is None else np.asarray(x).tolist()
+            return None if x is None else json_ready(np.asarray(x, np.float64), self.precision)
 
         return {
             "illuminant": self.illuminant,
@@ -282,6 +289,7 @@ def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None
         lab_covariance=None if covariance is None else jacobian @ covariance @ jacobian.T,
         reflectance_budget=reflectance_budget,
         lab_budget={name: jacobian @ cov @ jacobian.T for name, cov in reflectance_budget.items()},
+        precision=np.dtype(mean.dtype),
     )
 
 

@@ -32,8 +32,11 @@ A name starting with =, +, -, @, a tab or a carriage return is written with a le
 quote, so that a spreadsheet shows it as text rather than running it as a formula (OWASP, CSV
 injection); the JSON keeps every name exactly. `pixels` is the number of pixels averaged; `excluded_pixels` those of the rectangle that
 `correct` flags (saturated, not finite, no usable flat field) and that were left out. Numbers
-are written in full precision (Python's shortest round-trip form); a cell without a value (no
-noise model, no reference) is empty.
+are written as the shortest decimal that reads back as the same value at the precision the
+measurement was computed in (`Measurement.precision`, `spherejax.number_text`): "37.723576" for
+a float32 result, not the float64 digits "37.723575592041016" it shows; Python's repr digits for a
+float64 one. A cell without a value (no noise model, no reference) is empty. The file is written
+by Python's csv module: a name with a comma or a quote is quoted, inner quotes doubled.
 
 JSON (OUT.json)
 ---------------
@@ -63,7 +66,8 @@ JSON (OUT.json)
 
 The region fields are `Measurement.to_dict()`; "reflectance_spread" is the standard deviation of
 the per-pixel reflectances over the region (non-uniformity and pixel noise, not an uncertainty
-of the mean). All numbers are finite; what is not known is null.
+of the mean). All numbers are finite, in the shortest form of their precision like the CSV's;
+what is not known is null.
 
 CGATS (--cgats FILE)
 -------------------
@@ -82,7 +86,8 @@ The regions as colour quality-control software exchanges spectral measurements: 
 one line per region in the order given: SAMPLE_ID 1, 2, ...; SAMPLE_NAME the region's name as
 one token (`cgats_sample_names`: readers split data lines on whitespace, so spaces become "_",
 and a name made equal to an earlier one gets "_2");
-reflectance factors (0..1, white standard 1), numbers in full precision like the CSV's. The
+reflectance factors (0..1, white standard 1), numbers in the shortest form like the CSV's (plain
+decimals, no exponent). The
 uncertainties are in the CSV and JSON only (CGATS.17 has no fields for them).
 
 The files are written together by `write_files`: each to a temporary name beside it, then
@@ -92,9 +97,7 @@ left at all.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io as _text_io
 import math
 import pathlib
 import re
@@ -109,6 +112,8 @@ from .io.cgats import cgats_text as _cgats_table
 from .io.documents import _readable_json
 from .io.errors import SpherejaxFileError
 from .measurement import Measurement
+from .number_text import csv_text as _csv_table
+from .number_text import json_ready, number_text
 
 FORMAT = "spherejax-measurement"
 FORMAT_VERSION = 1
@@ -148,19 +153,27 @@ def _known(x) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _listed(x):
-    """JSON of numbers, NaN and infinities as null."""
-    if x is None:
+def _nulled(x):
+    """Plain JSON with NaN and infinities as null."""
+    if isinstance(x, dict):
+        return {k: _nulled(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_nulled(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
         return None
-    if isinstance(x, Mapping):
-        return {k: _listed(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple, np.ndarray)):
-        return [_listed(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
-    if isinstance(x, (float, np.floating)):
-        return _known(x)
-    if isinstance(x, np.integer):
-        return int(x)
     return x
+
+
+def _listed(x):
+    """JSON of numbers (NumPy values in the shortest form of their dtype,
+    `number_text.json_ready`), NaN and infinities as null."""
+    return _nulled(json_ready(x))
+
+
+def _number(x, precision) -> float | None:
+    """A JSON number in the shortest form at `precision`, or None for a value not known."""
+    x = _known(x)
+    return None if x is None else json_ready(x, precision)
 
 
 # ---------------------------------------------------------------------------------------- table
@@ -248,9 +261,10 @@ def csv_header() -> list[str]:
     ]
 
 
-def _cell(x) -> str:
+def _cell(x, precision) -> str:
+    """A number in the shortest form at `precision` (`number_text`), "" for a value not known."""
     x = _known(x)
-    return "" if x is None else repr(x)
+    return "" if x is None else number_text(x, precision)
 
 
 #: First characters that make a spreadsheet read a cell as a formula (OWASP, "CSV Injection").
@@ -266,22 +280,21 @@ def _inert_text(text: str) -> str:
 
 def csv_text(results: Sequence[RegionResult]) -> str:
     """The CSV file's text (module docstring)."""
-    buffer = _text_io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(csv_header())
+    rows = []
     for r in results:
         m = r.measurement
+        cell = lambda x: _cell(x, m.precision)  # noqa: E731
         lab_u = m.lab_u.tolist() if m.lab_u is not None else [None] * 3
         refl_u = m.reflectance_u.tolist() if m.reflectance_u is not None else [None] * N_WAVELENGTHS
         expanded = [None if u is None else COVERAGE_FACTOR * u for u in lab_u]
         de_u = _known(r.delta_e_u)
-        writer.writerow([
+        rows.append([
             _inert_text(r.name), m.pixels, m.excluded, m.illuminant,
-            *map(_cell, m.lab.tolist()), *map(_cell, lab_u), *map(_cell, expanded),
-            _cell(r.delta_e), _cell(de_u), _cell(None if de_u is None else COVERAGE_FACTOR * de_u),
-            *map(_cell, m.reflectance.tolist()), *map(_cell, refl_u),
+            *map(cell, m.lab.tolist()), *map(cell, lab_u), *map(cell, expanded),
+            cell(r.delta_e), cell(de_u), cell(None if de_u is None else COVERAGE_FACTOR * de_u),
+            *map(cell, m.reflectance.tolist()), *map(cell, refl_u),
         ])
-    return buffer.getvalue()
+    return _csv_table(csv_header(), rows)
 
 
 # ----------------------------------------------------------------------------------------- JSON
@@ -291,13 +304,13 @@ def noise_model_summary(noise, source: str) -> dict | None:
     """The JSON's "noise_model": where it came from and its scalar settings, or None."""
     if noise is None:
         return None
-    doc = noise.to_json()
     summary = {"source": source}
-    for key in ("gain_e_per_count", "read_noise_counts", "dark_frames", "white_frames", "sample_frames",
-                "white_reflectance_u"):
-        summary[key] = doc[key]
-    summary["coeffs_covariance"] = doc["coeffs_covariance"] is not None
-    summary["estimator_covariance"] = doc["estimator_covariance"] is not None
+    for key, field in (("gain_e_per_count", "gain"), ("read_noise_counts", "read_noise"), ("dark_frames", "dark_frames"),
+                       ("white_frames", "white_frames"), ("sample_frames", "sample_frames"),
+                       ("white_reflectance_u", "white_reflectance_u")):
+        summary[key] = json_ready(np.asarray(getattr(noise, field)))  # in the model's own dtype
+    summary["coeffs_covariance"] = noise.coeffs_covariance is not None
+    summary["estimator_covariance"] = noise.estimator_covariance is not None
     return summary
 
 
@@ -318,9 +331,14 @@ def json_document(
     regions = []
     for r in results:
         entry = {"name": r.name, "rect": [int(v) for v in r.rect], **r.measurement.to_dict()}
-        entry["delta_e00"] = _known(r.delta_e)
-        entry["u_delta_e00"] = _known(r.delta_e_u)
+        entry["delta_e00"] = _number(r.delta_e, r.measurement.precision)
+        entry["u_delta_e00"] = _number(r.delta_e_u, r.measurement.precision)
         regions.append(entry)
+    if reference is not None and "region" in reference:
+        # A region's Lab as its own entry states it (the caller may hand it over as float64 digits).
+        against = {r.name: r.measurement for r in results}.get(reference["region"])
+        if against is not None:
+            reference = {**reference, "lab": against.to_dict()["lab"]}
     return _listed({
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -376,7 +394,9 @@ def cgats_text(results: Sequence[RegionResult], *, input_path, instrument_id: st
     rows = []
     for number, (r, name) in enumerate(zip(results, cgats_sample_names([r.name for r in results])), start=1):
         m = r.measurement
-        rows.append([number, name, *m.lab.tolist(), *m.reflectance.tolist()])
+        # NumPy scalars of the measurement's precision: the shortest decimal of each (io.cgats).
+        values = np.concatenate([m.lab, m.reflectance]).astype(np.dtype(m.precision))
+        rows.append([number, name, *values])
     return _cgats_table(keywords, fields, rows)
 
 

@@ -37,6 +37,7 @@ import optimistix as optx
 
 from .calibrate import RegionMeasurement, base_calibration, measure_frames, reference_background, stage2_training_data
 from .colorimetry import delta_e_2000, reflectance_to_lab
+from .number_text import json_ready
 from .pipeline import Calibration
 from .polynomial import stage2_unchecked
 
@@ -171,8 +172,9 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
     studied = dataclasses.replace(calibration, coeffs=np.asarray(params["coeffs"], np.float32), **estimator)
     return StudyResult(
         calibration=studied,
-        objective_start=float(objective(start, problem)),
-        objective_end=float(objective(params, problem)),
+        # Python floats that state the precision they were computed in (study.json writes them).
+        objective_start=json_ready(np.asarray(objective(start, problem))),
+        objective_end=json_ready(np.asarray(objective(params, problem))),
         steps=int(solution.stats["num_steps"]),
         converged=bool(solution.result == optx.RESULTS.successful),
         reference=reference,

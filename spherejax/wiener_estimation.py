@@ -58,6 +58,7 @@ import numpy as np
 
 from . import _checks
 from .grid import N_WAVELENGTHS
+from .number_text import json_ready
 
 _HIGHEST = jax.lax.Precision.HIGHEST
 
@@ -571,7 +572,8 @@ def _mean_delta_e_d65(estimates, R):
 
 
 def _delta_e_d65(estimates, R) -> float:
-    return float(_mean_delta_e_d65(jnp.asarray(estimates, R.dtype), R))
+    # The shortest decimal of the precision it was computed in (a report's JSON states it so).
+    return json_ready(np.asarray(_mean_delta_e_d65(jnp.asarray(estimates, R.dtype), R)))
 
 
 def _cross_validate_training(V, R, weights, folds_text, offset=True):
@@ -583,7 +585,7 @@ def _cross_validate_training(V, R, weights, folds_text, offset=True):
     k, rms = _best(estimates, R)
     result = CrossValidation(
         method="training", spectral_rms=rms, delta_e_d65=_delta_e_d65(estimates[k], R),
-        settings=(("noise_variance", float(candidates[k])), ("offset", bool(offset))), folds=folds_text,
+        settings=(("noise_variance", json_ready(candidates[k])), ("offset", bool(offset))), folds=folds_text,
     )
     return result, jnp.asarray(candidates[k])
 

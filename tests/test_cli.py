@@ -134,9 +134,11 @@ class TestCommands:
         for frame in a.frames:
             np.testing.assert_array_equal(a.read(frame), b.read(frame.id))
 
-    def test_demo_reuses_its_session(self, workspace, tmp_path, capsys):
+    def test_demo_reuses_its_session(self, workspace, tmp_path, capsys, monkeypatch):
+        """Only when the session there is the one asked for: the workspace's, seed 5 of SMALL."""
+        monkeypatch.setattr(simulate, "ExperimentDesign", lambda: SMALL)
         shutil.copytree(workspace / "session", tmp_path / "demo" / "session")
-        status, stdout, err = run(["demo", "--out", str(tmp_path / "demo")], capsys)
+        status, stdout, err = run(["demo", "--out", str(tmp_path / "demo"), "--seed", "5"], capsys)
         assert status == 0
         assert "reusing the session" in err and "Table 1." in stdout
         assert (tmp_path / "demo" / "calibration.h5").exists()

@@ -309,7 +309,7 @@ def test_read_frame_truncated_tiff(tmp_path, rng):
     io.write_frame(path, counts(rng))
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
-    with refused(SpherejaxFileError, path, "is corrupted|is not a readable image"):
+    with refused(SpherejaxFileError, path, "is truncated or corrupted|is not a readable image"):
         io.read_frame(path)
 
 
@@ -881,7 +881,7 @@ def test_load_calibration_empty_file(tmp_path):
 def test_load_calibration_truncated(calibration_path, keep):
     data = calibration_path.read_bytes()
     calibration_path.write_bytes(data[: int(len(data) * keep)])
-    with refused(CalibrationFileError, calibration_path, "is truncated or corrupted: .*truncated file"):
+    with refused(CalibrationFileError, calibration_path, r"is truncated: it holds \d+ of the \d+ bytes its HDF5 superblock records"):
         io.load_calibration(calibration_path)
 
 
@@ -889,7 +889,7 @@ def test_load_calibration_damaged_superblock(calibration_path):
     data = bytearray(calibration_path.read_bytes())
     data[8:40] = b"\xff" * 32  # after the signature: versions, sizes and addresses of the superblock
     calibration_path.write_bytes(bytes(data))
-    with refused(CalibrationFileError, calibration_path, "is truncated or corrupted: Unable to synchronously open file"):
+    with refused(CalibrationFileError, calibration_path, "is truncated or corrupted: HDF5 cannot read the superblock at its start"):
         io.load_calibration(calibration_path)
 
 

@@ -94,7 +94,7 @@ def test_refusals_name_the_file(batch, tmp_path):
         spherejax.open_corrected(lab_only)
     broken = tmp_path / "y.reflectance.exr"
     broken.write_bytes(b"not an image")
-    with pytest.raises(io.SpherejaxFileError, match="y.reflectance.exr: cannot be read"):
+    with pytest.raises(io.SpherejaxFileError, match="y.reflectance.exr: is not a readable image"):
         spherejax.open_corrected(broken)
 
 

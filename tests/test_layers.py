@@ -21,11 +21,12 @@ LAYERS = {
     **dict.fromkeys(
         ["colorimetry", "flatfield", "polynomial", "wiener_estimation", "pipeline", "uncertainty", "consistency",
          "markov", "angles", "fused", "_fused_correct", "buffers", "grid", "spectra", "allocator", "jsontext",
-         "labelled", "_checks"], KERNELS),
+         "number_text", "labelled", "_checks"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
          "simulated_targets", "figures"], WORKFLOWS),
-    **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "cli", "hw"], FILES),
+    **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "console", "cli", "__main__", "hw"],
+                    FILES),
 }
 #: The installed name of the package in the folder hw/.
 HW_PACKAGE = "spherejax_hw"

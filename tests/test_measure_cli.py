@@ -107,7 +107,10 @@ def numbers(row, keys):
 
 
 def close(actual, wanted):
-    np.testing.assert_allclose(actual, wanted, rtol=1e-9, atol=1e-12)
+    """The files state a float32 measurement's numbers (`Measurement.precision`) as the shortest
+    decimals of their float32 values: the same float32 as `measure`'s, to within one unit in the
+    last place (the command's run and this one may round the last float64 bit differently)."""
+    np.testing.assert_array_max_ulp(np.float32(np.asarray(actual, np.float64)), np.float32(np.asarray(wanted, np.float64)), maxulp=1)
 
 
 LAB, U_LAB, EXPANDED = ["L", "a", "b"], ["u_L", "u_a", "u_b"], ["U_L", "U_a", "U_b"]
@@ -466,13 +469,15 @@ class TestCGATS:
             oracle = colour_lab([np.array([float(v) for v in row[5:]])], "D65")[0]  # from the file's spectra
             assert colour.delta_E(lab, oracle, method="CIE 2000") < 0.05
         grey = expected(files, NOISE, "grey")
-        np.testing.assert_array_equal(np.array([float(v) for v in data[0][5:]]), grey.reflectance.tolist())
+        assert grey.precision == np.float32  # the file holds the float32 values, in their shortest form
+        np.testing.assert_array_equal(np.array([np.float32(v) for v in data[0][5:]]), grey.reflectance.astype(np.float32))
 
 
 
 def test_cgats_names_the_observer_by_its_angle_whatever_its_alias():
     """A calibration may name its observer "1964": the CGATS file still says 10 degrees."""
-    measurement = types.SimpleNamespace(observer="1964", illuminant="D65", lab=np.zeros(3), reflectance=np.zeros(31))
+    measurement = types.SimpleNamespace(observer="1964", illuminant="D65", lab=np.zeros(3), reflectance=np.zeros(31),
+                                        precision=np.dtype(np.float32))
     row = measurement_files.RegionResult("a", (0, 1, 0, 1), measurement)
     text = measurement_files.cgats_text([row], input_path="x.tif", instrument_id=None, created="2026-01-01T00:00:00+00:00")
     assert 'OBSERVER_ANGLE\t"10"' in text.splitlines()

@@ -217,7 +217,7 @@ def test_damaged_rows_are_found_when_read(tmp_path, rng):
     path.write_bytes(data[: int(len(data) * 0.8)])
     with io.open_cube(path, expected_shape=(400, W, B)) as cube:
         np.testing.assert_array_equal(cube.read_rows(0, 8), raw[:8])
-        with pytest.raises(io.SpherejaxFileError, match=rf"{path}: is corrupted"):
+        with pytest.raises(io.SpherejaxFileError, match=rf"{path}: is truncated or corrupted: rows 392 to 399 of its 400 cannot be read"):
             cube.read_rows(392, 400)
 
 
@@ -339,5 +339,5 @@ def test_archive_input_damaged_mid_image_leaves_nothing(tmp_path, rng, calibrati
     out = tmp_path / "out"
     out.mkdir()
     result = archive.correct_input(spec, out, path, rows_per_strip=16)
-    assert result.status == "failed" and "cut.tif: is corrupted" in result.reason
+    assert result.status == "failed" and "cut.tif: is truncated or corrupted: rows" in result.reason
     assert list(out.iterdir()) == []

@@ -72,6 +72,18 @@ def test_command(session, tmp_path, capsys):
     payload = json.loads((out / "study.json").read_text())
     assert payload["response_weight"] == 0.01 and set(payload["study"]) == {"training", "test"}
     assert (out / "study-calibration.h5").exists() and (out / "study.csv").exists()
+    # study.csv through the csv module: the row labels with commas stay one field (pandas failed:
+    # "Expected 7 fields in line 4, saw 8")
+    import pandas
+
+    table = pandas.read_csv(out / "study.csv")
+    assert list(table.iloc[:, 0]) == ["Original", "Markov model", "Stage II, closed form (Eq. 22)", "Stage II, study (ΔE00)"]
+    import csv
+
+    with open(out / "study.csv", newline="") as handle:
+        lines = list(csv.reader(handle))
+    assert len(lines) == 5 and {len(line) for line in lines} == {table.shape[1]}
+    assert table["ΔE00 (D65)"].dtype.kind == "f" and table["ΔE00 (D65)"].notna().all()
 
 
 def test_negative_response_weight(session, tmp_path, capsys):

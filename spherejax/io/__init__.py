@@ -10,6 +10,7 @@ folder and renames into place only when complete, so a failure leaves nothing ne
 The package's modules, one job each (their names are all available here, as before the split):
 
     errors             SpherejaxFileError and its kinds, the one-line messages
+    library_messages   what OpenImageIO and HDF5 say of a damaged file, in plain words
     atomic             the one way every writer puts a file in place; temporary names
     documents          canonical and readable JSON; documents declared as pydantic models and
                        checked into one-line messages (`check_document`)
@@ -18,6 +19,7 @@ The package's modules, one job each (their names are all available here, as befo
     spectral_layout    the reflectance EXR's spectral layout (Fichet et al. 2021): channel names
     cgats              CGATS.17 text (ISO 28178), as colour quality-control software exchanges it
     envi               ENVI images (header + raw BIP pixels), written by strips, read lazily
+    quality_png        the quality mask N.quality.png: palette PNG of the quality bits, by strips
     corrected          outputs opened as xarray (`spherejax.open_corrected`), lazily by rows
     sessions           session folders: `load_session`, `write_session`, `write_simulated_session`
     calibration_files  calibration files: `save_calibration`, `open_calibration`, `load_calibration`
@@ -194,6 +196,7 @@ from .calibration_files import (
     save_calibration,
 )
 from .spectral_layout import reflectance_channel_names, wavelengths_of_channels
+from .quality_png import open_quality_png, read_quality_png, write_quality_png
 
 __all__ = [
     "temp_sibling",
@@ -227,6 +230,9 @@ __all__ = [
     "open_png",
     "write_exr",
     "write_png",
+    "open_quality_png",
+    "read_quality_png",
+    "write_quality_png",
     "rectangle_mask",
     "load_session",
     "write_session",

@@ -33,6 +33,7 @@ from .documents import (
     _check_format, _describe_bands, _json_value, _readable_json, _utc_now, check_document, located,
 )
 from .errors import CalibrationFileError, SpherejaxFileError, _one_line, _show
+from .library_messages import hdf5_problem, library_detail
 
 CALIBRATION_FORMAT = "spherejax-calibration"
 CALIBRATION_FORMAT_VERSION = 4
@@ -292,15 +293,16 @@ def _row_chunks(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...] | None
 
 
 @contextlib.contextmanager
-def _hdf5_errors(path) -> Iterator[None]:
+def _hdf5_errors(path, dataset: str | None = None) -> Iterator[None]:
     """h5py's errors on a damaged file (OSError, KeyError, ValueError, RuntimeError from its
-    checks and HDF5's) as one CalibrationFileError naming the file."""
+    checks and HDF5's) as one CalibrationFileError naming the file, in plain words
+    (`library_messages.hdf5_problem`; `dataset`: the one being read, if any)."""
     try:
         yield
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as error:
         if isinstance(error, SpherejaxFileError):
             raise
-        raise CalibrationFileError(path, f"is truncated or corrupted: {error}", "a whole calibration file") from None
+        raise CalibrationFileError(path, hdf5_problem(error, dataset), _EXPECTED_WHOLE) from None
 
 
 class _StoredArray:
@@ -311,8 +313,8 @@ class _StoredArray:
     the calibration (it holds its own descriptor), so a file replaced meanwhile is never mixed in.
     """
 
-    def __init__(self, path: pathlib.Path, dataset: h5py.Dataset):
-        self.path, self._dataset = path, dataset
+    def __init__(self, path: pathlib.Path, dataset: h5py.Dataset, name: str | None = None):
+        self.path, self._dataset, self.name = path, dataset, name
         self.shape, self.dtype = tuple(dataset.shape), dataset.dtype
         self.row_bytes = math.prod(self.shape[1:]) * self.dtype.itemsize
         self.nbytes = math.prod(self.shape) * self.dtype.itemsize
@@ -326,7 +328,7 @@ class _StoredArray:
         if not out.size:  # HDF5 refuses an empty selection
             return out
         rows = max(1, _READ_BLOCK // max(self.row_bytes, 1))
-        with _hdf5_errors(self.path):
+        with _hdf5_errors(self.path, self.name):
             for start in range(row0, row1, rows):
                 if start != row0:
                     interrupt.check()
@@ -336,7 +338,7 @@ class _StoredArray:
 
     def read(self) -> np.ndarray:
         if not self.shape:
-            with _hdf5_errors(self.path):
+            with _hdf5_errors(self.path, self.name):
                 return np.asarray(self._dataset[()], dtype=self.dtype)
         return self.read_rows(0, self.shape[0])
 
@@ -378,6 +380,15 @@ def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, di
     (a truncated copy). Both are refused here, before any data is read."""
     with _hdf5_errors(path), _descriptor(path, stored) as fd:
         header = stored.attrs["header"] if "header" in stored.attrs else None
+        if header is None and not any(name in stored for name in _FRAME_ARRAYS):
+            # HDF5 written by other software (or another program's file named .h5): say so,
+            # rather than which of its entries spherejax would refuse first.
+            entries = sorted(stored)
+            held = f"its entries are {_show(entries)}" if entries else "it holds no entry"
+            raise CalibrationFileError(
+                path, f'is an HDF5 file but not a spherejax calibration: no "header" attribute and no dark, '
+                f"white or patch dataset; {held}", _EXPECTED_FILE,
+            )
         if isinstance(header, str):
             # h5py decodes UTF-8 with surrogateescape: bytes that are not UTF-8 come back as
             # they were, for jsontext to name.
@@ -402,7 +413,7 @@ def _index_hdf5(path: pathlib.Path, stored: h5py.File) -> tuple[bytes | None, di
                     path, f"dataset {name!r} is stored virtual, external or filtered (compressed)",
                     "its data in the file, unfiltered, as save_calibration writes them",
                 )
-            array = _StoredArray(path, dataset)
+            array = _StoredArray(path, dataset, name)
             # Chunks are stored whole: those over the last rows hold padding beyond the array.
             allocated = array.nbytes
             if dataset.chunks is not None:
@@ -746,7 +757,10 @@ def save_calibration(
             if keeping.error is not None:
                 raise keeping.error
     except OSError as error:
-        raise CalibrationFileError(path, f"could not be written: {error}") from None
+        # Python's OSError (the first failed write, kept by _FailureKeepingFile) in its own words,
+        # not "[Errno 28] No space left on device: 'PATH'"; h5py's as a cleaned detail.
+        problem = f"could not be written: {error.strerror}" if error.strerror else f"could not be written (HDF5: {library_detail(error, path)})"
+        raise CalibrationFileError(path, problem) from None
     return header
 
 

@@ -21,9 +21,11 @@ names and rows; what the fields mean is the caller's (`spherejax.measurement_fil
 Rules kept so that every reader in use takes the file (ArgyllCMS's cgats parser, X-Rite's
 readers and colour-science's `read_sds_from_xrite_file`, which splits data lines on whitespace):
 tab-separated; keyword values quoted; a keyword that CGATS.17 does not define is declared by a
-``KEYWORD "NAME"`` line before its first use; numbers in Python's shortest round-trip form, so a
-value read back as a float64 is the value written; a text field is written bare when it is a
-single token that cannot be read as a number, else quoted with inner quotes doubled.
+``KEYWORD "NAME"`` line before its first use; numbers as plain decimals (no exponent), the shortest
+that read back as the same value at its own precision (`spherejax.number_text`: a float32 value
+as the shortest decimal of that float32, "37.723576", a float64 one as Python's repr digits,
+an integer as an integer); a text field is written bare when it is a single token that cannot be
+read as a number, else quoted with inner quotes doubled.
 """
 
 from __future__ import annotations
@@ -31,6 +33,10 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from ..number_text import number_text
 
 #: Keywords CGATS.17 defines (ISO 28178, Annex A; the ones ArgyllCMS knows without declaration).
 STANDARD_KEYWORDS = frozenset(
@@ -54,15 +60,16 @@ def _one_line(text: str) -> str:
 
 
 def _field(value) -> str:
-    """One data cell: an int as is, a float in shortest round-trip form, text bare or quoted."""
-    if isinstance(value, bool):
+    """One data cell: an integer as is, a float in the shortest decimal of its precision (a NumPy
+    float32 as float32), text bare or quoted."""
+    if isinstance(value, (bool, np.bool_)):
         raise TypeError(f"a CGATS field holds numbers or text, not {value!r}")
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
         if not math.isfinite(value):
             raise ValueError(f"a CGATS number must be finite, not {value!r}")
-        return repr(value)
+        return number_text(value)
     text = str(value)
     if not text.isprintable():
         raise ValueError(f"a CGATS text field must be printable, not {text!r}")
@@ -78,7 +85,8 @@ def cgats_text(keywords: Mapping[str, str | int | float], fields: Sequence[str],
         characters as spaces); keywords that CGATS.17 does not define are declared first with
         KEYWORD lines.
       fields: the data format: field names (letters, digits and "_", no spaces).
-      rows: one sequence of len(fields) values per sample: int, float (finite) or str.
+      rows: one sequence of len(fields) values per sample: int, float (finite; a NumPy float32
+        is written as the shortest decimal of its float32) or str.
 
     Returns:
       The text, lines ending in "\\n", ending with END_DATA.

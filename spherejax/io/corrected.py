@@ -19,6 +19,8 @@ import OpenImageIO as oiio
 from .. import labelled
 from . import envi
 from .errors import SpherejaxFileError
+from .library_messages import complete_image, image_open_problem, image_read_problem
+from .quality_png import read_quality_png
 from .spectral_layout import reflective_channels
 
 #: Bytes of one chunk of rows (about): big enough that dask's per-task cost is small, small
@@ -38,7 +40,7 @@ def _chunk_rows(width: int, channels: int, itemsize: int) -> int:
 def _image_header(path: pathlib.Path) -> tuple[oiio.ImageSpec, dict]:
     image = oiio.ImageInput.open(str(path))
     if image is None:
-        raise SpherejaxFileError(path, f"cannot be read: {oiio.geterror() or 'not an image'}", _EXPECTED)
+        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _EXPECTED)
     try:
         spec = image.spec()
         attributes = {a.name: a.value for a in spec.extra_attribs if isinstance(a.value, (str, int, float))}
@@ -51,12 +53,14 @@ def _read_rows(path: str, row0: int, row1: int, order: tuple[int, ...]) -> np.nd
     """Rows row0:row1 of an image, float32 (rows, W, C), channels in `order`."""
     image = oiio.ImageInput.open(path)
     if image is None:
-        raise SpherejaxFileError(path, f"cannot be read: {oiio.geterror()}", _EXPECTED)
+        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _EXPECTED)
     try:
         spec = image.spec()
         pixels = image.read_scanlines(0, 0, spec.y + row0, spec.y + row1, 0, 0, spec.nchannels, "float")
         if pixels is None:
-            raise SpherejaxFileError(path, f"rows {row0}:{row1} cannot be read: {image.geterror()}", _EXPECTED)
+            problem = image_read_problem(path, image.geterror(), row0, row1, spec.height, image.format_name())
+            shape = (spec.height, spec.width, spec.nchannels)
+            raise SpherejaxFileError(path, problem, complete_image(image.format_name(), shape))
     finally:
         image.close()
     pixels = np.asarray(pixels, dtype=np.float32).reshape(row1 - row0, spec.width, spec.nchannels)
@@ -77,28 +81,17 @@ def _lazy_exr(path: pathlib.Path, spec: oiio.ImageSpec, order: tuple[int, ...]):
     return da.concatenate(blocks, axis=0)
 
 
-def _read_png(path: str) -> np.ndarray:
-    image = oiio.ImageInput.open(path)
-    if image is None:
-        raise SpherejaxFileError(path, f"cannot be read: {oiio.geterror()}", _EXPECTED)
-    try:
-        pixels = image.read_image(0, 0, 0, 1, "uint8")
-    finally:
-        image.close()
-    if pixels is None:
-        raise SpherejaxFileError(path, "cannot be read", _EXPECTED)
-    return np.asarray(pixels, dtype=np.uint8).reshape(pixels.shape[0], pixels.shape[1])
-
-
 def _lazy_quality(path: pathlib.Path, shape: tuple[int, int]):
-    """The quality PNG as a dask array (H, W): one task (a PNG is read from its start)."""
+    """The quality PNG as a dask array (H, W): one task (a PNG is read from its start). Its
+    values are the bits: a palette PNG's indices, not the colours OpenImageIO would expand them
+    to (`quality_png.read_quality_png`), or an earlier version's grey values."""
     import dask
     import dask.array as da
 
     spec, _ = _image_header(path)
     if (spec.height, spec.width) != shape:
         raise SpherejaxFileError(path, f"is {spec.height} x {spec.width}", f"the reflectance's {shape[0]} x {shape[1]}")
-    return da.from_delayed(dask.delayed(_read_png, pure=True)(str(path)), shape=shape, dtype=np.uint8)
+    return da.from_delayed(dask.delayed(read_quality_png, pure=True)(str(path)), shape=shape, dtype=np.uint8)
 
 
 def _reflectance_exr(path: pathlib.Path):

@@ -29,6 +29,7 @@ import numpy as np
 import OpenImageIO as oiio
 from .documents import _describe_bands
 from .errors import SpherejaxFileError
+from .library_messages import complete_image, image_open_problem, image_read_problem
 from .frames import (
     AtomicImageWriter, _FRAME_EXPECTED, _frame_names_and_attributes, _open_checked_frame, _refuse_undecodable_text,
     _require_frame_shape, _spec_shape, require_image_file,
@@ -178,6 +179,7 @@ class _Plane:
     subimage: int
     channels: int
     expected: str  # what the file should be, for the message when its pixels cannot be decoded
+    height: int  # its rows, for that message
 
 
 class CubeReader:
@@ -236,12 +238,14 @@ class CubeReader:
             )
             skip = 0
         if pixels is None or image.has_error:
-            # OIIO does not always say why (a damaged deflate stream gives no message).
+            # OIIO does not always say why (a damaged deflate stream gives no message), and says
+            # it in libtiff's or OpenEXR's words: `library_messages` puts them in plain ones.
             try:
-                detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
-            except UnicodeDecodeError:  # see _refuse_undecodable_text
-                detail = "OpenImageIO's message about it is not UTF-8 text"
-            raise SpherejaxFileError(plane.path, f"is corrupted: {detail}", plane.expected)
+                detail = image.geterror() or oiio.geterror()
+            except UnicodeDecodeError:  # see _refuse_undecodable_text: no words to go by
+                detail = ""
+            problem = image_read_problem(plane.path, detail, row0, row1, plane.height, image.format_name())
+            raise SpherejaxFileError(plane.path, problem, plane.expected)
         rows = np.asarray(pixels, dtype=self.dtype).reshape(-1, width, plane.channels)
         return rows[skip : skip + row1 - row0]
 
@@ -286,7 +290,7 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
     require_image_file(path, _CUBE_EXPECTED, (height, width, bands))
     image = oiio.ImageInput.open(str(path))
     if image is None:
-        raise SpherejaxFileError(path, f"is not a readable image: {oiio.geterror()}", _CUBE_EXPECTED)
+        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _CUBE_EXPECTED)
     try:
         pages = 1
         while image.seek_subimage(pages, 0):
@@ -300,7 +304,8 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
             kind = _sample_kind(path, spec)
             _require_frame_shape(path, _spec_shape(image), (height, width, bands))
             names = _channel_names(image)
-            planes = [_Plane(image, path, 0, bands, _CUBE_EXPECTED)]
+            whole = complete_image(image.format_name(), (height, width, bands))
+            planes = [_Plane(image, path, 0, bands, whole, height)]
         else:
             if pages != bands:
                 raise SpherejaxFileError(path, f"has {pages} pages", f"{bands} pages, one per band")
@@ -311,7 +316,8 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
                     raise SpherejaxFileError(path, f"page {page} has float samples", _CUBE_EXPECTED)
                 _require_frame_shape(path, _spec_shape(image), (height, width, 1))
             names = []
-            planes = [_Plane(image, path, page, 1, _CUBE_EXPECTED) for page in range(pages)]
+            whole = complete_image("tiff", (height, width, 1), pages=pages)
+            planes = [_Plane(image, path, page, 1, whole, height) for page in range(pages)]
         sorted_by_name = pages == 1 and image.format_name() == "openexr"
         order = _band_order(path, names, sorted_by_name, band_centres_nm)
     except BaseException:
@@ -331,7 +337,7 @@ def open_band_files(paths: Sequence, *, expected_shape: Sequence[int]) -> CubeRe
             path = pathlib.Path(path)
             require_image_file(path, _FRAME_EXPECTED, (height, width, 1))
             image = _open_checked_frame(path)
-            planes.append(_Plane(image, path, 0, 1, _FRAME_EXPECTED))
+            planes.append(_Plane(image, path, 0, 1, complete_image(image.format_name(), (height, width, 1)), height))
             _require_frame_shape(path, _spec_shape(image), (height, width, 1))
     except BaseException:
         for plane in planes:

@@ -39,18 +39,21 @@ import pydantic
 from pydantic import AfterValidator, ConfigDict, Field, ValidationInfo
 from pydantic_core import PydanticCustomError
 
+from ..number_text import json_ready
 from .errors import SpherejaxFileError, _show
 
 
 def _json_value(path, value, error_type: type[SpherejaxFileError], what: str):
-    """`value` as it reads back from JSON (numpy values, tuples and non-string keys normalised).
+    """`value` as it reads back from JSON (numpy values, tuples and non-string keys normalised;
+    a NumPy float32 as the shortest decimal of its float32, `number_text.json_ready`, not the
+    float64 digits `.tolist()` shows).
 
     Checksums and round trips compare what is written with what is read, so both start from this.
     """
 
     def default(obj):
         if isinstance(obj, (np.ndarray, np.generic)):
-            return obj.tolist()
+            return json_ready(obj)
         if callable(getattr(obj, "to_json", None)):  # a session's `Region` (not imported: sessions uses this)
             return obj.to_json()
         raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")

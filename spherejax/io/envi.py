@@ -110,7 +110,7 @@ class EnviWriter:
             self._data = open_exclusive(self._temps[self.data_path])
         except OSError as error:
             self.abort()
-            raise SpherejaxFileError(self.header_path, f"could not be written: {error}") from None
+            raise SpherejaxFileError(self.header_path, f"could not be written: {error.strerror or error}") from None
 
     def write_rows(self, row0: int, pixels: np.ndarray) -> None:
         """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows; NaN becomes the
@@ -127,7 +127,7 @@ class EnviWriter:
             self._data.write(block)
         except OSError as error:
             self.abort()
-            raise SpherejaxFileError(self.data_path, f"could not be written: {error}") from None
+            raise SpherejaxFileError(self.data_path, f"could not be written: {error.strerror or error}") from None
         self._digest.update(block)
         self._next_row = row0 + len(pixels)
 
@@ -155,7 +155,7 @@ class EnviWriter:
             os.replace(header_temp, self.header_path)
             fsync_folder(self.header_path.parent)
         except OSError as error:
-            raise SpherejaxFileError(self.header_path, f"could not be written: {error}") from None
+            raise SpherejaxFileError(self.header_path, f"could not be written: {error.strerror or error}") from None
         finally:
             self.abort()
         return {self.data_path: self._digest.hexdigest(), self.header_path: header_digest}

@@ -17,6 +17,7 @@ import OpenImageIO as oiio
 
 from .atomic import create_exclusive, fsync_folder, temp_sibling
 from .errors import SpherejaxFileError, _show
+from .library_messages import complete_image, image_open_problem, image_read_problem, image_write_problem, write_limit
 from .plain_files import file_kind
 
 _FRAME_EXPECTED = "a single-page 16-bit TIFF of shape (H, W, C)"
@@ -78,8 +79,7 @@ def _open_checked_frame(path: pathlib.Path) -> oiio.ImageInput:
     require_image_file(path, _FRAME_EXPECTED)
     image = oiio.ImageInput.open(str(path))
     if image is None:
-        problem = f"is not a readable image: {oiio.geterror()}"
-        raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
+        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _FRAME_EXPECTED)
     try:
         _check_frame_header(path, image)
     except BaseException:
@@ -171,9 +171,9 @@ def read_frame(path, *, expected_shape: Sequence[int] | None = None) -> np.ndarr
         pixels = image.read_image(oiio.UINT16)
         if pixels is None:
             # OIIO does not always say why (a damaged deflate stream gives no message).
-            detail = image.geterror() or oiio.geterror() or "the pixel data cannot be decoded"
-            problem = f"is corrupted: {detail}"
-            raise SpherejaxFileError(path, problem, _FRAME_EXPECTED)
+            detail = image.geterror() or oiio.geterror()
+            problem = image_read_problem(path, detail, 0, shape[0], shape[0], image.format_name())
+            raise SpherejaxFileError(path, problem, complete_image(image.format_name(), shape))
     return np.ascontiguousarray(np.asarray(pixels, dtype=np.uint16).reshape(shape))
 
 
@@ -264,6 +264,10 @@ def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
     _write_image_atomic(path, spec, array, "tiff")
 
 
+#: The last 12 bytes of every complete PNG: the IEND chunk (length 0, type, CRC).
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
 class AtomicImageWriter:
     """One image written through OpenImageIO in row strips under a temporary name beside `path`,
     made the file by `commit` (fsync, then rename) only once every row is written.
@@ -278,19 +282,21 @@ class AtomicImageWriter:
     def __init__(self, path, spec: oiio.ImageSpec, format_name: str):
         self.path = pathlib.Path(path)
         self.height = spec.height
+        self._format = format_name
         self._next_row = 0
         self._temp = temp_sibling(self.path)
         self._output = None
         try:
             create_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
         except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
+            raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
         # The format is named, not guessed from the temporary file's extension.
         output = oiio.ImageOutput.create(format_name)
         if output is None or not output.open(str(self._temp), spec):
             detail = output.geterror() if output is not None else oiio.geterror()
+            problem = image_write_problem(self.path, self._temp, detail, format_name)
             self.abort()
-            raise SpherejaxFileError(self.path, f"could not be written: {detail}")
+            raise SpherejaxFileError(self.path, problem)
         self._output = output
 
     def write_rows(self, row0: int, pixels: np.ndarray) -> None:
@@ -301,9 +307,9 @@ class AtomicImageWriter:
             raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
         row1 = row0 + len(pixels)
         if not self._output.write_scanlines(row0, row1, 0, np.ascontiguousarray(pixels)):
-            detail = self._output.geterror()
+            problem = image_write_problem(self.path, self._temp, self._output.geterror(), self._format)
             self.abort()
-            raise SpherejaxFileError(self.path, f"could not be written: {detail}")
+            raise SpherejaxFileError(self.path, problem)
         self._next_row = row1
 
     def commit(self) -> str:
@@ -318,16 +324,22 @@ class AtomicImageWriter:
         output, self._output = self._output, None
         try:
             if not output.close():
-                raise SpherejaxFileError(self.path, f"could not be written: {output.geterror()}")
-            digest = hashlib.sha256()
+                raise SpherejaxFileError(self.path, image_write_problem(self.path, self._temp, output.geterror(), self._format))
+            digest, tail = hashlib.sha256(), b""
             with open(self._temp, "rb") as file:
                 for block in iter(lambda: file.read(1 << 20), b""):
                     digest.update(block)
+                    tail = (tail + block)[-len(_PNG_END):]
                 os.fsync(file.fileno())  # on disk before the rename makes it the file
+            if self._format == "png" and tail != _PNG_END:
+                # OpenImageIO's PNG writer reports no failed write (a full disk, a file-size
+                # limit): the file is known whole only by ending in libpng's IEND chunk.
+                cause = write_limit(self._temp) or "it stops short of its end (OpenImageIO reported no error)"
+                raise SpherejaxFileError(self.path, f"could not be written: {cause}")
             os.replace(self._temp, self.path)
             fsync_folder(self.path.parent)  # and the rename on disk too
         except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {error}") from None
+            raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
         finally:
             self.abort()
         return digest.hexdigest()

@@ -531,7 +531,7 @@ def write_session(
         os.rename(staging, path)
         fsync_folder(path.parent)
     except OSError as error:
-        raise SessionError(path, f"could not be written: {error}") from None
+        raise SessionError(path, f"could not be written: {error.strerror or error}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return load_session(path)

@@ -238,11 +238,12 @@ def parameters(cases: list[Case], slow: set[str]) -> list:
     return [pytest.param(case, id=case.id, marks=[pytest.mark.slow] if case.id in slow else []) for case in cases]
 
 
-def check_case(case: Case, workspace, cal, tmp_path, capsys) -> None:
+def check_case(case: Case, workspace, cal, tmp_path, capsys) -> list[str]:
     """Run one case in a fresh folder under tmp_path and check what the module docstring says:
     one line naming the input and the problem, the exit status, no traceback, nothing new or
     partial on disk (for a `correct` batch: only OUT's manifest changed, recording the failure).
-    workspace, cal: the fixtures of tests/conftest.py; capsys: pytest's."""
+    workspace, cal: the fixtures of tests/conftest.py; capsys: pytest's. Returns the non-empty
+    lines of stderr, for further checks of their words."""
     f = Folder(tmp_path / "case", workspace, tmp_path / "cube-cal.h5")
     f.tmp.mkdir()
     shutil.copyfile(cal, f.cube_cal)
@@ -282,3 +283,4 @@ def check_case(case: Case, workspace, cal, tmp_path, capsys) -> None:
         assert named in lines[0] or pathlib.Path(named).name in lines[0], (named, lines[0])
         assert case.problem in lines[0], (case.problem, lines[0])
         assert after == before, sorted(set(before) ^ set(after))
+    return lines

@@ -215,7 +215,7 @@ def _calibrate_over_existing(f: Folder):
     """An existing CAL must survive a calibrate that cannot finish writing its replacement."""
     target = f.tmp / "c.h5"
     shutil.copyfile(f.workspace / "cal.h5", target)
-    return ["calibrate", str(f.session()), "-o", str(target)], str(target)
+    return ["calibrate", str(f.session()), "-o", str(target), "--force"], str(target)
 
 
 def _correct_new_out(f: Folder):

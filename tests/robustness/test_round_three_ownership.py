@@ -113,7 +113,7 @@ def test_calibrate_may_replace_a_calibration_in_the_session_folder(root, capsys)
     target = root / "session" / "cal.h5"
     shutil.copyfile(root / "cal.h5", target)
     session_before = {k: v for k, v in snapshot(root / "session").items() if k != "cal.h5"}
-    status, _, err = run(["calibrate", root / "session", "-o", target], capsys)
+    status, _, err = run(["calibrate", root / "session", "-o", target, "--force"], capsys)
     assert status == 0, err
     io.load_calibration(target)
     assert {k: v for k, v in snapshot(root / "session").items() if k != "cal.h5"} == session_before
@@ -241,8 +241,13 @@ def test_simulate_into_dot_dot_is_refused(tmp_path, capsys, small_design):
 
 
 @pytest.fixture
-def demo_out(root) -> pathlib.Path:
-    """A demo folder whose session is already there (demo reuses it)."""
+def demo_out(root, monkeypatch) -> pathlib.Path:
+    """A demo folder whose session is already there, the one `demo --seed 5` asks for: the shared
+    session is seed 5 of the SMALL design, made the simulator's default here (demo reuses it)."""
+    from spherejax import simulate
+    from tests.helpers import SMALL
+
+    monkeypatch.setattr(simulate, "ExperimentDesign", lambda: SMALL)
     out = root / "demo"
     out.mkdir()
     shutil.copytree(root / "session", out / "session")
@@ -252,7 +257,7 @@ def demo_out(root) -> pathlib.Path:
 def test_demo_does_not_replace_a_users_file_named_calibration_h5(root, demo_out, capsys):
     """before: the user's file replaced by the demo's calibration (exit 0)."""
     (demo_out / "calibration.h5").write_text("my notes\n")
-    refused_unchanged(root, ["demo", "--out", demo_out], capsys, demo_out / "calibration.h5",
+    refused_unchanged(root, ["demo", "--out", demo_out, "--seed", "5"], capsys, demo_out / "calibration.h5",
                       "OUT/calibration.h5 is in the way: a file that is not a spherejax calibration")
 
 
@@ -260,13 +265,13 @@ def test_demo_does_not_replace_the_users_tables(root, demo_out, capsys):
     """before: the user's tables.txt replaced by the demo's (exit 0)."""
     (demo_out / "evaluation").mkdir()
     (demo_out / "evaluation" / "tables.txt").write_text("my tables\n")
-    refused_unchanged(root, ["demo", "--out", demo_out], capsys, demo_out / "evaluation" / "tables.txt",
+    refused_unchanged(root, ["demo", "--out", demo_out, "--seed", "5"], capsys, demo_out / "evaluation" / "tables.txt",
                       "OUT/evaluation/tables.txt is in the way: a file spherejax did not write")
 
 
 def test_demo_evaluation_folder_linked_to_its_session_is_refused(root, demo_out, capsys):
     (demo_out / "evaluation").symlink_to("session")
-    refused_unchanged(root, ["demo", "--out", demo_out], capsys, demo_out / "evaluation",
+    refused_unchanged(root, ["demo", "--out", demo_out, "--seed", "5"], capsys, demo_out / "evaluation",
                       "OUT/evaluation holds the session's manifest")
 
 
@@ -288,7 +293,7 @@ def test_demo_again_replaces_what_an_earlier_demo_wrote(root, demo_out, capsys):
     (demo_out / "evaluation" / "metrics.json").write_text(json.dumps(record))
     (demo_out / "evaluation" / "tables.txt").write_text("an earlier demo's tables")
     (demo_out / "evaluation" / "notes.txt").write_text("mine")
-    status, _, err = run(["demo", "--out", demo_out], capsys)
+    status, _, err = run(["demo", "--out", demo_out, "--seed", "5"], capsys)
     assert status == 0, err
     assert (demo_out / "evaluation" / "tables.txt").read_text().startswith("Table 1.")
     assert (demo_out / "evaluation" / "notes.txt").read_text() == "mine"

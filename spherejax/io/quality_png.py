@@ -1,0 +1,238 @@
+"""The quality mask N.quality.png of `spherejax correct`: an indexed-colour PNG whose pixel values
+(palette indices) are the quality bits (`pipeline.QUALITY_*`, 0 = good), so a program reads the
+bits and a person opening it in any viewer sees the flagged pixels in colour on black.
+
+A single-channel grey PNG of values 0..31 looks black everywhere. Here the pixels are the same
+bytes, but the PNG is of colour type 3 (8-bit palette indices) with a 256-entry palette
+(`PALETTE`): 0 is black, each flag bit has its own bright colour (`BIT_COLOURS`), and a value with
+several bits set takes the colour of its highest bit (the bits are not ranked; the highest is
+simply a rule a reader can apply by eye, and the value itself still holds every bit). A tEXt
+chunk "Description" states the key (`KEY_TEXT`), so the file explains itself.
+
+Written by hand (`QualityPngWriter`), not by a library, because the outputs are written in row
+strips (`spherejax.stripwise`) and must be byte-identical whatever the strips: OpenImageIO, which
+writes every other image here, has no palette PNG output (and reads palette PNGs back expanded
+to RGB), and Pillow cannot write an image row by row. A PNG is simple enough: signature, IHDR,
+PLTE, tEXt, IDAT (one zlib stream of filter byte 0 + row, fed one row at a time, so the bytes do
+not depend on the strips), IEND; each chunk with its CRC-32 (`zlib.crc32`). No tIME chunk: a
+rerun writes the same bytes.
+
+Reading (`read_quality_png`) goes through Pillow, which decodes any PNG: palette files give their
+indices, and the grey files earlier versions wrote (through OpenImageIO) their grey values; both
+are the bits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import pathlib
+import re
+import struct
+import zlib
+
+import numpy as np
+
+from .. import pipeline
+from .atomic import fsync_folder, open_exclusive, temp_sibling
+from .errors import SpherejaxFileError
+from .library_messages import write_limit
+
+_EXPECTED = "a spherejax quality PNG: 8-bit palette indices (or grey values) holding the quality bits"
+_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Colour of each bit (RGB, name) and its meaning (pipeline.QUALITY_*; 32, 64 and 128 are not used yet).
+BIT_COLOURS = {
+    pipeline.QUALITY_SATURATED: ((255, 0, 0), "red", "saturated (raw at or above the saturation level in some band)"),
+    pipeline.QUALITY_NONFINITE: ((255, 0, 255), "magenta", "not finite (raw NaN or infinite in some band, float input)"),
+    pipeline.QUALITY_WHITE_NOT_ABOVE_DARK: ((0, 255, 255), "cyan", "no flat field (white <= dark, or not finite, in some band)"),
+    pipeline.QUALITY_PATCH_UNUSABLE: ((255, 255, 0), "yellow",
+                                      "white patch unusable (its ratio not finite in some band: the whole image)"),
+    pipeline.QUALITY_BELOW_DARK: ((0, 255, 0), "green",
+                                  "below dark (raw below the dark level by more than noise allows in some band)"),
+    32: ((255, 128, 0), "orange", "not used"),
+    64: ((96, 160, 255), "light blue", "not used"),
+    128: ((255, 255, 255), "white", "not used"),
+}
+#: (256, 3) uint8: black for 0, else the colour of the value's highest bit.
+PALETTE = np.array(
+    [(0, 0, 0)] + [BIT_COLOURS[1 << (value.bit_length() - 1)][0] for value in range(1, 256)], dtype=np.uint8
+)
+#: The tEXt "Description" of every quality PNG.
+KEY_TEXT = (
+    "spherejax quality bits: each pixel value (palette index) is the sum of its flags; 0 = good (black). "
+    + "; ".join(f"{bit} {name} = {meaning}" for bit, (_, name, meaning) in BIT_COLOURS.items() if meaning != "not used")
+    + ". A pixel with several flags shows the colour of the highest."
+)
+#: IDAT chunks are written once this many compressed bytes are waiting.
+_IDAT_BYTES = 1 << 16
+
+
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+class QualityPngWriter:
+    """The quality PNG of shape (H, W) written in row strips, under a temporary name beside `path`
+    made the file by `commit` (fsync, then rename) once every row is written; the same interface
+    and rules as `frames.AtomicImageWriter` (the temporary name created with O_EXCL, removed on
+    `abort` or leaving the `with` block uncommitted; `path` untouched until the rename). Rows in
+    order, top to bottom; the bytes do not depend on the strips."""
+
+    def __init__(self, path, shape):
+        self.path = pathlib.Path(path)
+        shape = tuple(int(n) for n in shape)
+        if len(shape) == 3 and shape[-1] == 1:
+            shape = shape[:2]
+        if len(shape) != 2 or 0 in shape or max(shape) >= 2**31:
+            raise SpherejaxFileError(self.path, f"cannot hold an image of shape {shape}", "(H, W) or (H, W, 1) uint8")
+        self.height, self.width = shape
+        self._next_row = 0
+        self._digest = hashlib.sha256()
+        self._pending = b""
+        self._compressor = zlib.compressobj(9, zlib.DEFLATED, 15, 9, zlib.Z_DEFAULT_STRATEGY)
+        self._temp = temp_sibling(self.path)
+        self._file = None
+        try:
+            self._file = open_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
+        except OSError as error:
+            raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
+        from .. import __version__
+
+        header = struct.pack(">IIBBBBB", self.width, self.height, 8, 3, 0, 0, 0)  # 8-bit palette, not interlaced
+        self._write(
+            _SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"PLTE", PALETTE.tobytes())
+            + _chunk(b"tEXt", b"Description\0" + KEY_TEXT.encode("latin-1"))
+            + _chunk(b"tEXt", b"Software\0" + f"spherejax {__version__}".encode("latin-1"))
+        )
+
+    def _why(self, error: OSError) -> str:
+        """Why a write failed, in the words of `library_messages.write_limit` where the file-size
+        limit or a full disk explains it, else the system's reason, never the temporary name."""
+        return write_limit(self._temp) or error.strerror or " ".join(str(error).split())
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self._file.write(data)
+        except OSError as error:
+            self.abort()
+            raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
+        self._digest.update(data)
+
+    def _idat(self, data: bytes, final: bool = False) -> None:
+        self._pending += data
+        if len(self._pending) >= _IDAT_BYTES or (final and self._pending):
+            pending, self._pending = self._pending, b""
+            self._write(_chunk(b"IDAT", pending))
+
+    def write_rows(self, row0: int, pixels) -> None:
+        """Write rows row0:row0 + len(pixels), (rows, W) or (rows, W, 1) uint8, the next rows."""
+        if self._file is None:
+            raise SpherejaxFileError(self.path, "is no longer open for writing")
+        if row0 != self._next_row:
+            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+        pixels = np.asarray(pixels)
+        if pixels.ndim == 3 and pixels.shape[-1] == 1:
+            pixels = pixels[..., 0]
+        if pixels.dtype != np.uint8 or pixels.ndim != 2 or pixels.shape[1] != self.width:
+            raise ValueError(f"pixels: expected (rows, {self.width}) uint8, got {pixels.shape} {pixels.dtype}")
+        if row0 + len(pixels) > self.height:
+            raise ValueError(f"rows: the image has {self.height}, got rows up to {row0 + len(pixels)}")
+        for row in pixels:
+            # Filter type 0 (None) on every row, as the PNG specification advises for palette images.
+            self._idat(self._compressor.compress(b"\0" + row.tobytes()))
+        self._next_row = row0 + len(pixels)
+
+    def commit(self) -> str:
+        """Finish the file, fsync it, rename it into place; return its SHA-256 (hex)."""
+        if self._file is None:
+            raise SpherejaxFileError(self.path, "is no longer open for writing")
+        if self._next_row != self.height:
+            self.abort()
+            raise SpherejaxFileError(self.path, f"has {self._next_row} of its {self.height} rows", "every row written")
+        try:
+            self._idat(self._compressor.flush(), final=True)
+            self._write(_chunk(b"IEND", b""))
+            file, self._file = self._file, None
+            try:
+                file.flush()
+                os.fsync(file.fileno())  # on disk before the rename makes it the file
+            finally:
+                file.close()
+            os.replace(self._temp, self.path)
+            fsync_folder(self.path.parent)  # and the rename on disk too
+        except OSError as error:
+            raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
+        finally:
+            self.abort()
+        return self._digest.hexdigest()
+
+    def abort(self) -> None:
+        """Drop what was written: the temporary file goes, `path` is untouched."""
+        file, self._file = self._file, None
+        if file is not None:
+            with contextlib.suppress(OSError):
+                file.close()
+        with contextlib.suppress(OSError):
+            self._temp.unlink(missing_ok=True)
+
+    def __enter__(self) -> QualityPngWriter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.abort()
+
+
+def open_quality_png(path, shape) -> QualityPngWriter:
+    """A `QualityPngWriter` for a quality mask of shape (H, W) or (H, W, 1)."""
+    return QualityPngWriter(path, shape)
+
+
+def write_quality_png(path, quality) -> str:
+    """Write a whole (H, W) or (H, W, 1) uint8 quality mask, atomically; return its SHA-256 (hex)."""
+    quality = np.asarray(quality)
+    with QualityPngWriter(path, quality.shape) as writer:
+        writer.write_rows(0, quality)
+        return writer.commit()
+
+
+def _read_problem(error: BaseException) -> str:
+    """Pillow's words for a PNG it cannot read ("image file is truncated (0 bytes not processed)",
+    "broken PNG file (bad header checksum in b'tEXt')", "not a PNG file") in plain ones."""
+    text = " ".join(str(error).split())
+    crc = re.search(r"checksum in b'([A-Za-z]{4})'", text)
+    if crc:
+        return f"is corrupted: its {crc.group(1)} chunk fails its CRC check"
+    if "truncated" in text.lower() or isinstance(error, EOFError):
+        return "is truncated: its pixel data stops before its last row"
+    if "not a PNG file" in text or type(error).__name__ == "UnidentifiedImageError":
+        return "is not a PNG file (it does not start with the PNG signature)"
+    if isinstance(error, OSError) and error.strerror:
+        return f"cannot be read: {error.strerror}"
+    return f"is corrupted (Pillow: {text})"
+
+
+def read_quality_png(path) -> np.ndarray:
+    """The quality bits of a quality PNG, (H, W) uint8: the palette indices of one written by
+    `QualityPngWriter`, the grey values of one written by an earlier spherejax (8-bit grey)."""
+    from PIL import PngImagePlugin, UnidentifiedImageError
+
+    path = pathlib.Path(path)
+    try:
+        # The PNG reader itself, not Image.open: that refuses images over 179 million pixels as
+        # decompression bombs, and a camera's quality mask may be that large.
+        with PngImagePlugin.PngImageFile(path) as image:
+            if image.mode not in ("P", "L"):
+                raise SpherejaxFileError(path, f"is a PNG of mode {image.mode}", _EXPECTED)
+            pixels = np.asarray(image)
+    except (OSError, SyntaxError, ValueError, UnidentifiedImageError, EOFError) as error:
+        if isinstance(error, SpherejaxFileError):
+            raise
+        raise SpherejaxFileError(path, _read_problem(error), _EXPECTED) from None
+    if pixels.dtype != np.uint8 or pixels.ndim != 2:
+        raise SpherejaxFileError(path, f"holds pixels of shape {pixels.shape} and type {pixels.dtype}", _EXPECTED)
+    return pixels
+
+
+__all__ = ["BIT_COLOURS", "KEY_TEXT", "PALETTE", "QualityPngWriter", "open_quality_png", "read_quality_png",
+           "write_quality_png"]
