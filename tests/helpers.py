@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import pathlib
 import warnings
@@ -228,3 +229,20 @@ def write_calibration_entries(path, entries: dict, container: str | None = None)
             frame = name in calibration_files._FRAME_ARRAYS
             chunks = calibration_files._row_chunks(array.shape, array.dtype.itemsize) if frame else None
             stored.create_dataset(name, data=array, chunks=chunks)
+
+
+@contextlib.contextmanager
+def refused(error_type, path, match, *, says_expected=True):
+    """Expect `error_type` with a one-line message that starts with `path` and matches `match`,
+    and (unless the failure is the system's, like a full disk) says what was expected."""
+    with pytest.raises(error_type, match=match) as info:
+        yield info
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: "), message
+    assert ("(expected " in message) == says_expected, message
+
+
+def listing(folder: pathlib.Path) -> list[str]:
+    """Everything below `folder`, hidden temporary files and folders included."""
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
