@@ -14,7 +14,7 @@ What it measures
        ratios of the default's spectral rms to the oracle's and to the first release's.
 
 Against what
-    A numpy implementation of the same formulas (E2-E7 of `spherejax/wiener_estimation.py`,
+    A numpy implementation of the same formulas (E2-E7 of `spherejax/estimation/`,
     written again with numpy.linalg: ridge through the SVD, the sensitivity through a stacked
     least-squares solve, the Wiener step through an explicit inverse), the same candidate grids
     and the same folds (`fold_labels`). Before timing, its cross-validated choices must equal
@@ -44,7 +44,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from harness import machine_info, time_first_call, time_interleaved, write_record  # noqa: E402
 
 import spherejax  # noqa: E402
-from spherejax import simulated_targets, wiener_estimation as we  # noqa: E402
+from spherejax import estimation as we, simulated_targets  # noqa: E402
+from spherejax.estimation._first_release import select_wiener_noise_variance  # noqa: E402
 
 TOLERANCE = 1e-6
 
@@ -163,7 +164,7 @@ def estimators(V, R, truth) -> dict:
         "auto": spherejax.fit_wiener(V, R),
         "training": spherejax.fit_wiener(V, R, method="training"),
         "model": spherejax.fit_wiener(V, R, method="model"),
-        "first release": spherejax.fit_wiener(V, R, spherejax.select_wiener_noise_variance(V, R)[0], offset=False),
+        "first release": spherejax.fit_wiener(V, R, select_wiener_noise_variance(V, R)[0], offset=False),
         "oracle": spherejax.wiener_from_system(
             truth.sensitivity, truth.offset, truth.noise_variance(R), R.mean(0), np.cov(R.T, bias=True)
         ),

@@ -43,7 +43,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
-import hashlib
 import json
 import os
 import pathlib
@@ -120,55 +119,35 @@ def _utc_now() -> str:
 
 
 def _sha256(path: pathlib.Path) -> str | None:
+    """The SHA-256 (hex) of a band image, or None when it cannot be read as a regular file. No
+    safe point: it is called while a stop is handled, to count what was kept."""
+    from spherejax.io.hashing import sha256_file
+
     try:
-        with open(path, "rb") as handle:
-            return hashlib.file_digest(handle, "sha256").hexdigest()
+        return sha256_file(path, check=None)
     except OSError:
         return None
 
 
 class Journal:
-    """SESSION.partial/journal.jsonl: one fsynced JSON line per finished step; a line cut by a
-    kill is ignored on reading."""
+    """SESSION.partial/journal.jsonl: one fsynced JSON line per finished step (`spherejax.io.journal`,
+    the format of a batch's manifest too); a line cut by a kill is ignored on reading."""
 
     def __init__(self, folder: pathlib.Path):
+        from spherejax.io.journal import Journal as JsonLines
+
         self.folder = folder
         self.path = folder / JOURNAL_NAME
+        # No safe point: read while a stop is handled (`acquire`), to say what was kept.
+        self._lines = JsonLines(self.path, key="event")
 
     def records(self) -> list[dict]:
-        if not self.path.is_file():
-            return []
-        from spherejax import io
-
-        records = []
-        for line in io.read_lines(self.path):  # streamed: a journal truncated to gigabytes is not read whole
-            try:
-                # jsontext: a damaged line (not UTF-8, nested thousands deep) is skipped like a
-                # torn one; json.loads raised RecursionError on deep nesting.
-                record = jsontext.loads(line)
-            except jsontext.JSONTextError:
-                continue
-            if isinstance(record, dict) and isinstance(record.get("event"), str):
-                records.append(record)
-        return records
+        return list(self._lines.records())
 
     def append(self, record: dict) -> None:
-        from spherejax import io
-
-        # open_regular: a symbolic link in the journal's place must not redirect the append (O_NOFOLLOW),
-        # and a FIFO there must not make the acquisition wait for a reader.
-        fd = io.open_regular(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
-        try:
-            size = os.fstat(fd).st_size
-            prefix = b""
-            if size:
-                with open(self.path, "rb") as handle:
-                    handle.seek(size - 1)
-                    prefix = b"" if handle.read(1) == b"\n" else b"\n"  # end a line cut by a kill
-            os.write(fd, prefix + (json.dumps(record, sort_keys=True) + "\n").encode())
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        # Opened for each record: a symbolic link in the journal's place must not redirect the
+        # append (O_NOFOLLOW), and a FIFO there must not make the acquisition wait for a reader.
+        self._lines.append(record)
 
     def last(self, event: str) -> dict | None:
         found = [r for r in self.records() if r["event"] == event]

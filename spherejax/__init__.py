@@ -12,19 +12,23 @@ bad shapes and names raise ValueError.
 Layers. Each module imports only modules of its own layer or of the layers below it
 (tests/test_layers.py reads every import, function-level ones included, and fails otherwise):
 
-1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, wiener_estimation,
-   pipeline, uncertainty, consistency, markov, angles, fused (the CPU kernel), buffers, grid,
-   spectra, allocator, jsontext (a parser of text it is given), number_text (numbers in the
-   shortest text of their precision, JSON values and CSV tables as text), labelled (the xarray
-   names of the outputs), _checks.
+1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, estimation (a
+   module per reflectance estimator, and their cross-validation) and wiener_estimation (its old
+   name, kept for existing imports), pipeline, uncertainty, consistency, markov, angles, fused
+   (the CPU kernel), buffers, grid, spectra, allocator, jsontext (a parser of text it is
+   given), number_text (numbers in the shortest text of their precision, JSON values and CSV
+   tables as text), labelled (the xarray names of the outputs), _checks.
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
    a path they open): calibrate, evaluate, study, simulate, stripwise, measurement, monte_carlo,
    simulated_targets, figures.
 3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.atomic, the one way
-   every writer puts a file in place), measurement_files, archive, cluster, interrupt, console (the
-   command line's messages and progress), cli and __main__ (`python -m spherejax`); and the
-   instrument, hw/ (installed as spherejax_hw), which uses spherejax and which spherejax never
-   imports: it adds `spherejax acquire` to cli through the "spherejax.commands" entry points.
+   every writer puts a file in place; io.journal, the fsynced JSON-lines journal of a batch's
+   manifest and an acquisition; io.hashing, the one file hash), measurement_files, archive (batch
+   correction, a module per job: discovery, inputs, outputs, manifest, lock, batch), cluster,
+   interrupt, console (the command line's messages and progress), cli and __main__ (`python -m
+   spherejax`); and the instrument, hw/ (installed as spherejax_hw), which uses spherejax and
+   which spherejax never imports: it adds `spherejax acquire` to cli through the
+   "spherejax.commands" entry points.
 """
 
 from .allocator import keep_freed_memory as keep_freed_memory
@@ -60,7 +64,7 @@ from .pipeline import (
 from .measurement import Measurement as Measurement, measure as measure
 from .uncertainty import NoiseModel as NoiseModel
 from .polynomial import fit_stage2 as fit_stage2, identity_coeffs as identity_coeffs, stage2 as stage2
-from .wiener_estimation import (
+from .estimation import (
     CrossValidation as CrossValidation,
     WienerEstimator as WienerEstimator,
     estimate_system as estimate_system,
@@ -68,9 +72,7 @@ from .wiener_estimation import (
     model_estimator as model_estimator,
     training_estimator as training_estimator,
     wiener_from_system as wiener_from_system,
-    select_wiener_noise_variance as select_wiener_noise_variance,
     wiener as wiener,
-    wiener_from_sensitivity as wiener_from_sensitivity,
     EstimatorCovariance as EstimatorCovariance,
     estimator_covariance as estimator_covariance,
 )
@@ -124,7 +126,6 @@ __all__ = [
     "reflectance_to_lab",
     "reflectance_to_xyz",
     "response_std",
-    "select_wiener_noise_variance",
     "stage1",
     "stage2",
     "training_estimator",
@@ -132,7 +133,6 @@ __all__ = [
     "white_patch_ratio",
     "white_point_xyz",
     "wiener",
-    "wiener_from_sensitivity",
     "wiener_from_system",
     "xyz_to_lab",
     "EstimatorCovariance",

@@ -34,7 +34,7 @@ import numpy as np
 from .pipeline import Calibration, correct
 from .polynomial import MIN_SAMPLES, STATUS_NAMES, UNDETERMINED, fit_stage2_detailed, identity_coeffs, stage2, why_undetermined
 from .uncertainty import NoiseModel
-from .wiener_estimation import METHODS as WIENER_METHODS, EstimatorCovariance, estimator_covariance, fit_wiener
+from .estimation import EstimatorCovariance, estimator_covariance, fit_wiener, validate_method
 from .grid import N_WAVELENGTHS
 from .number_text import json_ready
 
@@ -529,8 +529,7 @@ def calibrate_session(
     residual = np.sqrt(np.nanmean((prediction - target) ** 2, axis=0))
 
     with_stage2 = dataclasses.replace(base, coeffs=coeffs.astype(np.float32))
-    if wiener_method not in WIENER_METHODS:
-        raise ValueError(f"wiener method: expected one of {WIENER_METHODS}, got {wiener_method!r}")
+    validate_method(wiener_method, "wiener method")
     groups = None if wiener_groups is None else target_groups(session, targets, wiener_groups)
     target_measurements = [m for m in measure_frames(session, targets, with_stage2) if m.reflectance is not None]
     responses = np.asarray(stage2(np.stack([m.v for m in target_measurements]), np.stack([m.p for m in target_measurements]), coeffs))

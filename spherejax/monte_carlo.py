@@ -30,7 +30,7 @@ from .polynomial import PAPER_TABLE_2, stage2
 from .simulate import InstrumentModel
 from .simulated_targets import target_system
 from .uncertainty import NoiseModel
-from .wiener_estimation import fit_wiener
+from .estimation import fit_wiener
 
 #: Pixel kinds of `NoiseScene.kind`.
 KIND_PATCH, KIND_CHART, KIND_DARK, KIND_NEAR_FULL_SCALE, KIND_NEUTRAL = -1, 0, 1, 2, 3

@@ -1,6 +1,6 @@
 """Reflectance targets seen by the simulated camera: responses with a known system behind them.
 
-The Wiener estimators (`spherejax.wiener_estimation`) are validated across material families on
+The Wiener estimators (`spherejax.estimation`) are validated across material families on
 responses that spherejax can make itself: colour-science's measured spectra (`spherejax.spectra`)
 rendered through the simulated instrument's camera (`spherejax.simulate.InstrumentModel`: 16
 Gaussian filters, the xenon lamp, the CCD's quantum efficiency, all integrated on the 2 nm grid),

@@ -20,7 +20,7 @@ What is propagated (`NoiseModel`), per band b, in raw counts:
     N6  the Stage II coefficients (c1..c4 of each band, Eq. 23): their (B, 4, 4) covariance from
           the fit (`spherejax.polynomial.Stage2Fit.covariance`)
     N7  the reflectance estimator's parameters, from a finite set of targets
-          (`spherejax.wiener_estimation.EstimatorCovariance`): Cov(r | x) = (x̃ᵀ G x̃) Σ_res
+          (`spherejax.estimation.EstimatorCovariance`): Cov(r | x) = (x̃ᵀ G x̃) Σ_res
 
 Bands are exposed separately, so N1-N6 are independent between bands, and the first three
 steps of the path act band by band: each source's effect on the Stage II response v_tilde is a
@@ -53,7 +53,7 @@ from . import _checks
 from .colorimetry import xyz_to_lab
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .polynomial import stage2_unchecked
-from .wiener_estimation import EstimatorCovariance
+from .estimation import EstimatorCovariance
 
 _HIGHEST = jax.lax.Precision.HIGHEST
 

@@ -113,6 +113,13 @@ class TestHelp:
             assert "--output" in text and "deprecated" in text, name
         assert "OUT" in parsers["simulate"].format_help() and "deprecated" in parsers["simulate"].format_help()
 
+    def test_the_estimator_choices_are_the_librarys(self):
+        from spherejax.estimation import METHOD_NAMES
+
+        assert cli.WIENER_METHODS == METHOD_NAMES
+        action = next(a for a in subcommand_parsers()["calibrate"]._actions if a.dest == "wiener_method")
+        assert tuple(action.choices) == METHOD_NAMES
+
     def test_global_options_are_listed_on_every_command(self):
         for name, parser in subcommand_parsers().items():
             text = parser.format_help()

@@ -207,12 +207,12 @@ def test_check_format_returns_the_version():
 
 def _document_models():
     from spherejax_hw import lamp, profile
-    from spherejax import archive
+    from spherejax.archive import manifest
     from spherejax.io import calibration_files, sessions
 
     return [
         sessions._Manifest, sessions._Frame, sessions._Region, calibration_files._CalibrationHeader,
-        calibration_files._CalibrationHeaderV1, calibration_files._ArrayEntry, archive._Record, lamp._State,
+        calibration_files._CalibrationHeaderV1, calibration_files._ArrayEntry, manifest._Record, lamp._State,
         lamp._Warmup, profile._Profile, profile._Wheel, profile._Acquisition, profile._Noise, profile._Sample,
         *profile._CAMERA_TABLES.values(),
     ]

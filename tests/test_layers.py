@@ -19,7 +19,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 KERNELS, WORKFLOWS, FILES = 1, 2, 3
 LAYERS = {
     **dict.fromkeys(
-        ["colorimetry", "flatfield", "polynomial", "wiener_estimation", "pipeline", "uncertainty", "consistency",
+        ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "pipeline", "uncertainty", "consistency",
          "markov", "angles", "fused", "_fused_correct", "buffers", "grid", "spectra", "allocator", "jsontext",
          "number_text", "labelled", "_checks"], KERNELS),
     **dict.fromkeys(

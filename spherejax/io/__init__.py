@@ -12,6 +12,9 @@ The package's modules, one job each (their names are all available here, as befo
     errors             SpherejaxFileError and its kinds, the one-line messages
     library_messages   what OpenImageIO and HDF5 say of a damaged file, in plain words
     atomic             the one way every writer puts a file in place; temporary names
+    hashing            `sha256_file`, the one way a file is hashed (in blocks, each a safe point)
+    journal            append-only fsynced JSON-lines files: a batch's manifest, an acquisition's
+                       journal
     documents          canonical and readable JSON; documents declared as pydantic models and
                        checked into one-line messages (`check_document`)
     frames             camera frames (TIFF) and `AtomicImageWriter`

@@ -42,6 +42,7 @@ import numpy as np
 
 from .atomic import create_exclusive, fsync_folder, open_exclusive, temp_sibling
 from .errors import SpherejaxFileError
+from .hashing import sha256_file
 
 #: The value flagged pixels hold in ENVI outputs ("data ignore value"): NaN is not a value every
 #: ENVI reader can compare against.
@@ -149,7 +150,7 @@ class EnviWriter:
             header_temp = self._temps[self.header_path]
             write_envi_header(str(header_temp), self.header)
             with open(header_temp, "rb") as handle:
-                header_digest = hashlib.file_digest(handle, "sha256").hexdigest()
+                header_digest = sha256_file(handle, check=None)  # past the last safe point
                 os.fsync(handle.fileno())
             os.replace(self._temps[self.data_path], self.data_path)
             os.replace(header_temp, self.header_path)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import hashlib
 import json
 import os
 import pathlib
@@ -17,6 +16,7 @@ import OpenImageIO as oiio
 
 from .atomic import create_exclusive, fsync_folder, temp_sibling
 from .errors import SpherejaxFileError, _show
+from .hashing import sha256_file
 from .library_messages import complete_image, image_open_problem, image_read_problem, image_write_problem, write_limit
 from .plain_files import file_kind
 
@@ -325,11 +325,10 @@ class AtomicImageWriter:
         try:
             if not output.close():
                 raise SpherejaxFileError(self.path, image_write_problem(self.path, self._temp, output.geterror(), self._format))
-            digest, tail = hashlib.sha256(), b""
             with open(self._temp, "rb") as file:
-                for block in iter(lambda: file.read(1 << 20), b""):
-                    digest.update(block)
-                    tail = (tail + block)[-len(_PNG_END):]
+                digest = sha256_file(file, check=None)  # past the last safe point: never stopped here
+                file.seek(max(file.tell() - len(_PNG_END), 0))
+                tail = file.read()
                 os.fsync(file.fileno())  # on disk before the rename makes it the file
             if self._format == "png" and tail != _PNG_END:
                 # OpenImageIO's PNG writer reports no failed write (a full disk, a file-size
@@ -342,7 +341,7 @@ class AtomicImageWriter:
             raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
         finally:
             self.abort()
-        return digest.hexdigest()
+        return digest
 
     def abort(self) -> None:
         """Drop what was written: the temporary file goes, `path` is untouched."""

@@ -28,6 +28,7 @@ import pytest
 
 from spherejax_hw import acquire
 from spherejax import archive, io
+from spherejax.archive.manifest import output_digest
 from tests.helpers import no_compilation_cache_writes
 from tests.hw.support import BANDS as ACQUIRED_BANDS
 from tests.hw.support import SAMPLES, run_acquire, write_profile
@@ -173,7 +174,7 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
             assert data == expected[name], f"kill {len(landed)} ({mode}): {name} differs from the reference"
         for record in done.values():
             for output, digest in record["outputs"].items():
-                assert archive._sha256_file(killed / output) == digest, f"kill {len(landed)}: {output}"
+                assert output_digest(killed / output) == digest, f"kill {len(landed)}: {output}"
         unrecorded = _unrecorded(killed)
         lock = json.loads((killed / archive.LOCK_NAME).read_text()) if (killed / archive.LOCK_NAME).exists() else {}
         landed.append((mode, len(done), lock.get("pid") == process.pid, len(temporaries), len(unrecorded)))
@@ -211,7 +212,7 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
     assert {r["status"] for r in records} == {"done"}
     for record in records:
         for output, digest in record["outputs"].items():
-            assert archive._sha256_file(killed / output) == digest
+            assert output_digest(killed / output) == digest
     assert sorted(lines) == sorted((reference / archive.MANIFEST_NAME).read_bytes().split(b"\n"))
 
 

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from spherejax import archive, interrupt, io
+from spherejax.archive import inputs
 
 from tests.batch_support import NAMES, frame, manifest_records, outputs_of, run
 
@@ -188,13 +189,13 @@ def test_an_input_replaced_while_corrected_fails_and_leaves_nothing(cal, tmp_pat
     io.write_frame(source, frame(rng), channel_names=NAMES)
     replacement = tmp_path / "new.tif"
     io.write_frame(replacement, frame(rng), channel_names=NAMES)
-    opened = archive._open_input
+    opened = inputs.open_input
 
     def open_then_replace(spec, calibration):
         os.replace(replacement, source)  # another process swaps the file between hash and read
         return opened(spec, calibration)
 
-    monkeypatch.setattr(archive, "_open_input", open_then_replace)
+    monkeypatch.setattr(inputs, "open_input", open_then_replace)
     out = tmp_path / "out"
     out.mkdir()
     spec, = archive.discover_inputs([source], out)

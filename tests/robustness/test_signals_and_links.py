@@ -23,6 +23,7 @@ import pytest
 
 from spherejax_hw import acquire
 from spherejax import archive, io
+from spherejax.archive.manifest import output_digest
 from tests.hw.support import BANDS as ACQUIRED_BANDS
 from tests.hw.support import SAMPLES, run_acquire, write_profile
 from tests.batch_support import KINDS, NAMES, holds_lock, wait_until, frame, manifest_records, outputs_of, run
@@ -230,7 +231,7 @@ def _check_stopped(process: subprocess.Popen, signum: int, out: pathlib.Path, un
     assert int(match.group(1)) == len(records)
     for record in records.values():
         for output, digest in record["outputs"].items():
-            assert archive._sha256_file(out / output) == digest, output
+            assert output_digest(out / output) == digest, output
     recorded = {output for record in records.values() for output in record["outputs"]}
     assert set(outputs_of(out)) == recorded
     return len(records)

@@ -1,0 +1,302 @@
+"""Outputs: their names per format, the writers of each format behind one interface, the output
+folders, and the clean-up of an input's outputs (package docstring, "Output names", "Safety")."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import numpy as np
+
+from .. import interrupt, io
+from ..grid import WAVELENGTHS_NM
+from ..io import envi, spectral_layout
+from .discovery import InputSpec
+
+#: The outputs of one input in each output format (`--format`): "<name>.<kind>" in OUT.
+OUTPUT_KINDS_BY_FORMAT = {
+    "exr": ("reflectance.exr", "lab.exr", "quality.png", "preview.png"),
+    "envi": ("reflectance.img", "reflectance.hdr", "lab.img", "lab.hdr", "quality.png", "preview.png"),
+}
+OUTPUT_FORMATS = tuple(OUTPUT_KINDS_BY_FORMAT)
+#: The outputs of the default format, EXR.
+OUTPUT_KINDS = OUTPUT_KINDS_BY_FORMAT["exr"]
+#: Every kind of output any format writes (what removing an input's outputs looks for).
+ALL_OUTPUT_KINDS = tuple(dict.fromkeys(kind for kinds in OUTPUT_KINDS_BY_FORMAT.values() for kind in kinds))
+
+#: Preview colour of pixels without reflectance (sRGB 8-bit): magenta, never a real colour of a
+#: flat-fielded reflectance preview, so bad pixels stand out.
+PREVIEW_BAD_PIXEL = (255, 0, 255)
+
+
+def output_settings(calibration: io.CalibrationFile, output_format: str, exr_compression: str) -> dict:
+    """The options that shape an input's outputs beyond the input and the calibration: the Lab
+    illuminant in effect (the calibration's or --illuminant), the format and, for EXR, its
+    compression. Each manifest record carries them and `--resume` redoes an input whose record
+    holds other ones (`is_done`)."""
+    return {
+        "illuminant": calibration.patch_calibration.illuminant,
+        "format": output_format,
+        "exr_compression": exr_compression if output_format == "exr" else None,
+    }
+
+
+def srgb_preview(reflectance: np.ndarray) -> np.ndarray:
+    """8-bit sRGB of a reflectance cube (H, W, 31) under D65 -> (H, W, 3) uint8.
+
+    XYZ by ASTM E308 (Y = 1 for the perfect diffuser), the IEC 61966-2-1 matrix and encoding
+    (colour-science), clipped to [0, 1] and rounded. Non-finite pixels become PREVIEW_BAD_PIXEL.
+    """
+    import colour
+
+    from ..colorimetry import tristimulus_weights
+
+    refl = reflectance.astype(np.float64)
+    xyz = refl @ (tristimulus_weights("D65") / 100.0)
+    matrix = colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB
+    linear = np.clip(xyz @ np.asarray(matrix).T, 0.0, 1.0)
+    good = np.all(np.isfinite(linear), axis=-1)
+    encoded = np.asarray(colour.models.eotf_inverse_sRGB(np.where(good[..., None], linear, 0.0)))
+    rgb = np.round(encoded * 255.0).astype(np.uint8)
+    rgb[~good] = PREVIEW_BAD_PIXEL
+    return rgb
+
+
+# ----------------------------------------------------------------------------------- writers
+
+
+class OutputWriter(Protocol):
+    """What writes one output of an input, in any format: rows in order, under temporary names,
+    put in place by `commit` (the `io.atomic` rules); leaving the `with` block uncommitted leaves
+    nothing."""
+
+    def write_rows(self, row0: int, pixels: np.ndarray) -> None: ...
+
+    def commit(self) -> dict[pathlib.Path, str]:
+        """Put the output's files in place; {path: SHA-256 (hex)} of each (an ENVI image is two)."""
+        ...
+
+    def __enter__(self) -> OutputWriter: ...
+
+    def __exit__(self, *exc_info) -> None: ...
+
+
+class _OneFile:
+    """An image writer of one file (`io.open_exr`, `io.open_png`, `io.open_quality_png`, whose
+    `commit` gives that file's digest) as an `OutputWriter`."""
+
+    def __init__(self, writer):
+        self.writer = writer
+
+    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
+        self.writer.write_rows(row0, pixels)
+
+    def commit(self) -> dict[pathlib.Path, str]:
+        return {self.writer.path: self.writer.commit()}
+
+    def __enter__(self) -> _OneFile:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.writer.__exit__(*exc_info)  # uncommitted: the temporary file goes
+
+
+#: The Lab outputs' channel names (not "L", "a", "b": OpenImageIO takes a channel "a" for alpha).
+LAB_CHANNELS = ("L*", "a*", "b*")
+
+
+def output_openers(
+    output_format: str, paths: dict[str, pathlib.Path], shape: tuple[int, int], attributes: dict,
+    exr_compression: str, stem: str,
+) -> dict[str, Callable[[], OutputWriter]]:
+    """{"reflectance", "lab", "quality", "preview": a function opening that output's writer} in
+    `output_format`, `paths` by kind (`OUTPUT_KINDS_BY_FORMAT`), images of `shape` (H, W)."""
+    height, width = shape
+    spectral_names = spectral_layout.reflectance_channel_names(WAVELENGTHS_NM.tolist())
+    lab_names = list(LAB_CHANNELS)
+    if output_format == "exr":
+        spectral_attributes = {spectral_layout.LAYOUT_VERSION_ATTRIBUTE: spectral_layout.LAYOUT_VERSION, **attributes}
+        openers = {
+            "reflectance": lambda: _OneFile(io.open_exr(
+                paths["reflectance.exr"], (height, width, len(spectral_names)), channel_names=spectral_names,
+                attributes=spectral_attributes, compression=exr_compression,
+            )),
+            "lab": lambda: _OneFile(io.open_exr(
+                paths["lab.exr"], (height, width, 3), channel_names=lab_names, attributes=attributes,
+                compression=exr_compression,
+            )),
+        }
+    else:
+        source = attributes.get("spherejax:source", stem)
+        openers = {
+            "reflectance": lambda: envi.EnviWriter(
+                paths["reflectance.hdr"], (height, width, len(spectral_names)),
+                description=f"spherejax reflectance factor (0..1) of {source}", band_names=spectral_names,
+                wavelengths_nm=WAVELENGTHS_NM.tolist(), attributes=attributes,
+            ),
+            "lab": lambda: envi.EnviWriter(
+                paths["lab.hdr"], (height, width, 3),
+                description=f"spherejax CIELAB of {source} under {attributes.get('spherejax:illuminant')}",
+                band_names=lab_names, attributes=attributes,
+            ),
+        }
+    openers["quality"] = lambda: _OneFile(io.open_quality_png(paths["quality.png"], (height, width, 1)))
+    openers["preview"] = lambda: _OneFile(
+        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"])
+    )
+    return openers
+
+
+def correct_into(
+    cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
+    attributes: dict, rows_per_strip: int | None, exr_compression: str, output_format: str = "exr",
+    before_commit: Callable[[], None] | None = None,
+) -> dict[pathlib.Path, str]:
+    """Correct `cube` strip by strip (`stripwise.correct_strips`) into its outputs in
+    `output_format` (`OUTPUT_KINDS_BY_FORMAT`), each written under a temporary name and renamed
+    into place once complete; on a failure the temporary files go and the outputs already
+    renamed are removed. `before_commit` runs once every strip is written and before anything
+    is renamed: raising there leaves nothing. Returns {path: SHA-256 (hex)} of every file written."""
+    from ..stripwise import correct_strips
+
+    kinds = OUTPUT_KINDS_BY_FORMAT[output_format]
+    paths = {kind: folder / f"{stem}.{kind}" for kind in kinds}
+    for path in paths.values():
+        if path.is_symlink() or path.is_dir():
+            raise io.SpherejaxFileError(path, "is a link or a folder", "a file spherejax may replace")
+    height, width, _ = cube.shape
+    openers = output_openers(output_format, paths, (height, width), attributes, exr_compression, stem)
+    committed: dict[pathlib.Path, str] = {}
+    with contextlib.ExitStack() as stack:
+        writers: dict[str, OutputWriter] = {}
+        for row0, arrays in correct_strips(cube, calibration, rows_per_strip=rows_per_strip):
+            interrupt.check()  # a safe point: leaving here removes the temporary files (ExitStack)
+            if not writers:
+                # Opened once the first strip is corrected: an input that fails before (in its
+                # header, or its patch rows) leaves no file to abandon (libpng complains on
+                # stderr about a PNG closed without rows).
+                for output, open_writer in openers.items():
+                    writers[output] = stack.enter_context(open_writer())
+            writers["reflectance"].write_rows(row0, arrays["reflectance"])
+            writers["lab"].write_rows(row0, arrays["lab"])
+            writers["quality"].write_rows(row0, arrays["quality"][..., None])
+            writers["preview"].write_rows(row0, srgb_preview(arrays["reflectance"]))
+        # The last safe point: from here the outputs go into place together.
+        interrupt.check()
+        if before_commit is not None:
+            before_commit()
+        try:
+            for writer in writers.values():
+                committed.update(writer.commit())
+        except BaseException:
+            for path in committed:
+                path.unlink(missing_ok=True)
+            raise
+    return committed
+
+
+# ------------------------------------------------------------------------- folders and clean-up
+
+
+def output_folder(out_root: pathlib.Path, name: str) -> tuple[pathlib.Path, list[pathlib.Path]]:
+    """The folder of `name`'s outputs, created inside OUT, and the folders that were created.
+
+    Each existing component is resolved before anything is created below it, so a link inside
+    OUT can never make mkdir or a write land outside OUT.
+    """
+    parts = pathlib.PurePosixPath(name).parts
+    if not parts or pathlib.PurePosixPath(name).is_absolute() or ".." in parts:
+        raise io.SpherejaxFileError(out_root / name, "would be written outside OUT", f"a path inside {out_root}")
+    root = out_root.resolve()
+    folder, created = root, []
+    for part in parts[:-1]:
+        folder = folder / part
+        if folder.exists() or folder.is_symlink():
+            if not folder.resolve().is_relative_to(root):
+                raise io.SpherejaxFileError(
+                    out_root / name,
+                    f"would be written outside OUT: {folder} resolves to {folder.resolve()}",
+                    f"outputs inside {root}",
+                )
+            if not folder.is_dir():
+                raise io.SpherejaxFileError(folder, "is not a folder: outputs cannot go there", "a folder")
+        else:
+            try:
+                folder.mkdir()
+            except OSError as error:
+                raise io.SpherejaxFileError(folder, f"cannot be created: {error.strerror}") from None
+            created.append(folder)
+    return folder, created
+
+
+def remove_outputs(out_root: pathlib.Path, spec: InputSpec, keep: Sequence[str] = ()) -> None:
+    """Remove the outputs of `spec` an earlier run left, but those of the kinds in `keep`: all of
+    them for a failed input (the manifest says it failed), those of the other format for one just
+    corrected (the manifest lists what it wrote). Only files OUT's manifest records as
+    spherejax's (`InputSpec.owned`) are removed: a file of the same name that spherejax never
+    wrote is the user's. Nothing is touched outside OUT."""
+    root = out_root.resolve()
+    path = root / spec.name
+    if ".." in pathlib.PurePosixPath(spec.name).parts or not path.parent.resolve().is_relative_to(root):
+        return
+    for kind in ALL_OUTPUT_KINDS:
+        if kind in keep or f"{spec.name}.{kind}" not in spec.owned:
+            continue
+        output = path.parent / f"{path.name}.{kind}"
+        if output.is_file() or output.is_symlink():
+            output.unlink(missing_ok=True)
+
+
+def remove_empty_folders(created: list[pathlib.Path]) -> None:
+    """Remove the output folders an input created, deepest first, while they are empty."""
+    for folder in reversed(created):
+        try:
+            folder.rmdir()  # only if still empty: never another input's outputs
+        except OSError:
+            break
+
+
+def remove_temporaries(out_root: pathlib.Path) -> int:
+    """Remove the temporary files a killed run left in OUT (only ours: io's naming)."""
+    removed = 0
+    for dirpath, _, filenames in os.walk(out_root):
+        for filename in filenames:
+            if io.is_temp_sibling(filename):
+                os.unlink(os.path.join(dirpath, filename))
+                removed += 1
+    return removed
+
+
+def written_for(out_root: pathlib.Path, spec: InputSpec) -> bool:
+    """Whether `spec`'s reflectance output in OUT (EXR or ENVI) says spherejax wrote it from this
+    input: its spherejax:source attribute (header field "spherejax source") is `spec.source`."""
+    import OpenImageIO as oiio
+
+    base = out_root / spec.name
+    exr = base.parent / f"{base.name}.reflectance.exr"
+    with contextlib.suppress(OSError):
+        os.close(io.open_regular(exr, os.O_RDONLY))  # a FIFO or a link there: not ours, at once
+        image = oiio.ImageInput.open(str(exr))
+        if image is not None:
+            try:
+                return image.spec().get_string_attribute("spherejax:source") == spec.source
+            finally:
+                image.close()
+    header = base.parent / f"{base.name}.reflectance.hdr"
+    with contextlib.suppress(OSError):
+        fd = io.open_regular(header, os.O_RDONLY)
+        with open(fd, "rb") as handle:
+            text = handle.read(1 << 16).decode("utf-8", errors="replace")
+        wanted = f"spherejax source = {envi._header_value(spec.source)}"
+        return any(line.strip() == wanted for line in text.splitlines())
+    return False
+
+
+__all__ = [
+    "ALL_OUTPUT_KINDS", "LAB_CHANNELS", "OUTPUT_FORMATS", "OUTPUT_KINDS", "OUTPUT_KINDS_BY_FORMAT", "PREVIEW_BAD_PIXEL",
+    "OutputWriter", "correct_into", "output_folder", "output_openers", "output_settings", "remove_empty_folders",
+    "remove_outputs", "remove_temporaries", "srgb_preview", "written_for",
+]

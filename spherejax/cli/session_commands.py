@@ -1,0 +1,205 @@
+"""The commands on a session: simulate, calibrate, evaluate, study and demo."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+
+from ..console import Steps
+from .shared import (
+    _STUDY_FILES, _STUDY_RECORD, _EVALUATION_RECORD, _calibrate, _check_calibration_output,
+    _check_output_folder, _evaluate, _evaluation_names, _inputs, _save_calibration, _session_files, _write_files,
+)
+
+
+def cmd_simulate(args) -> int:
+    from .. import io
+
+    if args.out is not None and args.out_positional is not None:
+        raise ValueError(f"the session folder is given twice, as -o {args.out!r} and as OUT {args.out_positional!r} "
+                         "(expected -o/--out DIR alone)")
+    if args.out is None and args.out_positional is None:
+        raise ValueError("no session folder given (expected -o/--out DIR, the session folder to create)")
+    out = pathlib.Path(args.out if args.out is not None else args.out_positional)
+    io.check_new_session_folder(out)  # before minutes of simulation, not after
+    with Steps(1, args.quiet) as progress:
+        progress.start(f"simulating a session into {out}")
+        session = io.write_simulated_session(out, seed=args.seed)
+        progress.done(f"{len(session.frames)} captures")
+    return 0
+
+
+def _calibrate_noise_options(args) -> None:
+    """--gain, --read-noise and --white-reflectance-u as numbers on `args` (None when not given);
+    ValueError (one line: exit status 2, nothing written) for a value that is not a finite number
+    in range."""
+    import math
+
+    for option, name, expected, ok in (
+        ("--gain", "gain", "electrons per count, a number > 0", lambda x: x > 0),
+        ("--read-noise", "read_noise", "one frame's read noise in counts rms, a number >= 0", lambda x: x >= 0),
+        ("--white-reflectance-u", "white_reflectance_u",
+         "the white standard's relative standard uncertainty, a number >= 0 (0.003 for 0.3 %)", lambda x: x >= 0),
+    ):
+        value = getattr(args, name)
+        if value is None:
+            continue
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number) or not ok(number):
+            raise ValueError(f"{option} {value!r}: expected {expected}")
+        setattr(args, name, number)
+
+
+def cmd_calibrate(args) -> int:
+    from .. import calibrate, io
+
+    _calibrate_noise_options(args)  # before any work
+    session = io.load_session(args.session)
+    # CAL may go beside the session's files, never over one, nor over a file spherejax did not write.
+    _check_calibration_output(args.output, "-o CAL", _inputs(session), force=args.force)
+    with Steps(1, args.quiet) as progress:
+        calibration, report = _calibrate(session, args, progress)
+    _save_calibration(args.output, calibration, report, session)
+    if not args.quiet:
+        print(calibrate.noise_model_line(report))
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from .. import io
+
+    session = io.load_session(args.session)
+    out = args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-evaluation"))
+    _check_output_folder(out, _evaluation_names(session), _EVALUATION_RECORD, label="--out DIR" if args.out else "SESSION-evaluation",
+                         inputs=_inputs(session, args.calibration), holding=_session_files(session))
+    steps = 1 if args.calibration else 2
+    with Steps(steps, args.quiet) as progress:
+        if args.calibration:
+            calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
+        else:
+            calibration, _ = _calibrate(session, args, progress)
+        _evaluate(session, calibration, out, progress, args.quiet)
+    return 0
+
+
+def cmd_study(args) -> int:
+    from .. import evaluate, io, number_text, study
+
+    session = io.load_session(args.session)
+    if args.response_weight < 0:
+        raise ValueError(f"--response-weight: expected a value >= 0, got {args.response_weight}")
+    if args.max_steps < 1:
+        raise ValueError(f"--max-steps: expected a positive number of BFGS iterations, got {args.max_steps}")
+    out = pathlib.Path(args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-study")))
+    _check_output_folder(out, _STUDY_FILES, _STUDY_RECORD, label="--out DIR" if args.out else "SESSION-study",
+                         inputs=_inputs(session, args.calibration), holding=_session_files(session))
+    # Steps: calibrating (without -c), the BFGS fit, the held-out evaluation, writing the files.
+    with Steps(3 if args.calibration else 4, args.quiet) as progress:
+        if args.calibration:
+            calibration, _ = io.load_calibration(args.calibration, band_centres_nm=list(session.band_centres_nm))
+        else:
+            calibration, _ = _calibrate(session, args, progress)
+        progress.start("minimising the mean ΔE00 inconsistency with optimistix (BFGS)")
+        result = study.study_session(session, calibration, fit_wiener=args.wiener, reference=args.reference_background,
+                                     response_weight=args.response_weight, max_steps=args.max_steps)
+        progress.done(f"objective {result.objective_start:.4f} -> {result.objective_end:.4f} in {result.steps} steps"
+                      f"{'' if result.converged else ' (step limit reached)'}")
+        progress.start("evaluating the closed form and the study on the held-out test captures")
+        closed = evaluate.evaluate_session(session, calibration)
+        studied = evaluate.evaluate_session(session, result.calibration)
+        if "test" not in closed.sets:
+            raise ValueError(f"{session.manifest_path}: no test captures (set 'test') to validate the study on")
+        progress.done()
+        progress.start(f"writing {', '.join(_STUDY_FILES)} into {out}")
+        header, rows = study.comparison(closed, studied, "test")
+        text = (
+            "Stage II fitted for colour consistency, validated on the held-out test captures "
+            "(Table 6 format)\n" + evaluate.format_table(header, rows) + "\n" + study.verdict(closed, studied, "test") + "\n"
+        )
+        csv = number_text.csv_text(header, rows)
+        payload = {
+            "reference_background": result.reference, "fit_wiener": result.fit_wiener,
+            "response_weight": args.response_weight, "objective_start": result.objective_start,
+            "objective_end": result.objective_end, "steps": result.steps, "converged": result.converged,
+            "closed_form": closed.metrics, "study": studied.metrics,
+        }
+        _write_files(out, {"study.txt": text.encode(), "study.csv": csv.encode(),
+                           "study.json": json.dumps(number_text.json_ready(payload), indent=2).encode()})
+        _save_calibration(out / "study-calibration.h5", result.calibration, None, session)
+        progress.done()
+    if not args.quiet:
+        print(text, end="")
+    return 0
+
+
+def demo_session_differs(session, seed: int) -> str | None:
+    """None if `session` is the session `spherejax demo --seed SEED` would simulate now: the same
+    seed, instrument model and experiment design (the simulator's defaults) and the same software
+    version; else what differs, in words, for the one-line refusal.
+
+    The comparison is of the manifest's record (`metadata.simulator`, `software_version`) with
+    the defaults as JSON would store them, so a session of another seed, another design or an
+    older spherejax is never taken for this one."""
+    import dataclasses
+
+    from .. import __version__, simulate
+
+    recorded = session.metadata.get("simulator") if isinstance(session.metadata, dict) else None
+    if not isinstance(recorded, dict):
+        return "it is not a simulated session (its manifest has no simulator record)"
+    if recorded.get("seed") != seed:
+        return f"it was simulated with seed {recorded.get('seed')!r}, and this run asks for seed {seed}"
+    as_stored = lambda value: json.loads(json.dumps(dataclasses.asdict(value)))  # noqa: E731  tuples -> lists
+    for key, wanted in (("instrument", simulate.InstrumentModel()), ("design", simulate.ExperimentDesign())):
+        if recorded.get(key) != as_stored(wanted):
+            return f"its simulator {key} is not this version's default"
+    if session.software_version != __version__:
+        return f"spherejax {session.software_version} simulated it, and this is spherejax {__version__}"
+    return None
+
+
+def cmd_demo(args) -> int:
+    from .. import io
+
+    out = pathlib.Path(args.out)
+    session_dir = out / "session"
+    # Before any work: a session already there is reused (read only) when it is the one this run
+    # would simulate (`demo_session_differs`), and refused otherwise -- not replaced: the tables
+    # and calibration beside it were computed from it, and a demo never deletes captures, which in
+    # a real lab's folder cost an afternoon to take. Else OUT/session must be new or empty;
+    # OUT/calibration.h5 and OUT/evaluation/ replace only what an earlier demo wrote.
+    reuse = (session_dir / "manifest.json").exists()
+    if os.path.lexists(out) and not out.is_dir():
+        raise io.SpherejaxFileError(out, "--out DIR is in the way: it is not a folder", "--out DIR a folder, or a new name")
+    session = io.load_session(session_dir) if reuse else None
+    if session is None:
+        io.check_new_session_folder(session_dir)
+    else:
+        differs = demo_session_differs(session, args.seed)
+        if differs is not None:
+            raise io.SpherejaxFileError(
+                session_dir, f"holds a session that is not the one asked for: {differs}",
+                "another -o/--out DIR for this run, or the same settings to reuse it",
+            )
+    inputs = {"the session folder (OUT/session)": session_dir, **({} if session is None else _session_files(session))}
+    _check_calibration_output(out / "calibration.h5", "OUT/calibration.h5", inputs)
+    names = _evaluation_names(session) if session is not None else [
+        "tables.txt", *(f"table{n}.csv" for n in (1, 3, 4, 5, 6)), "metrics.json", "figure5.png", "figure6.png"]
+    _check_output_folder(out / "evaluation", names, _EVALUATION_RECORD, label="OUT/evaluation",
+                         inputs={**inputs, "OUT/calibration.h5": out / "calibration.h5"},
+                         holding={} if session is None else _session_files(session))
+    with Steps(3, args.quiet) as progress:
+        progress.start(f"simulating the paper's experiment (seed {args.seed}) into {session_dir}")
+        if session is not None:
+            progress.done("reusing the session already there: the same seed, simulator and version")
+        else:
+            session = io.write_simulated_session(session_dir, seed=args.seed)
+            progress.done(f"{len(session.frames)} captures")
+        calibration, report = _calibrate(session, args, progress)
+        _save_calibration(out / "calibration.h5", calibration, report, session)
+        _evaluate(session, calibration, out / "evaluation", progress, args.quiet)
+    return 0
