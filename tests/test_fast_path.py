@@ -323,7 +323,10 @@ class TestBlocks:
 
     @staticmethod
     def assert_same(blocked, whole, dtype):
-        tolerance = 1e-6 if dtype == np.float32 else 1e-13
+        # On a GPU the blocks and the whole image are other fusions of the same ops, rounded
+        # apart: 23 of 198,900 float32 Lab values of the batch differed by up to 1.5e-5 (1.6e-5
+        # relative) on an H100 with jax 0.11.2. float64 there: not measured, kept tight.
+        tolerance = ulp_bound(1e-6, 3e-5) if dtype == np.float32 else 1e-13
         names = ("reflectance", "lab", "quality")
         for name, got, want in zip(names, blocked, whole):
             got, want = np.asarray(got), np.asarray(want)

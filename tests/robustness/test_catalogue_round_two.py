@@ -43,7 +43,7 @@ import spherejax as sj
 from spherejax import archive, cli, io
 from tests.robustness import catalogue
 from tests.robustness.catalogue import Case, Folder, correct_case, read_only, snapshot, write_file
-from tests.helpers import calibration_entries, write_calibration_entries
+from tests.helpers import ON_CPU, calibration_entries, write_calibration_entries
 from tests.batch_support import KINDS, NAMES, holds_lock, wait_until, frame, make_calibration, outputs_of, read_exr
 
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
@@ -567,7 +567,23 @@ def test_correct_in_an_odd_environment(name, cal, reference, tmp_path):
         )
     # (Matplotlib, imported for the previews' colour maps, warns about its own cache folder.)
     assert done.returncode == 0 and "spherejax" not in done.stderr and "Traceback" not in done.stderr, done.stderr
-    _assert_same_pixels(_pixels(tmp_path / "out", "cube"), expected)
+    got = _pixels(tmp_path / "out", "cube")
+    if ON_CPU:
+        _assert_same_pixels(got, expected)
+    else:
+        # The run above computes on the CPU (ENV: JAX_PLATFORMS=cpu), `reference` in this process
+        # on its backend. On an H100 (jax 0.11.2) reflectance differed by up to 1.8e-7 (2 ulp of
+        # float32); Lab not measured here: bench_gpu.py's GPU Lab was within 1.22e-4 of the float64
+        # reference there; a preview level may round the other way; the flags are the same.
+        assert got.keys() == expected.keys()
+        for kind in got:
+            if kind.endswith("exr"):
+                bound = 1e-6 if "reflectance" in kind else 2e-4
+                np.testing.assert_allclose(got[kind], expected[kind], rtol=0, atol=bound, err_msg=kind)
+            elif "quality" in kind:
+                np.testing.assert_array_equal(got[kind], expected[kind], err_msg=kind)
+            else:
+                assert np.abs(got[kind].astype(int) - expected[kind].astype(int)).max() <= 1, kind
     assert sorted(os.listdir(tmp_path)) == ["cube.tif", "locked", "out"]
 
 
