@@ -217,7 +217,7 @@ def test_damaged_rows_are_found_when_read(tmp_path, rng):
     path.write_bytes(data[: int(len(data) * 0.8)])
     with io.open_cube(path, expected_shape=(400, W, B)) as cube:
         np.testing.assert_array_equal(cube.read_rows(0, 8), raw[:8])
-        with pytest.raises(io.SpherejaxFileError, match=rf"{path}: is truncated or corrupted: rows 392 to 399 of its 400 cannot be read"):
+        with pytest.raises(io.SpherejaxFileError, match=rf"{path}: is truncated or corrupted: rows 392 to 399 of its 400 cannot be (read|decoded)"):
             cube.read_rows(392, 400)
 
 
@@ -281,7 +281,7 @@ def test_calibration_file_rows_match_the_loaded_calibration(calibration_path, ca
 def test_calibration_file_on_disk_detects_tampering(calibration_path, monkeypatch):
     """The checksum of arrays left on disk is verified block by block, as for a loaded one."""
     monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
-    monkeypatch.setattr(io.calibration_files, "_READ_BLOCK", 4096)  # many blocks
+    monkeypatch.setattr(io.calibration_hdf5, "_READ_BLOCK", 4096)  # many blocks
     with h5py.File(calibration_path, "r") as stored:
         at = stored["dark"].id.get_chunk_info(0).byte_offset  # the dark frame's first chunk
     data = bytearray(calibration_path.read_bytes())

@@ -55,7 +55,7 @@ def library_detail(text, *paths) -> str:
     kept: list[str] = []
     for part in parts:
         part = re.sub(r"\bEXR_ERR_[A-Z_]+\s*", "", part)
-        part = re.sub(r"^(Could not open file|PNG read error|PNG library error):?\s*", "", part.strip())
+        part = re.sub(r"^(Could not open file|PNG read error|PNG library error|OpenEXR exception):?\s*", "", part.strip())
         part = part.strip(" :;,.")
         if part and part not in kept:
             kept.append(part)
@@ -108,7 +108,14 @@ def image_open_problem(path, message) -> str:
     if match:
         return (f"is truncated or corrupted: the {match.group(1)} field of its TIFF directory cannot be read "
                 f"from its {_bytes(size)}")
-    # OpenEXR
+    # OpenEXR. Its words differ by release: "EXR Error (PATH): EXR_ERR_..." through OpenImageIO
+    # 3.2, "OpenEXR exception: ..." or a bare "is not an OpenEXR file" through 3.1.
+    if "is not an OpenEXR file" in text:
+        return "is not a readable image: it does not start with the OpenEXR signature"
+    if "OpenEXR exception" in text:
+        if re.search(r"Unable to open .*for read", text):  # "Unable to open 'PATH' for read"
+            return f"is truncated or corrupted: its OpenEXR header cannot be read (it holds {_bytes(size)})"
+        return f"is truncated or corrupted: its OpenEXR header is invalid (OpenEXR: {detail.split('; ')[0]})"
     if "EXR Error" in text or "EXR_ERR_" in text:
         if "Unable to read magic and version flags" in text and size is not None and size < 8:
             return (f"is not a readable image: it holds {_bytes(size)}, fewer than the 8 of an OpenEXR "
@@ -166,12 +173,15 @@ def image_read_problem(path, message, row0: int, row1: int, height: int, format_
         reason = library_detail(decoding.group(1), path)
         return (f"is corrupted: the compressed pixel data of {where} cannot be decoded"
                 + (f" (zlib: {reason})" if reason else ""))
-    if "chunks were missing or corrupted" in text:
+    if "chunks were missing or corrupted" in text or "Failed OpenEXR read" in text:
+        # (OpenImageIO 3.1 says "Failed OpenEXR read: Unable to query scanline information".)
         return (f"is truncated or corrupted: the pixel data of {where} are missing or cannot be decoded "
                 f"(the file holds {_bytes(_size(path))})")
     detail = library_detail(text, path)
     if not detail:
-        return f"is corrupted: the pixel data of {where} cannot be decoded"
+        # OpenImageIO 3.1 reads a cut TIFF strip without a word: whether the data stop short or
+        # are garbled, the rows cannot be decoded.
+        return f"is truncated or corrupted: {where} cannot be decoded (the file holds {_bytes(_size(path))})"
     return f"is truncated or corrupted: the pixel data of {where} cannot be read ({_format_library(format_name, path)}: {detail})"
 
 
