@@ -322,7 +322,9 @@ def write_outputs(stem: pathlib.Path, arrays: dict, output_format: str = "exr", 
 def read_outputs(stem: pathlib.Path, output_format: str) -> dict:
     """The four output arrays of one input as written (ENVI's ignore value back to NaN)."""
     name = lambda kind: stem.parent / f"{stem.name}.{kind}"  # noqa: E731
-    arrays = {"quality": read_image(name("quality.png"), oiio.UINT8)[..., 0],
+    # spherejax's quality mask is a palette PNG whose indices are the bits (OpenImageIO would
+    # read its colours); io.read_quality_png reads it and the reference's grey one alike.
+    arrays = {"quality": io.read_quality_png(name("quality.png")),
               "preview": read_image(name("preview.png"), oiio.UINT8)}
     for output in ("reflectance", "lab"):
         if output_format == "exr":
