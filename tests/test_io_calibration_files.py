@@ -615,7 +615,7 @@ def tall_calibration(tmp_path_factory):
     )
     path = tmp_path_factory.mktemp("tall") / "tall.h5"
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(io.calibration_files, "_CHUNK_BYTES", 60_000)  # 7 rows of 8 kB: the last chunk partial
+        patch.setattr(io.calibration_hdf5, "_CHUNK_BYTES", 60_000)  # 7 rows of 8 kB: the last chunk partial
         io.save_calibration(path, calibration, instrument_id="sim-sphere-1", band_centres_nm=BANDS)
     with h5py.File(path, "r") as stored:
         assert stored["dark"].chunks == (7, 64, B) and stored["patch"].chunks == (100, 64)

@@ -26,6 +26,11 @@ The package's modules, one job each (their names are all available here, as befo
     corrected          outputs opened as xarray (`spherejax.open_corrected`), lazily by rows
     sessions           session folders: `load_session`, `write_session`, `write_simulated_session`
     calibration_files  calibration files: `save_calibration`, `open_calibration`, `load_calibration`
+    calibration_checks what a calibration file holds: the format and its versions, the header, the
+                       checks of header and arrays, the noise model, the usable white patch
+    calibration_hdf5   the calibration file's HDF5 layout: writing, indexing before reading (every
+                       declared byte stored), reads by rows and blocks, the checksum
+    calibration_npz    the .npz calibration files of format versions 1 to 3 (read only)
 
 Camera frame
 ------------

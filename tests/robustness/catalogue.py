@@ -1,7 +1,7 @@
-"""The machinery of the bad-input catalogues (test_bad_inputs.py, test_catalogue_round_two.py):
-a case's folder and its shared inputs, snapshots of a folder, read-only folders, cases for each
-command, and `check_case`, which runs one and checks the catalogue's promises (test_bad_inputs.py's
-docstring says what they are)."""
+"""The machinery of the bad-input catalogues (test_bad_inputs.py,
+test_odd_inputs_and_environments.py): a case's folder and its shared inputs, snapshots of a
+folder, read-only folders, cases for each command, and `check_case`, which runs one and checks the
+catalogue's promises (test_bad_inputs.py's docstring says what they are)."""
 
 from __future__ import annotations
 

@@ -223,7 +223,7 @@ def _correct_new_out(f: Folder):
     return ["correct", "-c", str(f.cube_cal), str(f.tmp / "in"), "-o", str(f.tmp / "new-out")], str(f.tmp / "new-out")
 
 
-ROUND_TWO: list[Case] = [
+ODD_BAD_INPUTS: list[Case] = [
     # ---- odd files
     correct_case("cube-png-named-tif", _png_named_tif, "in/photo.tif"),
     correct_case("cube-zero-bytes-exr", write_file("in/zero.exr", b""), "in/zero.exr"),
@@ -253,9 +253,9 @@ ROUND_TWO: list[Case] = [
 ]
 
 
-@pytest.mark.parametrize("case", catalogue.parameters(ROUND_TWO, slow={
+@pytest.mark.parametrize("case", catalogue.parameters(ODD_BAD_INPUTS, slow={
     "calibrate-full-disk-at-once", "calibrate-full-disk-over-an-existing-file", "evaluate-full-disk"}))
-def test_bad_input_round_two(case: Case, workspace, cal, tmp_path, capsys):
+def test_odd_bad_input(case: Case, workspace, cal, tmp_path, capsys):
     catalogue.check_case(case, workspace, cal, tmp_path, capsys)
 
 
@@ -715,8 +715,8 @@ def test_correct_with_white_equal_to_dark_flags_every_pixel():
     assert np.isnan(np.asarray(result.reflectance)).all() and np.isnan(np.asarray(result.lab)).all()
 
 
-def test_round_two_size():
+def test_catalogue_size():
     """At least 40 new cases (each parametrisation one case)."""
-    count = (len(ROUND_TWO) + 1 + 2 + 1 + len(NAMES_ACCEPTED) + 1 + 3 + 1 + 1 + len(VALID_LAYOUTS) + 2
+    count = (len(ODD_BAD_INPUTS) + 1 + 2 + 1 + len(NAMES_ACCEPTED) + 1 + 3 + 1 + 1 + len(VALID_LAYOUTS) + 2
              + len(ENVIRONMENTS) + 2 + 2 + len(API_REFUSED) + 1 + 2 + 2)
     assert count >= 40, count

@@ -1,0 +1,241 @@
+"""What a calibration file holds, whatever its container (format "spherejax-calibration", the
+docstring of spherejax.io): the format, its versions and their arrays, the header as a document,
+the checks of header and arrays every reader and `save_calibration` make, the noise model, and
+the usable white patch. `calibration_files` is the public API; `calibration_hdf5` and
+`calibration_npz` the two containers."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Annotated, Any
+
+import numpy as np
+import pydantic
+
+from .. import jsontext
+from ..grid import N_WAVELENGTHS
+from ..uncertainty import NoiseModel
+from .documents import (
+    BandCentres, Checksum, Document, Expect, JsonObject, NonEmptyStr, PositiveNumber, Timestamp, _check_format,
+    check_document, located,
+)
+from .errors import CalibrationFileError, _one_line, _show
+
+CALIBRATION_FORMAT = "spherejax-calibration"
+CALIBRATION_FORMAT_VERSION = 4
+#: Arrays of a calibration file in checksum order, with the description stored in its header.
+CALIBRATION_ARRAYS = {
+    "dark": "dark frame (H, W, B) in raw counts, subtracted in the flat field (Eq. 10)",
+    "white": "white-standard frame (H, W, B) in raw counts at the samples' exposure (Eq. 10)",
+    "patch": "reference white patch mask (H, W), True on the patch (Eq. 14-15)",
+    "coeffs": "Stage II coefficients (B, 4) ordered c1..c4, dimensionless (Eq. 23)",
+    "wiener": "Wiener matrix (31, B): Stage II response -> reflectance at 400..700 nm step 10 "
+    "(Section 2, Wiener estimation)",
+    "wiener_offset": "Wiener estimator offset r0 (31,), reflectance (dimensionless) at 400..700 nm "
+    "step 10: reflectance = wiener @ v_tilde + wiener_offset, the affine form of the Wiener "
+    "estimate (Section 2, Wiener estimation; new in format version 2, 0 in version 1)",
+}
+#: The arrays of an older calibration format version, where they differ from CALIBRATION_ARRAYS.
+_OLDER_CALIBRATION_ARRAYS = {1: tuple(name for name in CALIBRATION_ARRAYS if name != "wiener_offset")}
+#: The calibration format version that added the header's "noise_model".
+_NOISE_MODEL_SINCE = 3
+#: The format version that moved from .npz to HDF5.
+_HDF5_SINCE = 4
+# A header is a few kB of JSON, some 40 kB with a noise model of 16 bands (its 31 x 31 residual
+# covariance, about 20 bytes a number): refuse to read gigabytes as one.
+_MAX_HEADER_BYTES = 16 << 20
+
+
+def _calibration_arrays(header: Mapping) -> tuple[str, ...]:
+    """The names of the arrays a calibration file of the header's format version holds, in
+    checksum order (version 1 has no wiener_offset). Call after the version was checked."""
+    version = header.get("format_version", CALIBRATION_FORMAT_VERSION)
+    return _OLDER_CALIBRATION_ARRAYS.get(version, tuple(CALIBRATION_ARRAYS))
+
+
+def _array_entry(name: str, array: np.ndarray) -> dict:
+    """How the header describes one array: shape, dtype (numpy's dtype.str) and meaning."""
+    return {
+        "shape": list(array.shape),
+        "dtype": array.dtype.str,
+        "description": CALIBRATION_ARRAYS[name],
+    }
+
+
+class _ArrayEntry(Document):
+    """How the header describes one array."""
+
+    shape: Annotated[list[Annotated[int, pydantic.Field(ge=0)]], Expect("a list of integers >= 0")]
+    dtype: NonEmptyStr
+    description: NonEmptyStr
+
+
+_Entry = Annotated[_ArrayEntry, Expect("the array's shape, dtype and description")]
+
+
+class _ArraysV1(Document):
+    dark: _Entry
+    white: _Entry
+    patch: _Entry
+    coeffs: _Entry
+    wiener: _Entry
+
+
+class _Arrays(_ArraysV1):
+    wiener_offset: _Entry
+
+
+class _CalibrationHeader(Document):
+    """The header of a calibration file (the docstring of spherejax.io), fields in checking order."""
+
+    format: str
+    format_version: int
+    software_version: NonEmptyStr
+    instrument_id: NonEmptyStr
+    illuminant: NonEmptyStr
+    observer: NonEmptyStr
+    band_centres_nm: BandCentres
+    saturation: Annotated[PositiveNumber | None, Expect("a number > 0 or null")]
+    created: Timestamp
+    metadata: JsonObject
+    checksum: Checksum
+    arrays: Annotated[_Arrays, Expect(f"an object describing {list(CALIBRATION_ARRAYS)}")]
+    noise_model: Any = None  # checked by noise_model_of, against NoiseModel.from_json
+
+
+class _CalibrationHeaderV1(_CalibrationHeader):
+    arrays: Annotated[_ArraysV1, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[1])}")]
+
+
+def _check_calibration_header(path, header) -> None:
+    """Check the header's fields, format and version first (a newer file may differ in the rest)."""
+    if not isinstance(header, dict):
+        raise CalibrationFileError(path, f"has a header of {_show(header)}", "a JSON object")
+    error = located(CalibrationFileError, path)
+    version = _check_format(header, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, error=error, where="header")
+    model = _CalibrationHeaderV1 if version in _OLDER_CALIBRATION_ARRAYS else _CalibrationHeader
+    check_document(model, header, error=error, where="header")
+    noise_model_of(path, header)
+
+
+#: The shape of `EstimatorCovariance.residual`, which `NoiseModel.check_bands` does not check.
+_RESIDUAL_SHAPE = (N_WAVELENGTHS, N_WAVELENGTHS)
+
+
+def noise_model_of(path, header: Mapping) -> NoiseModel | None:
+    """The `NoiseModel` of a calibration header's "noise_model" (None when absent or null).
+
+    Raises CalibrationFileError naming the file, on one line, unless it is what
+    `NoiseModel.to_json()` writes for the header's bands (the docstring of spherejax.io).
+    """
+    doc = header.get("noise_model")
+    if doc is None:
+        return None
+    version = header.get("format_version", CALIBRATION_FORMAT_VERSION)
+    if version < _NOISE_MODEL_SINCE:
+        # null there means what absent means; a model is not what that version's writer wrote.
+        raise CalibrationFileError(
+            path, f"header.noise_model holds a noise model in a format version {version} file",
+            f"null or absent before format version {_NOISE_MODEL_SINCE}, which added it",
+        )
+    expected = (
+        f"null or a noise model as spherejax.NoiseModel.to_json() writes it, for the "
+        f"{len(header['band_centres_nm'])} bands of band_centres_nm"
+    )
+    try:
+        model = NoiseModel.from_json(doc)
+        model.check_bands(len(header["band_centres_nm"]))
+        estimator = model.estimator_covariance
+        if estimator is not None and tuple(estimator.residual.shape) != _RESIDUAL_SHAPE:
+            raise ValueError(
+                f"estimator_covariance.residual has shape {tuple(estimator.residual.shape)}, expected {_RESIDUAL_SHAPE}"
+            )
+    except (ValueError, TypeError, OverflowError) as error:
+        # OverflowError: a JSON integer beyond float range.
+        problem = _one_line(error)
+        if len(problem) > 240:  # a value found may be a long list: the message stays readable
+            problem = problem[:237] + "..."
+        raise CalibrationFileError(path, f"header.noise_model is not valid: {problem}", expected) from None
+    return model
+
+
+def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) -> None:
+    """Everything but the checksum: header fields, and arrays present and as the header says."""
+    _check_calibration_header(path, header)
+    names = _calibration_arrays(header)
+    version = header["format_version"]
+    missing = [name for name in names if name not in arrays]
+    if missing:
+        raise CalibrationFileError(
+            path, f"has no array {missing}", f"the arrays {list(names)} and a header (format version {version})"
+        )
+    unexpected = sorted(set(arrays) - set(names))
+    if unexpected:
+        raise CalibrationFileError(
+            path, f"holds unexpected entries {unexpected}", f"only {list(names)} (format version {version})"
+        )
+    for name, array in arrays.items():
+        described = header["arrays"][name]
+        found = {"shape": list(array.shape), "dtype": array.dtype.str}
+        if found != {"shape": described["shape"], "dtype": described["dtype"]}:
+            raise CalibrationFileError(
+                path,
+                f"array {name!r} has shape {found['shape']} and dtype {found['dtype']}, "
+                f"the header says {described['shape']} and {described['dtype']}",
+                "the arrays the header describes",
+            )
+    if arrays["patch"].dtype != np.bool_:
+        # A Calibration may hold floating patch weights (for differentiable studies); the file
+        # format stores the mask only.
+        raise CalibrationFileError(
+            path,
+            f"array 'patch' has dtype {arrays['patch'].dtype.str}: patch weights cannot be stored",
+            "a boolean patch mask (|b1), e.g. weights > 0",
+        )
+    for name in (n for n in names if n != "patch"):
+        # Strings, raw bytes (|V...) or complex numbers would pass the header check but are no
+        # calibration (JAX would refuse them with a TypeError that names no file).
+        if arrays[name].dtype.kind not in "iuf":
+            raise CalibrationFileError(
+                path, f"array {name!r} has dtype {arrays[name].dtype.str}", "integer or floating-point numbers"
+            )
+    bands = header["band_centres_nm"]
+    if arrays["dark"].shape[-1:] != (len(bands),):
+        raise CalibrationFileError(
+            path,
+            f"header.band_centres_nm lists {len(bands)} bands, the dark frame has shape "
+            f"{arrays['dark'].shape}",
+            "one band centre per band of the arrays",
+        )
+
+
+def _decode_header(path, raw: bytes | None, container: str) -> dict:
+    expected = 'a "header" attribute: a string of UTF-8 JSON' if container == "hdf5" else 'a "header" entry: a uint8 array of UTF-8 JSON'
+    if raw is None:
+        raise CalibrationFileError(path, "has no header", expected)
+    if len(raw) > _MAX_HEADER_BYTES:
+        raise CalibrationFileError(path, f"has a header of {len(raw)} bytes", f"a JSON header of at most {_MAX_HEADER_BYTES}")
+    try:
+        # NaN and Infinity are not JSON (save_calibration never writes them), and the checksum,
+        # computed over strict JSON, could not be verified with one in the header.
+        return jsontext.loads(raw, allow_nan=False)
+    except jsontext.JSONTextError as error:
+        problem = f"has a header that is not UTF-8 JSON: {error.detail}"
+        raise CalibrationFileError(path, problem, expected) from None
+
+
+def _require_usable_patch(path, dark: np.ndarray, white: np.ndarray, patch: np.ndarray) -> None:
+    """Refuse a calibration whose white patch has, in some band, no pixel with a usable flat field
+    (white - dark finite and > 0, Eq. 10): the patch ratio (Eq. 14-15) of every image would be
+    NaN there, and every pixel of every image flagged (QUALITY_PATCH_UNUSABLE), so such a file
+    is no calibration. (Frames with unusable pixels elsewhere stay valid: those pixels are
+    flagged one by one, and a `Calibration` of a strip of rows may hold only such pixels.)"""
+    signal = white.astype(np.float64) - dark.astype(np.float64)
+    usable = np.asarray(patch, bool)[..., None] & np.isfinite(signal) & (signal > 0)
+    bands = np.flatnonzero(~usable.any(axis=(0, 1)))
+    if bands.size:
+        raise CalibrationFileError(
+            path, f"no pixel of the white patch has white - dark finite and > 0 in band(s) {bands.tolist()} "
+            "(counted from 0): every image's patch ratio would be NaN and every pixel flagged",
+            "a white patch whose white frame lies above the dark frame in every band",
+        )
