@@ -281,7 +281,7 @@ def test_calibration_file_rows_match_the_loaded_calibration(calibration_path, ca
 def test_calibration_file_on_disk_detects_tampering(calibration_path, monkeypatch):
     """The checksum of arrays left on disk is verified block by block, as for a loaded one."""
     monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)
-    monkeypatch.setattr(io.calibration_files, "_READ_BLOCK", 4096)  # many blocks
+    monkeypatch.setattr(io.calibration_hdf5, "_READ_BLOCK", 4096)  # many blocks
     with h5py.File(calibration_path, "r") as stored:
         at = stored["dark"].id.get_chunk_info(0).byte_offset  # the dark frame's first chunk
     data = bytearray(calibration_path.read_bytes())

@@ -12,7 +12,7 @@ import zlib
 import numpy as np
 
 from .. import interrupt
-from .calibration_hdf5 import _READ_BLOCK
+from . import calibration_hdf5
 from .errors import CalibrationFileError, SpherejaxFileError
 
 
@@ -64,11 +64,11 @@ def _read_npy(archive: zipfile.ZipFile, member: str) -> np.ndarray:
         array = np.empty(math.prod(shape), dtype)
         if array.nbytes:
             raw = array.view(np.uint8)
-            for start in range(0, raw.size, _READ_BLOCK):
+            for start in range(0, raw.size, calibration_hdf5._READ_BLOCK):
                 if start:
                     interrupt.check()
-                block = data.read(min(_READ_BLOCK, raw.size - start))
-                if len(block) != min(_READ_BLOCK, raw.size - start):
+                block = data.read(min(calibration_hdf5._READ_BLOCK, raw.size - start))
+                if len(block) != min(calibration_hdf5._READ_BLOCK, raw.size - start):
                     raise ValueError(f"member {member!r} ends before the array its header describes")
                 raw[start:start + len(block)] = np.frombuffer(block, np.uint8)
     return array.reshape(shape[::-1]).transpose() if fortran_order else array.reshape(shape)
