@@ -20,7 +20,7 @@ Which jaxlib's headers, and why any jaxlib from spherejax's lower bound on is so
   resolver takes as the newest, the one it then installs beside jax).
 - If a kernel still meets an older jaxlib (a jax downgraded after the install, a wheel built
   elsewhere), XLA refuses it at registration and spherejax runs the jax.numpy path, saying why
-  once (spherejax.fused.unavailable_reason). `pip install --no-build-isolation --force-reinstall
+  once (spherejax._engine.fused.unavailable_reason). `pip install --no-build-isolation --force-reinstall
   --no-deps .` rebuilds it against the jaxlib in place.
 """
 
@@ -62,8 +62,8 @@ def jaxlib_include_dir() -> str:
 setup(
     ext_modules=[
         Extension(
-            "spherejax._fused_correct",
-            sources=["spherejax/_fused_correct.cc"],
+            "spherejax._engine._fused_correct",
+            sources=["spherejax/_engine/kernel/fused_correct.cc"],
             include_dirs=[jaxlib_include_dir()],
             language="c++",
             # No -march: the kernel picks its instruction set at run time (target attributes),

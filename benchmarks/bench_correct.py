@@ -12,7 +12,7 @@ Against what
     before anything is timed (reflectance within 1e-4, Lab within 1e-2, identical quality masks).
 
     A third row times the same `spherejax.correct` call with its fused CPU kernel switched off
-    (SPHEREJAX_FUSED=0, `spherejax.fused`): the jax.numpy path the kernel replaced, which is
+    (SPHEREJAX_FUSED=0, `spherejax._engine.fused`): the jax.numpy path the kernel replaced, which is
     still what runs on GPUs, in float64 and for gradients. It must agree with the reference too.
 
     A further figure puts them in physical terms: the memory floor. The path must read the raw cube
@@ -37,7 +37,7 @@ Run:
     python benchmarks/bench_correct.py [--size 1024] [--repeats 7] [--allocator reuse|default]
         [--json PATH]
 
-Allocator: by default the script first calls `spherejax.allocator.keep_freed_memory()`, as the
+Allocator: by default the script first calls `spherejax._engine.allocator.keep_freed_memory()`, as the
 command line does, so neither implementation pays the kernel for fresh zeroed pages on every
 call; `--allocator default` leaves glibc as it comes (that module's docstring says why it matters).
 """
@@ -60,7 +60,7 @@ from reference import (
     BANDS, BYTES_PER_PIXEL, PATCH_SIZE, compare, make_calibration, make_inputs, reference_constants, reference_correct,
     stage2_coeffs, wiener_estimator,
 )
-from spherejax import fused
+from spherejax._engine import fused
 
 
 def summarise(size: int, timings: dict, compile_s: float, bandwidth: dict, other_load, back_to_back: dict) -> dict:

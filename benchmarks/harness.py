@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 import spherejax
-from spherejax.allocator import keep_freed_memory
+from spherejax._engine.allocator import keep_freed_memory
 
 
 # --------------------------------------------------------------------------------------------
@@ -175,8 +175,8 @@ def add_allocator_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--allocator", choices=("reuse", "default"), default="default",
         help="default: glibc as it comes, what a user's script gets (spherejax reuses its own "
-             "outputs' memory, spherejax.buffers); reuse: glibc keeps freed blocks "
-             "(spherejax.allocator.keep_freed_memory, what the command line does), for both implementations",
+             "outputs' memory, spherejax._engine.buffers); reuse: glibc keeps freed blocks "
+             "(spherejax._engine.allocator.keep_freed_memory, what the command line does), for both implementations",
     )
 
 

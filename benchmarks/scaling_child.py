@@ -16,10 +16,10 @@ def main(argv: list[str]) -> int:
     # Pinned before JAX starts, so that XLA sizes its thread pool to these CPUs.
     os.sched_setaffinity(0, set(options["cpus"]))
     warnings.filterwarnings("ignore")
-    import spherejax.allocator
+    import spherejax._engine.allocator
 
     if options["reuse"]:
-        spherejax.allocator.keep_freed_memory()  # before any JAX work, as the command line does
+        spherejax._engine.allocator.keep_freed_memory()  # before any JAX work, as the command line does
     import jax
 
     import harness

@@ -31,7 +31,7 @@ Layers. Each module imports only modules of its own layer or of the layers below
    "spherejax.commands" entry points.
 """
 
-from .allocator import keep_freed_memory as keep_freed_memory
+from ._engine.allocator import keep_freed_memory as keep_freed_memory
 from .colorimetry import (
     delta_e_2000 as delta_e_2000,
     reflectance_to_lab as reflectance_to_lab,

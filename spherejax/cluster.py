@@ -56,7 +56,7 @@ except ImportError:  # no flock (Windows): scratch folders are still removed by 
 from distributed import Client, LocalCluster, WorkerPlugin, wait
 
 from . import archive, interrupt
-from .allocator import keep_freed_memory
+from ._engine.allocator import keep_freed_memory
 
 #: Where workers keep compiled executables unless SPHEREJAX_COMPILATION_CACHE says otherwise.
 DEFAULT_CACHE = pathlib.Path.home() / ".cache" / "spherejax" / "jax-compilation"

@@ -19,7 +19,7 @@ and the per-pixel step takes p as an argument. `correct(raw, calibration)` trace
 program; `correct(strip, calibration_rows, p=p)` runs the second on rows of an image with the
 whole image's p, and gives the same numbers bit for bit as the whole-image call (tested).
 
-On CPU the per-pixel step in float32 is one fused compiled kernel (`spherejax.fused`); the
+On CPU the per-pixel step in float32 is one fused compiled kernel (`spherejax._engine.fused`); the
 jax.numpy code here (`_pixel_outputs`) is its definition, runs everywhere else and gives its
 derivatives. For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so
 XYZ is computed from v_tilde directly; that equals reflectance @ weights up to rounding (tested).
@@ -38,7 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks, buffers, colorimetry, fused, uncertainty
+from . import _checks, colorimetry, uncertainty
+from ._engine import buffers, fused
 from .colorimetry import delta_e_2000, xyz_to_lab
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .grid import N_WAVELENGTHS
@@ -486,7 +487,7 @@ def _project_good_pixels(good, v, matrix, bias):
     row of the matrix against a column of ones costs nothing, but changes the product's
     rounding for most band counts (XLA picks another dot kernel for K + 1), so a zero offset
     would no longer give the numbers it gave before the offset existed. The CPU kernel of
-    `spherejax.fused`, the default path in float32, starts its accumulators at the bias instead,
+    `spherejax._engine.fused`, the default path in float32, starts its accumulators at the bias instead,
     for free.
     """
     return jnp.matmul(jnp.where(good, v, jnp.nan), matrix, precision=_HIGHEST) + bias
@@ -659,7 +660,7 @@ def _correct_pixels(raw, calibration: Calibration, p, intermediates: bool, kerne
 
     `kernel_mode` (static; `fused.mode`, decided by the caller so that the environment switch is
     part of the cache key): None for the jax.numpy path, else the fused CPU kernel's mode
-    (`spherejax.fused`). With a `NoiseModel` (and p's uncertainty p_u (..., B)) the result also
+    (`spherejax._engine.fused`). With a `NoiseModel` (and p's uncertainty p_u (..., B)) the result also
     carries the uncertainties (`uncertainty.pixel_uncertainty`); None traces none of that. `out`:
     None, or donated arrays of the three outputs' shapes whose memory the jax.numpy path's
     outputs take on CPU (`_pixel_outputs_in_blocks`; the kernel's take it through XLA's buffer
@@ -742,7 +743,7 @@ def _correct_image(raw, calibration: Calibration, box_origin, box_shape, interme
 )
 def _correct_image_into(raw, calibration: Calibration, box_origin, out_reflectance, out_lab, out_quality, no_flat_field=None, *, box_shape, kernel_mode: str | None):
     """`_correct_image` with the memory of three donated arrays of the outputs' shapes and dtypes
-    (dropped outputs of earlier calls, `spherejax.buffers`): their values are not read, and
+    (dropped outputs of earlier calls, `spherejax._engine.buffers`): their values are not read, and
     their memory becomes the outputs' (XLA's buffer assignment gives it to the kernel's outputs
     of the same shapes; the jax.numpy path's loop writes its blocks into them). The same program
     otherwise, and the same numbers. no_flat_field: as `_correct_pixels`."""
@@ -770,7 +771,7 @@ def _signature(raw, calibration: Calibration, box_shape, kernel_mode):
 
 def _correct_recycling(raw, calibration: Calibration, box_origin, box_shape, kernel_mode: str | None) -> CorrectionResult:
     """`_correct_image` for large images on CPU, reusing the memory of outputs the caller has
-    dropped (`spherejax.buffers`); the same numbers bit for bit (tested). The jax.numpy path
+    dropped (`spherejax._engine.buffers`); the same numbers bit for bit (tested). The jax.numpy path
     (kernel_mode None) reads the calibration's `_flat_field_mask`."""
     outputs_shape = tuple(raw.shape[:-1])
     dtype = _compute_dtype(raw, calibration)  # float32, or float64 on the jax.numpy path
@@ -920,7 +921,7 @@ def _correct_frames(raw, calibration: Calibration, box_origin, box_shape, kernel
 
 
 def _recyclable(raw, calibration: Calibration) -> bool:
-    """True when `correct` may reuse dropped outputs' memory (`spherejax.buffers`): concrete
+    """True when `correct` may reuse dropped outputs' memory (`spherejax._engine.buffers`): concrete
     arrays, all on one CPU device, outputs of at least `buffers.MIN_BYTES`."""
     pixels = int(np.prod(raw.shape[:-1], dtype=np.int64))
     if pixels * (4 * (N_WAVELENGTHS + 3) + 1) < buffers.MIN_BYTES:
@@ -1029,7 +1030,7 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
         if _direct(raw, calibration, kernel_mode):  # NumPy frames: the kernel reads them in place
             return _correct_directly(raw, calibration, *_patch_box_arguments(raw, calibration), kernel_mode)
     if buffers.stageable(raw) and raw.shape[-3:] == (*calibration.image_shape, calibration.bands):
-        raw = buffers.stage(raw)  # NumPy frames into reused, aligned memory (`spherejax.buffers`)
+        raw = buffers.stage(raw)  # NumPy frames into reused, aligned memory (`spherejax._engine.buffers`)
     raw = _check_raw(raw, calibration, what)
     intermediates = bool(intermediates)
     noise = uncertainty.check_noise(noise, calibration.bands)

@@ -1,4 +1,4 @@
-"""spherejax.buffers: `correct` reuses the memory of outputs the caller dropped, and of its own
+"""spherejax._engine.buffers: `correct` reuses the memory of outputs the caller dropped, and of its own
 staging of NumPy frames, and never of anything still in use; NumPy frames go to the fused kernel
 directly (`pipeline._correct_directly`), with the bits of the XLA path.
 
@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import buffers, fused, pipeline
+from spherejax import pipeline
+from spherejax._engine import buffers, fused
 
 from .helpers import cpu_only
 

@@ -234,7 +234,7 @@ class TestLogFile:
 class TestMessages:
     def test_another_modules_records_say_whose_and_what(self, capsys):
         with console.configured():
-            logging.getLogger("spherejax.fused").warning("the fused kernel is not built")
+            logging.getLogger("spherejax._engine.fused").warning("the fused kernel is not built")
             logging.getLogger("spherejax_hw.shutter").info("closed")
             logging.getLogger("spherejax_hw.serialline").debug("hidden at the default level")
             console.say("spherejax: [1/2] a line of the command line's own")

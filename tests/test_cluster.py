@@ -62,9 +62,9 @@ def test_unreachable_scheduler_is_one_line(batch, tmp_path, capsys, monkeypatch)
 
 def test_worker_setup_keeps_freed_memory(tmp_path):
     """Each worker process gets the command line's allocator setting before its first JAX work
-    (spherejax.allocator), checked in a fresh process as a worker would run the plugin."""
+    (spherejax._engine.allocator), checked in a fresh process as a worker would run the plugin."""
     code = (
-        "import sys, types; from spherejax import allocator, cluster; "
+        "import sys, types; from spherejax import cluster; from spherejax._engine import allocator; "
         "cluster.JaxWorkerSetup(sys.argv[1], pin=False).setup(types.SimpleNamespace(name='0')); "
         "print(allocator._applied)"
     )

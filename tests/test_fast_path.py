@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import allocator, colorimetry, fused, pipeline
+from spherejax import colorimetry, pipeline
+from spherejax._engine import allocator, fused
 from spherejax.flatfield import white_signal_usable
 
 from .helpers import cpu_only, ulp_bound
@@ -207,8 +208,8 @@ FAULTS_SCRIPT = textwrap.dedent("""
     import resource, sys
     import numpy as np
     import spherejax as sj
-    from spherejax.allocator import keep_freed_memory
-    from spherejax import buffers
+    from spherejax._engine import buffers
+    from spherejax._engine.allocator import keep_freed_memory
     applied = keep_freed_memory() if sys.argv[1] == "reuse" else False
     release = sys.argv[2] == "release"  # drop spherejax's kept outputs: glibc alone decides
     import jax
@@ -240,7 +241,7 @@ FAULTS_SCRIPT = textwrap.dedent("""
 def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting():
     """A 768 x 768 correction writes blocks above glibc's mmap threshold (32 MiB; the reflectance
     is 73 MB). By default `correct` reuses the memory of outputs the caller dropped
-    (`spherejax.buffers`), so a repeated call in a plain loop touches no fresh page, with no
+    (`spherejax._engine.buffers`), so a repeated call in a plain loop touches no fresh page, with no
     process-wide setting. With those kept outputs released before every call, glibc unmaps the
     freed blocks and every call faults them in again, unless `keep_freed_memory` is on.
 

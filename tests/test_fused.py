@@ -1,4 +1,4 @@
-"""The fused CPU kernel (spherejax/_fused_correct.cc) against the jax.numpy path it replaces.
+"""The fused CPU kernel (spherejax/_engine/kernel/fused_correct.cc) against the jax.numpy path it replaces.
 
 The jax.numpy path (`SPHEREJAX_FUSED=0`) is the definition; every branch of the kernel is
 compared with it: the AVX-512 16-band code and the generic loop (other band counts), uint16 and
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import fused
+from spherejax._engine import fused
 from spherejax.pipeline import _compute_dtype, _correct_pixels, patch_ratio
 from spherejax.polynomial import PAPER_TABLE_2
 
@@ -437,7 +437,7 @@ def test_a_kernel_the_running_jaxlib_refuses_runs_the_plain_path(monkeypatch, ca
         assert (name, platform) == (fused.TARGET, "cpu")
         raise RuntimeError(xla_refusal)
 
-    with caplog.at_level("WARNING", logger="spherejax.fused"):
+    with caplog.at_level("WARNING", logger="spherejax._engine.fused"):
         reason = fused._try_register(refuse)
     assert caplog.messages == [reason]  # said once, on the log, when it happens
     major, minor = fused._fused_correct.ffi_api_version()
@@ -479,7 +479,7 @@ def test_a_process_without_the_cpu_backend_is_told_why_not_an_error(monkeypatch,
         raise RuntimeError("Unknown backend cpu. Available: ['cuda']")
 
     monkeypatch.setattr(jax, "devices", no_cpu)
-    with caplog.at_level("WARNING", logger="spherejax.fused"):
+    with caplog.at_level("WARNING", logger="spherejax._engine.fused"):
         reason = fused._try_register(lambda *args, **kwargs: pytest.fail("registered without a CPU backend"))
     assert caplog.messages == []  # expected there: nothing to warn about
     assert reason == ("the fused kernel runs on XLA's CPU backend, which this process does not have "

@@ -20,7 +20,7 @@ KERNELS, WORKFLOWS, FILES = 1, 2, 3
 LAYERS = {
     **dict.fromkeys(
         ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "pipeline", "uncertainty", "consistency",
-         "markov", "angles", "fused", "_fused_correct", "buffers", "grid", "spectra", "allocator", "jsontext",
+         "markov", "angles", "_engine", "grid", "spectra", "jsontext",
          "number_text", "labelled", "_checks"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
@@ -85,7 +85,7 @@ def layer_of(name: str) -> tuple[str, int] | None:
 def test_every_module_has_a_layer():
     units = {layer_of(module)[0] for module, _ in sources()}
     assert sorted(units - set(LAYERS)) == [], "a new module: put it in a layer here and in the package docstring"
-    assert sorted(set(LAYERS) - units - {"_fused_correct"}) == []  # names that no longer exist
+    assert sorted(set(LAYERS) - units) == []  # names that no longer exist
 
 
 @pytest.mark.parametrize("module, file", list(sources()), ids=lambda x: x if isinstance(x, str) else "")

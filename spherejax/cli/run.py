@@ -8,7 +8,7 @@ import logging
 import sys
 
 from .. import console, interrupt
-from ..allocator import keep_freed_memory
+from .._engine.allocator import keep_freed_memory
 from .parser import DEPRECATED_SPELLINGS, _version_line, build_parser
 from .shared import EXIT_BAD_INPUT, _one_line
 
@@ -42,11 +42,11 @@ def main(argv=None) -> int:
 
 def _run(args) -> int:
     # Before any JAX work: reuse freed blocks instead of page-faulting fresh ones on every image
-    # (spherejax.allocator says why; about 2x on a 1-megapixel correction).
+    # (spherejax._engine.allocator says why; about 2x on a 1-megapixel correction).
     keep_freed_memory()
     try:
         # A mistyped switch (SPHEREJAX_FUSED=off) is refused up front, not per input of a batch.
-        from .. import fused
+        from .._engine import fused
 
         fused.switch()
         # SIGTERM, like SIGINT, unwinds through the clean-up wherever a command is (`correct` and

@@ -38,7 +38,8 @@ from hypothesis import HealthCheck, currently_in_test_context, event, example, g
 
 import spherejax as sj
 from spherejax_hw.profile import ProfileError, load_profile
-from spherejax import archive, fused, io
+from spherejax import archive, io
+from spherejax._engine import fused
 from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
 from tests.helpers import (
     assert_exact_or_close, calibration_entries, division_rtol, write_calibration_entries, write_with_oiio,

@@ -711,7 +711,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(SpherejaxFusedCorrect, Correct,
                                   .Ret<ffi::Buffer<ffi::U8>>());   // quality
 
 // A Python module with one function, handler(), returning the FFI handler as a capsule for
-// jax.ffi.register_ffi_target (spherejax/fused.py).
+// jax.ffi.register_ffi_target (spherejax/_engine/fused.py).
 static PyObject* handler(PyObject*, PyObject*) {
   return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxFusedCorrect), nullptr, nullptr);
 }
@@ -719,7 +719,7 @@ static PyObject* handler(PyObject*, PyObject*) {
 // correct_arrays(raw, raw_is_u16, dark, white, p, coeffs, projection, bias, white_xyz, images,
 // pixels, bands, saturation, portable, threads, reflectance, lab, quality): the same kernel on
 // C-contiguous buffers from Python, run by the calling thread and threads - 1 helpers, without
-// XLA. spherejax.fused.correct_arrays checks dtypes; this checks each buffer's byte size, so
+// XLA. spherejax._engine.fused.correct_arrays checks dtypes; this checks each buffer's byte size, so
 // that nothing is read or written outside a buffer. Releases the GIL while it runs.
 static PyObject* correct_arrays(PyObject*, PyObject* args) {
   Py_buffer in[8] = {}, out[3] = {};
@@ -790,7 +790,7 @@ static PyMethodDef methods[] = {
 };
 
 static PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fused_correct",
-                             "Fused CPU kernel of spherejax.correct (see spherejax/fused.py).", -1,
+                             "Fused CPU kernel of spherejax.correct (see spherejax/_engine/fused.py).", -1,
                              methods};
 
 PyMODINIT_FUNC PyInit__fused_correct() { return PyModule_Create(&module); }
