@@ -1,4 +1,4 @@
-"""Build of spherejax's one compiled part: the fused CPU kernel of `correct` (spherejax/fused.py).
+"""Build of spherejax's one compiled part: the fused CPU kernel of `correct` (spherejax/_engine/fused.py).
 
 Everything else is in pyproject.toml. The kernel is an XLA FFI handler, compiled against the XLA
 FFI headers that jaxlib ships (jaxlib/include, header-only). The extension is optional: where no
@@ -59,16 +59,28 @@ def jaxlib_include_dir() -> str:
     return ""
 
 
+#: The kernel's sources, split by job (spherejax/_engine/kernel/fused_correct.h says which is which).
+KERNEL = "spherejax/_engine/kernel"
+KERNEL_SOURCES = [f"{KERNEL}/{name}" for name in
+                  ("generic.cc", "avx512.cc", "avx2.cc", "call.cc", "ffi_handler.cc", "module.cc")]
+#: Headers: a change rebuilds the extension, and they go into the sdist with the sources.
+KERNEL_HEADERS = [f"{KERNEL}/fused_correct.h", f"{KERNEL}/call.h"]
+
 setup(
     ext_modules=[
         Extension(
             "spherejax._engine._fused_correct",
-            sources=["spherejax/_engine/kernel/fused_correct.cc"],
+            sources=KERNEL_SOURCES,
+            depends=KERNEL_HEADERS,
             include_dirs=[jaxlib_include_dir()],
             language="c++",
-            # No -march: the kernel picks its instruction set at run time (target attributes),
-            # so a wheel built here runs on any x86-64. -fno-math-errno lets sqrt/div vectorise;
-            # no -ffast-math, which would drop the NaN and infinity checks the quality mask needs.
+            # The same flags for every source, and no -march: each instruction-set variant carries
+            # its instructions as function attributes (avx512.cc, avx2.cc, target_clones in
+            # generic.cc) and the variant is chosen at run time (call.cc, spherejax._engine.fused),
+            # so a wheel built here runs on any x86-64; a per-file -march would also let the
+            # compiler put those instructions into the shared code that every CPU runs.
+            # -fno-math-errno lets sqrt/div vectorise; no -ffast-math, which would drop the NaN
+            # and infinity checks the quality mask needs.
             extra_compile_args=["-std=c++17", "-O3", "-fno-math-errno", "-Wno-attributes", "-Wno-return-type", "-Wno-psabi"],
             optional=True,
         )

@@ -28,7 +28,7 @@ What it measures
        x * 2), counted read + written as STREAM and harness.copy_bandwidth do.
 
     Every timing is the median (and minimum) of --repeats (default 5) calls after an untimed
-    warm-up (harness.time_interleaved: the ways of one group take turns); the first call (trace,
+    warm-up, each way's calls back to back (`time_each_back_to_back` says why); the first call (trace,
     compile, run) is reported on its own. The device-resident way's first call comes first, so it
     holds the compilation; the numpy in/out way's then reuses that program.
 
@@ -215,7 +215,7 @@ def row(name: str, timing: dict, first_call_s: float, pixels: int, *, hbm_bytes:
         hbm_bytes_per_s: float | None = None, link_s: float | None = None) -> dict:
     """One timed way as the report and the record hold it.
 
-    timing: a `harness.time_interleaved` entry (seconds); pixels: pixels per call, over all
+    timing: a `harness.time_back_to_back` entry (seconds); pixels: pixels per call, over all
     frames; hbm_bytes: `moved_bytes` of a device-resident call, None for the others; link_s:
     seconds the upload of raw and the download of the outputs take at the measured copy speeds,
     for a numpy in/out call.
@@ -249,6 +249,18 @@ def print_rows(rows: list[dict]) -> None:
 
 # --------------------------------------------------------------------------------------------
 # The steps
+
+
+def time_each_back_to_back(fns: dict, repeats: int) -> dict:
+    """`harness.time_back_to_back`: each way's calls one after another, not interleaved.
+
+    Why not interleaved, as the CPU benchmarks time. A device-resident call that follows a NumPy
+    in/out call finds the GPU idle for as long as the host copies took (1.6 s at 4096^2 over a
+    1.4 GB/s link) and ran at a fraction of its speed: on an H100, 7.7 ms a megapixel at 4096^2
+    interleaved against 0.3 back to back (2026-11-26, benchmarks/README.md). What a pipeline that
+    keeps its frames on the device sees is the back-to-back figure; the NumPy in/out way is
+    bound by the link either way."""
+    return harness.time_back_to_back(fns, repeats)
 
 
 def numpy_in_out(raw: np.ndarray, calibration) -> spherejax.CorrectionResult:
@@ -316,7 +328,7 @@ def time_sizes(sizes, inputs_of, calibration_of, copies, hbm_bytes_per_s, repeat
         first_dev = first_calls.get(size, {}).get("on device", first_dev)
         hbm_bytes, out_bytes = moved_bytes(raw_dev, calibration, result), outputs_nbytes(result)
         del result
-        timings = harness.time_interleaved({
+        timings = time_each_back_to_back({
             "numpy in/out": lambda: numpy_in_out(raw_np, calibration),  # noqa: B023
             "on device": lambda: on_device(raw_dev, calibration),  # noqa: B023
         }, repeats)
@@ -362,7 +374,7 @@ def time_stack(inputs: dict, calibration, frames: int, copies, hbm_bytes_per_s, 
     hbm_bytes, out_bytes = moved_bytes(stack_dev, calibration, stacked), outputs_nbytes(stacked)
     del stacked, mapped, singles
 
-    timings = harness.time_interleaved({
+    timings = time_each_back_to_back({
         "numpy in/out": lambda: numpy_in_out(stack_np, calibration),
         "on device": lambda: on_device(stack_dev, calibration),
         "jit(vmap)": lambda: jax.block_until_ready(jit_vmap(stack_dev)),

@@ -1,6 +1,8 @@
 """What every benchmark script shares: timing (first call, taking turns, back to back), the copy
-bandwidth that sets the memory floor, the machine and its other load, the allocator option, and
-writing a record. Each script says what it compares; this module only measures."""
+bandwidth that sets the memory floor (a median with its spread), the machine (its CPU by model
+name, family and model numbers, AVX-512 and AVX2, and the fused kernel's variant) and its other
+load, the allocator option, and writing a record. Each script says what it compares; this module
+only measures."""
 
 from __future__ import annotations
 
@@ -70,11 +72,29 @@ def time_back_to_back(fns: dict, repeats: int) -> dict:
     return out
 
 
-def copy_bandwidth(nbytes: int, threads: int, runs: int = 5) -> float:
-    """Best-of-`runs` copy bandwidth in bytes/s, counting bytes read + bytes written (as STREAM).
+#: Every copy-floor measurement of this process (`copy_bandwidth_stats`), in order: `write_record`
+#: adds them to the record it writes, so that a floor's spread is kept beside the median the
+#: script reports, whichever script measured it.
+copy_measurements: list[dict] = []
 
-    numpy's copy is single-threaded; with threads > 1 the buffer is split into contiguous
-    chunks copied concurrently (np.copyto releases the GIL for plain dtypes), which is what a
+
+def copy_bandwidth_stats(nbytes: int, threads: int, repeats: int = 7) -> dict:
+    """Copy bandwidth in bytes/s, counting bytes read + bytes written (as STREAM), over `repeats`
+    timed copies of `nbytes`: the median (what the floor is taken from) and its spread.
+
+    Returns a dict: median_bytes_per_s, min_bytes_per_s and max_bytes_per_s (the slowest and the
+    fastest copy), q1_bytes_per_s and q3_bytes_per_s (the quartiles: their gap, the IQR, is the
+    spread to compare runs by), all_bytes_per_s (every copy, in order), and buffer_bytes, threads,
+    repeats (buffer_bytes: the size of the buffer copied, half the bytes counted).
+
+    Why a median of 7 and not the best of 5, as before: the best copy of a few is the one no other
+    process disturbed, and on a shared 2-core machine whether one such copy happens varies from
+    run to run, so the floor (and every "% of the floor" figure) moved with it; the median of 7
+    moves less, and the quartiles say how much it can. One untimed copy first: np.zeros_like
+    maps its pages lazily, so the first copy into `dst` also page-faults it in.
+
+    numpy's copy is single-threaded; with threads > 1 the buffer is split into contiguous chunks
+    copied concurrently (np.copyto releases the GIL for plain dtypes), which is what a
     multi-threaded XLA kernel can draw on. Read + written is the convention that matches
     BYTES_PER_PIXEL, which also counts both directions.
     """
@@ -82,13 +102,28 @@ def copy_bandwidth(nbytes: int, threads: int, runs: int = 5) -> float:
     dst = np.zeros_like(src)
     src_chunks = np.array_split(src, threads)
     dst_chunks = np.array_split(dst, threads)
-    best = float("inf")
+    seconds = []
     with concurrent.futures.ThreadPoolExecutor(threads) as pool:
-        for _ in range(runs):
+        list(pool.map(np.copyto, dst_chunks, src_chunks))  # untimed: dst's page faults
+        for _ in range(repeats):
             start = time.perf_counter()
             list(pool.map(np.copyto, dst_chunks, src_chunks))
-            best = min(best, time.perf_counter() - start)
-    return 2 * src.nbytes / best
+            seconds.append(time.perf_counter() - start)
+    rates = [2 * src.nbytes / t for t in seconds]
+    q1, _, q3 = statistics.quantiles(rates, n=4, method="inclusive") if len(rates) > 1 else (rates[0],) * 3
+    stats = {
+        "median_bytes_per_s": statistics.median(rates), "min_bytes_per_s": min(rates),
+        "max_bytes_per_s": max(rates), "q1_bytes_per_s": q1, "q3_bytes_per_s": q3, "all_bytes_per_s": rates,
+        "buffer_bytes": src.nbytes, "threads": threads, "repeats": repeats,
+    }
+    copy_measurements.append(stats)
+    return stats
+
+
+def copy_bandwidth(nbytes: int, threads: int, repeats: int = 7) -> float:
+    """The median of `copy_bandwidth_stats` in bytes/s: the number a floor is computed from. Its
+    spread goes into the record all the same (`copy_measurements`, `write_record`)."""
+    return copy_bandwidth_stats(nbytes, threads, repeats)["median_bytes_per_s"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -134,16 +169,59 @@ class OtherProcessesLoad:
         return False
 
 
-def machine_info() -> dict:
-    cpu_model = "unknown"
+def cpu_info() -> dict:
+    """The CPU of this machine from /proc/cpuinfo (its first processor): model name, family and
+    model numbers, and whether it has AVX-512 (avx512f) and AVX2, which decide the fused kernel's
+    variants. The model name alone does not tell CPUs apart in a VM ("AMD EPYC" for Zen 1 to 5);
+    the family and model numbers do (Zen 4: family 25, model 17; Zen 5: family 26). None for
+    what the file does not say (or where there is no /proc/cpuinfo)."""
+    fields: dict[str, str] = {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith("model name"):
-                    cpu_model = line.split(":", 1)[1].strip()
-                    break
+                if not line.strip():
+                    break  # the end of the first processor's block
+                key, _, value = line.partition(":")
+                fields.setdefault(key.strip(), value.strip())
     except OSError:
         pass
+    flags = set(fields.get("flags", "").split())
+
+    def number(key):
+        value = fields.get(key)
+        return int(value) if value is not None and value.isdigit() else None
+
+    return {
+        "model_name": fields.get("model name", "unknown"),
+        "family": number("cpu family"),
+        "model": number("model"),
+        "avx512f": "avx512f" in flags if flags else None,
+        "avx2": "avx2" in flags if flags else None,
+    }
+
+
+def fused_variant_info() -> dict | None:
+    """Which variant of the fused kernel `correct` runs for 16 bands in this process, and the
+    times it was chosen by (spherejax._engine.fused.variant: measured once per process, so
+    calling this before the timed runs also keeps that measurement out of a first-call time).
+    None where the kernel is not used; {"refused": message} for a SPHEREJAX_FUSED it refuses."""
+    from spherejax._engine import fused
+
+    try:
+        chosen = fused.variant()
+    except ValueError as error:
+        return {"refused": str(error)}
+    if chosen is None:
+        return None
+    measured = chosen.measurement
+    return {
+        "name": chosen.name, "setting": chosen.setting, "auto": measured.auto, "portable": measured.portable,
+        "times_s": dict(measured.times_s), "pixels": measured.pixels, "repeats": measured.repeats,
+    }
+
+
+def machine_info() -> dict:
+    cpu = cpu_info()
 
     def version(dist):
         try:
@@ -153,7 +231,8 @@ def machine_info() -> dict:
 
     return {
         "platform": platform.platform(),
-        "cpu_model": cpu_model,
+        "cpu_model": cpu["model_name"],  # the key the scripts print
+        "cpu": cpu,
         "nproc": len(os.sched_getaffinity(0)),
         "jax_devices": [str(d) for d in jax.devices()],
         "python": platform.python_version(),
@@ -163,6 +242,7 @@ def machine_info() -> dict:
         "equinox": version("equinox"),
         "colour-science": version("colour-science"),
         "spherejax": spherejax.__version__,
+        "fused_kernel_variant": fused_variant_info(),
     }
 
 
@@ -189,7 +269,10 @@ def apply_allocator_argument(args: argparse.Namespace) -> str:
 
 
 def write_record(path: str, record: dict) -> None:
-    """Write a benchmark's record as indented JSON (its folder created if missing)."""
+    """Write a benchmark's record as indented JSON (its folder created if missing), with the copy
+    floors this process measured and their spread (`copy_measurements`) where there were any."""
+    if copy_measurements and "copy_bandwidth_measurements" not in record:
+        record = {**record, "copy_bandwidth_measurements": copy_measurements}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
         json.dump(record, f, indent=2)

@@ -19,8 +19,9 @@ Layers. Each module imports only modules of its own layer or of the layers below
    given), number_text (numbers in the shortest text of their precision, JSON values and CSV
    tables as text), labelled (the xarray names of the outputs), _checks.
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
-   a path they open): calibrate, evaluate, study, simulate, stripwise, measurement, monte_carlo,
-   simulated_targets, figures.
+   a path they open): calibrate, evaluate, study, simulate (the physical simulator and the
+   paper's experiment on it, a module per job: simulated_instrument, simulated_layout,
+   simulated_rendering), stripwise, measurement, monte_carlo, simulated_targets, figures.
 3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.atomic, the one way
    every writer puts a file in place; io.journal, the fsynced JSON-lines journal of a batch's
    manifest and an acquisition; io.hashing, the one file hash), measurement_files, archive (batch
@@ -57,6 +58,7 @@ from .pipeline import (
     Calibration as Calibration,
     CorrectionResult as CorrectionResult,
     correct as correct,
+    plan as plan,
     delta_e_map as delta_e_map,
     patch_ratio as patch_ratio,
     patch_ratio_u as patch_ratio_u,
@@ -110,6 +112,7 @@ __all__ = [
     "CrossValidation",
     "WienerEstimator",
     "correct",
+    "plan",
     "delta_e_2000",
     "delta_e_map",
     "estimate_system",

@@ -29,7 +29,8 @@ import numpy as np
 
 from . import _checks, colorimetry, uncertainty
 from .number_text import json_ready
-from .pipeline import Calibration, _check_calibration, _check_raw, _compute_dtype, correct, patch_ratio, patch_ratio_u
+from .pipeline import Calibration, _check_calibration, _check_raw, correct, plan
+from .pixel_constants import PixelConstants
 from .uncertainty import COMMON_SOURCES, ESTIMATOR_SOURCE, PIXEL_SOURCES, NoiseModel
 
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -166,18 +167,20 @@ def _delta_e_and_u(lab, lab_covariance, reference, reference_covariance):
 
 
 @jax.jit
-def _region_statistics(raw_f, dark, white, weights, p, p_u, coeffs, wiener, wiener_offset, noise):
+def _region_statistics(raw_f, pixel_weights, p, p_u, constants: PixelConstants, noise):
     """The region's mean Stage II response and every source's covariance of it.
 
-    Args: raw_f (h, w, B), dark and white (h, w, B), weights (h, w) (1 on pixels averaged, 0
-    elsewhere), p and p_u (B,), coeffs (B, 4), wiener (31, B), wiener_offset (31,), all one float
+    Args: raw_f (h, w, B); pixel_weights (h, w) (1 on pixels averaged, 0 elsewhere); p and p_u
+    (B,); constants: the calibration over the region's box (`PixelConstants.box`); all one float
     dtype; noise: a `NoiseModel` or None.
 
     Returns:
       (mean reflectance (31,), spread (31,), {source: reflectance covariance (31, 31)}).
     """
-    w = weights / jnp.sum(weights)
-    safe = weights[..., None] > 0
+    dark, white, coeffs = constants.dark, constants.white, constants.coeffs
+    wiener, wiener_offset = constants.wiener, constants.wiener_offset
+    w = pixel_weights / jnp.sum(pixel_weights)
+    safe = pixel_weights[..., None] > 0
     raw_safe = jnp.where(safe, raw_f, white)  # flagged pixels out of harm's way, as `correct`
     j_reflectance, _ = uncertainty.linear_jacobians(wiener, wiener_offset, jnp.zeros((wiener.shape[0], 3), wiener.dtype))
     p_pixel = p[None, None, :]
@@ -253,8 +256,9 @@ def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None
     illuminant = calibration.illuminant if illuminant is None else illuminant
     colorimetry.tristimulus_weights(illuminant, observer=calibration.observer)  # unknown names raise here
 
-    p = patch_ratio(raw, calibration)
-    p_u = patch_ratio_u(raw, calibration, noise) if noise is not None else jnp.zeros_like(p)
+    prepared = plan(calibration, raw.shape, dtype=raw.dtype)  # what `correct` of this frame uses
+    p = prepared.patch_ratio(raw)
+    p_u = prepared.patch_ratio_u(raw, noise) if noise is not None else jnp.zeros_like(p)
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
     box = dataclasses.replace(
@@ -270,11 +274,10 @@ def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None
             f"mask: all {excluded} pixels of the region are flagged (saturated, not finite, white not "
             "above dark, or an unusable white patch); expected at least one good pixel"
         )
-    dtype = _compute_dtype(raw, calibration)
+    dtype = prepared.compute_dtype
     cast = lambda x: jnp.asarray(x).astype(dtype)  # noqa: E731
     mean, spread, budget = _region_statistics(
-        cast(raw_box), cast(box.dark), cast(box.white), cast(used), cast(p), cast(p_u), cast(calibration.coeffs),
-        cast(calibration.wiener), cast(calibration.wiener_offset), noise,
+        cast(raw_box), cast(used), cast(p), cast(p_u), prepared.constants.box(r0, r1, c0, c1), noise,
     )
     reflectance = np.asarray(mean, np.float64)
     lab, jacobian = _lab_and_jacobian(reflectance, illuminant, calibration.observer)

@@ -25,6 +25,7 @@ DESIGN_SIGNATURES = {
     "fit_wiener": ["responses", "reflectances"],
     "wiener": ["v", "W"],
     "correct": ["raw", "calibration"],
+    "plan": ["calibration", "shape"],
     "measure": ["raw", "calibration", "mask", "noise"],
     "patch_ratio": ["raw", "calibration"],
     "patch_ratio_u": ["raw", "calibration", "noise"],

@@ -1,6 +1,6 @@
 """spherejax._engine.buffers: `correct` reuses the memory of outputs the caller dropped, and of its own
 staging of NumPy frames, and never of anything still in use; NumPy frames go to the fused kernel
-directly (`pipeline._correct_directly`), with the bits of the XLA path.
+directly (`Plan._correct_directly`), with the bits of the XLA path.
 
 Outputs of 256 x 256 pixels (9 MB) are above `buffers.MIN_BYTES`, so they take this path.
 """
@@ -19,14 +19,14 @@ import spherejax as sj
 from spherejax import pipeline
 from spherejax._engine import buffers, fused
 
-from .helpers import cpu_only
+from .helpers import cpu_only, image_program
 
 SIZE, BANDS = 256, 16
 
 pytestmark = [
     pytest.mark.skipif(not fused.enabled(), reason="the reuse is part of the fused CPU kernel's path"),
     cpu_only("correct reuses outputs' memory, stages NumPy frames and hands them to the fused kernel "
-             "only for arrays on the CPU (pipeline._recyclable, pipeline._direct, buffers.stageable)"),
+             "only for arrays on the CPU (spherejax._engine.plan: its routes, buffers.stageable)"),
 ]
 
 
@@ -59,9 +59,8 @@ def _frames(count, seed=1):
 
 def _reference(raw, calibration):
     """The same program without any reuse."""
-    box_origin, box_shape = pipeline._patch_box_arguments(raw, calibration)
     kernel_mode = fused.mode(raw.dtype, np.float32, BANDS)
-    result = pipeline._correct_image(jax.numpy.asarray(raw), calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+    result = image_program(raw, calibration, kernel_mode)
     return {name: np.array(getattr(result, name)) for name in ("reflectance", "lab", "quality", "p")}
 
 
@@ -89,8 +88,7 @@ def test_the_jax_numpy_path_and_float64_reuse_too(calibration, monkeypatch, swit
     kernel_mode = fused.mode(np.uint16, np.float32, BANDS)
     for raw in frames:
         result = sj.correct(raw, calibration)
-        box_origin, box_shape = pipeline._patch_box_arguments(raw, calibration)
-        plain = pipeline._correct_image(jax.numpy.asarray(raw), calibration, box_origin, box_shape, intermediates=False, kernel_mode=kernel_mode)
+        plain = image_program(raw, calibration, kernel_mode)
         for name in ("reflectance", "lab", "quality"):
             np.testing.assert_array_equal(np.asarray(getattr(result, name)), np.asarray(getattr(plain, name)), err_msg=name)
     calibration64 = sj.Calibration(
@@ -244,7 +242,7 @@ def test_kept_memory_is_bounded(calibration, monkeypatch):
 
 def test_vmap_over_frames_reuses_memory_like_the_stack(calibration):
     """`jax.vmap(lambda r: sj.correct(r, calibration))` over frames of one calibration is
-    `correct` on the stack (`pipeline._correct_mappable`): the same bits, and the memory of
+    `correct` on the stack (`Plan._correct_mappable`): the same bits, and the memory of
     dropped outputs is reused, for NumPy and JAX frames alike. Before, the mapped call ran on
     tracers and kept nothing: every call wrote into fresh pages."""
     frames = np.stack(_frames(3, seed=8))
@@ -279,7 +277,6 @@ def test_derivatives_with_respect_to_frames_are_unchanged_by_the_mapping(calibra
         saturation=16383.0,
     )
     frames = np.stack(_frames(2, seed=9))[:, :size, :size].astype(np.float32)
-    box_origin, box_shape = pipeline._patch_box_arguments(frames[0], calibration)
     kernel_mode = fused.mode(np.float32, np.float32, BANDS)
 
     def loss_of(correct):
@@ -289,7 +286,7 @@ def test_derivatives_with_respect_to_frames_are_unchanged_by_the_mapping(calibra
         return loss
 
     through_correct = loss_of(lambda raw: sj.correct(raw, calibration))
-    plain = loss_of(lambda raw: pipeline._correct_image(raw, calibration, box_origin, box_shape, False, kernel_mode))
+    plain = loss_of(lambda raw: image_program(raw, calibration, kernel_mode))
     for got, want in (
         (jax.grad(through_correct)(frames[0]), jax.grad(plain)(frames[0])),
         (jax.vmap(jax.grad(through_correct))(frames), jax.vmap(jax.grad(plain))(frames)),

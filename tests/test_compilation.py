@@ -69,8 +69,9 @@ def test_another_shape_compiles_once(rng):
         for _ in range(3):
             spherejax.correct(rng.integers(0, 16000, shape).astype(np.uint16), calibration).lab.block_until_ready()
     # Once: whole frames are one program (the patch's box, its ratio and every pixel); it is not
-    # compiled again for images 2 and 3.
-    assert compiled["n"] == 1
+    # compiled again for images 2 and 3. Off the CPU the calibration's plan is prepared by one
+    # program more, on its device (`spherejax._engine.plan._prepare`); on the CPU in NumPy.
+    assert compiled["n"] == (1 if jax.default_backend() == "cpu" else 2)
 
 
 def test_strips_of_an_image_compile_once(tmp_path, rng):

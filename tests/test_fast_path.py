@@ -20,10 +20,11 @@ import pytest
 
 import spherejax as sj
 from spherejax import colorimetry, pipeline
-from spherejax._engine import allocator, fused
+from spherejax._engine import allocator, fused, steps
 from spherejax.flatfield import white_signal_usable
+from spherejax.pixel_constants import PixelConstants
 
-from .helpers import cpu_only, ulp_bound
+from .helpers import cpu_only, image_program, ulp_bound
 
 HIGHEST = jax.lax.Precision.HIGHEST
 
@@ -116,7 +117,7 @@ class TestNoFlatField:
 
     def test_correct_remembers_each_calibrations_flags(self, monkeypatch):
         """The jax.numpy path of `correct` on large frames reads the no-flat-field flags from
-        `pipeline._flat_field_mask`, worked out once for each pair of dark and white frames: two
+        its plan (`spherejax._engine.plan`), worked out once for each calibration and frame shape: two
         calibrations that share their dark frame, used in turn, each get their own flags, and
         the same bits as the program that works the flags out itself."""
         rng = np.random.default_rng(8)
@@ -144,15 +145,12 @@ class TestNoFlatField:
             result = sj.correct(raw, calibration)
             flagged = np.argwhere(np.asarray(result.quality) & sj.QUALITY_WHITE_NOT_ABOVE_DARK)
             assert set(map(tuple, flagged.tolist())) == bad
-            inline = pipeline._correct_image(
-                jnp.asarray(raw), calibration, *pipeline._patch_box_arguments(raw, calibration),
-                intermediates=False, kernel_mode=None,
-            )
+            inline = image_program(raw, calibration, None)
             for name in ("reflectance", "lab", "quality"):
                 np.testing.assert_array_equal(np.asarray(getattr(result, name)), np.asarray(getattr(inline, name)), err_msg=name)
-        remembered = pipeline._flat_field_mask(calibrations[0], np.float32)
-        assert pipeline._flat_field_mask(calibrations[0], np.float32) is remembered
-        assert pipeline._flat_field_mask(calibrations[1], np.float32) is not remembered
+        remembered = sj.plan(calibrations[0], raw.shape, dtype=raw.dtype).no_flat_field
+        assert remembered is not None and sj.plan(calibrations[0], raw.shape, dtype=raw.dtype).no_flat_field is remembered
+        assert sj.plan(calibrations[1], raw.shape, dtype=raw.dtype).no_flat_field is not remembered
 
 
 def plain_correct(raw, calibration, p):
@@ -276,7 +274,7 @@ def test_repeated_corrections_do_not_page_fault_by_default_nor_with_the_setting(
 @pytest.mark.parametrize("dtype_name", ["float32", "float64"])
 def test_the_jax_numpy_path_does_not_page_fault_image_sized_temporaries(dtype_name):
     """The jax.numpy path (kernel off, or float64) on CPU runs in blocks of pixels
-    (`pipeline._pixel_outputs_in_blocks`), and its outputs take the memory of dropped ones. On
+    (`blocks`), and its outputs take the memory of dropped ones. On
     the whole image its Stage II cube (38 MB in float32) and its projections were allocated,
     and faulted, on every call: 19,587 pages a call in float32, 39,170 in float64.
 
@@ -289,8 +287,18 @@ def test_the_jax_numpy_path_does_not_page_fault_image_sized_temporaries(dtype_na
     out = subprocess.run([sys.executable, "-c", script, "default", "keep"], capture_output=True, text=True, check=True, env=env)
     applied, count = out.stdout.split()
     assert applied == "False"
-    one_block_pages = pipeline.CPU_BLOCK_PIXELS * 100 * np.dtype(dtype_name).itemsize // 4096
+    one_block_pages = steps.CPU_BLOCK_PIXELS * 100 * np.dtype(dtype_name).itemsize // 4096
     assert int(count) <= 2 * one_block_pages, (count, one_block_pages)
+
+
+def outputs(raw, dark, white, p, coeffs, wiener, offset, weights, **options):
+    """`pipeline._pixel_outputs` with its constants given one by one."""
+    return pipeline._pixel_outputs(raw, p, PixelConstants(dark, white, coeffs, wiener, offset, weights), **options)
+
+
+def blocks(raw, dark, white, p, coeffs, wiener, offset, weights, **options):
+    """`steps.pixel_outputs_in_blocks` with its constants given one by one."""
+    return steps.pixel_outputs_in_blocks(raw, p, PixelConstants(dark, white, coeffs, wiener, offset, weights), **options)
 
 
 def test_keep_freed_memory_is_idempotent():
@@ -299,7 +307,7 @@ def test_keep_freed_memory_is_idempotent():
 
 
 class TestBlocks:
-    """`pipeline._pixel_outputs_in_blocks`, the jax.numpy path as it runs on CPU, against the
+    """`steps.pixel_outputs_in_blocks`, the jax.numpy path as it runs on CPU, against the
     whole-image `_pixel_outputs` it loops over: every pixel, a last block shorter than the
     others, batches, bad pixels of every kind, donated outputs, and derivatives."""
 
@@ -339,10 +347,10 @@ class TestBlocks:
     @pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
     def test_equals_the_whole_image(self, dtype, batch, raw_dtype):
         arrays = self.inputs(dtype, batch, raw_dtype=raw_dtype)
-        whole = jax.jit(lambda *a: pipeline._pixel_outputs(*a, saturation=16383.0))(*arrays)
+        whole = jax.jit(lambda *a: outputs(*a, saturation=16383.0))(*arrays)
         # 22 100 pixels an image: 5 blocks of 4 096 (two a turn of the loop, the odd one after it)
         # and one of 1 620; 3 images: 16 blocks of 1 365 rows each (8 turns) and one of 260.
-        blocked = jax.jit(lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=4096))(*arrays)
+        blocked = jax.jit(lambda *a: blocks(*a, saturation=16383.0, block_pixels=4096))(*arrays)
         self.assert_same(blocked, whole, dtype)
         quality = np.asarray(blocked[2])
         assert (quality != 0).sum() == (4 if raw_dtype == np.float32 else 2) * max(1, int(np.prod(batch)))
@@ -350,11 +358,11 @@ class TestBlocks:
 
     def test_donated_outputs_are_written_whatever_they_held(self, dtype):
         arrays = self.inputs(dtype)
-        whole = jax.jit(lambda *a: pipeline._pixel_outputs(*a, saturation=16383.0))(*arrays)
+        whole = jax.jit(lambda *a: outputs(*a, saturation=16383.0))(*arrays)
         garbage = tuple(jnp.full_like(x, 7) for x in whole)
         pointers = [x.unsafe_buffer_pointer() for x in garbage]
         into = jax.jit(
-            lambda out, *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, out=out, block_pixels=4096),
+            lambda out, *a: blocks(*a, saturation=16383.0, out=out, block_pixels=4096),
             donate_argnums=0,
         )
         blocked = into(garbage, *arrays)
@@ -364,10 +372,10 @@ class TestBlocks:
 
     def test_small_images_take_the_whole_image_path(self):
         arrays = self.inputs(np.float32, height=20, width=30)
-        program = jax.jit(lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=4096))
+        program = jax.jit(lambda *a: blocks(*a, saturation=16383.0, block_pixels=4096))
         assert "while" not in program.lower(*arrays).as_text()
         assert "while" in jax.jit(
-            lambda *a: pipeline._pixel_outputs_in_blocks(*a, saturation=16383.0, block_pixels=64)
+            lambda *a: blocks(*a, saturation=16383.0, block_pixels=64)
         ).lower(*arrays).as_text()
 
     def test_derivatives_equal_the_whole_images(self):
@@ -379,13 +387,13 @@ class TestBlocks:
             good = (quality == 0)[..., None]
             return jnp.sum(jnp.where(good, lab, 0.0) ** 2) + jnp.sum(jnp.where(good, reflectance, 0.0))
 
-        blocked = functools.partial(pipeline._pixel_outputs_in_blocks, block_pixels=300)
+        blocked = functools.partial(blocks, block_pixels=300)
         grad = jax.jit(jax.grad(loss, argnums=(1, 2, 3)), static_argnums=0)
-        for got, want in zip(grad(blocked, coeffs, wiener, p), grad(pipeline._pixel_outputs, coeffs, wiener, p)):
+        for got, want in zip(grad(blocked, coeffs, wiener, p), grad(outputs, coeffs, wiener, p)):
             assert np.all(np.isfinite(got))
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-9)
         forward = jax.jit(lambda c: jax.jvp(lambda c: blocked(*arrays[:4], c, *arrays[5:], saturation=16383.0)[1], (c,), (jnp.ones_like(c),))[1])
-        plain = jax.jit(lambda c: jax.jvp(lambda c: pipeline._pixel_outputs(*arrays[:4], c, *arrays[5:], saturation=16383.0)[1], (c,), (jnp.ones_like(c),))[1])
+        plain = jax.jit(lambda c: jax.jvp(lambda c: outputs(*arrays[:4], c, *arrays[5:], saturation=16383.0)[1], (c,), (jnp.ones_like(c),))[1])
         np.testing.assert_allclose(forward(coeffs), plain(coeffs), rtol=1e-10, atol=1e-9)
 
     @cpu_only("correct lowers the block loop for the CPU only (jax.lax.platform_dependent), and the fused kernel is CPU-only")
@@ -393,7 +401,7 @@ class TestBlocks:
         """An image above CPU_BLOCK_PIXELS through `correct` with the kernel off, against the kernel."""
         rng = np.random.default_rng(4)
         height, width, bands = 288, 128, 16  # 36 864 pixels: two whole blocks (one loop turn) and a short one
-        assert height * width > 2 * pipeline.CPU_BLOCK_PIXELS
+        assert height * width > 2 * steps.CPU_BLOCK_PIXELS
         dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
         white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
         raw = np.rint(dark + (white - dark) * rng.uniform(0.05, 0.95, (height, width, bands))).astype(np.uint16)
@@ -407,10 +415,7 @@ class TestBlocks:
         )
         kernel = sj.correct(raw, calibration)
         monkeypatch.setenv(fused.SWITCH, "0")
-        lowered = pipeline._correct_image.lower(
-            jnp.asarray(raw), calibration, *pipeline._patch_box_arguments(raw, calibration), intermediates=False,
-            kernel_mode=None,
-        )
+        lowered = jax.jit(lambda raw: image_program(raw, calibration, None)).lower(jnp.asarray(raw))
         assert "while" in lowered.as_text()
         numpy_path = sj.correct(raw, calibration)
         np.testing.assert_array_equal(np.asarray(numpy_path.quality), np.asarray(kernel.quality))

@@ -1,9 +1,12 @@
-"""The fused CPU kernel (spherejax/_engine/kernel/fused_correct.cc) against the jax.numpy path it replaces.
+"""The fused CPU kernel (spherejax/_engine/kernel/) against the jax.numpy path it replaces.
 
 The jax.numpy path (`SPHEREJAX_FUSED=0`) is the definition; every branch of the kernel is
-compared with it: the AVX-512 16-band code and the generic loop (other band counts), uint16 and
-float32 raw, every quality bit, batches of images, several thread-pool chunks, strips, gradients
-and vmap, each with a zero and a non-zero Wiener offset r0 (the kernel's bias). Values agree to float32 rounding, quality masks and NaN positions exactly.
+compared with it: each instruction-set variant of the 16-band code the CPU runs (AVX-512, AVX2,
+generic) and the generic loop (other band counts), uint16 and float32 raw, every quality bit,
+batches of images, several thread-pool chunks, strips, gradients and vmap, each with a zero and a
+non-zero Wiener offset r0 (the kernel's bias). Values agree to float32 rounding, quality masks and
+NaN positions exactly. Also the choice of variant: its rule, its measurement, its cache, and the
+refusal of a variant the CPU does not run.
 """
 
 from __future__ import annotations
@@ -19,10 +22,10 @@ import pytest
 
 import spherejax as sj
 from spherejax._engine import fused
-from spherejax.pipeline import _compute_dtype, _correct_pixels, patch_ratio
+from spherejax.pipeline import _compute_dtype, patch_ratio
 from spherejax.polynomial import PAPER_TABLE_2
 
-from .helpers import cpu_only
+from .helpers import cpu_only, image_program
 
 SATURATION = 16383.0
 
@@ -88,9 +91,11 @@ def assert_same_result(kernel, plain):
 
 
 def lowered_text(raw, calibration, intermediates=False):
-    p = patch_ratio(raw, calibration)
+    """The whole-frame program `correct` runs (helpers.image_program), lowered, with the kernel
+    mode `correct` would take now."""
     mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands)
-    return _correct_pixels.lower(raw, calibration, p, intermediates=intermediates, kernel_mode=mode).as_text()
+    program = jax.jit(lambda raw: image_program(raw, calibration, mode, intermediates=intermediates))
+    return program.lower(raw).as_text()
 
 
 @pytest.mark.skipif(
@@ -119,8 +124,9 @@ cpu_kernel = cpu_only(
 @pytest.mark.parametrize("bands", [16, 7, 33])
 @pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
 def test_kernel_equals_the_plain_path(monkeypatch, bands, raw_dtype, kernel_mode, offset):
-    """16 bands take the AVX-512 code (on CPUs that have it, unless portable), others the
-    portable loop; 96 x 100 pixels are two thread-pool chunks and a part block."""
+    """16 bands take the measured variant (AUTO; PORTABLE: without AVX-512), others the generic
+    loop; 96 x 100 pixels are two thread-pool chunks and a part block. Each variant forced:
+    `test_each_variant_forced_equals_the_plain_path`."""
     raw, calibration = make_case(96, 100, bands, raw_dtype=raw_dtype, offset=offset)
     monkeypatch.setenv(fused.SWITCH, kernel_mode)
     kernel, plain = correct_both(monkeypatch, raw, calibration)
@@ -205,23 +211,36 @@ def test_kernel_without_a_saturation_level(monkeypatch, raw_dtype):
     assert np.asarray(kernel.quality)[5, 6] == expected
 
 
-def _cpu_has_avx2() -> bool:
+def _cpu_flags() -> set[str] | None:
+    """The flags of the first CPU in /proc/cpuinfo, or None where there is none."""
     try:
         with open("/proc/cpuinfo") as cpuinfo:
-            return any(line.startswith("flags") and " avx2 " in line + " " and " fma " in line for line in cpuinfo)
+            for line in cpuinfo:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
     except OSError:
-        return False
+        pass
+    return None
+
+
+def _variants():
+    """pytest params of every variant, those this CPU does not run skipped (saying so)."""
+    return [
+        pytest.param(name, marks=pytest.mark.skipif(
+            name not in fused.supported_variants(), reason=f"this CPU does not run the kernel's {name} code"))
+        for name in fused.VARIANTS
+    ]
 
 
 @pytestmark_kernel
 @cpu_kernel
-@pytest.mark.parametrize("kernel_mode", [fused.AUTO, fused.PORTABLE])
+@pytest.mark.parametrize("kernel_mode", _variants())
 @pytest.mark.parametrize("bands", [16, 7])
 def test_kernel_cube_root_against_float64(bands, kernel_mode):
     """L* of exact Y: the kernel's cube root within 3 ulp of float64's (two Halley steps, as the
     AVX-512 code and the generic loop take it), within 1 ulp on the AVX2 code's division-free
-    Newton iteration (16 bands, portable, on an AVX2 CPU), and the linear branch below
-    (6/29)^3 within 1 ulp; a part block of pixels.
+    Newton iteration (16 bands, the avx2 variant), and the linear branch below (6/29)^3 within 1
+    ulp; a part block of pixels.
 
     The problem is made so that the kernel's XYZ are its raw values exactly: dark 0, white 1,
     Stage II gain 1 and offset 0, and a projection that copies bands 0, 1, 2 to X, Y, Z.
@@ -249,7 +268,7 @@ def test_kernel_cube_root_against_float64(bands, kernel_mode):
     # f back from L* = 116 f - 16, which float32 rounds once: half an ulp of L*.
     error = np.abs((lightness + 16) / 116 - f) - np.spacing(lightness.astype(np.float32)).astype(np.float64) / 2 / 116
     ulps = error / np.spacing(f.astype(np.float32)).astype(np.float64)
-    newton = bands == 16 and kernel_mode == fused.PORTABLE and _cpu_has_avx2()
+    newton = bands == 16 and kernel_mode == fused.AVX2
     assert ulps[root].max() <= (1.0 if newton else 3.0), ulps[root].max()
     assert ulps[~root].max() <= 1.0, ulps[~root].max()
 
@@ -323,15 +342,24 @@ def test_kernel_under_vmap_over_calibrations(monkeypatch):
 
 
 def test_when_the_kernel_applies(monkeypatch):
+    """`mode` names the variant that runs: for 16 bands the measured one (auto, 1, unset), the
+    measured one without AVX-512 (portable) or the one SPHEREJAX_FUSED names; for other band
+    counts the generic code, the only code they have."""
     f32, f64 = np.dtype(np.float32), np.dtype(np.float64)
     monkeypatch.delenv(fused.SWITCH, raising=False)
     if fused.built():
-        assert fused.mode(np.uint16, f32, 16) == fused.AUTO
-        assert fused.mode(np.float32, f32, 5) == fused.AUTO
+        measured = fused.measurement()
+        assert fused.mode(np.uint16, f32, 16) == measured.auto
+        assert fused.mode(np.float32, f32, 5) == fused.GENERIC
         monkeypatch.setenv(fused.SWITCH, "1")
-        assert fused.mode(np.uint16, f32, 16) == fused.AUTO
+        assert fused.mode(np.uint16, f32, 16) == measured.auto
         monkeypatch.setenv(fused.SWITCH, "portable")
-        assert fused.mode(np.uint16, f32, 16) == fused.PORTABLE
+        assert fused.mode(np.uint16, f32, 16) == measured.portable != fused.AVX512
+        assert fused.mode(np.uint16, f32, 33) == fused.GENERIC
+        for name in fused.supported_variants():
+            monkeypatch.setenv(fused.SWITCH, name)
+            assert fused.mode(np.float32, f32, 16) == name
+            assert fused.mode(np.float32, f32, 7) == fused.GENERIC
     assert fused.mode(np.uint16, f64, 16) is None  # float64
     assert fused.mode(np.uint8, f32, 16) is None  # raw dtype the kernel does not read
     assert fused.mode(np.uint16, f32, fused.MAX_BANDS + 1) is None
@@ -340,12 +368,13 @@ def test_when_the_kernel_applies(monkeypatch):
     assert fused.mode(np.uint16, f32, 16) is None
 
 
-@pytest.mark.parametrize("value", ["off", "false", "no", "", "AUTO", " 0"])
+@pytest.mark.parametrize("value", ["off", "false", "no", "", "AUTO", " 0", "AVX2", "avx512f", "sse2"])
 def test_an_undocumented_switch_value_is_refused(monkeypatch, value):
     """SPHEREJAX_FUSED=off used to leave the kernel on."""
     raw, calibration = make_case(24, 24, 16)
     monkeypatch.setenv(fused.SWITCH, value)
-    with pytest.raises(ValueError, match=rf"SPHEREJAX_FUSED: expected one of 'auto', '1', 'portable', '0' or unset, got {re.escape(repr(value))}"):
+    expected = "'auto', '1', 'portable', 'avx512', 'avx2', 'generic', '0'"
+    with pytest.raises(ValueError, match=rf"SPHEREJAX_FUSED: expected one of {expected} or unset, got {re.escape(repr(value))}"):
         sj.correct(raw, calibration)
 
 
@@ -380,14 +409,13 @@ def test_lowered_for_a_gpu_the_jax_numpy_path_runs(monkeypatch):
     to check: the step is exported (lowered) for CUDA on this machine."""
     raw, calibration = make_case(24, 24, 16)
     raw = jnp.asarray(raw)
-    p = patch_ratio(raw, calibration)
     mode = fused.mode(raw.dtype, _compute_dtype(raw, calibration), calibration.bands)
-    assert mode == fused.AUTO
+    assert mode == fused.measurement().auto
 
-    def step(raw, calibration, p):
-        return _correct_pixels(raw, calibration, p, intermediates=False, kernel_mode=mode)
+    def step(raw):
+        return image_program(raw, calibration, mode)
 
-    exported = jax.export.export(jax.jit(step), platforms=["cuda"])(raw, calibration, p)
+    exported = jax.export.export(jax.jit(step), platforms=["cuda"])(raw)
     text = exported.mlir_module()
     assert "spherejax_fused_correct" not in text
     assert "dot_general" in text  # the jax.numpy path's two products
@@ -484,3 +512,234 @@ def test_a_process_without_the_cpu_backend_is_told_why_not_an_error(monkeypatch,
     assert caplog.messages == []  # expected there: nothing to warn about
     assert reason == ("the fused kernel runs on XLA's CPU backend, which this process does not have "
                       "(Unknown backend cpu. Available: ['cuda'])")
+
+
+# --------------------------------------------------------------------------------------------
+# The instruction-set variants and the choice between them
+
+
+def test_the_choice_rule_prefers_the_wider_variant_unless_a_narrower_one_is_clearly_faster():
+    """`choose_variant` with made-up times: the widest unless a narrower one is faster by more
+    than the margin (a narrower time x 1.1 below the choice's), step by step from the widest."""
+    choose = fused.choose_variant
+    assert fused.MARGIN == 0.10
+    assert choose({"avx512": 1.0, "avx2": 1.0, "generic": 1.0}) == "avx512"  # a tie: the widest
+    assert choose({"avx512": 1.0, "avx2": 0.92, "generic": 0.95}) == "avx512"  # 8.7 % faster: not clearly
+    assert choose({"avx512": 1.1, "avx2": 1.0}) == "avx512"  # exactly the margin: still the wider
+    assert choose({"avx512": 1.0, "avx2": 0.8, "generic": 0.9}) == "avx2"  # the Intel case turned round
+    assert choose({"avx512": 1.0, "avx2": 0.95, "generic": 0.8}) == "generic"  # 25 % faster than avx512
+    assert choose({"avx512": 1.0, "avx2": 0.85, "generic": 0.8}) == "avx2"  # generic only 6 % past avx2
+    assert choose({"avx512": 0.5, "avx2": 1.0, "generic": 2.0}) == "avx512"
+    # The order of the mapping does not matter, only the order of VARIANTS.
+    assert choose({"generic": 0.8, "avx2": 0.95, "avx512": 1.0}) == "generic"
+    # Subsets: PORTABLE's (no avx512) and a CPU with the generic code alone.
+    assert choose({"avx2": 1.0, "generic": 0.95}) == "avx2"
+    assert choose({"avx2": 1.0, "generic": 0.85}) == "generic"
+    assert choose({"generic": 3.0}) == "generic"
+    # margin 0: the fastest, a tie still to the wider.
+    assert choose({"avx512": 1.0, "avx2": 0.99}, margin=0.0) == "avx2"
+    assert choose({"avx512": 1.0, "avx2": 1.0}, margin=0.0) == "avx512"
+    for bad in ({}, {"avx512": 1.0, "sse2": 0.5}):
+        with pytest.raises(ValueError, match="times_s: expected seconds for some of"):
+            choose(bad)
+
+
+def test_the_choice_does_not_flip_on_noise_between_equal_variants():
+    """Two variants equally fast, timed with the noise the measurement shows (+-4 %): the choice
+    is the wider every time; one truly 25 % faster is chosen every time despite the same noise."""
+    rng = np.random.default_rng(5)
+    noise = rng.uniform(0.96, 1.04, (2000, 3))
+    equal = {choose for choose in (fused.choose_variant(dict(zip(fused.VARIANTS, 1e-3 * n))) for n in noise)}
+    assert equal == {"avx512"}
+    faster = {fused.choose_variant({"avx512": 1e-3 * a, "avx2": 0.75e-3 * b, "generic": 1e-3 * c}) for a, b, c in noise}
+    assert faster == {"avx2"}
+
+
+@pytestmark_kernel
+def test_supported_variants_are_what_the_cpu_has():
+    """The kernel's own report (its __builtin_cpu_supports checks) against /proc/cpuinfo: AVX-512
+    needs avx512f, bw, dq, vl (and fma), AVX2 needs avx2 and fma; the generic code runs anywhere.
+    Widest first, in the order of VARIANTS."""
+    supported = fused.supported_variants()
+    assert supported[-1] == fused.GENERIC
+    assert list(supported) == [name for name in fused.VARIANTS if name in supported]
+    assert supported == fused._fused_correct.supported_variants()
+    flags = _cpu_flags()
+    if flags is None or platform.machine() != "x86_64":
+        pytest.skip("no /proc/cpuinfo flags of an x86-64 CPU to compare with")
+    has_avx512 = {"avx512f", "avx512bw", "avx512dq", "avx512vl", "fma"} <= flags
+    has_avx2 = {"avx2", "fma"} <= flags
+    assert (fused.AVX512 in supported) == has_avx512
+    assert (fused.AVX2 in supported) == has_avx2
+
+
+@pytestmark_kernel
+def test_measure_variants_times_every_supported_variant():
+    """A real (short) measurement: a positive, finite CPU time for each variant the CPU runs;
+    the slices go round more memory than the last-level cache, so that calls read from memory."""
+    times = fused.measure_variants(pixels=4096, repeats=2)
+    assert tuple(times) == fused.supported_variants()
+    assert all(0.0 < t < 1.0 for t in times.values()), times
+    per_slice = fused.PROBE_PIXELS * fused._BYTES_PER_PIXEL
+    slices = fused._probe_slices(fused.PROBE_PIXELS)
+    # Between two turns of one slice the others pass through: 1.5 x the cache, or the cap.
+    assert (slices - 1) * per_slice >= min(1.5 * fused._last_level_cache_bytes(), fused._MAX_PROBE_BYTES - 2 * per_slice)
+    assert 3 <= slices and slices * per_slice <= fused._MAX_PROBE_BYTES
+
+
+def test_the_probe_goes_round_enough_memory_to_leave_the_cache(monkeypatch):
+    """_probe_slices from made-up cache sizes: one and a half times the cache between two turns
+    of a slice, at least 3 slices, at most _MAX_PROBE_BYTES in all."""
+    per_slice = fused.PROBE_PIXELS * fused._BYTES_PER_PIXEL  # 9.7 MB
+    for cache, expected in ((32 << 20, 7), (1 << 20, 3), (96 << 20, 17), (1 << 30, fused._MAX_PROBE_BYTES // per_slice)):
+        monkeypatch.setattr(fused, "_last_level_cache_bytes", lambda cache=cache: cache)
+        assert fused._probe_slices(fused.PROBE_PIXELS) == expected, cache
+    assert fused._MAX_PROBE_BYTES // per_slice == 27
+
+
+@pytestmark_kernel
+def test_the_choice_is_measured_once_per_process_and_cached(monkeypatch, caplog):
+    """The first use measures (made-up times here, so that the choice is known), logs the times
+    and the choice at DEBUG, and every later `mode`, `variant` and kernel call takes the same
+    choice without measuring again. The process's real choice is put back afterwards."""
+    monkeypatch.delenv(fused.SWITCH, raising=False)
+    real = fused.measurement()
+    assert real.auto in fused.supported_variants() and real.portable in fused.supported_variants()
+    assert real.portable != fused.AVX512
+    assert real.auto == fused.choose_variant(real.times_s)
+    assert set(real.times_s) == set(fused.supported_variants())
+    assert fused.measurement() is real  # cached
+
+    supported = fused.supported_variants()
+    # The narrowest variant made 30 % faster than all others: chosen for auto and portable alike.
+    made_up = {name: 1e-3 for name in supported}
+    made_up[supported[-1]] = 0.7e-3
+    calls = []
+
+    def fake_measure(variants=None, **kwargs):
+        calls.append(variants)
+        return dict(made_up)
+
+    monkeypatch.setattr(fused, "measure_variants", fake_measure)
+    fused._measured.cache_clear()
+    try:
+        with caplog.at_level("DEBUG", logger="spherejax._engine.fused"):
+            assert fused.mode(np.uint16, np.float32, 16) == supported[-1]
+        assert len(calls) == 1
+        assert [r.levelname for r in caplog.records] == ["DEBUG"]
+        message = caplog.messages[0]
+        assert f"auto runs {supported[-1]}" in message and f"portable {supported[-1]}" in message
+        assert f"{supported[-1]} 0.70 ms" in message
+        for _ in range(3):
+            assert fused.mode(np.uint16, np.float32, 16) == supported[-1]
+            assert fused.variant() == (supported[-1], fused.AUTO, fused.measurement())
+        monkeypatch.setenv(fused.SWITCH, "portable")
+        assert fused.mode(np.float32, np.float32, 16) == supported[-1]
+        assert len(calls) == 1  # measured once
+    finally:
+        # Put the process's real choice back, as other tests' traced programs assume it.
+        monkeypatch.setattr(fused, "measure_variants", lambda variants=None, **kwargs: dict(real.times_s))
+        fused._measured.cache_clear()
+        assert fused.measurement().auto == real.auto
+
+
+@pytestmark_kernel
+def test_variant_reports_what_runs(monkeypatch):
+    monkeypatch.delenv(fused.SWITCH, raising=False)
+    chosen = fused.variant()
+    assert chosen.name == fused.measurement().auto and chosen.setting == fused.AUTO
+    assert chosen.measurement is fused.measurement()
+    monkeypatch.setenv(fused.SWITCH, "portable")
+    assert fused.variant().name == fused.measurement().portable
+    for name in fused.supported_variants():
+        monkeypatch.setenv(fused.SWITCH, name)
+        assert fused.variant()[:2] == (name, name)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    assert fused.variant() is None
+
+
+@pytestmark_kernel
+@cpu_kernel
+@pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+@pytest.mark.parametrize("variant", _variants())
+def test_each_variant_forced_equals_the_plain_path(monkeypatch, variant, raw_dtype):
+    """SPHEREJAX_FUSED=<variant> runs that variant (its code in the custom call's `variant`
+    attribute) and gives the jax.numpy path's numbers within the tolerances of every other test;
+    the direct NumPy route gives the XLA route's bits under it."""
+    raw, calibration = make_case(96, 100, 16, raw_dtype=raw_dtype, offset=True)
+    monkeypatch.setenv(fused.SWITCH, variant)
+    assert fused.mode(raw.dtype, np.float32, 16) == variant
+    code = getattr(fused._fused_correct, f"VARIANT_{variant.upper()}")
+    assert f"variant = {code} : i32" in lowered_text(jnp.asarray(raw), calibration)
+    kernel, plain = correct_both(monkeypatch, raw, calibration)
+    assert_same_result(kernel, plain)
+    assert (np.asarray(kernel.quality) != 0).sum() == (10 if raw_dtype == np.float32 else 4)
+
+    # The same constants through both routes: `_kernel_call` (XLA) and `correct_arrays` (direct).
+    images, pixels, bands = 1, 96 * 100, 16
+    p = np.asarray(patch_ratio(raw, calibration)).reshape(images, bands)
+    weights = sj.colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
+    projection, bias, white_xyz = (np.asarray(x, np.float32) for x in fused.kernel_constants(
+        jnp.asarray(calibration.wiener, jnp.float32), jnp.asarray(calibration.wiener_offset, jnp.float32),
+        jnp.asarray(weights, jnp.float32)))
+    arrays = (raw.reshape(images, pixels, bands), np.asarray(calibration.dark).reshape(pixels, bands),
+              np.asarray(calibration.white).reshape(pixels, bands), p, np.asarray(calibration.coeffs, np.float32),
+              projection, bias, white_xyz)
+    call = jax.jit(fused._kernel_call, static_argnames=("saturation", "kernel_mode"))
+    through_xla = call(*arrays, saturation=SATURATION, kernel_mode=variant)
+    direct = (np.empty((images, pixels, 31), np.float32), np.empty((images, pixels, 3), np.float32),
+              np.empty((images, pixels), np.uint8))
+    fused.correct_arrays(*arrays, SATURATION, variant, direct, threads=2)
+    for got, want in zip(direct, through_xla):
+        np.testing.assert_array_equal(got, np.asarray(want))
+
+
+@pytestmark_kernel
+def test_a_variant_the_cpu_does_not_run_is_refused(monkeypatch):
+    """Forcing a variant the CPU lacks is refused, naming the variable and what the CPU runs,
+    rather than run something else under its name (or die of an illegal instruction): by
+    `switch` (so by `correct` and up front by the command line), by `correct_arrays`, and by the
+    kernel itself (its own check, whichever entry is called) for a code it does not know."""
+    monkeypatch.setattr(fused, "supported_variants", lambda: (fused.AVX2, fused.GENERIC))  # a CPU without AVX-512
+    monkeypatch.setenv(fused.SWITCH, "avx512")
+    message = ("SPHEREJAX_FUSED='avx512': this CPU does not run the fused kernel's avx512 code; "
+               "it runs 'avx2', 'generic' ('auto' takes the fastest of them)")
+    with pytest.raises(ValueError, match=re.escape(message)):
+        fused.switch()
+    raw, calibration = make_case(24, 24, 16)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        sj.correct(raw, calibration)
+    monkeypatch.setenv(fused.SWITCH, "avx2")
+    assert fused.switch() == "avx2"
+
+    images, pixels, bands = 1, 64, 16
+    arrays = (np.zeros((images, pixels, bands), np.uint16), np.zeros((pixels, bands), np.float32),
+              np.ones((pixels, bands), np.float32), np.ones((images, bands), np.float32),
+              np.zeros((bands, 4), np.float32), np.zeros((bands, 34), np.float32), np.zeros(34, np.float32),
+              np.ones(3, np.float32))
+    out = (np.empty((images, pixels, 31), np.float32), np.empty((images, pixels, 3), np.float32),
+           np.empty((images, pixels), np.uint8))
+    with pytest.raises(ValueError, match=r"the fused kernel's 'avx512' variant: not among those this CPU runs"):
+        fused.correct_arrays(*arrays, None, "avx512", out, threads=1)
+    with pytest.raises(ValueError, match="kernel_mode: expected one of"):
+        fused.correct_arrays(*arrays, None, "sse2", out, threads=1)
+
+    # The kernel's own check, below the Python one: codes it does not know (and, on a CPU that
+    # lacks one, the variants it does not run) are refused by the CPython entry and the FFI handler.
+    unsupported = [getattr(fused._fused_correct, f"VARIANT_{name.upper()}")
+                   for name in fused.VARIANTS if name not in fused._fused_correct.supported_variants()]
+    for code in (9, -1, *unsupported):
+        with pytest.raises(ValueError, match=rf"correct_arrays: variant: .*, got {code}"):
+            fused._fused_correct.correct_arrays(arrays[0], True, *arrays[1:], images, pixels, bands,
+                                                float("nan"), code, 1, *out)
+    out_types = (jax.ShapeDtypeStruct((images, pixels, 31), jnp.float32),
+                 jax.ShapeDtypeStruct((images, pixels, 3), jnp.float32),
+                 jax.ShapeDtypeStruct((images, pixels), jnp.uint8))
+    assert fused._register()
+    ffi = jax.ffi.ffi_call(fused.TARGET, out_types)
+    with pytest.raises(Exception, match=r"variant: expected 0 \(the widest this CPU runs\)"):
+        jax.block_until_ready(ffi(*arrays, saturation=np.float32(np.nan), variant=np.int32(9)))
+    # Code 0 leaves the choice to the kernel (the widest the CPU runs): accepted by both entries.
+    fused._fused_correct.correct_arrays(arrays[0], True, *arrays[1:], images, pixels, bands, float("nan"), 0, 1, *out)
+    assert (out[2] == 0).all()
+    jax.block_until_ready(ffi(*arrays, saturation=np.float32(np.nan), variant=np.int32(0)))

@@ -20,11 +20,11 @@ KERNELS, WORKFLOWS, FILES = 1, 2, 3
 LAYERS = {
     **dict.fromkeys(
         ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "pipeline", "uncertainty", "consistency",
-         "markov", "angles", "_engine", "grid", "spectra", "jsontext",
+         "markov", "angles", "_engine", "pixel_constants", "correction_result", "grid", "spectra", "jsontext", "noise_document",
          "number_text", "labelled", "_checks"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
-         "simulated_targets", "figures"], WORKFLOWS),
+         "simulated_targets", "simulated_instrument", "simulated_layout", "simulated_rendering", "figures"], WORKFLOWS),
     **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "console", "cli", "__main__", "hw"],
                     FILES),
 }

@@ -431,41 +431,36 @@ class TestBadInput:
             self.make(scene, saturation=-5)
 
 
-def test_patch_boxes_are_remembered_for_jax_arrays_only():
-    """`pipeline._RememberedByIdentity` behind `patch_bounding_box`: a jax.Array patch's box is
-    worked out once (the same object comes back), a NumPy mask changed in place gets its new box,
-    and a new array gets its own."""
+def test_patch_bounding_box_follows_the_mask():
+    """`patch_bounding_box` reads the mask it is given each time: a NumPy mask changed in place
+    gets its new box; an empty mask has none."""
     from spherejax import pipeline
 
     mask = np.zeros((6, 8), bool)
     mask[1:3, 2:5] = True
-    patch = jnp.asarray(mask)
-    first = pipeline.patch_bounding_box(patch)
-    assert first == (1, 3, 2, 5) and pipeline.patch_bounding_box(patch) is first
-    mask[4, 7] = True  # NumPy: may change in place, never remembered
+    assert pipeline.patch_bounding_box(jnp.asarray(mask)) == (1, 3, 2, 5)
+    mask[4, 7] = True
     assert pipeline.patch_bounding_box(mask) == (1, 5, 2, 8)
     assert pipeline.patch_bounding_box(jnp.asarray(mask)) == (1, 5, 2, 8)
     assert pipeline.patch_bounding_box(np.zeros((6, 8), bool)) is None
 
 
-def test_remembered_values_follow_the_arrays_not_their_ids():
+def test_a_calibration_works_its_patch_box_out_once(scene):
+    """`Calibration.patch_box` is worked out once per calibration (the patch is an immutable
+    jax.Array), and a calibration made from it by `dataclasses.replace` works out its own."""
+    calibration = scene["calibration"]
+    first = calibration.patch_box
+    assert calibration.patch_box is first and first == pipeline_box(calibration)
+    moved = np.zeros(calibration.image_shape, bool)
+    moved[:2, :3] = True
+    other = dataclasses.replace(calibration, patch=moved)
+    assert other.patch_box == (0, 2, 0, 3) and calibration.patch_box == first
+
+
+def pipeline_box(calibration):
     from spherejax import pipeline
 
-    remembered = pipeline._RememberedByIdentity(2)
-    a, b = jnp.zeros(3), jnp.ones(3)
-    calls = []
-
-    def compute(name):
-        calls.append(name)
-        return object()
-
-    one = remembered.get_or_compute((a, b), "k", lambda: compute("ab"))
-    assert remembered.get_or_compute((a, b), "k", lambda: compute("again")) is one
-    assert remembered.get_or_compute((a, b), "other key", lambda: compute("ab other")) is not one
-    assert remembered.get_or_compute((b, a), "k", lambda: compute("ba")) is not one
-    assert calls == ["ab", "ab other", "ba"]
-    remembered.get_or_compute((a,), "k", lambda: compute("a"))  # the third entry: the oldest goes
-    assert remembered.get_or_compute((a, b), "k", lambda: compute("ab after eviction")) is not one
+    return pipeline.patch_bounding_box(np.asarray(calibration.patch))
 
 
 BENCHMARK_SIZE = 96  # three 32-pixel tiles a side; the 35 x 35 patch sits 8 px in

@@ -1,0 +1,259 @@
+// The AVX2 + FMA variant of the kernel: 16 bands (the instrument's) on x86-64-v3 CPUs, written
+// with intrinsics, in a block shape of its own (correct_block_avx2_16). Why: the generic code
+// (fused_correct.h), compiled for this target, keeps its 16-float vectors as pairs of ymm
+// registers that GCC spills to the stack around every FMA (measured: 4x slower than the jax.numpy
+// path on a 2-core AVX2 EPYC). The same equations; the sums run in another order than the generic
+// code's (see correct_block_avx2_16), so its bits may differ from the other variants' in the last
+// place (spherejax._engine.fused keeps one variant per process for that reason).
+
+#include "fused_correct.h"
+
+#if SPHEREJAX_X86
+
+#include <immintrin.h>
+
+#include <type_traits>
+
+namespace spherejax_fused {
+namespace {
+
+// Stage II (fused_correct.h) for 16 bands on AVX2 + FMA.
+struct Avx2Stage2 {
+  static constexpr int64_t kBands = kLanes;
+
+  template <typename Raw>
+  SPHEREJAX_AVX2_TARGET static inline uint8_t run(const Problem& pr, const Raw* r, const float* d, const float* w,
+                                                  const float* a, const float* c, float* tilde) {
+    const __m256 zero = _mm256_setzero_ps();
+    const __m256 saturation = _mm256_set1_ps(pr.saturation);
+    const __m256 infinity = _mm256_set1_ps(INFINITY);
+    // The flags of both halves as lane masks, turned into bits once.
+    __m256 saturated = zero, value_finite = _mm256_cmp_ps(zero, zero, _CMP_EQ_OQ), flat_field_ok = value_finite;
+    __m256 below_dark = zero;
+    for (int half = 0; half < 2; ++half) {
+      const int64_t o = 8 * half;
+      __m256 value, finite = _mm256_cmp_ps(zero, zero, _CMP_EQ_OQ);  // lanes of finite raw values
+      if constexpr (std::is_same_v<Raw, uint16_t>) {
+        const __m128i counts = _mm_loadu_si128(reinterpret_cast<const __m128i*>(r + o));
+        value = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(counts));
+        // A count is finite: no check.
+        saturated = _mm256_or_ps(saturated, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ));
+      } else {
+        value = _mm256_loadu_ps(r + o);
+        // x - x == 0 exactly when x is finite.
+        finite = _mm256_cmp_ps(_mm256_sub_ps(value, value), zero, _CMP_EQ_OQ);
+        value_finite = _mm256_and_ps(value_finite, finite);
+        saturated = _mm256_or_ps(saturated, _mm256_and_ps(finite, _mm256_cmp_ps(value, saturation, _CMP_GE_OQ)));
+      }
+      const __m256 dark = _mm256_loadu_ps(d + o);
+      const __m256 signal = _mm256_sub_ps(_mm256_loadu_ps(w + o), dark);
+      // 0 < signal < inf: positive and finite (NaN fails both).
+      const __m256 band_ok = _mm256_and_ps(_mm256_cmp_ps(signal, zero, _CMP_GT_OQ), _mm256_cmp_ps(signal, infinity, _CMP_LT_OQ));
+      flat_field_ok = _mm256_and_ps(flat_field_ok, band_ok);
+      const __m256 v = _mm256_div_ps(_mm256_sub_ps(value, dark), signal);
+      below_dark = _mm256_or_ps(below_dark, _mm256_and_ps(_mm256_and_ps(band_ok, finite),
+                                                           _mm256_cmp_ps(v, _mm256_set1_ps(-kBelowDarkLimit), _CMP_LT_OQ)));
+      _mm256_store_ps(tilde + o, _mm256_fmadd_ps(_mm256_loadu_ps(a + o), v, _mm256_loadu_ps(c + o)));
+    }
+    return static_cast<uint8_t>((_mm256_movemask_ps(saturated) != 0) | ((_mm256_movemask_ps(value_finite) != 0xFF) << 1) |
+                                ((_mm256_movemask_ps(flat_field_ok) != 0xFF) << 2) |
+                                ((_mm256_movemask_ps(below_dark) != 0) << 4));
+  }
+};
+
+// lab_f of N vectors of 8 values, without a division: the cube root of x as x y^2, where y = x^(-1/3) comes
+// from an exponent-dividing first guess (within 3.5 %: magic - bits / 3, the bits divided in
+// float, exact enough for a guess) and two Newton steps y <- y (4 - x y^3) / 3, then one Newton
+// step on the root itself, c <- c + (x - c^3) y^2 / 3 (y^2 ~ 1 / c^2). Within 1 ulp of the
+// correctly rounded cube root over Lab's range (checked against float64 in
+// tests/test_fused.py). The scalar `lab_f` (fused_correct.h) divides (two Halley steps); this
+// takes products only, which pipeline where divisions do not.
+//
+// N vectors at a time, each step written for all of them before the next: the steps of one
+// vector depend on each other (about 20 operations in a row), so it takes several vectors side
+// by side to keep the FMA units busy (measured: six vectors, 16 pixels' X, Y and Z, against
+// three: 65 -> 63 ns a pixel in all, one thread of a Zen 1 EPYC).
+template <int N>
+SPHEREJAX_AVX2_TARGET inline void lab_f_avx2(__m256 (&t)[N]) {
+  const __m256 third = _mm256_set1_ps(1.0f / 3.0f), four = _mm256_set1_ps(4.0f);
+  __m256 above[N], x[N], y[N], y2[N], root[N];
+  for (int k = 0; k < N; ++k) {
+    above[k] = _mm256_cmp_ps(t[k], _mm256_set1_ps(kLabEpsilon), _CMP_GT_OQ);
+    x[k] = _mm256_blendv_ps(_mm256_set1_ps(1.0f), t[k], above[k]);
+    const __m256i bits_third = _mm256_cvtps_epi32(_mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_castps_si256(x[k])), third));
+    y[k] = _mm256_castsi256_ps(_mm256_sub_epi32(_mm256_set1_epi32(0x54a232a0), bits_third));
+  }
+  for (int step = 0; step < 2; ++step) {
+    for (int k = 0; k < N; ++k) {
+      // x y^3 as (x y) y^2: two products side by side, not three in a row.
+      const __m256 reduced = _mm256_fnmadd_ps(_mm256_mul_ps(x[k], y[k]), _mm256_mul_ps(y[k], y[k]), four);
+      y[k] = _mm256_mul_ps(_mm256_mul_ps(y[k], third), reduced);
+    }
+  }
+  for (int k = 0; k < N; ++k) {
+    y2[k] = _mm256_mul_ps(y[k], y[k]);
+    root[k] = _mm256_mul_ps(x[k], y2[k]);
+  }
+  for (int k = 0; k < N; ++k) {
+    const __m256 residual = _mm256_fnmadd_ps(_mm256_mul_ps(root[k], root[k]), root[k], x[k]);
+    root[k] = _mm256_fmadd_ps(_mm256_mul_ps(residual, y2[k]), third, root[k]);
+    const __m256 linear = _mm256_fmadd_ps(_mm256_set1_ps(kLabKappa / 116.0f), t[k], _mm256_set1_ps(16.0f / 116.0f));
+    t[k] = _mm256_blendv_ps(linear, root[k], above[k]);
+  }
+}
+
+// A value the compiler must keep in a register, not fold into the instructions that use it:
+// for a matrix row loaded once and shared by two FMAs, which GCC otherwise turns into two FMAs
+// with a memory operand each, loading the row twice and undoing the sharing (measured: the
+// loads then bound the projection).
+template <typename V>
+SPHEREJAX_AVX2_TARGET inline V in_register(V v) {
+  __asm__("" : "+x"(v));
+  return v;
+}
+
+// Lane 7 of a ymm register as a scalar.
+SPHEREJAX_AVX2_TARGET inline float lane7(__m256 v) {
+  return _mm_cvtss_f32(_mm_permute_ps(_mm256_extractf128_ps(v, 1), 3));
+}
+
+// One block of 32 pixels in three passes: quality and v_tilde of every pixel; the projection,
+// two pixels at a time; Lab, sixteen at a time.
+// (On a 2-core first-generation EPYC, whose ymm operations are two 128-bit halves: 83 -> 60-65
+// ns a pixel on one thread against the one-pixel loop with the Halley root, which this replaced.)
+//
+// The projection of a pixel is 16 broadcasts of its v_tilde times the matrix rows, into 34
+// accumulator lanes: four ymm (reflectance 0..30, X) and one xmm (Y, Z, padding), 9 register
+// FMAs a band where five ymm took 10. Two pixels share each row load (10 accumulators, 3
+// temporaries: 13 of the 16 ymm registers), halving the loads, which bound the one-pixel loop
+// (80 row loads and 16 broadcasts against 80 FMAs a pixel). Each accumulator starts at the bias
+// (the estimator's offset): a zero bias gives the bits of a zero start. The sums' order depends
+// only on the pixel, never on its partner or place in the block, so strips give the bits of the
+// whole image.
+//
+// Stores: a block's reflectance (32 pixels x 31 floats = 124 whole ymm), Lab (12 ymm) and
+// quality (one ymm) are contiguous and 32-byte aligned when the block starts at a multiple of 32
+// pixels of an aligned buffer, so they are written with non-temporal stores: the outputs are
+// written whole and never read back here, and ordinary stores would first read every cache line
+// they overwrite (a read of 136 bytes a pixel that the path does not need). Other blocks (the
+// last, partial one) take ordinary stores.
+template <typename Raw>
+SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64_t first, int64_t count) {
+  constexpr int64_t B = kLanes;
+  // Room beyond the block (one float is needed): pixel i's 32-float store spills its X into pixel
+  // i + 1's first slot, which pixel i + 1 then overwrites; the last pixel's lands here.
+  alignas(32) float reflectance[kBlock * kReflectance + 8];
+  alignas(32) float xyz[3][kBlock];
+  alignas(32) float tilde[kBlock][B];
+  alignas(32) uint8_t quality[kBlock];
+  BlockPixels at(pr, first, count);
+  for (int64_t i = 0; i < kBlock; ++i) {
+    at.at(i);
+    quality[i] = stage2_at<Raw, Avx2Stage2>(pr, at, tilde[i]);
+    at.next(pr, i);
+  }
+  // Columns 0..35 of the (B, 48) matrix and bias: 31 reflectances, X, Y, Z, padding.
+  const float* projection = reinterpret_cast<const float*>(pr.projection);
+  const float* bias = reinterpret_cast<const float*>(pr.bias);
+  for (int64_t i = 0; i < kBlock; i += 2) {
+    __m256 a0 = _mm256_load_ps(bias), a1 = _mm256_load_ps(bias + 8), a2 = _mm256_load_ps(bias + 16),
+           a3 = _mm256_load_ps(bias + 24);
+    __m128 a4 = _mm_load_ps(bias + 32);
+    __m256 b0 = a0, b1 = a1, b2 = a2, b3 = a3;
+    __m128 b4 = a4;
+#pragma GCC unroll 16
+    for (int64_t b = 0; b < B; ++b) {
+      const float* m = projection + b * kPadded;
+      const __m256 s = _mm256_broadcast_ss(&tilde[i][b]), t = _mm256_broadcast_ss(&tilde[i + 1][b]);
+      __m256 row = in_register(_mm256_load_ps(m));
+      a0 = _mm256_fmadd_ps(s, row, a0), b0 = _mm256_fmadd_ps(t, row, b0);
+      row = in_register(_mm256_load_ps(m + 8));
+      a1 = _mm256_fmadd_ps(s, row, a1), b1 = _mm256_fmadd_ps(t, row, b1);
+      row = in_register(_mm256_load_ps(m + 16));
+      a2 = _mm256_fmadd_ps(s, row, a2), b2 = _mm256_fmadd_ps(t, row, b2);
+      row = in_register(_mm256_load_ps(m + 24));
+      a3 = _mm256_fmadd_ps(s, row, a3), b3 = _mm256_fmadd_ps(t, row, b3);
+      const __m128 tail = in_register(_mm_load_ps(m + 32));
+      a4 = _mm_fmadd_ps(_mm256_castps256_ps128(s), tail, a4);
+      b4 = _mm_fmadd_ps(_mm256_castps256_ps128(t), tail, b4);
+    }
+    float* out = reflectance + i * kReflectance;
+    _mm256_storeu_ps(out, a0), _mm256_storeu_ps(out + 8, a1), _mm256_storeu_ps(out + 16, a2);
+    _mm256_storeu_ps(out + 24, a3);  // lane 7, X, is overwritten by the next pixel's first store
+    _mm256_storeu_ps(out + kReflectance, b0), _mm256_storeu_ps(out + kReflectance + 8, b1);
+    _mm256_storeu_ps(out + kReflectance + 16, b2), _mm256_storeu_ps(out + kReflectance + 24, b3);
+    xyz[0][i] = lane7(a3), xyz[0][i + 1] = lane7(b3);
+    xyz[1][i] = _mm_cvtss_f32(a4), xyz[1][i + 1] = _mm_cvtss_f32(b4);
+    xyz[2][i] = _mm_cvtss_f32(_mm_movehdup_ps(a4)), xyz[2][i + 1] = _mm_cvtss_f32(_mm_movehdup_ps(b4));
+  }
+  alignas(32) float lab[kBlock * 3];
+  for (int64_t i = 0; i < kBlock; i += 16) {
+    // f(X / Xn), f(Y / Yn), f(Z / Zn) of pixels i..i+7 and i+8..i+15, side by side.
+    __m256 f[6];
+    for (int k = 0; k < 3; ++k) {
+      const __m256 inverse_white = _mm256_set1_ps(pr.inverse_white[k]);
+      f[2 * k] = _mm256_mul_ps(_mm256_load_ps(xyz[k] + i), inverse_white);
+      f[2 * k + 1] = _mm256_mul_ps(_mm256_load_ps(xyz[k] + i + 8), inverse_white);
+    }
+    lab_f_avx2(f);
+    for (int half = 0; half < 2; ++half) {
+      const __m256 fx = f[half], fy = f[2 + half], fz = f[4 + half];
+      const __m256 l = _mm256_fmsub_ps(_mm256_set1_ps(116.0f), fy, _mm256_set1_ps(16.0f));
+      const __m256 a = _mm256_mul_ps(_mm256_set1_ps(500.0f), _mm256_sub_ps(fx, fy));
+      const __m256 b = _mm256_mul_ps(_mm256_set1_ps(200.0f), _mm256_sub_ps(fy, fz));
+      // Interleave to L a b L a b ... in each 128-bit lane (four of the eight pixels each): in-lane
+      // shuffles only, which cost one operation a lane on every AVX2 CPU.
+      const __m256 la_lo = _mm256_unpacklo_ps(l, a), la_hi = _mm256_unpackhi_ps(l, a);  // L0 a0 L1 a1 | L2 a2 L3 a3
+      const __m256 bl_lo = _mm256_unpacklo_ps(b, l), bl_hi = _mm256_unpackhi_ps(b, l);  // b0 L0 b1 L1 | b2 L2 b3 L3
+      const __m256 ab_lo = _mm256_unpacklo_ps(a, b), ab_hi = _mm256_unpackhi_ps(a, b);  // a0 b0 a1 b1 | a2 b2 a3 b3
+      const __m256 first4 = _mm256_shuffle_ps(la_lo, bl_lo, _MM_SHUFFLE(3, 0, 1, 0));   // L0 a0 b0 L1
+      const __m256 middle4 = _mm256_shuffle_ps(ab_lo, la_hi, _MM_SHUFFLE(1, 0, 3, 2));  // a1 b1 L2 a2
+      const __m256 last4 = _mm256_shuffle_ps(bl_hi, ab_hi, _MM_SHUFFLE(3, 2, 3, 0));    // b2 L3 a3 b3
+      float* out = lab + 3 * (i + 8 * half);
+      _mm_store_ps(out, _mm256_castps256_ps128(first4));
+      _mm_store_ps(out + 4, _mm256_castps256_ps128(middle4));
+      _mm_store_ps(out + 8, _mm256_castps256_ps128(last4));
+      _mm_store_ps(out + 12, _mm256_extractf128_ps(first4, 1));
+      _mm_store_ps(out + 16, _mm256_extractf128_ps(middle4, 1));
+      _mm_store_ps(out + 20, _mm256_extractf128_ps(last4, 1));
+    }
+  }
+  float* reflectance_out = pr.reflectance + first * kReflectance;
+  float* lab_out = pr.lab + first * 3;
+  uint8_t* quality_out = pr.quality + first;
+  const bool streamable = count == kBlock && (reinterpret_cast<uintptr_t>(reflectance_out) % 32 == 0) &&
+                          (reinterpret_cast<uintptr_t>(lab_out) % 32 == 0) &&
+                          (reinterpret_cast<uintptr_t>(quality_out) % 32 == 0);
+  if (streamable) {
+    for (int64_t k = 0; k < kBlock * kReflectance; k += 8) {
+      _mm256_stream_ps(reflectance_out + k, _mm256_load_ps(reflectance + k));
+    }
+    for (int64_t k = 0; k < kBlock * 3; k += 8) _mm256_stream_ps(lab_out + k, _mm256_load_ps(lab + k));
+    _mm256_stream_si256(reinterpret_cast<__m256i*>(quality_out), _mm256_load_si256(reinterpret_cast<const __m256i*>(quality)));
+  } else {
+    std::memcpy(reflectance_out, reflectance, count * kReflectance * sizeof(float));
+    std::memcpy(lab_out, lab, count * 3 * sizeof(float));
+    std::memcpy(quality_out, quality, count);
+  }
+}
+
+// correct_block_avx2_16 as a Block type for correct_blocks.
+struct Avx2Block {
+  template <typename Raw>
+  SPHEREJAX_AVX2_TARGET static inline void run(const Problem& pr, int64_t first, int64_t count) {
+    correct_block_avx2_16<Raw>(pr, first, count);
+  }
+};
+
+}  // namespace
+
+// flatten: inline everything, the intrinsics functions included, which the always_inline chain of
+// the shared templates cannot (a default-target function may not inline an AVX2 one).
+SPHEREJAX_AVX2_TARGET __attribute__((flatten)) void correct_range_avx2(const Problem& pr, int64_t first, int64_t last) {
+  correct_blocks<Avx2Block>(pr, first, last);
+  _mm_sfence();  // the non-temporal stores are visible before the chunk is counted as finished
+}
+
+}  // namespace spherejax_fused
+
+#endif  // SPHEREJAX_X86

@@ -1,0 +1,142 @@
+// One call of the kernel (call.h): the variants and their dispatch, the Problem of a call, and
+// the chunks shared out to threads.
+
+#include "call.h"
+
+#include <algorithm>
+#include <cmath>
+#include <new>
+
+namespace spherejax_fused {
+
+const char* variant_name(int32_t code) {
+  switch (static_cast<Variant>(code)) {
+    case Variant::kAvx512: return "avx512";
+    case Variant::kAvx2: return "avx2";
+    case Variant::kGeneric: return "generic";
+    default: return nullptr;
+  }
+}
+
+bool variant_supported(int32_t code) {
+#if SPHEREJAX_X86
+  // The instructions of SPHEREJAX_AVX512_TARGET and SPHEREJAX_AVX2_TARGET (fused_correct.h).
+  static const bool avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+                             __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") &&
+                             __builtin_cpu_supports("fma");
+  static const bool avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+#else
+  constexpr bool avx512 = false, avx2 = false;
+#endif
+  switch (static_cast<Variant>(code)) {
+    case Variant::kAvx512: return avx512;
+    case Variant::kAvx2: return avx2;
+    case Variant::kGeneric: return true;
+    default: return false;
+  }
+}
+
+Variant resolve_variant(int32_t requested, const char** error) {
+  *error = nullptr;
+  if (static_cast<Variant>(requested) == Variant::kBest) {
+    for (Variant widest : {Variant::kAvx512, Variant::kAvx2}) {
+      if (variant_supported(static_cast<int32_t>(widest))) return widest;
+    }
+    return Variant::kGeneric;
+  }
+  if (variant_name(requested) == nullptr) {
+    *error = "variant: expected 0 (the widest this CPU runs), 1 (avx512), 2 (avx2) or 3 (generic)";
+  } else if (!variant_supported(requested)) {
+    *error = "variant: this CPU does not run that variant's instructions (see supported_variants())";
+  }
+  return static_cast<Variant>(requested);
+}
+
+void correct_range(const Problem& pr, int64_t first, int64_t last) {
+#if SPHEREJAX_X86
+  // The variants' own code is for 16 bands only; resolve_variant has checked the CPU runs it.
+  if (pr.bands == kLanes && pr.variant == Variant::kAvx512) return correct_range_avx512(pr, first, last);
+  if (pr.bands == kLanes && pr.variant == Variant::kAvx2) return correct_range_avx2(pr, first, last);
+#endif
+  correct_range_generic(pr, first, last);
+}
+
+void Shared::work() {
+  const int64_t total = problem.images * problem.pixels;
+  for (int64_t chunk; (chunk = next.fetch_add(1)) < chunks;) {
+    const int64_t first = chunk * kChunk, last = std::min(total, first + kChunk);
+    correct_range(problem, first, last);
+    if (finished.fetch_add(1) + 1 == chunks) {
+      std::lock_guard<std::mutex> lock(mutex);
+      all_done.notify_all();
+    }
+  }
+}
+
+namespace {
+
+// `count` vectors on a 64-byte boundary, which the aligned loads of the projection rows need.
+// (Not std::unique_ptr<Vec[]> members: GCC warns that a template argument drops Vec's alignment
+// attribute; an explicit aligned_alloc does not depend on what the compiler keeps of it.)
+std::unique_ptr<float[], FreeAligned> aligned_vectors(int64_t count) {
+  return std::unique_ptr<float[], FreeAligned>(
+      static_cast<float*>(std::aligned_alloc(64, std::max<int64_t>(count, 1) * sizeof(Vec))));
+}
+
+}  // namespace
+
+std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, const float* white,
+                                  const float* ratio, const float* c, const float* m,
+                                  const float* offsets, const float* wxyz, int64_t images, int64_t pixels,
+                                  int64_t bands, float saturation, Variant variant, float* reflectance,
+                                  float* lab, uint8_t* quality) {
+  auto prepared = std::make_unique<Prepared>();
+  prepared->gain = std::make_unique<float[]>(images * bands);
+  prepared->offset = std::make_unique<float[]>(images * bands);
+  prepared->image_bad = std::make_unique<uint8_t[]>(images);
+  prepared->padded = aligned_vectors(3 * bands);
+  prepared->padded_bias = aligned_vectors(3);
+  if (!prepared->padded || !prepared->padded_bias) throw std::bad_alloc();
+  float* gain = prepared->gain.get();
+  float* offset = prepared->offset.get();
+  for (int64_t n = 0; n < images; ++n) {
+    bool bad = false;
+    for (int64_t b = 0; b < bands; ++b) {
+      const float pb = ratio[n * bands + b];
+      bad |= !std::isfinite(pb);
+      gain[n * bands + b] = c[4 * b + 0] * pb + c[4 * b + 1];
+      offset[n * bands + b] = c[4 * b + 2] * pb + c[4 * b + 3];
+    }
+    prepared->image_bad[n] = bad;
+  }
+  for (int64_t b = 0; b < bands; ++b) {
+    float* row = prepared->padded.get() + 3 * kLanes * b;
+    for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? m[b * kOutputs + k] : 0.0f;
+  }
+  float* bias_row = prepared->padded_bias.get();
+  for (int64_t k = 0; k < kPadded; ++k) bias_row[k] = k < kOutputs ? offsets[k] : 0.0f;
+
+  Problem& pr = prepared->shared->problem;
+  pr.raw = raw;
+  pr.raw_is_u16 = u16;
+  pr.dark = dark;
+  pr.white = white;
+  pr.images = images;
+  pr.pixels = pixels;
+  pr.bands = bands;
+  pr.saturation = saturation;
+  pr.variant = variant;
+  pr.gain = gain;
+  pr.offset = offset;
+  pr.image_bad = prepared->image_bad.get();
+  pr.projection = reinterpret_cast<const Vec*>(prepared->padded.get());
+  pr.bias = reinterpret_cast<const Vec*>(prepared->padded_bias.get());
+  for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
+  pr.reflectance = reflectance;
+  pr.lab = lab;
+  pr.quality = quality;
+  prepared->shared->chunks = (images * pixels + kChunk - 1) / kChunk;
+  return prepared;
+}
+
+}  // namespace spherejax_fused

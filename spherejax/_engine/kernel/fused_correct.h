@@ -1,0 +1,297 @@
+// The per-pixel path of spherejax.correct as one fused CPU kernel, called from XLA (FFI).
+//
+// Why this exists. XLA on CPU does not fuse a matrix product with elementwise work, so the
+// plain jitted path (spherejax/pipeline.py, `_correct_pixels_plain`) writes the Stage II cube
+// and the white signal to memory and reads them back for the Wiener and XYZ products: about
+// 500 MB a megapixel against the 297 bytes a pixel the path must move, and XLA's elementwise
+// loops reach only part of the copy bandwidth (benchmarks/README.md, "Where the time of
+// `correct` goes"). This kernel reads each pixel once and writes its outputs once.
+//
+// It computes exactly the equations of the plain path, in float32, pixel by pixel:
+//   quality  bits: 1 saturated (finite raw >= saturation in some band), 2 raw not finite,
+//            4 white - dark not finite and > 0 in some band, 8 the image's p not finite,
+//            16 v below -kBelowDarkLimit in some band whose raw is finite and white - dark
+//            finite and > 0
+//   v        = (raw - dark) / (white - dark)                         (Eq. 10)
+//   v_tilde  = (c1 p + c2) v + c3 p + c4                              (Eq. 17 and 23)
+//   [reflectance | XYZ] = v_tilde @ projection + bias                 (the affine Wiener estimate
+//            W v_tilde + r0, 16 -> 31, and the folded (B, 3) XYZ matrix with its offset r0 @
+//            weights: one (B, 34) product whose accumulators start at the (34,) bias)
+//   Lab      = CIE 1976 from XYZ / white_xyz                          (CIE 15:2004)
+// and NaN in reflectance and Lab wherever quality != 0. The tests compare it with the plain
+// path on every branch (tests/test_fused.py).
+//
+// Each pixel goes through the same code wherever it lies (the last block of a range is padded,
+// never handled by a scalar tail), so a strip of an image gives the same bits as the whole image.
+//
+// Layout: raw (N, P, B) uint16 or float32, dark and white (P, B), p (N, B), coeffs (B, 4),
+// projection (B, 34), bias (34,), white_xyz (3,); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
+// (N, P) uint8. The work is split into chunks of pixels run on XLA's intra-op thread pool.
+//
+// The sources, by job (setup.py compiles them into one extension, spherejax._engine._fused_correct):
+//   fused_correct.h  this header: the types, the Problem of one call, the generic per-pixel code
+//                    and the block templates every instruction-set variant shares;
+//   generic.cc       the generic variant: the code below compiled for three x86-64 levels
+//                    (target_clones), what every band count but 16 runs;
+//   avx512.cc        16 bands with AVX-512 intrinsics;
+//   avx2.cc          16 bands with AVX2 + FMA intrinsics (its own block shape and sum order);
+//   call.h, call.cc  a call: which variants the CPU runs, the variant a call asked for, the
+//                    per-image constants, and the chunks shared out to threads;
+//   ffi_handler.cc   the XLA FFI handler (the custom call of spherejax._engine.fused);
+//   module.cc        the CPython module: handler(), correct_arrays(), supported_variants(),
+//                    ffi_api_version().
+// No -march anywhere: each variant carries its instruction set as function attributes, and
+// which one runs is chosen per call (call.cc), so one build runs on any x86-64.
+
+#ifndef SPHEREJAX_FUSED_CORRECT_H_
+#define SPHEREJAX_FUSED_CORRECT_H_
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+
+namespace spherejax_fused {
+
+constexpr int64_t kReflectance = 31;            // 400..700 nm step 10
+constexpr int64_t kOutputs = kReflectance + 3;  // reflectance then X, Y, Z
+constexpr int64_t kLanes = 16;                  // floats in one 512-bit vector
+constexpr int64_t kPadded = 48;                 // kOutputs rounded up to whole vectors
+constexpr int64_t kMaxBands = 64;
+constexpr int64_t kBlock = 32;                  // pixels whose XYZ are turned into Lab together
+constexpr int64_t kChunk = 8192;                // pixels per thread-pool task
+constexpr float kLabEpsilon = 216.0f / 24389.0f;
+constexpr float kLabKappa = 24389.0f / 27.0f;
+// pipeline.BELOW_DARK_LIMIT (its comment says why 2 %): the same number, or the bits differ.
+constexpr float kBelowDarkLimit = 0.02f;
+
+// The instruction-set variants of the kernel, by the codes the callers pass (the FFI attribute
+// `variant`, correct_arrays' argument; spherejax._engine.fused names them). Only 16 bands (the
+// instrument's) have code of their own per instruction set; every other band count runs the
+// generic code whichever variant was asked for. kBest: the widest the CPU runs, for callers that
+// leave the choice to the kernel (spherejax._engine.fused instead measures which is fastest).
+enum class Variant : int32_t { kBest = 0, kAvx512 = 1, kAvx2 = 2, kGeneric = 3 };
+
+// GCC/Clang vector extension: 16 floats. Compiled for each target of `target_clones` (generic.cc),
+// it is one zmm register with AVX-512, two ymm with AVX2, four xmm otherwise.
+typedef float Vec __attribute__((vector_size(kLanes * sizeof(float)), aligned(64)));
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define SPHEREJAX_X86 1
+#define SPHEREJAX_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#define SPHEREJAX_AVX512_TARGET __attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,fma")))
+#define SPHEREJAX_AVX2_TARGET __attribute__((target("avx2,fma")))
+#else
+#define SPHEREJAX_X86 0
+#define SPHEREJAX_CLONES
+#endif
+#define SPHEREJAX_INLINE inline __attribute__((always_inline))
+
+struct Problem {
+  const void* raw;
+  bool raw_is_u16;
+  const float* dark;
+  const float* white;
+  int64_t images, pixels, bands;
+  float saturation;  // NaN: no saturation check
+  Variant variant;   // which code runs (call.cc resolves kBest; never kBest here)
+  // Per image and band: a = c1 p + c2 and c = c3 p + c4, so v_tilde = a v + c.
+  const float* gain;
+  const float* offset;
+  const uint8_t* image_bad;  // per image: QUALITY 8 when some p is not finite
+  const Vec* projection;     // (bands, 3) vectors: the (B, 34) matrix padded to 48 columns
+  const Vec* bias;           // 3 vectors: the (34,) bias [r0 | r0 @ weights] padded to 48
+  float inverse_white[3];
+  float* reflectance;
+  float* lab;
+  uint8_t* quality;
+};
+
+// The pixels [first, last) (flat over images and pixels) of `pr`, by each variant: the entry
+// points of generic.cc, avx512.cc and avx2.cc. The last two take 16 bands only and run only on
+// CPUs that have their instructions (call.cc checks both).
+void correct_range_generic(const Problem& pr, int64_t first, int64_t last);
+#if SPHEREJAX_X86
+void correct_range_avx512(const Problem& pr, int64_t first, int64_t last);
+void correct_range_avx2(const Problem& pr, int64_t first, int64_t last);
+#endif
+
+// x^(1/3) for x > 0: an exponent-dividing first guess (within 4 %), then two Halley steps
+// y <- y (y^3 + 2x) / (2 y^3 + x), each cubing the relative error: within 3 ulp in float32
+// (tests/test_fused.py).
+// Written out because libm's cbrtf does not vectorise.
+SPHEREJAX_INLINE float cube_root_positive(float x) {
+  uint32_t bits;
+  std::memcpy(&bits, &x, sizeof bits);
+  bits = bits / 3u + 0x2a5137a0u;
+  float y;
+  std::memcpy(&y, &bits, sizeof y);
+  for (int step = 0; step < 2; ++step) {
+    const float y3 = y * y * y;
+    y = y * (y3 + 2.0f * x) / (2.0f * y3 + x);
+  }
+  return y;
+}
+
+SPHEREJAX_INLINE float lab_f(float t) {
+  const bool above = t > kLabEpsilon;
+  const float root = cube_root_positive(above ? t : 1.0f);
+  return above ? root : (kLabKappa / 116.0f) * t + 16.0f / 116.0f;
+}
+
+// Quality bits and v_tilde (Eq. 10, 17, 23) of one pixel, any band count: the generic Stage II.
+// A Stage II is a type with kBands (its band count, 0: any, pr.bands) and
+//   template <typename Raw> static uint8_t run(const Problem& pr, const Raw* r, const float* d,
+//                                              const float* w, const float* a, const float* c,
+//                                              float* tilde)
+// which reads one pixel's raw r, dark d, white w (B each) and its image's gain a and offset c (B
+// each), writes its v_tilde (B) and returns its quality bits but 8. avx512.cc and avx2.cc have one
+// each for 16 bands.
+struct GenericStage2 {
+  static constexpr int64_t kBands = 0;
+
+  template <typename Raw>
+  static SPHEREJAX_INLINE uint8_t run(const Problem& pr, const Raw* r, const float* d, const float* w,
+                                      const float* a, const float* c, float* tilde) {
+    int32_t bits = 0;
+    for (int64_t b = 0; b < pr.bands; ++b) {
+      const float value = static_cast<float>(r[b]);
+      const float signal = w[b] - d[b];
+      const bool value_finite = std::isfinite(value);
+      const bool flat_field_ok = (signal > 0.0f) & std::isfinite(signal);
+      const float v = (value - d[b]) / signal;
+      bits |= (value_finite & (value >= pr.saturation)) | (!value_finite << 1) | (!flat_field_ok << 2) |
+              ((value_finite & flat_field_ok & (v < -kBelowDarkLimit)) << 4);
+      tilde[b] = a[b] * v + c[b];
+    }
+    return static_cast<uint8_t>(bits);
+  }
+};
+
+// The (image, pixel) of each of the kBlock pixels of a block that starts at `first` (flat over
+// images and pixels): later ones step on without a division. The padding pixels of a last block
+// (i >= count) repeat the block's first pixel: the same code runs for them, and nothing of theirs
+// is written.
+struct BlockPixels {
+  int64_t image, pixel;
+  const int64_t first_image, first_pixel, count;
+
+  SPHEREJAX_INLINE BlockPixels(const Problem& pr, int64_t first, int64_t count)
+      : image(first / pr.pixels), pixel(first - image * pr.pixels), first_image(image), first_pixel(pixel),
+        count(count) {}
+  // Call at the start of pixel i of the block, before its pixel is read.
+  SPHEREJAX_INLINE void at(int64_t i) {
+    if (i == count) image = first_image, pixel = first_pixel;
+  }
+  SPHEREJAX_INLINE int64_t flat(const Problem& pr) const { return image * pr.pixels + pixel; }
+  // Call at the end of pixel i of the block.
+  SPHEREJAX_INLINE void next(const Problem& pr, int64_t i) {
+    if (i < count && ++pixel == pr.pixels) pixel = 0, ++image;
+  }
+};
+
+// Stage II (a Stage II type above) of the pixel `at` points to, into tilde (B floats): its
+// quality bits, the image's 8 included. A bad pixel's v_tilde becomes NaN, which NaN x anything
+// carries into every output.
+template <typename Raw, typename Stage2>
+SPHEREJAX_INLINE uint8_t stage2_at(const Problem& pr, const BlockPixels& at, float* tilde) {
+  const int64_t B = Stage2::kBands ? Stage2::kBands : pr.bands;
+  const Raw* raw = static_cast<const Raw*>(pr.raw) + at.flat(pr) * B;
+  uint8_t q = Stage2::template run<Raw>(pr, raw, pr.dark + at.pixel * B, pr.white + at.pixel * B,
+                                        pr.gain + at.image * B, pr.offset + at.image * B, tilde);
+  q |= pr.image_bad[at.image] * 8;
+  if (q) std::fill(tilde, tilde + B, NAN);
+  return q;
+}
+
+// One block of up to kBlock pixels starting at `first` (flat over images and pixels), one pixel
+// at a time: Stage II, the projection with the vector extension's Vec, then the block's Lab. The
+// generic variant's block (GenericStage2) and the AVX-512 one's (its 16-band Stage II: a Vec is one
+// zmm register there, and the projection below is as fast as intrinsics would make it).
+template <typename Raw, typename Stage2>
+SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t count) {
+  const int64_t B = Stage2::kBands ? Stage2::kBands : pr.bands;
+  alignas(64) float xyz[3][kBlock];
+  alignas(64) float tilde[kMaxBands];
+  uint8_t quality[kBlock];
+  BlockPixels at(pr, first, count);
+  for (int64_t i = 0; i < kBlock; ++i) {
+    at.at(i);
+    const int64_t flat = at.flat(pr);
+    quality[i] = stage2_at<Raw, Stage2>(pr, at, tilde);
+    // Separate accumulators for even and odd bands halve the chain of dependent FMAs; named
+    // variables, not an array, so that they stay in registers. The even ones start at the bias
+    // (the estimator's offset): no extra operation per pixel, and a zero bias gives the bits of
+    // a zero start. A bad pixel's NaN still reaches every output (NaN + bias is NaN).
+    Vec even0 = pr.bias[0], even1 = pr.bias[1], even2 = pr.bias[2], odd0 = {}, odd1 = {}, odd2 = {};
+    int64_t b = 0;
+#pragma GCC unroll 8
+    for (; b + 1 < B; b += 2) {
+      const Vec* m = pr.projection + 3 * b;
+      const float s = tilde[b], t = tilde[b + 1];
+      even0 += s * m[0], even1 += s * m[1], even2 += s * m[2];
+      odd0 += t * m[3], odd1 += t * m[4], odd2 += t * m[5];
+    }
+    if (b < B) {
+      const Vec* m = pr.projection + 3 * b;
+      even0 += tilde[b] * m[0], even1 += tilde[b] * m[1], even2 += tilde[b] * m[2];
+    }
+    const Vec out0 = even0 + odd0, out1 = even1 + odd1, out2 = even2 + odd2;
+    if (i < count) {
+      float* out = pr.reflectance + flat * kReflectance;
+      std::memcpy(out, &out0, sizeof(Vec));
+      std::memcpy(out + kLanes, &out1, (kReflectance - kLanes) * sizeof(float));
+    }
+    xyz[0][i] = out1[kReflectance - kLanes];
+    xyz[1][i] = out2[0];
+    xyz[2][i] = out2[1];
+    at.next(pr, i);
+  }
+  alignas(64) float lab[3][kBlock];
+  for (int64_t i = 0; i < kBlock; ++i) {
+    const float fx = lab_f(xyz[0][i] * pr.inverse_white[0]);
+    const float fy = lab_f(xyz[1][i] * pr.inverse_white[1]);
+    const float fz = lab_f(xyz[2][i] * pr.inverse_white[2]);
+    lab[0][i] = 116.0f * fy - 16.0f;
+    lab[1][i] = 500.0f * (fx - fy);
+    lab[2][i] = 200.0f * (fy - fz);
+  }
+  for (int64_t i = 0; i < count; ++i) {
+    float* out = pr.lab + (first + i) * 3;
+    out[0] = lab[0][i];
+    out[1] = lab[1][i];
+    out[2] = lab[2][i];
+    pr.quality[first + i] = quality[i];
+  }
+}
+
+// correct_block with the Stage II `Stage2`, as a Block type for correct_blocks.
+template <typename Stage2>
+struct PixelByPixel {
+  template <typename Raw>
+  static SPHEREJAX_INLINE void run(const Problem& pr, int64_t first, int64_t count) {
+    correct_block<Raw, Stage2>(pr, first, count);
+  }
+};
+
+// The pixels [first, last) block by block, by `Block::run<Raw>(pr, first, count)` (Raw: the raw
+// dtype of pr), the last block partial: the body of every variant's entry point.
+template <typename Block, typename Raw>
+SPHEREJAX_INLINE void correct_blocks_of(const Problem& pr, int64_t first, int64_t last) {
+  for (int64_t block = first; block < last; block += kBlock) {
+    Block::template run<Raw>(pr, block, std::min(kBlock, last - block));
+  }
+}
+
+template <typename Block>
+SPHEREJAX_INLINE void correct_blocks(const Problem& pr, int64_t first, int64_t last) {
+  if (pr.raw_is_u16) {
+    correct_blocks_of<Block, uint16_t>(pr, first, last);
+  } else {
+    correct_blocks_of<Block, float>(pr, first, last);
+  }
+}
+
+}  // namespace spherejax_fused
+
+#endif  // SPHEREJAX_FUSED_CORRECT_H_

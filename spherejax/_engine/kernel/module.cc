@@ -1,0 +1,155 @@
+// The CPython module spherejax._engine._fused_correct: the kernel's FFI handler as a capsule for
+// jax.ffi.register_ffi_target, the kernel on buffers without XLA, and what spherejax._engine.fused
+// needs to choose a variant (spherejax/_engine/fused.py).
+
+#include <Python.h>  // first, as Python asks
+
+#include <algorithm>
+#include <cstdint>
+#include <memory>
+#include <new>
+#include <thread>
+#include <vector>
+
+#include "call.h"
+#include "xla/ffi/api/c_api.h"
+
+using namespace spherejax_fused;
+
+// Defined by XLA_FFI_DEFINE_HANDLER_SYMBOL in ffi_handler.cc (extern "C").
+extern "C" XLA_FFI_Error* SpherejaxFusedCorrect(XLA_FFI_CallFrame* call_frame);
+
+// handler(): the XLA FFI handler of the fused correction (ffi_handler.cc) as a capsule.
+static PyObject* handler(PyObject*, PyObject*) {
+  return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxFusedCorrect), nullptr, nullptr);
+}
+
+// correct_arrays(raw, raw_is_u16, dark, white, p, coeffs, projection, bias, white_xyz, images,
+// pixels, bands, saturation, variant, threads, reflectance, lab, quality): the same kernel on
+// C-contiguous buffers from Python, run by the calling thread and threads - 1 helpers, without
+// XLA. spherejax._engine.fused.correct_arrays checks dtypes; this checks each buffer's byte size, so
+// that nothing is read or written outside a buffer, and that this CPU runs the variant (a code of
+// spherejax_fused::Variant: 0 the widest it runs, or VARIANT_AVX512, VARIANT_AVX2, VARIANT_GENERIC).
+// Releases the GIL while it runs.
+static PyObject* correct_arrays(PyObject*, PyObject* args) {
+  Py_buffer in[8] = {}, out[3] = {};
+  int u16 = 0, variant = 0;
+  long long images = 0, pixels = 0, bands = 0;
+  float saturation = 0.0f;
+  Py_ssize_t threads = 1;
+  if (!PyArg_ParseTuple(args, "y*py*y*y*y*y*y*y*LLLfinw*w*w*", &in[0], &u16, &in[1], &in[2], &in[3], &in[4],
+                        &in[5], &in[6], &in[7], &images, &pixels, &bands, &saturation, &variant, &threads,
+                        &out[0], &out[1], &out[2])) {
+    return nullptr;  // PyArg_ParseTuple releases what it had taken
+  }
+  const long long expected_in[8] = {images * pixels * bands * (u16 ? 2 : 4), pixels * bands * 4,
+                                    pixels * bands * 4, images * bands * 4, bands * 4 * 4,
+                                    bands * kOutputs * 4, kOutputs * 4, 3 * 4};
+  const long long expected_out[3] = {images * pixels * kReflectance * 4, images * pixels * 3 * 4, images * pixels};
+  bool sizes_match = images >= 0 && pixels >= 0 && bands >= 1 && bands <= kMaxBands && threads >= 1;
+  for (int k = 0; k < 8; ++k) sizes_match &= in[k].len == expected_in[k];
+  for (int k = 0; k < 3; ++k) sizes_match &= out[k].len == expected_out[k];
+  const char* refused = nullptr;
+  const Variant resolved = resolve_variant(variant, &refused);
+  std::unique_ptr<Prepared> prepared;
+  if (sizes_match && refused == nullptr && images * pixels > 0) {
+    try {
+      prepared = prepare(
+        in[0].buf, u16 != 0, static_cast<const float*>(in[1].buf), static_cast<const float*>(in[2].buf),
+        static_cast<const float*>(in[3].buf), static_cast<const float*>(in[4].buf),
+        static_cast<const float*>(in[5].buf), static_cast<const float*>(in[6].buf),
+        static_cast<const float*>(in[7].buf), images, pixels, bands, saturation, resolved,
+        static_cast<float*>(out[0].buf), static_cast<float*>(out[1].buf), static_cast<uint8_t*>(out[2].buf));
+    } catch (const std::bad_alloc&) {
+      for (auto& buffer : in) PyBuffer_Release(&buffer);
+      for (auto& buffer : out) PyBuffer_Release(&buffer);
+      return PyErr_NoMemory();
+    }
+    Shared& shared = *prepared->shared;
+    std::vector<std::thread> helpers;
+    Py_BEGIN_ALLOW_THREADS
+    run(shared, [&] {
+      const int64_t count = std::min<int64_t>(threads - 1, shared.chunks - 1);
+      try {
+        for (int64_t t = 0; t < count; ++t) helpers.emplace_back([&shared] { shared.work(); });
+      } catch (...) {  // std::system_error or bad_alloc: no more threads to be had
+        // The threads started and this one do all the chunks.
+      }
+    });
+    for (auto& helper : helpers) helper.join();
+    Py_END_ALLOW_THREADS
+  }
+  for (auto& buffer : in) PyBuffer_Release(&buffer);
+  for (auto& buffer : out) PyBuffer_Release(&buffer);
+  if (!sizes_match) {
+    PyErr_SetString(PyExc_ValueError, "correct_arrays: buffer sizes do not match images, pixels and bands");
+    return nullptr;
+  }
+  if (refused != nullptr) {
+    PyErr_Format(PyExc_ValueError, "correct_arrays: %s, got %d", refused, variant);
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
+// supported_variants() -> tuple of str: the variants this build has and this CPU runs, widest
+// first ("avx512", "avx2", "generic"; "generic" always). spherejax._engine.fused times these and
+// passes the fastest; the code of each is the module's VARIANT_<NAME> constant.
+static PyObject* supported_variants(PyObject*, PyObject*) {
+  const char* names[3];
+  Py_ssize_t count = 0;
+  for (Variant variant : {Variant::kAvx512, Variant::kAvx2, Variant::kGeneric}) {
+    const int32_t code = static_cast<int32_t>(variant);
+    if (variant_supported(code)) names[count++] = variant_name(code);
+  }
+  PyObject* tuple = PyTuple_New(count);
+  for (Py_ssize_t k = 0; tuple != nullptr && k < count; ++k) {
+    PyObject* name = PyUnicode_FromString(names[k]);
+    if (name == nullptr) {
+      Py_DECREF(tuple);
+      return nullptr;
+    }
+    PyTuple_SET_ITEM(tuple, k, name);  // steals the reference
+  }
+  return tuple;
+}
+
+// ffi_api_version() -> (major, minor): the XLA FFI API version of the headers this was compiled
+// against, which XLA compares with its own when the handler is registered (setup.py).
+static PyObject* ffi_api_version(PyObject*, PyObject*) {
+  return Py_BuildValue("(ii)", XLA_FFI_API_MAJOR, XLA_FFI_API_MINOR);
+}
+
+static PyMethodDef methods[] = {
+    {"handler", handler, METH_NOARGS, "The XLA FFI handler of the fused correction, as a capsule."},
+    {"ffi_api_version", ffi_api_version, METH_NOARGS, "The XLA FFI API version compiled against, (major, minor)."},
+    {"correct_arrays", correct_arrays, METH_VARARGS, "The fused correction on C-contiguous buffers, without XLA."},
+    {"supported_variants", supported_variants, METH_NOARGS,
+     "The instruction-set variants this build has and this CPU runs, widest first."},
+    {nullptr, nullptr, 0, nullptr},
+};
+
+static PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fused_correct",
+                             "Fused CPU kernel of spherejax.correct (see spherejax/_engine/fused.py).", -1,
+                             methods};
+
+PyMODINIT_FUNC PyInit__fused_correct() {
+  PyObject* m = PyModule_Create(&module);
+  if (m == nullptr) return nullptr;
+  // The codes of the variants (spherejax_fused::Variant), for correct_arrays and the FFI
+  // attribute `variant`: spherejax._engine.fused reads them here rather than repeating them.
+  const struct {
+    const char* name;
+    Variant code;
+  } constants[] = {{"VARIANT_BEST", Variant::kBest},
+                   {"VARIANT_AVX512", Variant::kAvx512},
+                   {"VARIANT_AVX2", Variant::kAvx2},
+                   {"VARIANT_GENERIC", Variant::kGeneric}};
+  for (const auto& constant : constants) {
+    if (PyModule_AddIntConstant(m, constant.name, static_cast<long>(constant.code)) != 0) {
+      Py_DECREF(m);
+      return nullptr;
+    }
+  }
+  return m;
+}

@@ -1,0 +1,384 @@
+"""A prepared correction: what `correct` works out once per calibration and frame shape.
+
+`Plan(calibration, shape, dtype)` holds, on the device the calibration's arrays are on:
+
+- `constants`: the calibration's arrays cast to the compute dtype (`PixelConstants`), with the
+  tristimulus weights of its illuminant and observer;
+- `patch` and `box_origin`/`box_shape`: the white patch's bounding box of those arrays
+  (`PatchConstants`), the only pixels the white-patch ratio reads;
+- `saturation`, `kernel_mode`: the saturation level and the fused CPU kernel's mode, static;
+- `no_flat_field`: the (H, W) mask of pixels without a flat field, read by the jax.numpy path on
+  CPU instead of a reduction over both frames on every call;
+- the route its whole-frame calls take (`route`) and, for the routes that need it, the compiled
+  executable and the NumPy views the fused kernel reads (`_direct`).
+
+`correct(raw, calibration)` looks the plan up on the calibration (`plan_for`): a calibration keeps
+the plans of the frame shapes it has corrected, and they go with it; nothing is remembered by
+object identity in a process-wide table. Strips of an image (`Plan.rows`), the archive, the
+uncertainty and measurement paths, calibrate, evaluate, study and dask workers all reach the
+per-pixel step through `correct` and so through a plan.
+
+A traced calibration (`jax.grad` with respect to it, `jax.vmap` over calibrations) gets a plan
+built inside the trace: the same steps, with the casts part of the derivative, nothing compiled
+ahead and nothing kept.
+
+Output memory: the pools of `buffers` are keyed by the outputs' shapes, not by plan, so that two
+calibrations of one frame size share them (a batch that alternates two instruments keeps two
+sets of outputs, not four).
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _checks, colorimetry, pipeline
+from ..grid import N_WAVELENGTHS
+from ..pixel_constants import PatchConstants, PixelConstants
+from . import buffers, fused, steps
+
+#: Routes of whole frames without p, noise or intermediates (`Plan.route`).
+DIRECT, RECYCLING, PROGRAM = "direct", "recycling", "program"
+
+#: Bytes of outputs a pixel: reflectance and Lab in float32 and the quality byte.
+_OUTPUT_BYTES_PER_PIXEL = 4 * (N_WAVELENGTHS + 3) + 1
+
+#: Executables of `steps.image_step_into`, compiled ahead for a signature (shapes, dtypes, box
+#: shape, options: never an object's identity), so that a plan's first recycling call does not
+#: compile and a second calibration of the same shapes compiles nothing (tests/test_compilation.py).
+#: This is jax.jit's own cache for a program jit cannot compile ahead by itself.
+_into_executables: dict = {}
+_into_lock = threading.Lock()
+
+
+def _concrete(calibration) -> bool:
+    return all(_checks.is_concrete(x) for x in jax.tree_util.tree_leaves(calibration))
+
+
+def _device_of(calibration):
+    """The one device all of a concrete calibration's arrays are on, or None (several devices,
+    or arrays that are not jax.Arrays)."""
+    try:
+        devices = set().union(*(x.devices() for x in jax.tree_util.tree_leaves(calibration)))
+    except AttributeError:
+        return None
+    return next(iter(devices)) if len(devices) == 1 else None
+
+
+def _prepare(calibration, dtype, box, with_mask: bool):
+    """(PixelConstants, PatchConstants or None, the (H, W) no-flat-field mask or None) of a
+    calibration in `dtype`, on the device its arrays are on.
+
+    A calibration on the CPU is prepared in NumPy, which reads its arrays in place: casts,
+    slices and the mask are exact operations, so the bits are XLA's, and nothing is compiled (a
+    new frame shape then compiles its correction only, tests/test_compilation.py). Elsewhere one
+    jitted program does it on the device (`_prepare_on_device`, compiled once per signature),
+    rather than reading the frames back to the host. A traced calibration is prepared inside the
+    trace, where the casts are part of a derivative.
+    """
+    if not _concrete(calibration):
+        patch = None if box is None else PatchConstants.of(calibration, dtype, box)
+        return PixelConstants.of(calibration, dtype), patch, None
+    device = _device_of(calibration)
+    if device is None or device.platform != "cpu":
+        return _prepare_on_device(calibration, np.dtype(dtype), box, with_mask)
+    dtype = np.dtype(dtype)
+    weights = colorimetry.tristimulus_weights(calibration.illuminant, observer=calibration.observer)
+
+    def cast(x):  # the same jax.Array when it is already in dtype: nothing copied
+        return x if x.dtype == dtype else jax.device_put(np.asarray(x).astype(dtype), device)
+
+    def host(x):
+        return jax.device_put(np.ascontiguousarray(x), device)
+
+    constants = PixelConstants(
+        cast(calibration.dark), cast(calibration.white), cast(calibration.coeffs), cast(calibration.wiener),
+        cast(calibration.wiener_offset), host(np.asarray(weights, dtype)),
+    )
+    patch = None
+    if box is not None:
+        r0, r1, c0, c1 = box
+        patch = PatchConstants(*(host(np.asarray(x)[r0:r1, c0:c1].astype(dtype))
+                                 for x in (calibration.dark, calibration.white, calibration.patch)))
+    mask = None
+    if with_mask:
+        white_signal = np.asarray(constants.white) - np.asarray(constants.dark)  # as `_no_flat_field`
+        mask = host(~(np.min(np.where(np.isfinite(white_signal), white_signal, -1.0), axis=-1) > 0))
+    return constants, patch, mask
+
+
+@functools.partial(jax.jit, static_argnames=("dtype", "box", "with_mask"))
+def _prepare_on_device(calibration, dtype, box, with_mask):
+    """`_prepare` as one program on the calibration's device (a GPU's)."""
+    constants = PixelConstants.of(calibration, dtype)
+    patch = None if box is None else PatchConstants.of(calibration, dtype, box)
+    mask = pipeline._no_flat_field(constants.dark, constants.white) if with_mask else None
+    return constants, patch, mask
+
+
+class Plan:
+    """The prepared correction of frames of one shape and dtype with one calibration.
+
+    Args:
+      calibration: a `spherejax.Calibration` (whole, or rows of one: then every call needs p).
+      shape: the frames' shape (..., H, W, B) with the calibration's H, W, B.
+      dtype: the frames' dtype (uint16 counts, float32 or float64).
+      kernel_mode: `fused.mode` of the frames (`plan_for` works it out; the default AUTO asks
+        for the kernel wherever it applies).
+
+    Call it as `correct` (`plan(raw, p=..., intermediates=..., noise=..., p_u=...)`) with frames
+    of that shape and dtype; `spherejax.plan` is the public way to make one. Immutable after
+    construction apart from the lazily compiled executable, so threads may share it.
+    """
+
+    def __init__(self, calibration: pipeline.Calibration, shape: tuple[int, ...], dtype, kernel_mode=fused.AUTO):
+        self.calibration = calibration
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        raw_type = jax.ShapeDtypeStruct(self.shape, self.dtype)
+        self.compute_dtype = np.dtype(pipeline._compute_dtype(raw_type, calibration))
+        self.saturation = pipeline._saturation_level(raw_type, calibration)
+        self.concrete = _concrete(calibration)
+        self.device = _device_of(calibration) if self.concrete else None
+        on_cpu = self.device is not None and self.device.platform == "cpu"
+        # The kernel is chosen at trace time by platform; the mode only says whether it may be.
+        # The kernel runs on CPU only: a plan on another device traces the jax.numpy path alone,
+        # without the kernel's custom JVP and platform switch around it.
+        off_cpu = self.device is not None and self.device.platform != "cpu"
+        usable = None if off_cpu else fused.mode(self.dtype, self.compute_dtype, calibration.bands)
+        self.kernel_mode = None if usable is None or kernel_mode is None else usable if kernel_mode == fused.AUTO else kernel_mode
+        box = calibration.patch_box if calibration.patch is not None else None
+        if calibration.patch is not None and box is None:  # a traced patch: the whole frame
+            box = (0, self.shape[-3], 0, self.shape[-2])
+        self.box = box
+        self.box_shape = None if box is None else (box[1] - box[0], box[3] - box[2])
+        self.box_origin = None if box is None else np.array([box[0], box[2]], np.int32)
+        # The jax.numpy path reads the (H, W) mask of pixels without a flat field instead of
+        # reducing over both frames at every call (on CPU a fifth of its time).
+        with_mask = self.concrete and self.kernel_mode is None
+        self.constants, self.patch, self.no_flat_field = _prepare(calibration, self.compute_dtype, box, with_mask)
+        pixels = int(np.prod(self.shape[:-1], dtype=np.int64))
+        large = pixels * _OUTPUT_BYTES_PER_PIXEL >= buffers.MIN_BYTES
+        whole = box is not None and self.shape[-3:] == (*calibration.image_shape, calibration.bands)
+        if not (self.concrete and whole):
+            self.route = PROGRAM
+        elif on_cpu and self.kernel_mode is not None and large and self.dtype in fused.RAW_DTYPES:
+            self.route = DIRECT
+        elif on_cpu and large:
+            self.route = RECYCLING
+        else:
+            self.route = PROGRAM
+        self._direct = self._kernel_arrays() if self.route == DIRECT else None
+        self._into = None
+        self._lock = threading.Lock()
+
+    # ---------------------------------------------------------------------------------------
+    # What the routes read
+
+    def _kernel_arrays(self) -> dict:
+        """The NumPy arrays the fused kernel reads on the direct route: dark and white (P, B)
+        float32 (views of the constants, which are on the CPU), coeffs, projection, bias and
+        white_xyz (`fused.kernel_constants`)."""
+        c = self.constants
+        pixels = self.shape[-3] * self.shape[-2]
+        projection, bias, white_xyz = jax.jit(fused.kernel_constants)(c.wiener, c.wiener_offset, c.tristimulus_weights)
+        return {
+            "dark": np.asarray(c.dark).reshape(pixels, c.bands), "white": np.asarray(c.white).reshape(pixels, c.bands),
+            "coeffs": np.asarray(c.coeffs), "projection": np.asarray(projection), "bias": np.asarray(bias),
+            "white_xyz": np.asarray(white_xyz),
+        }
+
+    def _into_executable(self):
+        """The compiled `steps.image_step_into` of this plan's signature (compiled once)."""
+        if self._into is None:
+            leaves, structure = jax.tree_util.tree_flatten((self.constants, self.patch, self.no_flat_field))
+            signature = (
+                self.shape, self.dtype.name, structure, tuple((x.shape, x.dtype.name) for x in leaves),
+                self.box_shape, self.saturation, self.kernel_mode,
+            )
+            outputs = self.shape[:-1]
+            with _into_lock:
+                executable = _into_executables.get(signature)
+                if executable is None:
+                    out_types = (
+                        jax.ShapeDtypeStruct((*outputs, N_WAVELENGTHS), self.compute_dtype),
+                        jax.ShapeDtypeStruct((*outputs, 3), self.compute_dtype),
+                        jax.ShapeDtypeStruct(outputs, jnp.uint8),
+                    )
+                    executable = steps.image_step_into.lower(
+                        jax.ShapeDtypeStruct(self.shape, self.dtype), self.constants, self.patch, self.box_origin,
+                        *out_types, self.no_flat_field, box_shape=self.box_shape, saturation=self.saturation,
+                        kernel_mode=self.kernel_mode,
+                    ).compile()
+                    _into_executables[signature] = executable
+            self._into = executable
+        return self._into
+
+    def _statics(self) -> dict:
+        return {"box_shape": self.box_shape, "saturation": self.saturation, "kernel_mode": self.kernel_mode}
+
+    # ---------------------------------------------------------------------------------------
+    # Calls
+
+    def patch_ratio(self, raw) -> jax.Array:
+        """p (..., B) of whole frames (`pipeline.patch_ratio`)."""
+        return steps.patch_ratio_step(
+            raw, self.patch, self.box_origin, box_shape=self.box_shape, saturation=self.saturation
+        )
+
+    def patch_ratio_u(self, raw, noise) -> jax.Array:
+        """u(p) (..., B) of whole frames under a `NoiseModel` (`pipeline.patch_ratio_u`)."""
+        return steps.patch_ratio_std_step(
+            raw, self.patch, noise, self.box_origin, box_shape=self.box_shape, saturation=self.saturation
+        )
+
+    def __call__(self, raw, *, p=None, intermediates: bool = False, noise=None, p_u=None) -> pipeline.CorrectionResult:
+        """`correct(raw, calibration, ...)` of frames of this plan's shape and dtype, checked by
+        the caller (`pipeline.correct`)."""
+        if p is not None:
+            return steps.pixels_step(
+                raw, p, self.constants, saturation=self.saturation, intermediates=intermediates,
+                kernel_mode=self.kernel_mode, noise=noise, p_u=p_u,
+            )
+        if noise is not None or intermediates:
+            return steps.image_step(raw, self.constants, self.patch, self.box_origin, intermediates=intermediates,
+                                    noise=noise, **self._statics())
+        if self.route == DIRECT and isinstance(raw, np.ndarray) and raw.flags.c_contiguous:
+            return self._correct_directly(raw)
+        if isinstance(raw, np.ndarray) and buffers.stageable(raw):
+            raw = buffers.stage(raw)  # into reused, aligned memory (`buffers`)
+        if not _checks.is_concrete(raw):
+            return self._correct_mappable(raw)
+        if self.route in (DIRECT, RECYCLING) and _on_device(raw, self.device):
+            return self._correct_recycling(raw)
+        return self._whole(raw)
+
+    def _whole(self, raw, out=None) -> pipeline.CorrectionResult:
+        return steps.image_step(raw, self.constants, self.patch, self.box_origin, intermediates=False,
+                                no_flat_field=self.no_flat_field, out=out, **self._statics())
+
+    def _correct_recycling(self, raw) -> pipeline.CorrectionResult:
+        """Whole frames on CPU, reusing the memory of outputs the caller has dropped
+        (`buffers`); the same numbers bit for bit as `_whole` (tested)."""
+        executable = self._into_executable()
+        key = (self.shape[:-1], self.compute_dtype.name)
+        out = buffers.take(key)
+        if out is None:
+            result = self._whole(raw)
+        else:
+            result = executable(raw, self.constants, self.patch, self.box_origin, *out, self.no_flat_field)
+        buffers.give(key, (result.reflectance, result.lab, result.quality))
+        return result
+
+    def _correct_directly(self, raw: np.ndarray) -> pipeline.CorrectionResult:
+        """NumPy frames by the fused kernel called directly (`fused.correct_arrays`), without
+        XLA: the same numbers as `_whole` bit for bit (tested), but the kernel reads the frames
+        where they lie, where XLA needs them copied into its own memory first (32 MB a megapixel
+        of uint16). The outputs are written into reused NumPy memory (`buffers.take_host`) and
+        handed to JAX without a copy. p comes from `steps.patch_ratio_step` on the patch's box of
+        the frames (a small copy): the program `_whole` traces into its own."""
+        (r0, c0), (h, w) = self.box_origin, self.box_shape
+        p = steps.patch_ratio_step(
+            raw[..., r0:r0 + h, c0:c0 + w, :], self.patch, self.box_origin, box_shape=self.box_shape,
+            saturation=self.saturation, raw_is_box=True,
+        )
+        *batch, height, width, bands = raw.shape
+        images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
+        pairs = buffers.take_host(
+            tuple(raw.shape[:-1]),
+            (((*batch, height, width, N_WAVELENGTHS), np.float32), ((*batch, height, width, 3), np.float32),
+             ((*batch, height, width), np.uint8)),
+        )
+        (reflectance, _), (lab, _), (quality, _) = pairs
+        k = self._direct
+        fused.correct_arrays(
+            raw.reshape(images, pixels, bands), k["dark"], k["white"], np.asarray(p).reshape(images, bands),
+            k["coeffs"], k["projection"], k["bias"], k["white_xyz"], self.saturation, self.kernel_mode,
+            (reflectance.reshape(images, pixels, N_WAVELENGTHS), lab.reshape(images, pixels, 3),
+             quality.reshape(images, pixels)),
+            threads=buffers.cpus(),
+        )
+        outputs = tuple(jax.device_put(view, self.device, may_alias=True) for view, _ in pairs)
+        del reflectance, lab, quality  # only the pool and the jax.Arrays refer to the memory now
+        buffers.give(("host", tuple(raw.shape[:-1])), pairs)
+        return pipeline.CorrectionResult(*outputs, p)
+
+    def _correct_mappable(self, raw) -> pipeline.CorrectionResult:
+        """`_whole` of traced frames, so that `jax.vmap` over the frames reuses dropped outputs'
+        memory as `correct` on the stack does.
+
+        Why. `jax.vmap(lambda r: sj.correct(r, calibration).lab)(frames)` runs `correct` on
+        tracers, so the recycling route cannot apply and every call writes its outputs into
+        fresh pages: 3.5 times slower per pixel than `correct(frames, calibration)`
+        (benchmarks/bench_batch.py). Here the frames' mapping rule
+        (`jax.custom_batching.custom_vmap`) sees the stacked frames and corrects them as one
+        stack (`_stack`): without an enclosing `jit` they are concrete and reuse memory; under
+        `jit` they are traced and XLA owns the memory.
+
+        Derivatives: `custom_vmap` has no transpose, so the whole sits in a `custom_jvp` whose
+        JVP is `_whole`'s: `jax.grad` and `jax.jvp` with respect to raw see what they saw
+        before. Without a mapping the value is `_whole`'s, traced as before.
+        """
+        if not self.concrete:  # a traced calibration: nothing to map over one calibration
+            return self._whole(raw)
+
+        def image(frames):
+            return self._whole(frames)
+
+        @jax.custom_batching.custom_vmap
+        def mappable(frames):
+            return image(frames)
+
+        @mappable.def_vmap
+        def over_frames(axis_size, in_batched, frames):
+            del axis_size, in_batched  # the only argument, so mapped, with the mapped axis first
+            if buffers.stageable(frames):  # vmap hands NumPy frames on as they are
+                frames = buffers.stage(frames)
+            result = self._stack(frames)
+            return result, jax.tree_util.tree_map(lambda _: True, result)
+
+        @jax.custom_jvp
+        def differentiable(frames):
+            return mappable(frames)
+
+        @differentiable.defjvp
+        def differentiable_jvp(primals, tangents):
+            return jax.jvp(image, primals, tangents)
+
+        return differentiable(raw)
+
+    def _stack(self, frames) -> pipeline.CorrectionResult:
+        """Frames mapped with `jax.vmap`, stacked (N, ..., H, W, B): the plan of the stack's shape."""
+        if not _checks.is_concrete(frames):
+            return self._whole(frames)
+        return plan_for(self.calibration, frames.shape, frames.dtype)(frames)
+
+
+def _on_device(raw, device) -> bool:
+    """True when raw is a jax.Array on exactly `device`."""
+    try:
+        return raw.devices() == {device}
+    except AttributeError:
+        return False
+
+
+def plan_for(calibration: pipeline.Calibration, shape, dtype) -> Plan:
+    """The calibration's plan for frames of `shape` and `dtype`: the one it keeps if it is
+    concrete (built at the first call), else a plan built now inside the trace.
+
+    The kept plans are told apart by the fused kernel's mode as well (`fused.mode`, which reads
+    SPHEREJAX_FUSED at every call): switching the kernel off or to its portable code takes
+    effect at the next call, as it did when the mode was a static argument of every call."""
+    shape, dtype = tuple(int(n) for n in shape), np.dtype(dtype)
+    if not _concrete(calibration):
+        return Plan(calibration, shape, dtype)
+    compute_dtype = pipeline._compute_dtype(jax.ShapeDtypeStruct(shape, dtype), calibration)
+    device = _device_of(calibration)
+    # The kernel runs on CPU only; asking `fused.mode` elsewhere would time its variants for nothing.
+    on_cpu = device is not None and device.platform == "cpu"
+    kernel_mode = fused.mode(dtype, compute_dtype, calibration.bands) if on_cpu else None
+    return calibration._plan((shape, dtype.str, kernel_mode), lambda: Plan(calibration, shape, dtype, kernel_mode))
