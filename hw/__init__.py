@@ -2,7 +2,8 @@
 pyserial, and emulated devices that follow the vendors' protocols (docs/instrument.md).
 
     errors        InstrumentError, the root of every hw/ error; HardwareError and its kinds:
-                  DeviceTimeout, ProtocolError, DeviceError, PortError
+                  DeviceTimeout, ProtocolError, DeviceError, PortError; AcquisitionError and
+                  AcquisitionStopped
     serialline    the echo / value line / "> " prompt protocol both Thorlabs devices speak
     filterwheel   Thorlabs FW102C / FW212C filter wheel
     shutter       Thorlabs SC10 shutter controller
@@ -12,7 +13,11 @@ pyserial, and emulated devices that follow the vendors' protocols (docs/instrume
     lamp          the xenon lamp as a manual device: lamp hours and warm-up in a state file
     profile       the instrument profile (TOML)
     emulators     FW102C / FW212C and SC10 state machines served on pseudo-terminals
-    acquire       the acquisition protocol, resumable, into a session
+    acquire       the acquisition protocol, resumable, into a session: `acquire`, one run start
+                  to finish, over acquisition_devices (connect and check the devices),
+                  acquisition_protocol (warm-up, exposures, the capture loop),
+                  acquisition_journal (SESSION.partial, its journal, resuming) and
+                  acquisition_session (the band images written as a session)
     command       `spherejax acquire`, added to spherejax's command line through the
                   "spherejax.commands" entry points (pyproject.toml)
 

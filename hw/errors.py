@@ -8,8 +8,8 @@
         lamp.LampStateError          a malformed lamp state file (also a ValueError)
         profile.ProfileError         an instrument profile that cannot be used (also a ValueError)
         filterbank.WheelCountMismatch  a wheel with another number of positions (also a ValueError)
-        acquire.AcquisitionError     an acquisition that cannot start; AcquisitionStopped: one a
-                                     fault stopped
+        AcquisitionError             an acquisition that cannot start (also acquire.AcquisitionError)
+            AcquisitionStopped       one that a fault stopped (also acquire.AcquisitionStopped)
 
 Each is one line naming what failed and, where there is one, the file, key or value and what
 was expected. Those that were ValueError or RuntimeError before this root existed still are, so
@@ -29,7 +29,10 @@ garbled line, a ``DeviceError`` is the instrument refusing a command or failing 
 
 from __future__ import annotations
 
-__all__ = ["InstrumentError", "HardwareError", "DeviceTimeout", "ProtocolError", "DeviceError", "PortError"]
+__all__ = [
+    "InstrumentError", "HardwareError", "DeviceTimeout", "ProtocolError", "DeviceError", "PortError",
+    "AcquisitionError", "AcquisitionStopped",
+]
 
 
 class InstrumentError(Exception):
@@ -82,3 +85,14 @@ class DeviceError(HardwareError):
 class PortError(HardwareError):
     """The serial port could not be opened, is not open, or vanished mid-session
     (``serial.SerialException`` / ``OSError`` from pyserial)."""
+
+
+# Here rather than in acquire.py: every module of the acquisition (acquisition_devices,
+# acquisition_journal, acquisition_protocol, acquisition_session) raises them, and acquire.py,
+# which re-exports them, imports those modules.
+class AcquisitionError(InstrumentError):
+    """The acquisition cannot start: one line saying why; nothing moved, nothing was written."""
+
+
+class AcquisitionStopped(AcquisitionError):
+    """A fault stopped a running acquisition: one line saying why and what was kept."""

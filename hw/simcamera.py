@@ -1,11 +1,12 @@
 """A simulated camera: frames rendered by spherejax's physical sphere simulator.
 
 `SimulatedCamera` implements `hw.camera.Camera` over `spherejax.simulate`: the same renderer
-(`_Renderer.rates`: multi-bounce sphere, vignetting, filter gradients, glare, non-Lambertian
-coupling, fluorescence), the same flux calibration (`_Renderer.calibrate_exposures` on the white
-standard), the same exposure model (`_expose`: shot noise, read noise, dark current, gain, bias,
-14-bit ADC, saturation) and the same xenon lamp (slow drift, frame-to-frame flicker). What it adds
-is what a camera in the instrument sees from moment to moment:
+(`spherejax.simulated_rendering._Renderer.rates`: multi-bounce sphere, vignetting, filter
+gradients, glare, non-Lambertian coupling, fluorescence), the same flux calibration
+(`_Renderer.calibrate_exposures` on the white standard), the same exposure model (`_expose`:
+shot noise, read noise, dark current, gain, bias, 14-bit ADC, saturation) and the same xenon
+lamp (slow drift, frame-to-frame flicker). What it adds is what a camera in the instrument sees
+from moment to moment:
 
 - the band whose filter is in the light path, asked of `light_path()` at every snap (0..15 for
   400..700 nm, None when no single band filter is in the path: two crossed narrow-band filters
@@ -42,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spherejax import simulate
+from spherejax import simulate, simulated_rendering
 from spherejax.grid import BAND_CENTRES_NM
 
 from .camera import Camera, CameraError
@@ -141,7 +142,7 @@ class SimulatedCamera(Camera):
         self.design = design if image_shape is None else _design_for_shape(design, self.instrument, image_shape)
         self._image_shape = tuple(int(v) for v in self.design.image_shape(self.instrument))
         self._holder_shape = tuple(int(v) for v in self.design.holder_shape(self.instrument))
-        self._renderer = simulate._Renderer(self.instrument, self._image_shape, self._holder_shape, self.seed)
+        self._renderer = simulated_rendering._Renderer(self.instrument, self._image_shape, self._holder_shape, self.seed)
         self._standard, self._tile, self._mount = simulate.fixed_materials(self.instrument, self.seed)
         self._fixed = {
             "white": simulate.Scene("white", "white", np.zeros(self._holder_shape, np.int32), (self._standard,)),
@@ -205,7 +206,7 @@ class SimulatedCamera(Camera):
             plane = np.zeros((height // b, width // b), np.float32)
         inst = self.instrument
         self._renderer.key, key = jax.random.split(self._renderer.key)
-        frame = simulate._expose(
+        frame = simulated_rendering._expose(
             jnp.asarray(plane[None], jnp.float32),
             jnp.asarray([self.exposure_s], jnp.float32),
             jnp.asarray([lamp], jnp.float32),

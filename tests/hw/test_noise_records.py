@@ -10,7 +10,7 @@ import types
 import numpy as np
 import pytest
 
-from spherejax_hw import acquire
+from spherejax_hw import acquire, acquisition_session
 from spherejax_hw.profile import NoiseSettings, ProfileError, load_profile
 from spherejax import calibrate, io, simulate
 
@@ -89,16 +89,16 @@ def test_camera_record_prefers_the_cameras_own_values(folder):
     data["noise"] = dict(NOISE)
     profile = load_profile(write(folder, data))
     real = types.SimpleNamespace(name="retiga", noise_parameters=None)
-    assert acquire._camera_noise(profile, real) == {
+    assert acquisition_session._camera_noise(profile, real) == {
         "gain_e_per_count": 1.04, "read_noise_counts": 5.8, "white_reflectance_u": 0.003,
         "source": "profile profile.toml [noise]",
     }
     knows = types.SimpleNamespace(name="sim", noise_parameters={"gain_e_per_count": 2.0, "read_noise_counts": 3.0})
-    assert acquire._camera_noise(profile, knows) == {
+    assert acquisition_session._camera_noise(profile, knows) == {
         "gain_e_per_count": 2.0, "read_noise_counts": 3.0, "white_reflectance_u": 0.003, "source": "camera 'sim'",
     }
     bare = load_profile(write(folder, example(), "bare.toml"))
-    assert acquire._camera_noise(bare, real) == {}
+    assert acquisition_session._camera_noise(bare, real) == {}
 
 
 def test_simulated_camera_reports_its_models_noise():

@@ -1,0 +1,117 @@
+"""The devices of one acquisition, opened and checked before anything moves (`connect`).
+
+`connect` opens every filter wheel and the shutter of the profile (or, with --emulate, emulated
+ones on pseudo-terminals, `hw.emulators`) and checks them (*idn?, pcount? against the profile,
+id?), then the camera: the profile's backend, or the simulated camera (`hw.simcamera`) wired to
+the band in the light path and to the shutter, so that its frames follow what the devices do.
+A device that fails its check is one AcquisitionError line naming it and its profile key.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import pathlib
+from collections.abc import Iterator
+
+from .camera import Camera, CameraError, open_camera
+from .errors import AcquisitionError, HardwareError
+from .filterbank import FilterBank, WheelCountMismatch
+from .filterwheel import FilterWheel
+from .lamp import Lamp
+from .profile import Profile
+from .shutter import Shutter
+
+
+@dataclasses.dataclass
+class Instrument:
+    """The connected devices of one run."""
+
+    profile: Profile
+    bank: FilterBank
+    shutter: Shutter
+    camera: Camera
+    lamp: Lamp
+    emulated: object | None = None  # hw.emulators ports when --emulate
+
+
+def _emulate(profile: Profile, stack: contextlib.ExitStack):
+    """Emulated wheels and shutter on pseudo-terminals, in the profile's initial state."""
+    from .emulators import EmulatedPort, FilterWheelEmulator, ShutterEmulator
+
+    wheels = {
+        name: stack.enter_context(EmulatedPort(FilterWheelEmulator(model=config.model, position=config.open_slot)).start())
+        for name, config in profile.wheels.items()
+    }
+    shutter = stack.enter_context(EmulatedPort(ShutterEmulator(closed=True)).start())
+    return {"wheels": wheels, "shutter": shutter}
+
+
+def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lamp_state_file: pathlib.Path) -> Instrument:
+    """Open and check every device; nothing moves until all checks pass.
+
+    Raises AcquisitionError naming the device for an *idn?/id? mismatch, a pcount? that
+    disagrees with the profile, or a device that does not answer.
+    """
+    emulated = _emulate(profile, stack) if emulate else None
+    wheel_ports = {name: (emulated["wheels"][name].path if emulated else cfg.port) for name, cfg in profile.wheels.items()}
+    shutter_port = emulated["shutter"].path if emulated else profile.shutter.port
+    wheels = {}
+    for name, config in profile.wheels.items():
+        with _naming(f"wheel {name!r} ([wheels.{name}])"):
+            wheels[name] = stack.enter_context(
+                FilterWheel(wheel_ports[name], model=config.model, move_timeout_s=config.move_timeout_s)
+            )
+    bank = FilterBank(profile, wheels)
+    with _naming("filter wheels"):
+        bank.check()
+    with _naming("shutter ([shutter])"):
+        shutter = stack.enter_context(Shutter(shutter_port))
+
+    if profile.camera.backend == "sim":
+        from .simcamera import SimulatedCamera
+
+        if emulated:
+            wheel_state = emulated["wheels"]
+            light_path = lambda: _band_index(profile.band_at({n: p.emulator.position for n, p in wheel_state.items()}))  # noqa: E731
+            shutter_open = lambda: not emulated["shutter"].emulator.closed  # noqa: E731
+        else:
+            light_path = lambda: _band_index(bank.band_in_path())  # noqa: E731
+            shutter_open = lambda: not shutter.is_closed()  # noqa: E731
+        options = dict(profile.camera.options)
+        camera = SimulatedCamera(light_path=light_path, shutter_open=shutter_open, **options)
+        missing = sorted(set(profile.band_centres_nm) - set(camera.band_centres_nm))
+        if missing:
+            raise AcquisitionError(
+                f"{profile.path}: bands {missing} nm: the simulated camera renders only "
+                f"{camera.band_centres_nm[0]}..{camera.band_centres_nm[-1]} nm step 20"
+            )
+    else:
+        try:
+            camera = open_camera(profile.camera.backend, **profile.camera.options)
+        except (CameraError, ValueError) as error:
+            raise AcquisitionError(f"camera: {error}") from None
+    stack.callback(camera.close)
+    return Instrument(profile, bank, shutter, camera, Lamp(lamp_state_file), emulated)
+
+
+@contextlib.contextmanager
+def _naming(device: str) -> Iterator[None]:
+    """A failed device check as one AcquisitionError naming the device and its profile key."""
+    try:
+        yield
+    except WheelCountMismatch as error:
+        raise AcquisitionError(str(error)) from None
+    except HardwareError as error:
+        raise AcquisitionError(f"{device} failed its check: {error}") from None
+
+
+def _band_index(band: int | None) -> int | None:
+    """The simulated camera's band index of a band in the path (its bands are spherejax's grid;
+    `connect` has checked the profile's bands are among them)."""
+    from spherejax.grid import BAND_CENTRES_NM
+
+    return None if band is None else BAND_CENTRES_NM.tolist().index(band)
+
+
+__all__ = ["Instrument", "connect"]
