@@ -207,3 +207,23 @@ def test_plan_refuses_what_it_cannot_prepare(large, shape, dtype, message):
 def test_plan_refuses_what_is_not_a_calibration():
     with pytest.raises(ValueError, match="calibration: expected a spherejax.Calibration, got dict"):
         sj.plan({}, (4, 4, 16))
+
+
+def test_a_dropped_calibration_is_freed_with_its_plans_at_once():
+    """A calibration keeps its plans and a plan refers to its calibration weakly: no reference
+    cycle, so dropping the calibration frees both (and their frames) without waiting for the
+    cycle collector."""
+    import gc
+    import weakref
+
+    calibration = make_calibration(128, seed=9)
+    raw = make_frames(calibration, seed=10)
+    sj.correct(raw, calibration)
+    prepared = weakref.ref(sj.plan(calibration, raw.shape, dtype=raw.dtype))
+    gone = weakref.ref(calibration)
+    gc.disable()
+    try:
+        del calibration
+        assert gone() is None and prepared() is None
+    finally:
+        gc.enable()

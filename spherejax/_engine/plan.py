@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import threading
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -136,16 +137,17 @@ class Plan:
     """
 
     def __init__(self, calibration: pipeline.Calibration, shape: tuple[int, ...], dtype, kernel_mode=fused.AUTO):
-        self.calibration = calibration
         self.shape = tuple(int(n) for n in shape)
         self.dtype = np.dtype(dtype)
         raw_type = jax.ShapeDtypeStruct(self.shape, self.dtype)
         self.compute_dtype = np.dtype(pipeline._compute_dtype(raw_type, calibration))
         self.saturation = pipeline._saturation_level(raw_type, calibration)
         self.concrete = _concrete(calibration)
+        # A kept plan refers to its calibration weakly: the calibration keeps its plans, and a
+        # cycle would hold both frames until a full garbage collection.
+        self._calibration = weakref.ref(calibration) if self.concrete else (lambda: calibration)
         self.device = _device_of(calibration) if self.concrete else None
         on_cpu = self.device is not None and self.device.platform == "cpu"
-        # The kernel is chosen at trace time by platform; the mode only says whether it may be.
         # The kernel runs on CPU only: a plan on another device traces the jax.numpy path alone,
         # without the kernel's custom JVP and platform switch around it.
         off_cpu = self.device is not None and self.device.platform != "cpu"
@@ -353,9 +355,15 @@ class Plan:
 
     def _stack(self, frames) -> pipeline.CorrectionResult:
         """Frames mapped with `jax.vmap`, stacked (N, ..., H, W, B): the plan of the stack's shape."""
-        if not _checks.is_concrete(frames):
+        calibration = self._calibration()
+        if not _checks.is_concrete(frames) or calibration is None:
             return self._whole(frames)
-        return plan_for(self.calibration, frames.shape, frames.dtype)(frames)
+        return plan_for(calibration, frames.shape, frames.dtype)(frames)
+
+    @property
+    def calibration(self):
+        """The calibration this plan prepares (None once it is gone: the plan still corrects)."""
+        return self._calibration()
 
 
 def _on_device(raw, device) -> bool:
