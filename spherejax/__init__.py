@@ -14,8 +14,11 @@ Layers. Each module imports only modules of its own layer or of the layers below
 
 1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, estimation (a
    module per reflectance estimator, and their cross-validation) and wiener_estimation (its old
-   name, kept for existing imports), pipeline, uncertainty, consistency, markov, angles, fused
-   (the CPU kernel), buffers, grid, spectra, allocator, jsontext (a parser of text it is
+   name, kept for existing imports), pipeline (the types, the equations, `correct` and `plan`),
+   pixel_constants (the calibration's arrays as the per-pixel step reads them),
+   correction_result, uncertainty, noise_document (a NoiseModel's JSON as a document),
+   consistency, markov, angles, _engine (private: the prepared plan and its routes, the jitted
+   steps, the fused CPU kernel, buffers, allocator), grid, spectra, jsontext (a parser of text it is
    given), number_text (numbers in the shortest text of their precision, JSON values and CSV
    tables as text), labelled (the xarray names of the outputs), _checks.
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never

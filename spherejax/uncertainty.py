@@ -140,21 +140,19 @@ class NoiseModel(eqx.Module):
             )
 
     def check_bands(self, bands: int) -> None:
-        """Raise ValueError unless every per-band field fits `bands` bands."""
-        for name in ("gain", "read_noise", "white_reflectance_u"):
-            value = getattr(self, name)
-            if value.ndim == 1 and value.shape[0] != bands:
-                raise ValueError(f"NoiseModel: {name} has {value.shape[0]} values, expected one or {bands} (one per band)")
-        if self.coeffs_covariance is not None and self.coeffs_covariance.shape[0] != bands:
-            raise ValueError(
-                f"NoiseModel: coeffs_covariance has shape {tuple(self.coeffs_covariance.shape)}, expected ({bands}, 4, 4)"
-            )
-        if self.estimator_covariance is not None:
-            gram = self.estimator_covariance.gram
-            if tuple(gram.shape) != (bands + 1, bands + 1):
-                raise ValueError(
-                    f"NoiseModel: estimator_covariance.gram has shape {tuple(gram.shape)}, expected ({bands + 1}, {bands + 1})"
-                )
+        """Raise ValueError unless every per-band field fits `bands` bands (`band_problem`)."""
+        estimator = self.estimator_covariance
+        problem = band_problem(
+            {
+                "gain": self.gain.shape, "read_noise": self.read_noise.shape,
+                "white_reflectance_u": self.white_reflectance_u.shape,
+                "coeffs_covariance": None if self.coeffs_covariance is None else self.coeffs_covariance.shape,
+                "estimator_covariance.gram": None if estimator is None else estimator.gram.shape,
+            },
+            bands,
+        )
+        if problem is not None:
+            raise ValueError(f"NoiseModel: {problem}")
 
     # -- the variances of N1-N3, in counts² ---------------------------------------------------
 
@@ -180,68 +178,62 @@ class NoiseModel(eqx.Module):
     # -- files ------------------------------------------------------------------------------------
 
     def to_json(self) -> dict:
-        """Plain JSON (numbers and lists) that `from_json` reads back exactly."""
-        def value(x):
-            return None if x is None else np.asarray(x, np.float64).tolist()
+        """Plain JSON (numbers and lists, every number a float64) that `from_json` reads back
+        exactly: the model's document (`spherejax.noise_document`, which says what each key
+        holds)."""
+        from .noise_document import NoiseModelDocument  # pydantic only when a model is written
 
-        estimator = self.estimator_covariance
-        return {
-            "gain_e_per_count": value(self.gain),
-            "read_noise_counts": value(self.read_noise),
-            "dark_frames": value(self.dark_frames),
-            "white_frames": value(self.white_frames),
-            "sample_frames": value(self.sample_frames),
-            "white_reflectance_u": value(self.white_reflectance_u),
-            "coeffs_covariance": value(self.coeffs_covariance),
-            "estimator_covariance": None if estimator is None else {
-                "gram": value(estimator.gram), "residual": value(estimator.residual),
-            },
-        }
+        return NoiseModelDocument.of(self).model_dump()
 
     @classmethod
-    def from_json(cls, doc: Mapping) -> NoiseModel:
-        """The model `to_json` wrote; ValueError naming the key on anything else."""
-        if not isinstance(doc, Mapping):
-            raise ValueError(f"noise model: expected a JSON object, got {type(doc).__name__}")
-        keys = {
-            "gain_e_per_count", "read_noise_counts", "dark_frames", "white_frames", "sample_frames",
-            "white_reflectance_u", "coeffs_covariance", "estimator_covariance",
-        }
-        unknown = sorted(set(doc) - keys)
-        if unknown:
-            raise ValueError(f"noise model: unknown key {unknown[0]!r}; expected some of {sorted(keys)}")
-        for key in ("gain_e_per_count", "read_noise_counts"):
-            if key not in doc:
-                raise ValueError(f"noise model: missing {key!r}")
+    def from_json(cls, doc: Mapping, *, bands: int | None = None) -> NoiseModel:
+        """The model `to_json` wrote, its per-band values checked against `bands` bands when
+        given; ValueError on one line naming the key, the value found and what was expected on
+        anything else (`spherejax.noise_document`)."""
+        from .noise_document import check  # pydantic only when a model is read
 
-        def array(key, value):
-            try:
-                out = np.asarray(value, np.float64)
-            except (TypeError, ValueError):
-                raise ValueError(f"noise model: {key} is {value!r}, expected numbers") from None
-            if out.dtype != np.float64 or not np.all(np.isfinite(out)):
-                raise ValueError(f"noise model: {key} expected finite numbers, got {value!r}")
-            return out
-
-        estimator = doc.get("estimator_covariance")
-        if estimator is not None:
-            if not isinstance(estimator, Mapping) or set(estimator) != {"gram", "residual"}:
-                raise ValueError("noise model: estimator_covariance expected an object with 'gram' and 'residual'")
-            estimator = EstimatorCovariance(
-                gram=array("estimator_covariance.gram", estimator["gram"]),
-                residual=array("estimator_covariance.residual", estimator["residual"]),
-            )
-        coeffs = doc.get("coeffs_covariance")
+        checked = check(doc, bands=bands)
+        estimator = checked.estimator_covariance
         return cls(
-            gain=array("gain_e_per_count", doc["gain_e_per_count"]),
-            read_noise=array("read_noise_counts", doc["read_noise_counts"]),
-            dark_frames=array("dark_frames", doc.get("dark_frames", 1)),
-            white_frames=array("white_frames", doc.get("white_frames", 1)),
-            sample_frames=array("sample_frames", doc.get("sample_frames", 1)),
-            white_reflectance_u=array("white_reflectance_u", doc.get("white_reflectance_u", 0.0)),
-            coeffs_covariance=None if coeffs is None else array("coeffs_covariance", coeffs),
-            estimator_covariance=estimator,
+            gain=checked.gain_e_per_count,
+            read_noise=checked.read_noise_counts,
+            dark_frames=checked.dark_frames,
+            white_frames=checked.white_frames,
+            sample_frames=checked.sample_frames,
+            white_reflectance_u=checked.white_reflectance_u,
+            coeffs_covariance=checked.coeffs_covariance,
+            estimator_covariance=None if estimator is None else EstimatorCovariance(
+                gram=estimator.gram, residual=estimator.residual,
+            ),
         )
+
+
+def band_problem(
+    shapes: Mapping[str, tuple[int, ...] | None], bands: int, *, keys: Mapping[str, str] | None = None,
+) -> str | None:
+    """The first per-band field of a noise model that does not fit `bands` bands, in words, or
+    None: the one rule of `NoiseModel.check_bands` (a model in memory) and of its JSON document
+    (`spherejax.noise_document`, whose keys differ from the field names by `keys`).
+
+    Args:
+      shapes: field -> its shape (None for an absent covariance), for "gain", "read_noise",
+        "white_reflectance_u", "coeffs_covariance" and "estimator_covariance.gram".
+      bands: the number of bands B.
+      keys: field -> the name it goes by where the shapes come from, named beside the field's.
+    """
+    keys = keys or {}
+    for name in ("gain", "read_noise", "white_reflectance_u"):
+        shape = tuple(shapes[name])
+        if len(shape) == 1 and shape[0] != bands:
+            where = f" in {keys[name]}" if name in keys else ""
+            return f"{name} has {shape[0]} values{where}, expected one or {bands} (one per band)"
+    coeffs = shapes["coeffs_covariance"]
+    if coeffs is not None and tuple(coeffs)[0] != bands:
+        return f"coeffs_covariance has shape {tuple(coeffs)}, expected ({bands}, 4, 4)"
+    gram = shapes["estimator_covariance.gram"]
+    if gram is not None and tuple(gram) != (bands + 1, bands + 1):
+        return f"estimator_covariance.gram has shape {tuple(gram)}, expected ({bands + 1}, {bands + 1})"
+    return None
 
 
 def check_noise(noise, bands: int) -> NoiseModel | None:
@@ -475,6 +467,7 @@ __all__ = [
     "COMMON_SOURCES",
     "ESTIMATOR_SOURCE",
     "check_noise",
+    "band_problem",
     "patch_ratio_std",
     "band_tangents",
     "coefficient_variance",

@@ -1,8 +1,8 @@
 """The `spherejax` command line (docs/design.md, "The command line").
 
-Modules: parser (conventions, every command's options and help), run (`main`), shared (what
-several commands share), session_commands (simulate, calibrate, evaluate, study, demo),
-correct_command, measure_command.
+Modules: parser (conventions, every command's options and help), number_types (one argparse
+type per kind of number an option takes), run (`main`), shared (what several commands share),
+session_commands (simulate, calibrate, evaluate, study, demo), correct_command, measure_command.
 
     spherejax demo [-o DIR] [--seed N]         simulate, calibrate, correct, evaluate
     spherejax simulate -o DIR [--seed N]       a synthetic session like the paper's experiment

@@ -66,35 +66,18 @@ def _measure_reference(value: str | None, names):
     )
 
 
-def _measure_number(option: str, value: str | None, expected: str, ok, kind=float):
-    """The option's number, None if not given; ValueError naming option and value otherwise."""
-    import math
-
-    if value is None:
-        return None
-    try:
-        number = kind(value)
-    except ValueError:
-        number = None
-    if number is None or not math.isfinite(number) or not ok(number):
-        raise ValueError(f"{option} {value!r}: expected {expected}")
-    return number
-
-
 def _measure_noise(args, from_file):
     """(noise model or None, where it came from, a note for stderr or None); ValueError on bad
     options.
 
     The calibration's model by default; --gain, --read-noise and --frames override its fields or,
-    both of the first two given, make one when the calibration has none."""
+    both of the first two given, make one when the calibration has none. Each is a number in
+    range or None: the parser refused anything else (cli.number_types)."""
     import numpy as np
 
     from ..uncertainty import NoiseModel
 
-    gain = _measure_number("--gain", args.gain, "electrons per count, a number > 0", lambda x: x > 0)
-    read = _measure_number("--read-noise", args.read_noise, "counts rms of one frame, a number >= 0", lambda x: x >= 0)
-    frames = _measure_number("--frames", args.frames, "the sample frames averaged, an integer >= 1",
-                             lambda x: x >= 1, kind=int)
+    gain, read, frames = args.gain, args.read_noise, args.frames
     options = gain is not None or read is not None or frames is not None
     single = lambda x: np.float32(x)  # noqa: E731  the dtype a calibration file's model reads back in
     if from_file is None:

@@ -4,11 +4,13 @@ for every output path, one-line usage errors) and every command's options, descr
 from __future__ import annotations
 
 import argparse
+import sys
 
+from . import number_types as numbers
 from .correct_command import cmd_correct
 from .measure_command import cmd_measure
 from .session_commands import cmd_calibrate, cmd_demo, cmd_evaluate, cmd_simulate, cmd_study
-from .shared import EXIT_BAD_INPUT, LOSSES, WIENER_METHODS
+from .shared import EXIT_BAD_INPUT, LOSSES, WIENER_METHODS, _one_line
 
 #: Entry-point group through which installed packages add commands, each entry point a function
 #: `add_command(commands)` given the subparsers action (spherejax_hw adds `acquire` this way: the
@@ -50,9 +52,21 @@ def _terminal_width() -> int:
 class _OneLineErrors:
     """argparse's usage errors as one line, like every other bad input:
     "spherejax correct: error: the following arguments are required: -c/--calibration (see
-    'spherejax correct --help')", exit status 2."""
+    'spherejax correct --help')", exit status 2.
+
+    A value that is not a number of its option's kind (`number_types`) is bad input rather than
+    a usage error: it gets the line every bad input gets, "spherejax: error: --gain '0': expected
+    electrons per count, a finite number > 0", and `number_types.BadNumber` (exit status 2),
+    which `main` returns as it returns the status of every other bad input."""
 
     def error(self, message):
+        # argparse calls this inside its `except ArgumentError`, raised from the type's
+        # ArgumentTypeError: the NumberError is that ArgumentError's context.
+        failure = sys.exc_info()[1]
+        if isinstance(failure, argparse.ArgumentError) and isinstance(failure.__context__, numbers.NumberError):
+            line = failure.__context__.line(failure.argument_name)
+            self._print_message(f"spherejax: error: {_one_line(line)}\n", sys.stderr)
+            raise numbers.BadNumber(EXIT_BAD_INPUT)
         text = " ".join(str(message).split())
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {text} (see '{self.prog} --help')\n")
 
@@ -108,6 +122,19 @@ def add_output_option(parser, *, dest: str, metavar: str, help: str, required: b
     note = " (--output: the old spelling, deprecated)" if old_spelling else ""
     parser.add_argument(*flags, dest=dest, metavar=metavar, required=required, default=default,
                         action=_Output, help=help + note)
+
+
+# The type of each numeric option, by what its number is (`number_types`: one kind each).
+SEED = numbers.non_negative_integer("the simulation's seed", maximum=numbers.SEED_MAX)
+GAIN = numbers.positive_number("electrons per count")
+READ_NOISE = numbers.non_negative_number("one frame's read noise in counts rms")
+WHITE_REFLECTANCE_U = numbers.non_negative_number("the white standard's relative standard uncertainty (0.003 for 0.3 %)")
+SAMPLE_FRAMES = numbers.positive_integer("the sample frames averaged", maximum=numbers.FRAMES_MAX)
+# The number's whole range is for spherejax.cluster.check_workers, which knows the machine's cores.
+WORKERS = numbers.integer("the number of worker processes (1..the cores this process may use)")
+# `study`'s, in the words of the checks they replace (`number_types.EXPECTED_FIRST`).
+RESPONSE_WEIGHT = numbers.non_negative_number(expected="a value >= 0", layout=numbers.EXPECTED_FIRST)
+MAX_STEPS = numbers.positive_integer(expected="a positive number of BFGS iterations", layout=numbers.EXPECTED_FIRST)
 
 
 def _version_line() -> str:
@@ -190,7 +217,7 @@ simulator or spherejax version in OUT is refused (choose another OUT), never rep
   spherejax demo -q -o demo               # tables and figures only in demo/evaluation""")
     add_output_option(demo, dest="out", metavar="DIR", default="spherejax-demo",
                       help="output folder: session/, calibration.h5, evaluation/ (default ./spherejax-demo)")
-    demo.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    demo.add_argument("--seed", type=SEED, default=0, help="simulation seed, 0..2**63 - 1 (default 0)")
     calibration_options(demo)
     demo.set_defaults(run=cmd_demo)
 
@@ -205,7 +232,7 @@ Simulate the paper's experiment on a physical model of the sphere, lamp, filters
     add_output_option(simulate, dest="out", metavar="DIR", help="session folder to create (new, or empty)")
     simulate.add_argument("out_positional", nargs="?", metavar="OUT", action=_Output,
                           help="the session folder as a positional argument: the old spelling of -o/--out, deprecated")
-    simulate.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    simulate.add_argument("--seed", type=SEED, default=0, help="simulation seed, 0..2**63 - 1 (default 0)")
     simulate.set_defaults(run=cmd_simulate)
 
     calibrate = _command(commands, "calibrate", summary="fit Stage II and the reflectance estimator from a session",
@@ -224,12 +251,12 @@ replaced only with --force, and only when it is a spherejax calibration.""",
     calibrate.add_argument("--force", action="store_true",
                            help="replace CAL if it exists (it must be a spherejax calibration)")
     calibration_options(calibrate)
-    calibrate.add_argument("--gain", metavar="E_PER_COUNT",
+    calibrate.add_argument("--gain", metavar="E_PER_COUNT", type=GAIN,
                            help="camera gain, electrons per count, for the stored noise model "
                                 "(default: the session's metadata camera, if it records one)")
-    calibrate.add_argument("--read-noise", metavar="COUNTS",
+    calibrate.add_argument("--read-noise", metavar="COUNTS", type=READ_NOISE,
                            help="read noise of one frame, counts rms (default: the session's, as --gain)")
-    calibrate.add_argument("--white-reflectance-u", metavar="REL",
+    calibrate.add_argument("--white-reflectance-u", metavar="REL", type=WHITE_REFLECTANCE_U,
                            help="relative standard uncertainty of the white standard's certified "
                                 "reflectance, e.g. 0.003 (default: the session's, else 0)")
     calibrate.set_defaults(run=cmd_calibrate)
@@ -263,9 +290,9 @@ captures (Table 6 format). OUT gets study.txt, study.csv, study.json and study-c
     study.add_argument("session", metavar="SESSION", help="session folder with training and test captures")
     study.add_argument("-c", "--calibration", metavar="CAL", help="starting calibration (default: the closed form from SESSION)")
     study.add_argument("--wiener", action="store_true", help="also optimise the Wiener matrix")
-    study.add_argument("--response-weight", type=float, default=0.01,
+    study.add_argument("--response-weight", type=RESPONSE_WEIGHT, default=0.01,
                        help="weight of the paper's response residual (Eq. 21) beside ΔE00 (default 0.01; 0 = colour only)")
-    study.add_argument("--max-steps", type=int, default=300, help="BFGS iterations (default 300)")
+    study.add_argument("--max-steps", type=MAX_STEPS, default=300, help="BFGS iterations (default 300)")
     add_output_option(study, dest="out", metavar="DIR", help="output folder (default SESSION-study beside the session)")
     calibration_options(study)
     study.set_defaults(run=cmd_study)
@@ -298,7 +325,7 @@ cleanly. --workers or --scheduler spreads the batch over dask.distributed.""",
                          help="lossless compression of the EXR outputs (default piz: smaller and faster than zip "
                               "on noisy reflectance; none: fastest, largest)")
     scale = correct.add_mutually_exclusive_group()
-    scale.add_argument("--workers", type=int, metavar="N",
+    scale.add_argument("--workers", type=WORKERS, metavar="N",
                        help="start a local dask.distributed cluster of N single-threaded worker processes, "
                             "one per core: N in 1..the cores this process may use (its CPU affinity), no more "
                             "(refused before any work); its scratch space is a temporary spherejax-dask-* folder, "
@@ -332,11 +359,12 @@ OUT.csv and OUT.json, and with --cgats a CGATS.17 file colour quality-control so
     measure.add_argument("--cgats", metavar="FILE",
                          help="also write the regions as CGATS.17 text (X-Rite layout: SAMPLE_ID, SAMPLE_NAME, "
                               "LAB_L/A/B, nm400..nm700), as colour quality-control software and ArgyllCMS read")
-    measure.add_argument("--gain", metavar="E_PER_COUNT",
+    measure.add_argument("--gain", metavar="E_PER_COUNT", type=GAIN,
                          help="camera gain, electrons per count: overrides the calibration's noise model, "
                               "or with --read-noise supplies one")
-    measure.add_argument("--read-noise", metavar="COUNTS", help="read noise of one frame, counts rms (as --gain)")
-    measure.add_argument("--frames", metavar="N",
+    measure.add_argument("--read-noise", metavar="COUNTS", type=READ_NOISE,
+                         help="read noise of one frame, counts rms (as --gain)")
+    measure.add_argument("--frames", metavar="N", type=SAMPLE_FRAMES,
                          help="sample frames averaged in INPUT (default: the noise model's, else 1)")
     measure.set_defaults(run=cmd_measure)
     return parser

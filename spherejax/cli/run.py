@@ -9,6 +9,7 @@ import sys
 
 from .. import console, interrupt
 from .._engine.allocator import keep_freed_memory
+from .number_types import BadNumber
 from .parser import DEPRECATED_SPELLINGS, _version_line, build_parser
 from .shared import EXIT_BAD_INPUT, _one_line
 
@@ -20,7 +21,10 @@ def _error_line(error: BaseException) -> str:
 def main(argv=None) -> int:
     """Run the command line on `argv` (default sys.argv[1:]); the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except BadNumber as refused:  # said on stderr in one line by the parser (`number_types`)
+        return refused.code
     if args.command is None:
         parser.print_help()  # a bare `spherejax`: what it can do, not an error
         return 0

@@ -30,34 +30,11 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-def _calibrate_noise_options(args) -> None:
-    """--gain, --read-noise and --white-reflectance-u as numbers on `args` (None when not given);
-    ValueError (one line: exit status 2, nothing written) for a value that is not a finite number
-    in range."""
-    import math
-
-    for option, name, expected, ok in (
-        ("--gain", "gain", "electrons per count, a number > 0", lambda x: x > 0),
-        ("--read-noise", "read_noise", "one frame's read noise in counts rms, a number >= 0", lambda x: x >= 0),
-        ("--white-reflectance-u", "white_reflectance_u",
-         "the white standard's relative standard uncertainty, a number >= 0 (0.003 for 0.3 %)", lambda x: x >= 0),
-    ):
-        value = getattr(args, name)
-        if value is None:
-            continue
-        try:
-            number = float(value)
-        except ValueError:
-            number = math.nan
-        if not math.isfinite(number) or not ok(number):
-            raise ValueError(f"{option} {value!r}: expected {expected}")
-        setattr(args, name, number)
-
-
 def cmd_calibrate(args) -> int:
     from .. import calibrate, io
 
-    _calibrate_noise_options(args)  # before any work
+    # --gain, --read-noise and --white-reflectance-u are numbers in range or None: the parser
+    # refused anything else (cli.number_types) before any work.
     session = io.load_session(args.session)
     # CAL may go beside the session's files, never over one, nor over a file spherejax did not write.
     _check_calibration_output(args.output, "-o CAL", _inputs(session), force=args.force)
@@ -89,11 +66,8 @@ def cmd_evaluate(args) -> int:
 def cmd_study(args) -> int:
     from .. import evaluate, io, number_text, study
 
+    # --response-weight >= 0 and --max-steps >= 1: the parser refused anything else (cli.number_types).
     session = io.load_session(args.session)
-    if args.response_weight < 0:
-        raise ValueError(f"--response-weight: expected a value >= 0, got {args.response_weight}")
-    if args.max_steps < 1:
-        raise ValueError(f"--max-steps: expected a positive number of BFGS iterations, got {args.max_steps}")
     out = pathlib.Path(args.out or str(pathlib.Path(session.path).with_name(pathlib.Path(session.path).name + "-study")))
     _check_output_folder(out, _STUDY_FILES, _STUDY_RECORD, label="--out DIR" if args.out else "SESSION-study",
                          inputs=_inputs(session, args.calibration), holding=_session_files(session))

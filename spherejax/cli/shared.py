@@ -74,7 +74,7 @@ def _calibrate(session, args, progress):
     calibration, report = calibrate.calibrate_session(
         session, reference=args.reference_background, loss=args.loss, illuminant=args.illuminant,
         wiener_method=args.wiener_method, wiener_groups=args.wiener_groups,
-        # `calibrate` parses these (`_calibrate_noise_options`); the other commands have none.
+        # `calibrate`'s numbers (parsed by cli.number_types); the other commands have none.
         gain=getattr(args, "gain", None), read_noise=getattr(args, "read_noise", None),
         white_reflectance_u=getattr(args, "white_reflectance_u", None),
     )

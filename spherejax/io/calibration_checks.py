@@ -100,7 +100,7 @@ class _CalibrationHeader(Document):
     metadata: JsonObject
     checksum: Checksum
     arrays: Annotated[_Arrays, Expect(f"an object describing {list(CALIBRATION_ARRAYS)}")]
-    noise_model: Any = None  # checked by noise_model_of, against NoiseModel.from_json
+    noise_model: Any = None  # checked by noise_model_of: NoiseModel's own document (spherejax.noise_document)
 
 
 class _CalibrationHeaderV1(_CalibrationHeader):
@@ -118,7 +118,8 @@ def _check_calibration_header(path, header) -> None:
     noise_model_of(path, header)
 
 
-#: The shape of `EstimatorCovariance.residual`, which `NoiseModel.check_bands` does not check.
+#: The shape of `EstimatorCovariance.residual`, which the bands do not decide (NoiseModel's document
+#: checks the per-band shapes).
 _RESIDUAL_SHAPE = (N_WAVELENGTHS, N_WAVELENGTHS)
 
 
@@ -143,15 +144,13 @@ def noise_model_of(path, header: Mapping) -> NoiseModel | None:
         f"{len(header['band_centres_nm'])} bands of band_centres_nm"
     )
     try:
-        model = NoiseModel.from_json(doc)
-        model.check_bands(len(header["band_centres_nm"]))
+        model = NoiseModel.from_json(doc, bands=len(header["band_centres_nm"]))
         estimator = model.estimator_covariance
         if estimator is not None and tuple(estimator.residual.shape) != _RESIDUAL_SHAPE:
             raise ValueError(
                 f"estimator_covariance.residual has shape {tuple(estimator.residual.shape)}, expected {_RESIDUAL_SHAPE}"
             )
-    except (ValueError, TypeError, OverflowError) as error:
-        # OverflowError: a JSON integer beyond float range.
+    except ValueError as error:  # from_json's, one line naming the key (spherejax.noise_document)
         problem = _one_line(error)
         if len(problem) > 240:  # a value found may be a long list: the message stays readable
             problem = problem[:237] + "..."

@@ -1,0 +1,137 @@
+"""The command line's numbers: one argparse type per kind of number an option takes.
+
+Every numeric option of spherejax's commands, by kind (the instrument package's `acquire` has
+none):
+
+  integer               --workers (its range, 1..the cores this process may use, depends on the
+                        machine: spherejax.cluster.check_workers says it, for the API too)
+  positive_integer      --max-steps, --frames (at most FRAMES_MAX)
+  non_negative_integer  --seed, at most SEED_MAX
+  positive_number       --gain
+  non_negative_number   --read-noise, --white-reflectance-u, --response-weight
+
+(--region NAME=r0,r1,c0,c1 and --reference NAME|L,a,b hold numbers too, but each is a small
+format of its own, which `spherejax measure` parses and refuses in its own words.)
+
+A number is finite: "nan", "inf" and "1e400" (inf as a float) are refused, as every numeric check
+of spherejax refuses them. A refused value raises `NumberError`, an argparse.ArgumentTypeError
+naming the value and what was expected. argparse would make that a usage error ("spherejax
+calibrate: error: argument --gain: ..."); the command line's parsers (`cli.parser._OneLineErrors`)
+instead report it as the bad input it is, in the line every bad input gets, and `main` returns
+exit status 2 (where argparse's usage errors raise SystemExit):
+
+    spherejax: error: --gain '0': expected electrons per count, a finite number > 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+#: How a refusal reads: the option, the value as typed (quoted: it may hold spaces, or be empty)
+#: and what was expected, as every other bad input of the command line names its value.
+VALUE_FIRST = "{option} {value!r}: expected {expected}"
+#: `spherejax study`'s layout for its two numbers, older than the types here and kept as it was
+#: (scripts and tests quote it): "--max-steps: expected a positive number of BFGS iterations, got 0".
+EXPECTED_FIRST = "{option}: expected {expected}, got {value}"
+
+#: The largest seed: JAX's PRNGKey takes a signed 64-bit integer (a larger one raises
+#: OverflowError), NumPy's generators a non-negative one.
+SEED_MAX = 2**63 - 1
+#: The most frames a noise model counts: it holds them as float32 (`spherejax.NoiseModel`), whose
+#: integers are exact up to 2**24 (and a 400-digit count would not convert at all: OverflowError).
+FRAMES_MAX = 2**24
+
+
+class NumberError(argparse.ArgumentTypeError):
+    """A command-line value that is not a number of the kind its option takes.
+
+    Attributes:
+      value: the text as given.
+      expected: what was expected, in words ("electrons per count, a finite number > 0").
+      layout: how `line` lays out the option, the value and the expectation (`VALUE_FIRST`).
+    """
+
+    def __init__(self, value: str, expected: str, layout: str = VALUE_FIRST):
+        self.value, self.expected, self.layout = value, expected, layout
+        # What argparse shows after "argument --gain: " wherever it reports the error itself.
+        super().__init__(f"{value!r}: expected {expected}")
+
+    def line(self, option: str) -> str:
+        """The refusal of `option`'s value, one line: "--gain '0': expected ..."."""
+        return self.layout.format(option=option, value=self.value, expected=self.expected)
+
+
+class NumberType:
+    """An argparse `type`: the text of one kind of number -> the number, or `NumberError`.
+
+    Made by the functions below, one per kind; `what` says what the option's number is
+    ("electrons per count") and goes before the kind's text in the refusal.
+    """
+
+    def __init__(self, parse: Callable[[str], int | float], accept: Callable, kind: str, what: str | None = None,
+                 *, expected: str | None = None, layout: str = VALUE_FIRST):
+        """parse: text -> number, ValueError if it is none; accept: number -> bool, the range;
+        kind: the kind in words; expected: the whole expected text instead of "what, kind"."""
+        self._parse, self._accept, self.kind, self.layout = parse, accept, kind, layout
+        self.expected = expected if expected is not None else f"{what}, {kind}" if what else kind
+
+    def __call__(self, text: str) -> int | float:
+        try:
+            number = self._parse(text)
+        except (TypeError, ValueError):  # not a number of this kind at all ("abc", "1.5" for an integer)
+            number = None
+        if number is None or not self._accept(number):
+            raise NumberError(text, self.expected, self.layout)
+        return number
+
+    def __repr__(self) -> str:  # argparse names a type by its repr in some of its messages
+        return f"<number type: {self.kind}>"
+
+
+def _finite_float(text: str) -> float:
+    number = float(text)  # "1e400" is inf, "nan" nan: both refused as not finite
+    if not math.isfinite(number):
+        raise ValueError(f"not finite: {text!r}")
+    return number
+
+
+def integer(what: str | None = None, **options) -> NumberType:
+    """A whole number of either sign ("7", "-2"; not "7.0"), for an option whose range is checked
+    where it is known (--workers: the cores this process may use)."""
+    return NumberType(int, lambda n: True, "an integer", what, **options)
+
+
+def positive_integer(what: str | None = None, *, maximum: int | None = None, **options) -> NumberType:
+    """A whole number >= 1 (and <= maximum): a count of things that must happen at least once."""
+    kind = "an integer >= 1" if maximum is None else f"an integer 1..{maximum}"
+    return NumberType(int, lambda n: 1 <= n and (maximum is None or n <= maximum), kind, what, **options)
+
+
+def non_negative_integer(what: str | None = None, *, maximum: int | None = None, **options) -> NumberType:
+    """A whole number >= 0 (and <= maximum)."""
+    kind = "an integer >= 0" if maximum is None else f"an integer 0..{maximum}"
+    return NumberType(int, lambda n: 0 <= n and (maximum is None or n <= maximum), kind, what, **options)
+
+
+def positive_number(what: str | None = None, **options) -> NumberType:
+    """A finite number > 0 ("2", "0.5", "1e-3")."""
+    return NumberType(_finite_float, lambda x: x > 0, "a finite number > 0", what, **options)
+
+
+def non_negative_number(what: str | None = None, **options) -> NumberType:
+    """A finite number >= 0."""
+    return NumberType(_finite_float, lambda x: x >= 0, "a finite number >= 0", what, **options)
+
+
+class BadNumber(SystemExit):
+    """Raised by the command line's parsers once they have written a `NumberError`'s line on
+    stderr: exit status 2 (a SystemExit, as argparse's own errors, wherever a parser is used on
+    its own), which `main` returns."""
+
+
+__all__ = [
+    "VALUE_FIRST", "EXPECTED_FIRST", "SEED_MAX", "FRAMES_MAX", "NumberError", "NumberType", "BadNumber",
+    "integer", "positive_integer", "non_negative_integer", "positive_number", "non_negative_number",
+]
