@@ -387,18 +387,21 @@ def estimator_scale(v_tilde, estimator_covariance: EstimatorCovariance):
     return quadratic + 2.0 * jnp.matmul(v_tilde, gram[:bands, bands], precision=_HIGHEST) + gram[bands, bands]
 
 
-def pixel_uncertainty(raw_f, dark, white, good, p, p_std, coeffs, wiener, wiener_offset, weights, noise: NoiseModel):
+def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
     """Per-pixel standard uncertainties of reflectance and the covariance of Lab (N1-N7).
 
     Args:
-      raw_f: (..., H, W, B) float; dark, white (H, W, B); good: (..., H, W, 1) bool, the
-        pixels `correct` keeps; p, p_std: (..., B); coeffs (B, 4); wiener W (31, B);
-        wiener_offset r0 (31,); weights (31, 3) tristimulus weights; all one float dtype.
+      raw_f: (..., H, W, B) float; good: (..., H, W, 1) bool, the pixels `correct` keeps; p,
+        p_std: (..., B); constants: the calibration's arrays (`PixelConstants`: dark, white
+        (H, W, B), coeffs (B, 4), wiener W (31, B), wiener_offset r0 (31,), tristimulus_weights
+        (31, 3)); all one float dtype.
       noise: the `NoiseModel`.
 
     Returns:
       (reflectance_u (..., H, W, 31), lab_covariance (..., H, W, 3, 3)); NaN where not `good`.
     """
+    dark, white, coeffs = constants.dark, constants.white, constants.coeffs
+    wiener, wiener_offset, weights = constants.wiener, constants.wiener_offset, constants.tristimulus_weights
     dtype = raw_f.dtype
     # Safe-where, as in `correct`: bad pixels continue as harmless numbers and become NaN at the
     # end, so that nothing here raises or poisons a gradient.

@@ -211,8 +211,7 @@ def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates:
     c = constants
     p_u = p_u.astype(c.dtype)
     reflectance_u, lab_covariance = uncertainty.pixel_uncertainty(
-        raw.astype(c.dtype), c.dark, c.white, (result.quality == 0)[..., None], result.p, p_u, c.coeffs, c.wiener,
-        c.wiener_offset, c.tristimulus_weights, noise,
+        raw.astype(c.dtype), (result.quality == 0)[..., None], result.p, p_u, c, noise
     )
     lab_u = jnp.sqrt(jnp.diagonal(lab_covariance, axis1=-2, axis2=-1))
     return dataclasses.replace(
