@@ -1,0 +1,352 @@
+"""A prototype fused GPU kernel of `correct`'s per-pixel step, written with JAX Pallas (Triton).
+
+Not wired into `correct`: `spherejax._engine.steps` and `plan` still run the jax.numpy path
+(`pipeline._pixel_outputs`) on GPUs. This module is the candidate that would replace it there,
+tested against it in interpret mode on the CPU (tests/test_gpu_kernel.py) and timed on a GPU by
+a script kept outside the package (.gpu/time_pallas.py).
+
+Why: on an H100 the jax.numpy path moves about 900 bytes a pixel through HBM (a pass for the
+quality flags, a pass writing the masked Stage II cube, two cuBLAS products each reading it back,
+a pass adding the estimator's offset to the 31-channel reflectance): 30 % of the memory floor of
+297 bytes a pixel at 4096 x 4096 (raw uint16 x 16 bands, dark and white float32 x 16 read;
+reflectance float32 x 31, Lab float32 x 3, quality uint8 written). This kernel reads each
+pixel's inputs once and writes each output once, as the fused CPU kernel does
+(`spherejax._engine.fused`).
+
+Layout and grid
+    The frames are flattened to pixels: raw (..., H, W, B) -> (images, P, B), P = H * W, dark
+    and white (P, B), p (images, B); every reshape is free. The grid is (pixel blocks, images):
+    the pixel blocks first because CUDA allows 2^31 - 1 blocks along x and 65535 along y, and a
+    4096 x 4096 frame is 131072 blocks of 128 pixels. Program (j, i) corrects pixels
+    j * block_pixels ... (j + 1) * block_pixels - 1 of image i. The outputs are allocated in their
+    final shapes, (images, P, 31), (images, P, 3) and (images, P), and reshaped for free to
+    (..., H, W, 31), (..., H, W, 3), (..., H, W): no slice or copy after the kernel.
+
+Block shapes (what the installed Pallas does; jax 0.11.2 and 0.12 alike)
+    The Triton lowering requires every loaded or stored array to have a power-of-two number of
+    elements (`lowering._check_tensor_size`), and it does not pad a block: a BlockSpec of shape
+    (block_pixels, 31) is accepted, but loading or storing it whole is refused with "requires
+    that all operations have array arguments and results whose size is a power of 2". It does
+    not mask a block that runs past the array's end either (interpret mode pads, Triton would
+    read and write out of bounds). So no BlockSpec tiles the arrays here: each kernel sees whole
+    arrays and indexes them itself with `pl.ds(start, size)` windows of power-of-two sizes and an
+    explicit mask (`triton.load` / `triton.store`): (block_pixels, 32) over the 31 reflectance
+    channels with channel < 31 and pixel < P, (block_pixels, 4) over the 3 Lab channels, and
+    (block_pixels,) pixel rows for the inputs and the quality mask, which also takes care of a
+    last, partial block of pixels. Triton computes addresses from the array's real strides (31,
+    3), so the masked lanes touch no memory; interpret mode pads the window
+    (`_pad_values_to_avoid_dynamic_slice_oob_shift`), so the same code runs on the CPU.
+
+Arithmetic (float32 only; B a power of two >= 16 bands, else NotImplementedError)
+    Per pixel, as `pipeline._pixel_outputs` computes it: the flags (saturated among finite raw,
+    non-finite raw, no flat field, below dark, patch unusable) with the same reductions, so that
+    the quality mask is the same bit for bit; v = (raw - dark) / (white - dark) (Eq. 10), with an
+    IEEE-rounded division (PTX div.rn.f32 through inline assembly: Triton's `/` on float32 is
+    div.full.f32, within 2 ulp, and a v that differs in its last bit from XLA's can flip the
+    below-dark bit at its threshold); Stage II v_tilde = (c1 p + c2) v + c3 p + c4 (Eq. 23), 0
+    on flagged pixels; reflectance = v_tilde W^T + r0 as one (block_pixels, B) x (B, 32) product
+    in full float32 (Precision.HIGHEST: Triton's IEEE input precision, no TF32), W^T padded with a
+    zero column; XYZ = v_tilde (W^T weights) + r0 weights as three row sums of v_tilde times a
+    column of the folded (B, 3) matrix (`PixelConstants.xyz_projection`, the same fold as the
+    jax.numpy path), cheaper than a second, 3/16-used product; Lab from XYZ with
+    `colorimetry._lab_f`; NaN in every output channel of a flagged pixel. Sums run in another
+    order than XLA's products, so reflectance and Lab agree to float32 rounding, not bit for bit.
+
+Measured (.gpu/time_pallas.py, one H100 80GB HBM3, jax 0.11.2, make_inputs frames, 4096 x 4096
+tiled from 1024 x 1024): quality equal bit for bit and NaN in the same places at both sizes,
+max |diff| reflectance 4.8e-7, Lab 1.2e-4. 1024 x 1024: 0.284 ms against 0.695 ms for the
+jax.numpy path; 4096 x 4096: 2.18 ms (68 % of the 297-byte HBM floor at 3.35 TB/s) against 4.68 ms
+(32 %). block_pixels 32..128 with 1..4 warps were within run-to-run noise (2.16..2.48 ms); 256 and
+512 were slower (2.5..3.2 ms). Triton's approximate division instead of div.rn.f32 made no
+measurable difference (2.24 ms).
+
+Deprecation: jax 0.11.2 and 0.12 warn, when this kernel is lowered for a GPU, that the Pallas
+Triton backend is deprecated and will be removed in favour of Mosaic GPU (or jax_triton with
+Triton's own bindings); this prototype would have to move before that happens.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plt
+
+from .. import colorimetry
+from ..grid import N_WAVELENGTHS
+from ..pipeline import (
+    BELOW_DARK_LIMIT,
+    QUALITY_BELOW_DARK,
+    QUALITY_NONFINITE,
+    QUALITY_PATCH_UNUSABLE,
+    QUALITY_SATURATED,
+    QUALITY_WHITE_NOT_ABOVE_DARK,
+)
+from ..pixel_constants import PixelConstants
+
+#: Pixels a program corrects by default: 128 rows of 16 bands are 4 KiB of uint16 raw and 8 KiB
+#: each of dark and white, and a (128, 32) float32 product of 16 KiB in registers with 4 warps.
+DEFAULT_BLOCK_PIXELS = 128
+
+#: Reflectance channels padded to a power of two (the product's and the store's width).
+_REFLECTANCE_PAD = 32
+#: Lab channels padded to a power of two (the store's width).
+_LAB_PAD = 4
+
+_RAW_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
+
+
+def _is_power_of_two(n: int) -> bool:
+    return n > 0 and n & (n - 1) == 0
+
+
+def _divide_ieee(x, y, exact: bool):
+    """x / y rounded to nearest (IEEE), on float32 arrays of one shape.
+
+    `exact` (GPU): PTX div.rn.f32, which is what XLA emits for a float32 division; Triton lowers
+    `/` to div.full.f32 (within 2 ulp). Interpret mode has no inline assembly; its `/` is XLA's
+    CPU division, IEEE already.
+    """
+    if not exact:
+        return x / y
+    (quotient,) = plt.elementwise_inline_asm(
+        "div.rn.f32 $0, $1, $2;",
+        args=[x, y],
+        constraints="=f,f,f",
+        pack=1,
+        result_shape_dtypes=[jax.ShapeDtypeStruct(x.shape, jnp.float32)],
+    )
+    return quotient
+
+
+def _any(condition, axis):
+    """int32 0/1: whether `condition` holds anywhere along `axis` (a maximum of int32, which the
+    Triton lowering reduces; it has no rule for reducing booleans)."""
+    return jnp.max(condition.astype(jnp.int32), axis=axis)
+
+
+def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_mask, exact_division):
+    """The kernel for one configuration (everything static is closed over)."""
+    below_dark_limit = -BELOW_DARK_LIMIT
+
+    def kernel(*refs):
+        if has_mask:
+            (raw_ref, dark_ref, white_ref, p_ref, coeffs_ref, projection_ref, bias_ref, xyz_rows_ref,
+             xyz_scalars_ref, mask_ref, reflectance_ref, lab_ref, quality_ref) = refs
+        else:
+            (raw_ref, dark_ref, white_ref, p_ref, coeffs_ref, projection_ref, bias_ref, xyz_rows_ref,
+             xyz_scalars_ref, reflectance_ref, lab_ref, quality_ref) = refs
+            mask_ref = None
+        block = pl.program_id(0)
+        image = pl.program_id(1)
+        start = block * block_pixels
+        rows = pl.ds(start, block_pixels)
+        row_index = start + jax.lax.broadcasted_iota(jnp.int32, (block_pixels,), 0)
+        in_frame = row_index < pixels  # (bp,): the last block may be partial
+        in_frame_bands = jnp.broadcast_to(in_frame[:, None], (block_pixels, bands))
+        # The channel windows (32 of 31, 4 of 3) start at a traced 0: jax 0.12's NDIndexer refuses
+        # a static window that overruns the dimension ("Out of bound slice"), though both the
+        # Triton lowering (addresses from the real strides, masked lanes) and interpret mode
+        # (which pads the window) handle it.
+        channel0 = image * 0
+
+        # Inputs, each read once. Rows past the frame read nothing (masked) and get harmless
+        # values; their outputs are not stored.
+        raw = plt.load(raw_ref.at[image, rows, :], mask=in_frame_bands, other=0)
+        dark = plt.load(dark_ref.at[rows, :], mask=in_frame_bands, other=0.0)
+        white = plt.load(white_ref.at[rows, :], mask=in_frame_bands, other=1.0)
+        p = p_ref[image, :]  # (B,)
+        c1, c2, c3, c4 = (coeffs_ref[k, :] for k in range(4))  # (B,) each
+
+        raw_f = raw.astype(jnp.float32)
+        # Eq. 10 as flatfield.flat_field_unchecked computes it.
+        white_signal = white - dark
+        usable = (white_signal > 0) & jnp.isfinite(white_signal)
+        quotient = _divide_ieee(raw_f - dark, jnp.where(usable, white_signal, 1.0), exact_division)
+        v = jnp.where(usable, quotient, jnp.nan)
+
+        # The flags, as pipeline._pixel_flags and _quality compute them.
+        if raw_is_float:
+            raw_finite = jnp.isfinite(raw_f)
+            nonfinite = _any(~raw_finite, axis=1)
+        else:
+            raw_finite = None  # counts are always finite
+            nonfinite = jnp.zeros((block_pixels,), jnp.int32)
+        if saturation is None:
+            saturated = jnp.zeros((block_pixels,), jnp.int32)
+        else:
+            at_or_above = raw_f >= saturation
+            saturated = _any(at_or_above if raw_finite is None else raw_finite & at_or_above, axis=1)
+        if mask_ref is None:
+            no_flat_field = _any(~usable, axis=1)
+        else:
+            no_flat_field = (plt.load(mask_ref.at[rows], mask=in_frame, other=0) != 0).astype(jnp.int32)
+        lowest = jnp.min(jnp.where(jnp.isfinite(v), v, jnp.inf), axis=1)
+        below_dark = (lowest < below_dark_limit).astype(jnp.int32)
+        patch_unusable = jnp.max((~jnp.isfinite(p)).astype(jnp.int32))  # () for the whole image
+        quality = (
+            saturated * QUALITY_SATURATED
+            | nonfinite * QUALITY_NONFINITE
+            | no_flat_field * QUALITY_WHITE_NOT_ABOVE_DARK
+            | below_dark * QUALITY_BELOW_DARK
+            | patch_unusable * QUALITY_PATCH_UNUSABLE
+        )
+        good = quality == 0  # (bp,)
+        plt.store(quality_ref.at[image, rows], quality.astype(jnp.uint8), mask=in_frame)
+
+        # Stage II (Eq. 23) on good pixels, 0 on the others (the safe-where of _pixel_outputs),
+        # written as polynomial.stage2_unchecked writes it.
+        v_safe = jnp.where(good[:, None], v, 0.0)
+        v_tilde = (c1[None, :] * p[None, :] + c2[None, :]) * v_safe + c3[None, :] * p[None, :] + c4[None, :]
+
+        # reflectance = v_tilde W^T + r0: one product in full float32 (no TF32).
+        product = jax.lax.dot(
+            v_tilde, projection_ref[...], precision=jax.lax.Precision.HIGHEST, preferred_element_type=jnp.float32
+        )
+        reflectance = jnp.where(good[:, None], product + bias_ref[...][None, :], jnp.nan)
+        channel = jax.lax.broadcasted_iota(jnp.int32, (block_pixels, _REFLECTANCE_PAD), 1)
+        plt.store(
+            reflectance_ref.at[image, rows, pl.ds(channel0, _REFLECTANCE_PAD)],
+            reflectance,
+            mask=in_frame[:, None] & (channel < N_WAVELENGTHS),
+        )
+
+        # XYZ = v_tilde (W^T weights) + r0 weights, one row sum per tristimulus value; then
+        # colorimetry.xyz_to_lab.
+        f = []
+        for k in range(3):
+            xyz = jnp.sum(v_tilde * xyz_rows_ref[k, :][None, :], axis=1) + xyz_scalars_ref[k]
+            white_xyz = jnp.broadcast_to(xyz_scalars_ref[_LAB_PAD + k], xyz.shape)
+            f.append(colorimetry._lab_f(_divide_ieee(xyz, white_xyz, exact_division)))
+        f_x, f_y, f_z = f
+        lab_l = 116.0 * f_y - 16.0
+        lab_a = 500.0 * (f_x - f_y)
+        lab_b = 200.0 * (f_y - f_z)
+        lab_channel = jax.lax.broadcasted_iota(jnp.int32, (block_pixels, _LAB_PAD), 1)
+        lab = jnp.where(lab_channel == 0, lab_l[:, None], jnp.where(lab_channel == 1, lab_a[:, None], lab_b[:, None]))
+        lab = jnp.where(good[:, None], lab, jnp.nan)
+        plt.store(lab_ref.at[image, rows, pl.ds(channel0, _LAB_PAD)], lab, mask=in_frame[:, None] & (lab_channel < 3))
+
+    return kernel
+
+
+def kernel_constants(constants: PixelConstants):
+    """What the kernel reads of the calibration besides the frames, all float32:
+
+    coeffs (4, B): c1..c4 as rows; projection (B, 32): W^T with a zero column; bias (32,): r0 and
+    a 0; xyz_rows (4, B): the columns of W^T weights (`PixelConstants.xyz_projection`, the jax.numpy
+    path's own fold) as rows, and a zero row; xyz_scalars (8,): r0 weights, 0, then the white's
+    XYZ (`PixelConstants.white_xyz`), 1.
+
+    A few small XLA operations on (B, 34)-sized arrays; a caller that corrects many frames with one
+    calibration (a plan) could make them once.
+    """
+    bands = constants.bands
+    f32 = jnp.float32
+    xyz_matrix, xyz_offset = constants.xyz_projection()
+    pad = _REFLECTANCE_PAD - N_WAVELENGTHS
+    projection = jnp.concatenate([constants.wiener.T.astype(f32), jnp.zeros((bands, pad), f32)], axis=1)
+    bias = jnp.concatenate([constants.wiener_offset.astype(f32), jnp.zeros((pad,), f32)])
+    xyz_rows = jnp.concatenate([xyz_matrix.T.astype(f32), jnp.zeros((1, bands), f32)], axis=0)
+    xyz_scalars = jnp.concatenate([
+        xyz_offset.astype(f32), jnp.zeros((1,), f32), constants.white_xyz().astype(f32), jnp.ones((1,), f32),
+    ])
+    return constants.coeffs.T.astype(f32), projection, bias, xyz_rows, xyz_scalars
+
+
+def pixel_outputs_pallas(
+    raw,
+    p,
+    constants: PixelConstants,
+    *,
+    saturation,
+    no_flat_field=None,
+    block_pixels: int = DEFAULT_BLOCK_PIXELS,
+    interpret: bool = False,
+    num_warps: int | None = None,
+    exact_division: bool | None = None,
+):
+    """`pipeline._pixel_outputs(raw, p, constants, saturation=..., no_flat_field=...)` as one Pallas
+    kernel: (reflectance (..., H, W, 31) float32, lab (..., H, W, 3) float32, quality (..., H, W)
+    uint8).
+
+    Args:
+      raw: (..., H, W, B) uint16 or float32 frames; B a power of two >= 16 (the instrument's 16).
+      p: (..., B) white-patch ratios, one per frame (broadcast to raw's leading axes).
+      constants: the calibration's `PixelConstants` in float32, H and W those of raw.
+      saturation: the saturation level (`pipeline._saturation_level`), or None for no check.
+      no_flat_field: None (worked out in the kernel from dark and white), or the (H, W) bool
+        `pipeline._no_flat_field(dark, white)` (converted to uint8 here: one small pass).
+      block_pixels: pixels per program, a power of two >= 16 (the product's smallest tile).
+      interpret: run the kernel in Pallas's interpreter (any backend; how the tests run it).
+      num_warps: Triton warps per program (None: Pallas's default, 4).
+      exact_division: IEEE division through PTX inline assembly (see `_divide_ieee`); None = True
+        unless `interpret`. False on a GPU gives Triton's division, within 2 ulp, whose quality
+        bits may then differ from the jax.numpy path's at the below-dark threshold.
+
+    Raises:
+      NotImplementedError: a compute dtype other than float32, a raw dtype other than uint16 or
+        float32, or a band count that is not a power of two >= 16.
+      ValueError: shapes that do not fit together, or a block_pixels that is not a power of two
+        >= 16.
+    """
+    raw = jnp.asarray(raw)
+    p = jnp.asarray(p)
+    if constants.dtype != np.float32:
+        raise NotImplementedError(f"pixel_outputs_pallas: float32 compute only, got {constants.dtype}")
+    if np.dtype(raw.dtype) not in _RAW_DTYPES:
+        raise NotImplementedError(f"pixel_outputs_pallas: raw uint16 or float32 only, got {raw.dtype}")
+    if raw.ndim < 3:
+        raise ValueError(f"raw: expected (..., H, W, B), got {tuple(raw.shape)}")
+    *lead, height, width, bands = raw.shape
+    lead = tuple(lead)
+    if tuple(constants.dark.shape) != (height, width, bands):
+        raise ValueError(f"constants: dark {tuple(constants.dark.shape)} does not fit raw {tuple(raw.shape)}")
+    if not (_is_power_of_two(bands) and bands >= 16):
+        raise NotImplementedError(f"pixel_outputs_pallas: B a power of two >= 16 bands, got {bands}")
+    if not (_is_power_of_two(block_pixels) and block_pixels >= 16):
+        raise ValueError(f"block_pixels: expected a power of two >= 16, got {block_pixels}")
+    if exact_division is None:
+        exact_division = not interpret
+    images = math.prod(lead)
+    pixels = height * width
+
+    raw_flat = raw.reshape(images, pixels, bands)
+    p_flat = jnp.broadcast_to(p.astype(jnp.float32), (*lead, bands)).reshape(images, bands)
+    dark = constants.dark.reshape(pixels, bands)
+    white = constants.white.reshape(pixels, bands)
+    coeffs, projection, bias, xyz_rows, xyz_scalars = kernel_constants(constants)
+    inputs = [raw_flat, dark, white, p_flat, coeffs, projection, bias, xyz_rows, xyz_scalars]
+    if no_flat_field is not None:
+        inputs.append(jnp.asarray(no_flat_field).reshape(pixels).astype(jnp.uint8))
+
+    kernel = _make_kernel(
+        block_pixels=block_pixels, pixels=pixels, bands=bands, raw_is_float=raw.dtype == np.float32,
+        saturation=None if saturation is None else float(saturation), has_mask=no_flat_field is not None,
+        exact_division=bool(exact_division),
+    )
+    out_shape = (
+        jax.ShapeDtypeStruct((images, pixels, N_WAVELENGTHS), jnp.float32),
+        jax.ShapeDtypeStruct((images, pixels, 3), jnp.float32),
+        jax.ShapeDtypeStruct((images, pixels), jnp.uint8),
+    )
+    compiler_params = None if interpret else plt.CompilerParams(num_warps=num_warps)
+    reflectance, lab, quality = pl.pallas_call(
+        kernel,
+        out_shape=out_shape,
+        grid=(pl.cdiv(pixels, block_pixels), images),
+        interpret=interpret,
+        compiler_params=compiler_params,
+        name="spherejax_pixel_outputs",
+    )(*inputs)
+    return (
+        reflectance.reshape(*lead, height, width, N_WAVELENGTHS),
+        lab.reshape(*lead, height, width, 3),
+        quality.reshape(*lead, height, width),
+    )
+
+
+__all__ = ["DEFAULT_BLOCK_PIXELS", "kernel_constants", "pixel_outputs_pallas"]
