@@ -9,7 +9,6 @@ import os
 import pathlib
 import subprocess
 import sys
-import time
 
 import numpy as np
 import OpenImageIO as oiio
@@ -18,7 +17,7 @@ import spherejax
 from spherejax import archive, cli
 from spherejax.grid import BAND_CENTRES_NM
 
-from .helpers import no_compilation_cache_writes
+from .helpers import no_compilation_cache_writes, wait_until  # noqa: F401 (wait_until: re-exported)
 
 H, W, B = 40, 48, 16
 BANDS = [int(b) for b in BAND_CENTRES_NM]
@@ -84,22 +83,17 @@ def manifest_records(out):
     return [json.loads(line) for line in (out / archive.MANIFEST_NAME).read_text().splitlines() if line.strip()]
 
 
-def start_correct(argv, *, may_be_killed: bool = True) -> subprocess.Popen:
-    """`spherejax correct` in a child process. One that may be killed reads the shared
+def start_correct(argv, *, may_be_killed: bool = True, quiet: bool = False, env: dict | None = None) -> subprocess.Popen:
+    """`spherejax correct` in a child process (`spherejax -q correct` if `quiet`: errors and
+    the stop line only), stderr piped. One that may be killed (SIGKILL) reads the shared
     compilation cache but writes none (`helpers.no_compilation_cache_writes`); an uninterrupted
-    reference run fills it for the others."""
-    command = [sys.executable, "-m", "spherejax.cli", "correct", *argv]
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    reference run, or one only ever stopped by SIGINT / SIGTERM, fills it for the others. `env`:
+    variables added to the child's environment."""
+    command = [sys.executable, "-m", "spherejax.cli", *(["-q"] if quiet else []), "correct", *map(str, argv)]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", **(env or {})}
     if may_be_killed:
         env = no_compilation_cache_writes(env)
     return subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-
-def wait_until(process: subprocess.Popen, condition) -> float:
-    """Poll until `condition()` holds or the process ends; return the time."""
-    while not condition() and process.poll() is None:
-        time.sleep(0.002)
-    return time.perf_counter()
 
 
 def holds_lock(process: subprocess.Popen, out: pathlib.Path):

@@ -5,6 +5,10 @@ from __future__ import annotations
 import contextlib
 import json
 import pathlib
+import re
+import signal
+import subprocess
+import time
 import warnings
 
 import colour
@@ -90,6 +94,32 @@ def no_compilation_cache_writes(env: dict[str, str]) -> dict[str, str]:
     for the other processes. (JAX writes an entry only when compiling it took at least this many
     seconds.)"""
     return {**env, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "inf"}
+
+
+# --- a command stopped partway (the kill-and-resume tests of `correct` and `acquire`) ----------
+
+#: The one line `spherejax correct` / `spherejax acquire` ends with when SIGINT or SIGTERM stops it
+#: (spherejax.interrupt): done so far, of how many, and the unit.
+INTERRUPTED = re.compile(r"spherejax: interrupted after (\d+) of (\d+) (inputs|band images); run again with --resume")
+
+
+def wait_until(process: subprocess.Popen, condition) -> float:
+    """Poll until `condition()` holds or the process ends; return the time."""
+    while not condition() and process.poll() is None:
+        time.sleep(0.002)
+    return time.perf_counter()
+
+
+def sigkill(process: subprocess.Popen) -> bool:
+    """SIGKILL `process` and reap it; False (and no kill) if it had already ended, successfully."""
+    if process.poll() is not None:
+        _, err = process.communicate()
+        assert process.returncode == 0, err.decode() if isinstance(err, bytes) else err
+        return False
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+    assert process.returncode == -signal.SIGKILL
+    return True
 
 
 def write_with_oiio(path, pages):
@@ -246,3 +276,23 @@ def refused(error_type, path, match, *, says_expected=True):
 def listing(folder: pathlib.Path) -> list[str]:
     """Everything below `folder`, hidden temporary files and folders included."""
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def image_program(raw, calibration, kernel_mode, intermediates=False):
+    """`correct`'s whole-frame program (`spherejax._engine.steps.image_step`) on constants
+    prepared afresh, without a plan's routes: no reuse of memory, no direct kernel call, nothing
+    kept. What the routes of a plan are compared against, bit for bit."""
+    import jax.numpy as jnp
+
+    from spherejax import pipeline
+    from spherejax._engine import steps
+    from spherejax.pixel_constants import PatchConstants, PixelConstants
+
+    dtype = pipeline._compute_dtype(raw, calibration)
+    height, width = calibration.image_shape
+    box = calibration.patch_box or (0, height, 0, width)
+    return steps.image_step(
+        jnp.asarray(raw), PixelConstants.of(calibration, dtype), PatchConstants.of(calibration, dtype, box),
+        np.array([box[0], box[2]], np.int32), box_shape=(box[1] - box[0], box[3] - box[2]),
+        saturation=pipeline._saturation_level(raw, calibration), intermediates=intermediates, kernel_mode=kernel_mode,
+    )

@@ -1,14 +1,17 @@
 """Batch correction (`spherejax correct`, spherejax.archive): outputs, names, bad inputs, the lock,
-resume, and kill-and-resume byte identity."""
+resume, and kill-and-resume byte identity (SIGKILL; SIGINT and SIGTERM, in process and on dask)."""
 
 from __future__ import annotations
 
+import collections
 import fcntl
 import json
 import os
 import pathlib
 import random
+import shutil
 import signal
+import subprocess
 import time
 
 import colour
@@ -23,8 +26,9 @@ from spherejax.grid import WAVELENGTHS_NM
 
 from .batch_support import (
     B, BANDS, H, KINDS, NAMES, W, frame, holds_lock, make_calibration, manifest_records, outputs_of, read_exr, run,
-    spec_alpha, start_correct, wait_until,
+    spec_alpha, start_correct,
 )
+from .helpers import INTERRUPTED, sigkill, wait_until
 
 
 @pytest.fixture
@@ -364,53 +368,294 @@ def test_resume_ignores_a_torn_manifest_line_and_stale_temporaries(cal, tmp_path
 
 
 # ------------------------------------------------------------------------------ kill and resume
+#
+# `spherejax correct` run as a child process, stopped partway, then finished with --resume: once
+# for each way a run can be stopped. SIGKILL: no clean-up at all; the run leaves whatever it cut
+# short (temporary files, its lock file, outputs in place before their manifest line).
+# SIGINT / SIGTERM: the run stops at its next safe point, cleaned up, with one line and the exit
+# status 130 / 143 (on dask, with the cluster shut down). Either way --resume finishes the batch
+# with the bytes of an uninterrupted run. (The states a kill leaves, made by hand, are tested
+# above; stops without a child process in tests/robustness/.)
+
+
+def _temporaries(out: pathlib.Path) -> set[str]:
+    """The temporary files under OUT (io's naming: ".<name>.<12 hex>.tmp")."""
+    return {p.relative_to(out).as_posix() for p in out.rglob("*") if io.is_temp_sibling(p.name)}
+
+
+def _tree(folder: pathlib.Path) -> list[str]:
+    """Every file and folder under `folder`, relative."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
+
+
+def _done(out: pathlib.Path) -> dict[str, dict]:
+    return {name: record for name, record in archive.read_manifest(out).items() if record["status"] == "done"}
+
+
+def _unrecorded(out: pathlib.Path) -> set[str]:
+    """Inputs with an output renamed into place that the manifest does not call done (yet).
+    Names only, nothing read: this is polled while a run goes on."""
+    skip = {archive.MANIFEST_NAME, archive.LOCK_NAME}
+    present = {
+        p.relative_to(out).as_posix().rsplit(".", 2)[0] for p in out.rglob("*")
+        if p.name not in skip and not io.is_temp_sibling(p.name) and p.is_file()
+    }
+    return present - set(_done(out))
+
+
+def _cubes(folder: pathlib.Path, count: int, seed: int) -> dict[str, bytes]:
+    """`count` cubes in `folder`, cube00.tif on; returns each file's bytes (inputs are never written)."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir()
+    for index in range(count):
+        io.write_frame(folder / f"cube{index:02d}.tif", frame(rng), channel_names=NAMES)
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def _manifest_lines(out: pathlib.Path) -> list[bytes]:
+    return sorted(line for line in (out / archive.MANIFEST_NAME).read_bytes().split(b"\n") if line)
+
+
+INPUTS = 16
+KILLS = 20
+
+
+def _correct_kill_plan(rng: random.Random, lock_s: float, done_s: float) -> list[tuple[str, float | int]]:
+    """KILLS (mode, argument) pairs, in the order they are used.
+
+    start-up: argument s after the start, well before JAX has started and the lock is taken;
+    time: argument s after the start, from 0 to a quarter into the batch of an uninterrupted run
+        that took the lock after lock_s and had done every input after done_s (start-up, the
+        first compilation, the first inputs; much later, a resumed run that has fewer inputs left
+        could finish the batch before it is killed);
+    after-inputs: once the manifest holds `argument` done inputs, plus 0-20 ms (the next input
+        takes about 20 ms: between inputs or anywhere inside one input's writes);
+    in-writes: as after-inputs, then as soon as this run has a temporary output file open;
+    renamed: as after-inputs, then as soon as an output of the input in progress is renamed into
+        place (its other outputs, or its manifest line, still to come; a window of a few ms that
+        the poll catches in most runs, not all: counted, not required).
+    The input counts are sorted, so the kills walk through the whole batch; they stop one short
+    of its end, so the kills (and not a run left alone) finish the batch.
+    """
+    modes = ["start-up"] * 3 + ["time"] * 4 + ["after-inputs"] * 6 + ["in-writes"] * 4 + ["renamed"] * 3
+    rng.shuffle(modes)
+    counts = iter(sorted(rng.randrange(1, INPUTS - 1) for _ in modes))
+    plan = []
+    for mode in modes:
+        count = next(counts)
+        if mode == "start-up":
+            plan.append((mode, rng.uniform(0.0, 1.0)))
+        elif mode == "time":
+            plan.append((mode, rng.uniform(0.0, lock_s + (done_s - lock_s) / 4)))
+        else:
+            plan.append((mode, count))
+    return plan
 
 
 @pytest.mark.slow
-def test_kill_and_resume_gives_byte_identical_outputs(cal, tmp_path):
-    rng = np.random.default_rng(7)
-    inputs = tmp_path / "in"
-    inputs.mkdir()
-    for index in range(12):
-        io.write_frame(inputs / f"cube{index:02d}.tif", frame(rng), channel_names=NAMES)
+def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
+    """SIGKILL at KILLS seeded moments spread over the whole batch (`_correct_kill_plan`: during
+    start-up, at random times, between inputs, inside an input's writes, between an output's
+    rename and its manifest line), each followed by --resume. At every kill, whatever is under
+    its final name is complete and everything the manifest calls done is on disk as recorded; at
+    the end, every output is the uninterrupted run's to the byte, each input recorded once, and
+    nothing else is left in OUT or beside it."""
+    cubes = _cubes(tmp_path / "in", INPUTS, seed=11)
+    names = [f"in/cube{index:02d}" for index in range(INPUTS)]
     reference, killed = tmp_path / "reference", tmp_path / "killed"
-    process = start_correct(["-c", str(cal), str(inputs), "-o", str(reference)], may_be_killed=False)
+    argv = ["-c", str(cal), str(tmp_path / "in"), "-o"]
+
+    started = time.perf_counter()
+    process = start_correct([*argv, str(reference)], may_be_killed=False)
+    lock_s = wait_until(process, holds_lock(process, reference)) - started
+    done_s = wait_until(process, lambda: len(_done(reference)) == INPUTS) - started
     _, err = process.communicate(timeout=120)
     assert process.returncode == 0, err.decode()
+    expected = outputs_of(reference)
+    assert len(expected) == INPUTS * len(archive.OUTPUT_KINDS)
 
-    # The first run is killed during start-up. The others once they hold the lock and have
-    # finished 1 or 2 more inputs, plus a random 0-15 ms: between or inside an input's writes.
-    delays = random.Random(3)
-    progress = []
-    for attempt in range(5):
-        argv = ["-c", str(cal), str(inputs), "-o", str(killed)]
-        if (killed / archive.MANIFEST_NAME).exists():
-            argv.append("--resume")
-        process = start_correct(argv)
-        if attempt == 0:
-            time.sleep(0.2)
+    plan = _correct_kill_plan(random.Random(5), lock_s, done_s)
+    delays = random.Random(6)
+    landed = []  # per kill: (mode, inputs done, lock held, temporaries left, outputs not yet recorded)
+    runs = 0
+    while len(landed) < KILLS:
+        runs += 1
+        assert runs <= 2 * KILLS, f"only {len(landed)} of {KILLS} kills landed in {runs - 1} runs: {landed}"
+        mode, argument = plan[len(landed)]
+        stale = _temporaries(killed) if killed.exists() else set()
+        process = start_correct([*argv, str(killed), *(["--resume"] if killed.exists() else [])])
+        if mode in ("start-up", "time"):
+            time.sleep(argument)
         else:
             wait_until(process, holds_lock(process, killed))
-            target = len(archive.read_manifest(killed)) + delays.randint(1, 2)
-            wait_until(process, lambda: len(archive.read_manifest(killed)) >= target)
-            time.sleep(delays.uniform(0.0, 0.015))
-        process.send_signal(signal.SIGKILL)
-        process.communicate(timeout=60)
-        progress.append(len(archive.read_manifest(killed)))
-    process = start_correct(["-c", str(cal), str(inputs), "-o", str(killed), "--resume"])
+            wait_until(process, lambda: len(_done(killed)) >= argument)
+            # (Should the poll miss the moment, an input finishing first ends the wait: a kill
+            # never lets a run get far ahead.)
+            reached = len(_done(killed))
+            if mode == "in-writes":
+                wait_until(process, lambda: bool(_temporaries(killed) - stale) or len(_done(killed)) > reached)
+                time.sleep(delays.uniform(0.0, 0.005))
+            elif mode == "renamed":
+                wait_until(process, lambda: bool(_unrecorded(killed)) or len(_done(killed)) > reached)
+            else:
+                time.sleep(delays.uniform(0.0, 0.020))
+        if not sigkill(process):  # it finished first: not a kill; the next run gets this one
+            # The plan's times come from the first, uninterrupted run; a resumed run with few
+            # inputs left, or a quicker machine, finishes before them. Bring a time kill forward,
+            # and give a run that finished the whole batch a fresh OUT: no later kill could land
+            # in a batch that is complete (CI saw "only 4 of 20 kills landed").
+            if mode == "time":
+                plan[len(landed)] = (mode, argument / 2)
+            if len(_done(killed)) == INPUTS:
+                shutil.rmtree(killed)
+            continue
+
+        # At every kill: whatever is under its final name is complete (the reference's bytes), and
+        # every input the manifest calls done has its outputs there with the recorded SHA-256.
+        done = _done(killed)
+        temporaries = _temporaries(killed)
+        present = {name: data for name, data in outputs_of(killed).items() if name not in temporaries}
+        for name, data in present.items():
+            assert data == expected[name], f"kill {len(landed)} ({mode}): {name} differs from the reference"
+        for record in done.values():
+            for output, digest in record["outputs"].items():
+                assert output_digest(killed / output) == digest, f"kill {len(landed)}: {output}"
+        unrecorded = _unrecorded(killed)
+        lock = json.loads((killed / archive.LOCK_NAME).read_text()) if (killed / archive.LOCK_NAME).exists() else {}
+        landed.append((mode, len(done), lock.get("pid") == process.pid, len(temporaries), len(unrecorded)))
+
+    before_final = len(_done(killed))
+    process = start_correct([*argv, str(killed), "--resume"])
+    _, err = process.communicate(timeout=120)
+    log = err.decode()
+    assert process.returncode == 0, log
+    # Only what was not done yet was corrected; what was done was verified and skipped.
+    assert sum(line.endswith(": skipped (already done)") for line in log.splitlines()) == before_final, log
+    assert sum(": done (" in line for line in log.splitlines()) == INPUTS - before_final, log
+
+    mid_batch = [kill for kill in landed if 0 < kill[1] < INPUTS]
+    in_batch = [kill for kill in landed if kill[2]]  # the killed run held the lock
+    in_writes = [kill for kill in landed if kill[3]]  # it left temporary files behind
+    print(f"\n{len(landed)} kills in {runs} runs: {len(mid_batch)} mid-batch, {len(in_batch)} with the lock held, "
+          f"{len(in_writes)} inside an input's writes, {sum(1 for kill in landed if kill[4])} with outputs not yet "
+          f"in the manifest; inputs done at each kill: {[kill[1] for kill in landed]}")
+    assert len(landed) == KILLS
+    assert len(mid_batch) >= 3 * KILLS // 4, landed
+    assert len(in_batch) >= KILLS // 2 and in_writes, landed
+
+    # Every output byte-identical to the uninterrupted run's, and nothing else in OUT: no
+    # temporary file, no lock, no stray folder; nothing beside OUT, the inputs untouched.
+    got = outputs_of(killed)
+    assert sorted(got) == sorted(expected)
+    assert [name for name in expected if got[name] != expected[name]] == []
+    assert _tree(killed) == _tree(reference)
+    assert not (killed / archive.LOCK_NAME).exists()
+    assert sorted(os.listdir(tmp_path)) == ["in", "killed", "reference"]
+    assert {p.name: p.read_bytes() for p in sorted((tmp_path / "in").iterdir())} == cubes
+    # The manifest: whole lines only, each input done exactly once over all the runs (never redone
+    # once recorded, never failed), every output's SHA-256 that of its file: line for line the
+    # uninterrupted run's manifest, in another order.
+    records = [json.loads(line) for line in _manifest_lines(killed)]
+    assert collections.Counter(r["name"] for r in records) == collections.Counter(names)
+    assert {r["status"] for r in records} == {"done"}
+    for record in records:
+        for output, digest in record["outputs"].items():
+            assert output_digest(killed / output) == digest
+    assert (killed / archive.MANIFEST_NAME).read_bytes().endswith(b"\n")
+    assert _manifest_lines(killed) == _manifest_lines(reference)
+
+
+def _check_stopped(process: subprocess.Popen, signum: int, out: pathlib.Path) -> int:
+    """The run stopped cleanly: exit status 128 + signum, one line saying how far it got, no
+    temporary, no lock, a manifest of complete inputs only, no output the manifest does not list.
+    Returns the inputs done."""
+    _, err = process.communicate(timeout=120)
+    err = err.decode()
+    assert process.returncode == 128 + signum, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    match = INTERRUPTED.fullmatch(lines[0])
+    assert match and int(match.group(2)) == INPUTS and match.group(3) == "inputs", err
+    assert not _temporaries(out)
+    assert not (out / archive.LOCK_NAME).exists()
+    records = archive.read_manifest(out)
+    assert all(record["status"] == "done" for record in records.values())
+    assert int(match.group(1)) == len(records)
+    for record in records.values():
+        for output, digest in record["outputs"].items():
+            assert output_digest(out / output) == digest, output
+    recorded = {output for record in records.values() for output in record["outputs"]}
+    assert set(outputs_of(out)) == recorded
+    return len(records)
+
+
+@pytest.mark.slow
+def test_sigint_and_sigterm_stop_correct_cleanly_and_resume_finishes_it(cal, tmp_path):
+    """SIGINT and SIGTERM at several moments, in process and on dask, each stop checked by
+    `_check_stopped`, then --resume: the uninterrupted run's bytes, each input recorded once,
+    nothing else left. On dask the stop also lets the inputs under way on the workers finish (the
+    manifest records them) and shuts the cluster down: no worker process outlives the command."""
+    import psutil  # with dask.distributed
+
+    cubes = _cubes(tmp_path / "in", INPUTS, seed=3)
+    reference, out = tmp_path / "reference", tmp_path / "out"
+    argv = ["-c", cal, tmp_path / "in", "-o"]
+    process = start_correct([*argv, reference], may_be_killed=False, quiet=True)
     _, err = process.communicate(timeout=120)
     assert process.returncode == 0, err.decode()
 
-    # Killed mid-batch at least once: some inputs finished before a kill, not all.
-    assert any(0 < done < 12 for done in progress), progress
-    assert outputs_of(killed) == outputs_of(reference)
-    latest = archive.read_manifest(killed)
-    assert sorted(latest) == [f"in/cube{index:02d}" for index in range(12)]
-    for record in latest.values():
-        assert record["status"] == "done"
-        for output, digest in record["outputs"].items():
-            assert output_digest(killed / output) == digest
-    assert not (killed / archive.LOCK_NAME).exists()
+    # (signal, moment): just after start-up (the lock taken; a new OUT: a resumed run stopped
+    # before it has verified the inputs done earlier counts none of them); a dask batch (two
+    # worker processes) once 2 more inputs are done; mid-batch (3 more inputs done); inside an
+    # input's writes (a temporary output there; the poll may see it late, when the input is
+    # already complete: then it is between inputs).
+    moments = [(signal.SIGINT, "start-up"), (signal.SIGTERM, "dask"), (signal.SIGTERM, "mid-batch"),
+               (signal.SIGTERM, "in-writes"), (signal.SIGINT, "in-writes")]
+    done = 0
+    in_writes = 0
+    for signum, moment in moments:
+        resume = ["--resume"] if out.exists() else []
+        if moment == "dask":
+            process = start_correct([*argv, out, *resume, "--workers", "2"], may_be_killed=False, quiet=True,
+                                    env={"SPHEREJAX_COMPILATION_CACHE": str(tmp_path / "jax-cache")})
+            wait_until(process, lambda: len(_done(out)) >= done + 2)
+            assert process.poll() is None, f"{moment}: the run ended before the signal"
+            workers = psutil.Process(process.pid).children(recursive=True)
+            assert workers
+        else:
+            process = start_correct([*argv, out, *resume], may_be_killed=False, quiet=True)
+            wait_until(process, holds_lock(process, out))
+            if moment == "mid-batch":
+                wait_until(process, lambda: len(_done(out)) >= done + 3)
+            elif moment == "in-writes":
+                wait_until(process, lambda: len(_done(out)) >= done + 1)
+                reached = len(_done(out))
+                wait_until(process, lambda: bool(_temporaries(out)) or len(_done(out)) > reached)
+                in_writes += bool(_temporaries(out))
+        assert process.poll() is None, f"{moment}: the run ended before the signal"
+        process.send_signal(signum)
+        now = _check_stopped(process, signum, out)
+        if moment == "dask":
+            assert now >= done + 2
+            # The cluster is shut down with the client: no worker process outlives the command.
+            gone, alive = psutil.wait_procs(workers, timeout=20)
+            assert not alive, alive
+        assert now >= done
+        done = now
+    assert done < INPUTS
+    print(f"\n{len(moments)} stops, {in_writes} seen inside an input's writes; {done} inputs done before the last --resume")
+
+    process = start_correct([*argv, out, "--resume"], may_be_killed=False, quiet=True)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err.decode()
+    got, expected = outputs_of(out), outputs_of(reference)
+    assert sorted(got) == sorted(expected)
+    assert [name for name in expected if got[name] != expected[name]] == []
+    assert _tree(out) == _tree(reference)
+    assert sorted(os.listdir(tmp_path)) == ["in", "jax-cache", "out", "reference"]
+    assert {p.name: p.read_bytes() for p in sorted((tmp_path / "in").iterdir())} == cubes
+    # Every input recorded exactly once over all the runs, as the uninterrupted run recorded it.
+    assert _manifest_lines(out) == _manifest_lines(reference)
 
 
 def test_executor_gets_absolute_paths_whatever_its_folder(cal, tmp_path, rng, monkeypatch):
