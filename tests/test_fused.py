@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax._engine import fused
+from spherejax._engine import fused, variant_cache
 from spherejax.pipeline import _compute_dtype, patch_ratio
 from spherejax.polynomial import PAPER_TABLE_2
 
@@ -598,10 +598,11 @@ def test_the_probe_goes_round_enough_memory_to_leave_the_cache(monkeypatch):
 
 
 @pytestmark_kernel
-def test_the_choice_is_measured_once_per_process_and_cached(monkeypatch, caplog):
-    """The first use measures (made-up times here, so that the choice is known), logs the times
-    and the choice at DEBUG, and every later `mode`, `variant` and kernel call takes the same
-    choice without measuring again. The process's real choice is put back afterwards."""
+def test_the_choice_is_measured_once_and_cached(monkeypatch, caplog, tmp_path):
+    """The first use on a machine measures (made-up times here, in an empty cache folder, so that
+    the choice is known), logs the times and the choice at DEBUG, and every later `mode`,
+    `variant` and kernel call takes the same choice without measuring again. The process's real
+    choice is put back afterwards."""
     monkeypatch.delenv(fused.SWITCH, raising=False)
     real = fused.measurement()
     assert real.auto in fused.supported_variants() and real.portable in fused.supported_variants()
@@ -621,6 +622,7 @@ def test_the_choice_is_measured_once_per_process_and_cached(monkeypatch, caplog)
         return dict(made_up)
 
     monkeypatch.setattr(fused, "measure_variants", fake_measure)
+    monkeypatch.setenv(variant_cache.CACHE_DIR, str(tmp_path))  # nothing kept yet: measured
     fused._measured.cache_clear()
     try:
         with caplog.at_level("DEBUG", logger="spherejax._engine.fused"):
@@ -639,6 +641,7 @@ def test_the_choice_is_measured_once_per_process_and_cached(monkeypatch, caplog)
     finally:
         # Put the process's real choice back, as other tests' traced programs assume it.
         monkeypatch.setattr(fused, "measure_variants", lambda variants=None, **kwargs: dict(real.times_s))
+        monkeypatch.setenv(variant_cache.CACHE_DIR, str(tmp_path / "real"))
         fused._measured.cache_clear()
         assert fused.measurement().auto == real.auto
 

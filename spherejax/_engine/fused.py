@@ -39,9 +39,12 @@ than the AVX2 code; on AMD Zen 5 it is clearly faster; on Zen 4, which runs AVX-
 halves, it is faster from memory and slower in the cache), and a measurement covers the CPUs
 nobody has tabled, virtual machines that hide or throttle features, and the kernel's own future
 changes, where a table would go stale. `variant` reports the choice and the times; they are
-logged at DEBUG on this module's logger. The choice is per process and `mode` returns the variant
-itself, so the XLA route and the direct NumPy route (`correct_arrays`) run the same code and give
-the same bits.
+logged at DEBUG on this module's logger. The timings are measured once per machine and kept in
+spherejax's cache folder (`variant_cache`), because the variants round differently: measured in
+every process, a loaded machine picked another variant in about one run in eight, and an
+archive's outputs differed in their last bits between runs, resumes and dask workers. `mode`
+returns the variant itself, so the XLA route and the direct NumPy route (`correct_arrays`) run
+the same code and give the same bits.
 
 SPHEREJAX_FUSED takes "auto" (the default, as when unset) or "1": the kernel, its variant
 measured as above; "portable": the same measurement without the AVX-512 intrinsics code, so that
@@ -80,6 +83,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from . import variant_cache
 
 try:  # built by setup.py as an optional extension
     from . import _fused_correct
@@ -362,9 +367,24 @@ class VariantChoice(NamedTuple):
 _measurement_lock = threading.Lock()
 
 
+def _spherejax_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("spherejax")
+    except PackageNotFoundError:  # a source tree on sys.path
+        return "source"
+
+
 @functools.cache
 def _measured() -> Measurement:
-    times = measure_variants()
+    supported = supported_variants()
+    key = variant_cache.machine_key(supported, _spherejax_version())
+    times = variant_cache.timings(key, supported, measure_variants)
+    if times is None:  # no cache folder: the widest, the same in every process (variant_cache)
+        widest = {name: 1.0 for name in supported}
+        return Measurement(types.MappingProxyType({}), choose_variant(widest),
+                           choose_variant({n: t for n, t in widest.items() if n != AVX512}), 0, 0)
     portable_times = {name: t for name, t in times.items() if name != AVX512}
     chosen = Measurement(types.MappingProxyType(times), choose_variant(times), choose_variant(portable_times),
                          PROBE_PIXELS, PROBE_REPEATS)
@@ -378,10 +398,11 @@ def _measured() -> Measurement:
 
 
 def measurement() -> Measurement:
-    """The variants measured once per process (at the first call: about 45 ms of CPU time on a
-    2-core Zen 4; `measure_variants`) and the choice, cached for the process's life.
-    Under a lock: threads that first use the kernel together wait for one measurement rather than
-    each making one of their own, which might choose differently."""
+    """The variants' timings and the choice: measured once per machine (at the first call ever:
+    about 45 ms of CPU time on a 2-core Zen 4; `measure_variants`) and kept in spherejax's cache
+    folder, which every later process reads (`variant_cache`: one choice per machine, so the same
+    bits from every run), then cached for the process's life. Under a lock: threads that first use
+    the kernel together wait for one reading rather than each making one of their own."""
     with _measurement_lock:
         return _measured()
 
@@ -429,7 +450,7 @@ def enabled() -> bool:
 
 def mode(raw_dtype, compute_dtype, bands: int) -> str | None:
     """How `correct` computes this call on CPU: the kernel's variant (one of VARIANTS: for 16
-    bands as SPHEREJAX_FUSED says, measured once per process for "auto", "1" and "portable"; the
+    bands as SPHEREJAX_FUSED says, measured once per machine for "auto", "1" and "portable"; the
     generic code for other band counts), or None (the jax.numpy path; see the module docstring).
     A static argument of the jitted step, so that a change of the environment variable traces
     again, and one value for the XLA route and the direct one, so that both run the same code."""
