@@ -3,7 +3,7 @@ jax.numpy path it would replace on GPUs (`pipeline._pixel_outputs`).
 
 Run in Pallas's interpret mode, so on the CPU, on small frames: the kernel's indexing, masks,
 flags and arithmetic are the ones a GPU runs, its compilation by Triton and its speed are not
-(.gpu/time_pallas.py checks and times it on a GPU). Quality masks and NaN positions agree
+(benchmarks/bench_gpu_kernel.py checks and times it on a GPU). Quality masks and NaN positions agree
 exactly, values to float32 rounding (the projection sums in another order). One test lowers the
 kernel to Triton IR for an H100 without a GPU, which checks what the Triton lowering refuses
 (block sizes that are not powers of two, operations it has no rule for).

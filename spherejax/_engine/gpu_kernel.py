@@ -3,7 +3,7 @@
 Not wired into `correct`: `spherejax._engine.steps` and `plan` still run the jax.numpy path
 (`pipeline._pixel_outputs`) on GPUs. This module is the candidate that would replace it there,
 tested against it in interpret mode on the CPU (tests/test_gpu_kernel.py) and timed on a GPU by
-a script kept outside the package (.gpu/time_pallas.py).
+benchmarks/bench_gpu_kernel.py.
 
 Why: on an H100 the jax.numpy path moves about 900 bytes a pixel through HBM (a pass for the
 quality flags, a pass writing the masked Stage II cube, two cuBLAS products each reading it back,
@@ -52,7 +52,7 @@ Arithmetic (float32 only; B a power of two >= 16 bands, else NotImplementedError
     `colorimetry._lab_f`; NaN in every output channel of a flagged pixel. Sums run in another
     order than XLA's products, so reflectance and Lab agree to float32 rounding, not bit for bit.
 
-Measured (.gpu/time_pallas.py, one H100 80GB HBM3, jax 0.11.2, make_inputs frames, 4096 x 4096
+Measured (benchmarks/bench_gpu_kernel.py, one H100 80GB HBM3, jax 0.11.2, make_inputs frames, 4096 x 4096
 tiled from 1024 x 1024): quality equal bit for bit and NaN in the same places at both sizes,
 max |diff| reflectance 4.8e-7, Lab 1.2e-4. 1024 x 1024: 0.284 ms against 0.695 ms for the
 jax.numpy path; 4096 x 4096: 2.18 ms (68 % of the 297-byte HBM floor at 3.35 TB/s) against 4.68 ms
