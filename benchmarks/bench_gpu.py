@@ -13,7 +13,10 @@ What it measures
        "numpy in/out": a NumPy frame in and `np.asarray` of reflectance, Lab and quality out,
        what a user gets who reads frames with NumPy (the upload and downloads included);
        "on device": the frame already on the GPU (`jax.device_put` once) and the outputs left
-       there (`jax.block_until_ready`), the GPU's own work;
+       there (`jax.block_until_ready`), the GPU's own work; where the plan runs the GPU kernel
+       (`spherejax._engine.gpu_kernel`), also "on device, jax.numpy": a plan of the same frames
+       that runs the jax.numpy path instead, timed back to back with the others and checked
+       against the default's outputs first (quality identical, values to float32 rounding);
     3. a stack of --stack (default 8) frames of --stack-size (default 1024) in one `correct`
        call, both ways, and `jax.jit(jax.vmap(lambda r: correct(r, calibration)))` over it on
        the device, each first checked against the frames corrected one by one;
@@ -85,6 +88,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import spherejax  # noqa: E402
+from spherejax._engine.plan import Plan, plan_for  # noqa: E402
 
 #: Spec-sheet HBM bandwidth in GB/s by a substring of `device_kind` (case-insensitive, first
 #: match wins). jax names an H100 SXM "NVIDIA H100 80GB HBM3"; other H100 variants (NVL) are
@@ -278,6 +282,22 @@ def on_device(raw: jax.Array, calibration):
     return jax.block_until_ready(spherejax.correct(raw, calibration))
 
 
+def jax_numpy_way(raw: jax.Array, calibration, result: spherejax.CorrectionResult):
+    """None where `correct`'s plan of raw runs the jax.numpy path already; else a call of a plan
+    of the same frames that runs the jax.numpy path (kernel_mode None), what ran on GPUs before
+    the GPU kernel, after checking its outputs against `result` (the default plan's): quality
+    identical, reflectance within 1e-5 and Lab within 1e-3 (float32 rounding of sums taken in
+    another order; raises AssertionError otherwise)."""
+    if plan_for(calibration, raw.shape, raw.dtype).kernel_mode is None:
+        return None
+    plan = Plan(calibration, raw.shape, raw.dtype, kernel_mode=None)
+    other = jax.block_until_ready(plan(raw))
+    np.testing.assert_array_equal(np.asarray(other.quality), np.asarray(result.quality))
+    np.testing.assert_allclose(np.asarray(other.reflectance), np.asarray(result.reflectance), atol=1e-5, rtol=0)
+    np.testing.assert_allclose(np.asarray(other.lab), np.asarray(result.lab), atol=1e-3, rtol=0)
+    return lambda: jax.block_until_ready(plan(raw))
+
+
 def link_seconds(raw, outputs_bytes: int, copies: dict) -> float:
     """Seconds to upload `raw` and download `outputs_bytes` at the measured median speeds."""
     return raw.nbytes / (copies["upload_gb_per_s"] * 1e9) + outputs_bytes / (copies["download_gb_per_s"] * 1e9)
@@ -327,18 +347,29 @@ def time_sizes(sizes, inputs_of, calibration_of, copies, hbm_bytes_per_s, repeat
         first_np = first_calls.get(size, {}).get("numpy in/out", first_np)
         first_dev = first_calls.get(size, {}).get("on device", first_dev)
         hbm_bytes, out_bytes = moved_bytes(raw_dev, calibration, result), outputs_nbytes(result)
+        jax_numpy, first_jax_numpy = None, None
+        if (way := jax_numpy_way(raw_dev, calibration, result)) is not None:
+            first_jax_numpy, _ = harness.time_first_call(way)
+            jax_numpy = way
         del result
-        timings = time_each_back_to_back({
+        ways = {
             "numpy in/out": lambda: numpy_in_out(raw_np, calibration),  # noqa: B023
             "on device": lambda: on_device(raw_dev, calibration),  # noqa: B023
-        }, repeats)
+        }
+        if jax_numpy is not None:
+            ways["on device, jax.numpy"] = jax_numpy
+        timings = time_each_back_to_back(ways, repeats)
         pixels = size * size
         rows.append(row(f"{size}^2 numpy in/out", timings["numpy in/out"], first_np, pixels,
                         link_s=link_seconds(raw_np, out_bytes, copies)))
         rows.append(row(f"{size}^2 on device", timings["on device"], first_dev, pixels,
                         hbm_bytes=hbm_bytes, hbm_bytes_per_s=hbm_bytes_per_s))
+        if jax_numpy is not None:
+            rows.append(row(f"{size}^2 on device, jax.numpy", timings["on device, jax.numpy"], first_jax_numpy,
+                            pixels, hbm_bytes=hbm_bytes, hbm_bytes_per_s=hbm_bytes_per_s))
+        kernel = plan_for(calibration, raw_dev.shape, raw_dev.dtype).kernel_mode or "the jax.numpy path"
         del raw_dev
-        log(f"timed {size} x {size}")
+        log(f"timed {size} x {size}; the plan's per-pixel step: {kernel}")
     return rows
 
 

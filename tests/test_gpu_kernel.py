@@ -11,8 +11,10 @@ kernel to Triton IR for an H100 without a GPU, which checks what the Triton lowe
 
 from __future__ import annotations
 
+import logging
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,7 +22,9 @@ import pytest
 
 import spherejax as sj
 from spherejax import pipeline
+from spherejax._engine import gpu_kernel
 from spherejax._engine.gpu_kernel import pixel_outputs_pallas
+from spherejax._engine.plan import Plan
 from spherejax.pixel_constants import PixelConstants
 from spherejax.polynomial import PAPER_TABLE_2
 
@@ -31,6 +35,12 @@ BANDS = 16
 def make_case(height, width, *, raw_dtype, images=(), seed=0):
     """Frames with every kind of bad pixel, their calibration's constants (float32, a non-zero
     Wiener offset) and p, NaN in one band of the last image's p if there are several images."""
+    raw, p, calibration = make_calibration_case(height, width, raw_dtype=raw_dtype, images=images, seed=seed)
+    return raw, p, PixelConstants.of(calibration, np.float32)
+
+
+def make_calibration_case(height, width, *, raw_dtype, images=(), seed=0):
+    """`make_case`'s frames and p with the `Calibration` itself."""
     rng = np.random.default_rng(seed)
     bands = BANDS
     dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
@@ -68,7 +78,7 @@ def make_case(height, width, *, raw_dtype, images=(), seed=0):
     if images:
         p = p.copy()
         p[(*(n - 1 for n in images), 3)] = np.nan  # the last image's patch is unusable
-    return jnp.asarray(raw), jnp.asarray(p), PixelConstants.of(calibration, np.float32)
+    return jnp.asarray(raw), jnp.asarray(p), calibration
 
 
 def assert_agree(got, want):
@@ -162,3 +172,173 @@ def test_lowers_to_triton_for_an_h100():
         warnings.filterwarnings("ignore", "The Pallas Triton backend is deprecated", DeprecationWarning)
         text = program.trace(raw, p, constants).lower(lowering_platforms=("cuda",)).as_text()
     assert "__gpu$xla.gpu.triton" in text
+
+
+# -------------------------------------------------------------------------------------------------
+# The kernel as a plan runs it (`gpu_kernel.pixel_outputs`, `steps`, `plan.Plan`): interpret mode
+# stands in for the GPU, the plan's own choice of kernel on a device is tested with device stand-ins.
+
+
+def plans(raw, calibration):
+    """(a plan running the kernel in interpret mode, a plan running the jax.numpy path) of raw's
+    shape and dtype."""
+    kernel = Plan(calibration, raw.shape, raw.dtype, kernel_mode=gpu_kernel.INTERPRET)
+    assert kernel.kernel_mode == gpu_kernel.INTERPRET
+    return kernel, Plan(calibration, raw.shape, raw.dtype, kernel_mode=None)
+
+
+def outputs(result):
+    return result.reflectance, result.lab, result.quality
+
+
+@pytest.mark.parametrize(("raw_dtype", "images"), [(np.uint16, (2,)), (np.float32, ())])
+def test_a_plan_with_the_kernel_corrects_as_the_jax_numpy_path(raw_dtype, images):
+    """Whole frames (p from the patch, traced into the same program), frames given with p (a
+    strip's way) and under the caller's jit: the kernel's outputs are the jax.numpy path's."""
+    raw, _, calibration = make_calibration_case(24, 40, raw_dtype=raw_dtype, images=images)
+    kernel, reference = plans(raw, calibration)
+    got, want = kernel(raw), reference(raw)
+    np.testing.assert_array_equal(np.asarray(got.p), np.asarray(want.p))
+    assert_agree(outputs(got), outputs(want))
+    assert_agree(outputs(kernel(raw, p=want.p)), outputs(reference(raw, p=want.p)))
+    assert_agree(outputs(jax.jit(lambda r: kernel(r))(raw)), outputs(want))
+
+
+def test_intermediates_come_from_the_jax_numpy_path_and_the_main_outputs_from_the_kernel():
+    raw, _, calibration = make_calibration_case(24, 40, raw_dtype=np.uint16)
+    kernel, reference = plans(raw, calibration)
+    got, want = kernel(raw, intermediates=True), reference(raw, intermediates=True)
+    assert_agree(outputs(got), outputs(want))
+    for name in ("v", "v_stage1", "v_stage2"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), err_msg=name)
+
+
+def test_mapped_frames_are_images_of_one_kernel_call():
+    """jax.vmap over frames and their p, over frames with one p, and over calibrations (a mapped
+    calibration maps the jax.numpy path); a mapped axis in front of a batch axis of raw."""
+    raw, p, calibration = make_calibration_case(24, 40, raw_dtype=np.uint16, images=(3,))
+    constants = PixelConstants.of(calibration, np.float32)
+    calls = []
+
+    def kernel(raw, p, constants):
+        return gpu_kernel.pixel_outputs(raw, p, constants, saturation=SATURATION, kernel_mode=gpu_kernel.INTERPRET)
+
+    def reference(raw, p, constants):
+        return pipeline._pixel_outputs(raw, p, constants, saturation=SATURATION)
+
+    original = gpu_kernel.pixel_outputs_pallas
+
+    def counted(raw, *args, **kwargs):
+        calls.append(raw.shape)
+        return original(raw, *args, **kwargs)
+
+    gpu_kernel.pixel_outputs_pallas = counted
+    try:
+        got = jax.vmap(kernel, in_axes=(0, 0, None))(raw, p, constants)
+        # Traced once per frame for the mapping's output types, then called once on all three.
+        assert calls[-1] == (3, 24, 40, BANDS) and calls.count((3, 24, 40, BANDS)) == 1
+        assert_agree(got, reference(raw, p, constants))
+        # One p for every frame; a batch axis of two behind the mapped one.
+        frames = jnp.stack([raw[:2], raw[1:]])
+        assert_agree(jax.vmap(kernel, in_axes=(0, None, None))(frames, p[0], constants),
+                     reference(frames, p[0], constants))
+        assert calls[-1] == (2, 2, 24, 40, BANDS)
+        # Two calibrations: the second's white 5 % higher.
+        stacked = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), constants)
+        stacked = eqx.tree_at(lambda c: c.white, stacked, stacked.white.at[1].multiply(1.05))
+        got = jax.vmap(kernel, in_axes=(None, None, 0))(raw[0], p[0], stacked)
+        want = jax.vmap(reference, in_axes=(None, None, 0))(raw[0], p[0], stacked)
+        assert_agree(got, want)
+    finally:
+        gpu_kernel.pixel_outputs_pallas = original
+
+
+def test_gradients_through_a_plan_with_the_kernel_are_the_jax_numpy_paths():
+    """d(sum of good reflectance and Lab)/d raw through `correct`'s plan and through the kernel's
+    own JVP: the jax.numpy path's derivatives, finite, and not all zero."""
+    raw, p, calibration = make_calibration_case(24, 40, raw_dtype=np.float32)
+    raw = jnp.where(jnp.isfinite(raw), raw, 500.0)  # finite frames: a derivative everywhere
+    kernel, reference = plans(raw, calibration)
+
+    def loss(plan):
+        def of(r):
+            result = plan(r)
+            return jnp.nansum(result.reflectance) + 1e-3 * jnp.nansum(result.lab)
+        return of
+
+    got, want = jax.grad(loss(kernel))(raw), jax.grad(loss(reference))(raw)
+    assert np.all(np.isfinite(np.asarray(got))) and np.count_nonzero(np.asarray(got)) > raw.size // 2
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-9)
+    constants = PixelConstants.of(calibration, np.float32)
+    tangent = jnp.ones_like(raw)
+    (_, got_tangents) = jax.jvp(
+        lambda r: gpu_kernel.pixel_outputs(
+            r, p, constants, saturation=SATURATION, kernel_mode=gpu_kernel.INTERPRET
+        )[:2],
+        (raw,), (tangent,))
+    (_, want_tangents) = jax.jvp(
+        lambda r: pipeline._pixel_outputs(r, p, constants, saturation=SATURATION)[:2], (raw,), (tangent,))
+    for got_t, want_t in zip(got_tangents, want_tangents):
+        np.testing.assert_array_equal(np.asarray(got_t), np.asarray(want_t))
+
+
+class _Client:
+    def __init__(self, platform_version):
+        self.platform_version = platform_version
+
+
+class _Device:
+    """What `gpu_kernel.mode` reads of a jax device: its platform and its client's version text
+    (as jax's own test_util tells CUDA from ROCm)."""
+
+    def __init__(self, platform, platform_version):
+        self.platform, self.client = platform, _Client(platform_version)
+
+
+CUDA = _Device("gpu", "PJRT C API\ncuda 12080")
+
+
+@pytest.mark.parametrize(
+    ("device", "raw_dtype", "compute_dtype", "bands", "switch", "expected"),
+    [
+        (CUDA, np.uint16, np.float32, 16, None, gpu_kernel.GPU),
+        (CUDA, np.float32, np.float32, 32, "1", gpu_kernel.GPU),
+        (CUDA, np.uint16, np.float32, 16, "0", None),
+        (CUDA, np.uint16, np.float64, 16, None, None),
+        (CUDA, np.uint16, np.float32, 15, None, None),
+        (CUDA, np.uint16, np.float32, 8, None, None),
+        (CUDA, np.int32, np.float32, 16, None, None),
+        (_Device("gpu", "PJRT C API\nrocm 60300"), np.uint16, np.float32, 16, None, None),
+        (_Device("cpu", "cpu"), np.uint16, np.float32, 16, None, None),
+        (None, np.uint16, np.float32, 16, None, None),
+    ],
+    ids=["cuda", "float32 raw, 32 bands, switched on", "switched off", "float64", "15 bands", "8 bands", "int32 raw",
+         "rocm", "cpu", "no device"],
+)
+def test_which_plans_take_the_kernel(monkeypatch, device, raw_dtype, compute_dtype, bands, switch, expected):
+    if switch is None:
+        monkeypatch.delenv(gpu_kernel.SWITCH, raising=False)
+    else:
+        monkeypatch.setenv(gpu_kernel.SWITCH, switch)
+    assert gpu_kernel.mode(raw_dtype, compute_dtype, bands, device) == expected
+
+
+def test_a_mistyped_switch_is_refused(monkeypatch):
+    monkeypatch.setenv(gpu_kernel.SWITCH, "off")
+    with pytest.raises(ValueError, match="SPHEREJAX_GPU_KERNEL='off': expected one of 0, 1"):
+        gpu_kernel.mode(np.uint16, np.float32, 16, CUDA)
+
+
+def test_a_kernel_that_does_not_compile_leaves_the_plan_on_the_jax_numpy_path(caplog):
+    """A plan asked for the compiled kernel where Pallas cannot compile it (here the CPU, which
+    Pallas runs in interpret mode only) corrects by the jax.numpy path, with its flat-field mask,
+    and says why at DEBUG."""
+    raw, _, calibration = make_calibration_case(24, 40, raw_dtype=np.uint16)
+    with caplog.at_level(logging.DEBUG, logger="spherejax._engine.plan"):
+        plan = Plan(calibration, raw.shape, raw.dtype, kernel_mode=gpu_kernel.GPU)
+    assert plan.kernel_mode is None and plan.no_flat_field is not None
+    assert "the GPU kernel did not compile for (24, 40, 16) frames of uint16" in caplog.text
+    reference = Plan(calibration, raw.shape, raw.dtype, kernel_mode=None)
+    got, want = plan(raw), reference(raw)
+    for name in ("reflectance", "lab", "quality", "p"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), err_msg=name)

@@ -1,9 +1,19 @@
-"""A prototype fused GPU kernel of `correct`'s per-pixel step, written with JAX Pallas (Triton).
+"""The fused GPU kernel of `correct`'s per-pixel step, written with JAX Pallas (Triton), and when
+it is used.
 
-Not wired into `correct`: `spherejax._engine.steps` and `plan` still run the jax.numpy path
-(`pipeline._pixel_outputs`) on GPUs. This module is the candidate that would replace it there,
-tested against it in interpret mode on the CPU (tests/test_gpu_kernel.py) and timed on a GPU by
-benchmarks/bench_gpu_kernel.py.
+On an NVIDIA GPU (CUDA), a plan (`spherejax._engine.plan`) whose frames are uint16 or float32 counts
+of a power-of-two number of bands >= 16 (the instrument's 16), computed in float32, runs its
+per-pixel step as this kernel (`pixel_outputs`) instead of the jax.numpy path
+(`pipeline._pixel_outputs`), which stays the definition it is tested against
+(tests/test_gpu_kernel.py, in Pallas's interpret mode on the CPU) and what runs everywhere else:
+in float64, on other GPUs (ROCm) and backends, for other band counts, and where the plan's first
+compilation of the kernel fails (`mode`, `plan.Plan`: the plan then falls back to the jax.numpy
+path and logs why at DEBUG). SPHEREJAX_GPU_KERNEL=0 switches it off (to compare the two, or to
+rule the kernel out when something looks wrong); "1" or unset leaves it on.
+
+Derivatives and mappings work as for the fused CPU kernel: the kernel's outputs carry a custom
+JVP that is the jax.numpy path's, and frames mapped with `jax.vmap` over one calibration are
+more images of one kernel call (a mapped calibration maps the jax.numpy path).
 
 Why: on an H100 the jax.numpy path moves about 900 bytes a pixel through HBM (a pass for the
 quality flags, a pass writing the masked Stage II cube, two cuBLAS products each reading it back,
@@ -60,23 +70,26 @@ jax.numpy path; 4096 x 4096: 2.18 ms (68 % of the 297-byte HBM floor at 3.35 TB/
 512 were slower (2.5..3.2 ms). Triton's approximate division instead of div.rn.f32 made no
 measurable difference (2.24 ms).
 
-Deprecation: jax 0.11.2 and 0.12 warn, when this kernel is lowered for a GPU, that the Pallas
-Triton backend is deprecated and will be removed in favour of Mosaic GPU (or jax_triton with
-Triton's own bindings); this prototype would have to move before that happens.
+Deprecation: jax 0.11.2 and 0.12 warn (a DeprecationWarning), when this kernel is lowered for a
+GPU, that the Pallas Triton backend is deprecated and will be removed in favour of Mosaic GPU (or
+jax_triton with Triton's own bindings). The kernel will have to move before that happens; until
+then a JAX without the backend, or one that turns the warning into an error, makes the plan's
+first compilation fail, and the plan falls back to the jax.numpy path.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as plt
 
 from .. import colorimetry
 from ..grid import N_WAVELENGTHS
+from .. import pipeline
 from ..pipeline import (
     BELOW_DARK_LIMIT,
     QUALITY_BELOW_DARK,
@@ -98,9 +111,69 @@ _LAB_PAD = 4
 
 _RAW_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
 
+#: The kernel modes a plan's steps take (their static `kernel_mode`, beside the fused CPU kernel's
+#: variants): compiled by Triton for a GPU, or run by Pallas's interpreter (any backend; the tests').
+GPU, INTERPRET = "pallas", "pallas-interpret"
+MODES = (GPU, INTERPRET)
+
+#: The environment variable that switches the kernel off ("0") or leaves it on ("1", or unset).
+SWITCH = "SPHEREJAX_GPU_KERNEL"
+SWITCH_VALUES = ("0", "1")
+
+
+def switch() -> str:
+    """SPHEREJAX_GPU_KERNEL's value, "1" when unset.
+
+    Raises:
+      ValueError: any other value than "0" or "1", so that a typo cannot leave the kernel on.
+    """
+    value = os.environ.get(SWITCH, "1").strip()
+    if value not in SWITCH_VALUES:
+        raise ValueError(f"{SWITCH}={value!r}: expected one of {', '.join(SWITCH_VALUES)}")
+    return value
+
+
+def supports(raw_dtype, compute_dtype, bands: int) -> bool:
+    """Whether the kernel computes frames of this raw dtype, compute dtype and band count."""
+    return (
+        np.dtype(compute_dtype) == np.float32
+        and np.dtype(raw_dtype) in _RAW_DTYPES
+        and _is_power_of_two(bands)
+        and bands >= 16
+    )
+
+
+def _is_cuda(device) -> bool:
+    """True for an NVIDIA GPU (the Triton lowering's target; ROCm GPUs are "gpu" as well)."""
+    if device is None or device.platform not in ("gpu", "cuda"):
+        return False
+    try:
+        version = device.client.platform_version
+    except AttributeError:
+        return False
+    return "cuda" in str(version).lower()
+
+
+def mode(raw_dtype, compute_dtype, bands: int, device) -> str | None:
+    """GPU when a plan on `device` runs its per-pixel step as this kernel, else None (the
+    jax.numpy path): an NVIDIA GPU, frames the kernel computes (`supports`), and the switch on.
+    The plan still falls back to None where the kernel's first compilation fails."""
+    if not (_is_cuda(device) and supports(raw_dtype, compute_dtype, bands)):
+        return None
+    return GPU if switch() == "1" else None
+
 
 def _is_power_of_two(n: int) -> bool:
     return n > 0 and n & (n - 1) == 0
+
+
+def _pallas():
+    """(jax.experimental.pallas, its Triton module), imported at the first kernel built: about
+    60 ms of import that `correct` on CPU, which never builds one, does without."""
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plt
+
+    return pl, plt
 
 
 def _divide_ieee(x, y, exact: bool):
@@ -112,6 +185,7 @@ def _divide_ieee(x, y, exact: bool):
     """
     if not exact:
         return x / y
+    _, plt = _pallas()
     (quotient,) = plt.elementwise_inline_asm(
         "div.rn.f32 $0, $1, $2;",
         args=[x, y],
@@ -130,6 +204,7 @@ def _any(condition, axis):
 
 def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_mask, exact_division):
     """The kernel for one configuration (everything static is closed over)."""
+    pl, plt = _pallas()
     below_dark_limit = -BELOW_DARK_LIMIT
 
     def kernel(*refs):
@@ -333,6 +408,7 @@ def pixel_outputs_pallas(
         jax.ShapeDtypeStruct((images, pixels, 3), jnp.float32),
         jax.ShapeDtypeStruct((images, pixels), jnp.uint8),
     )
+    pl, plt = _pallas()
     compiler_params = None if interpret else plt.CompilerParams(num_warps=num_warps)
     reflectance, lab, quality = pl.pallas_call(
         kernel,
@@ -349,4 +425,88 @@ def pixel_outputs_pallas(
     )
 
 
-__all__ = ["DEFAULT_BLOCK_PIXELS", "kernel_constants", "pixel_outputs_pallas"]
+def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, kernel_mode: str):
+    """(reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W)) of
+    `pipeline._pixel_outputs(raw, p, constants, saturation=...)` by the kernel, as `correct`'s
+    steps call it (`steps.pixels_step`), with the jax.numpy path's JVP and a mapping rule.
+
+    Args:
+      raw: (..., H, W, B) uint16 or float32; p: (..., B); constants: float32 (`supports`).
+      saturation: the saturation level, or None for no check.
+      kernel_mode: GPU (Triton) or INTERPRET (Pallas's interpreter).
+
+    Derivatives: the outputs carry the JVP of the jax.numpy path (`jax.grad` through `correct`
+    gives what it gives without the kernel), the primal outputs stay the kernel's.
+    Mappings (`jax.vmap`): frames and ratios mapped over one calibration are more images of one
+    kernel call, which takes leading image axes; a mapped calibration maps the jax.numpy path.
+    """
+    plain = functools.partial(pipeline._pixel_outputs, saturation=saturation, intermediates=False)
+    kernel = functools.partial(pixel_outputs_pallas, saturation=saturation, interpret=kernel_mode == INTERPRET)
+
+    @jax.custom_batching.custom_vmap
+    def mappable(raw, p, constants):
+        return kernel(raw, p, constants)
+
+    @mappable.def_vmap
+    def over_frames(axis_size, in_batched, raw, p, constants):
+        raw_batched, p_batched, constants_batched = in_batched
+        if any(jax.tree_util.tree_leaves(constants_batched)):  # a mapped calibration
+            axes = jax.tree_util.tree_map(lambda batched: 0 if batched else None, in_batched)
+            return jax.vmap(plain, in_axes=axes)(raw, p, constants), (True, True, True)
+        if not raw_batched:
+            raw = jnp.broadcast_to(raw, (axis_size, *raw.shape))
+        lead = raw.shape[:-3]  # (axis_size, ...raw's own leading axes)
+        if p_batched:  # (axis_size, ...p's, B): p's own axes align with raw's from the right
+            p = p.reshape(axis_size, *(1,) * (len(lead) - (p.ndim - 1)), *p.shape[1:])
+        p = jnp.broadcast_to(p, (*lead, p.shape[-1]))
+        return mappable(raw, p, constants), (True, True, True)
+
+    @jax.custom_jvp
+    def outputs(raw, p, constants):
+        return mappable(raw, p, constants)
+
+    @functools.partial(outputs.defjvp, symbolic_zeros=True)
+    def outputs_jvp(primals, tangents):
+        return outputs(*primals), _jvp_of_inputs_with_tangents(plain, primals, tangents)
+
+    return outputs(raw, p, constants)
+
+
+def _jvp_of_inputs_with_tangents(function, primals, tangents):
+    """The output tangents of `function` (jax.jvp) with respect to the inputs that have tangents
+    only; the others (SymbolicZero in `tangents`) are held constant.
+
+    Why not jax.jvp with zeros for them: a zero tangent times an infinite partial derivative is
+    NaN (the Lab of a pixel whose flat field divides by zero, say), and NaN would then appear in
+    the tangents of outputs that depend on nothing differentiated."""
+    def is_zero(tangent):
+        return isinstance(tangent, jax.custom_derivatives.SymbolicZero)
+
+    leaves, structure = jax.tree_util.tree_flatten(primals)
+    tangent_leaves = jax.tree_util.tree_leaves(tangents, is_leaf=is_zero)
+    live = [i for i, tangent in enumerate(tangent_leaves) if not is_zero(tangent)]
+
+    def of_live(*values):
+        arguments = list(leaves)
+        for i, value in zip(live, values):
+            arguments[i] = value
+        return function(*jax.tree_util.tree_unflatten(structure, arguments))
+
+    _, tangents_out = jax.jvp(of_live, [leaves[i] for i in live], [tangent_leaves[i] for i in live])
+    return tangents_out
+
+
+__all__ = [
+    "DEFAULT_BLOCK_PIXELS",
+    "GPU",
+    "INTERPRET",
+    "MODES",
+    "SWITCH",
+    "SWITCH_VALUES",
+    "kernel_constants",
+    "mode",
+    "pixel_outputs",
+    "pixel_outputs_pallas",
+    "supports",
+    "switch",
+]

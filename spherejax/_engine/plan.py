@@ -6,7 +6,9 @@
   tristimulus weights of its illuminant and observer;
 - `patch` and `box_origin`/`box_shape`: the white patch's bounding box of those arrays
   (`PatchConstants`), the only pixels the white-patch ratio reads;
-- `saturation`, `kernel_mode`: the saturation level and the fused CPU kernel's mode, static;
+- `saturation`, `kernel_mode`: the saturation level and the kernel its per-pixel step runs, static:
+  the fused CPU kernel's variant on CPU, the Pallas kernel on an NVIDIA GPU (compiled when the
+  plan is made, the jax.numpy path if that fails), or None for the jax.numpy path;
 - `no_flat_field`: the (H, W) mask of pixels without a flat field, read by the jax.numpy path on
   CPU instead of a reduction over both frames on every call;
 - the route its whole-frame calls take (`route`) and, for the routes that need it, the compiled
@@ -30,6 +32,7 @@ sets of outputs, not four).
 from __future__ import annotations
 
 import functools
+import logging
 import threading
 import weakref
 
@@ -40,7 +43,9 @@ import numpy as np
 from .. import _checks, colorimetry, pipeline
 from ..grid import N_WAVELENGTHS
 from ..pixel_constants import PatchConstants, PixelConstants
-from . import buffers, fused, steps
+from . import buffers, fused, gpu_kernel, steps
+
+_log = logging.getLogger(__name__)
 
 #: Routes of whole frames without p, noise or intermediates (`Plan.route`).
 DIRECT, RECYCLING, PROGRAM = "direct", "recycling", "program"
@@ -148,11 +153,7 @@ class Plan:
         self._calibration = weakref.ref(calibration) if self.concrete else (lambda: calibration)
         self.device = _device_of(calibration) if self.concrete else None
         on_cpu = self.device is not None and self.device.platform == "cpu"
-        # The kernel runs on CPU only: a plan on another device traces the jax.numpy path alone,
-        # without the kernel's custom JVP and platform switch around it.
-        off_cpu = self.device is not None and self.device.platform != "cpu"
-        usable = None if off_cpu else fused.mode(self.dtype, self.compute_dtype, calibration.bands)
-        self.kernel_mode = None if usable is None or kernel_mode is None else usable if kernel_mode == fused.AUTO else kernel_mode
+        self.kernel_mode = _kernel_mode(kernel_mode, self.dtype, self.compute_dtype, calibration.bands, self.device)
         box = calibration.patch_box if calibration.patch is not None else None
         if calibration.patch is not None and box is None:  # a traced patch: the whole frame
             box = (0, self.shape[-3], 0, self.shape[-2])
@@ -166,9 +167,10 @@ class Plan:
         pixels = int(np.prod(self.shape[:-1], dtype=np.int64))
         large = pixels * _OUTPUT_BYTES_PER_PIXEL >= buffers.MIN_BYTES
         whole = box is not None and self.shape[-3:] == (*calibration.image_shape, calibration.bands)
+        self._whole_frames = whole
         if not (self.concrete and whole):
             self.route = PROGRAM
-        elif on_cpu and self.kernel_mode is not None and large and self.dtype in fused.RAW_DTYPES:
+        elif on_cpu and self.kernel_mode in fused.VARIANTS and large and self.dtype in fused.RAW_DTYPES:
             self.route = DIRECT
         elif on_cpu and large:
             self.route = RECYCLING
@@ -177,6 +179,37 @@ class Plan:
         self._direct = self._kernel_arrays() if self.route == DIRECT else None
         self._into = None
         self._lock = threading.Lock()
+        if self.kernel_mode == gpu_kernel.GPU and self.concrete:
+            self._compile_gpu_kernel()
+
+    def _compile_gpu_kernel(self) -> None:
+        """Compile the whole-frame program with the GPU kernel now, by correcting zero frames of
+        this plan's shape, and fall back to the jax.numpy path (kernel_mode None) if that fails:
+        a JAX whose Pallas has lost its Triton backend or lowers the kernel differently must not
+        fail every `correct`. The compiled program stays in jit's cache for the calls that follow; whatever
+        went wrong is logged at DEBUG (the module's logger)."""
+        # NumPy zeros, as frames read from files come: a frame committed to a device is another
+        # signature of jit's (a second compilation at its first call), a NumPy one is not.
+        zeros = np.zeros(self.shape, self.dtype)
+        # The Pallas Triton backend's deprecation notice at each lowering (gpu_kernel's docstring)
+        # is a DeprecationWarning from JAX's own module, which Python's default filters do not
+        # show; where warnings are errors (-W error), the kernel is given up here.
+        try:
+            jax.block_until_ready(self._whole(zeros) if self._whole_frames else self._pixels(zeros))
+        except Exception as error:  # noqa: BLE001 - any failure of a kernel we can do without
+            _log.debug("the GPU kernel did not compile for %s frames of %s (%s: %s); using the jax.numpy path",
+                       self.shape, self.dtype, type(error).__name__, error)
+            self.kernel_mode = None
+            # The mask the jax.numpy path's plans read (`_prepare`).
+            self.no_flat_field = _no_flat_field(self.constants.dark, self.constants.white)
+        finally:
+            del zeros
+
+    def _pixels(self, raw) -> pipeline.CorrectionResult:
+        """The per-pixel step of frames with p = 1 (a plan without a patch box: `_compile_gpu_kernel`)."""
+        p = jnp.ones((*raw.shape[:-3], raw.shape[-1]), self.compute_dtype)
+        return steps.pixels_step(raw, p, self.constants, saturation=self.saturation, intermediates=False,
+                                 kernel_mode=self.kernel_mode)
 
     # ---------------------------------------------------------------------------------------
     # What the routes read
@@ -366,6 +399,26 @@ class Plan:
         return self._calibration()
 
 
+_no_flat_field = jax.jit(pipeline._no_flat_field)
+
+
+def _kernel_mode(asked, raw_dtype, compute_dtype, bands: int, device) -> str | None:
+    """The kernel a plan runs its per-pixel step with (its static `kernel_mode`): None for the
+    jax.numpy path; on CPU the fused kernel's variant (`fused.mode`); on an NVIDIA GPU the Pallas
+    kernel (`gpu_kernel.mode`). `asked`: None (the jax.numpy path), fused.AUTO (whatever applies),
+    or a mode to take where the frames allow it (a variant; gpu_kernel.INTERPRET in the tests)."""
+    if asked is None:
+        return None
+    if asked in gpu_kernel.MODES:
+        return asked if gpu_kernel.supports(raw_dtype, compute_dtype, bands) else None
+    if device is not None and device.platform != "cpu":
+        # The fused kernel runs on CPU only: a plan elsewhere traces the GPU kernel or the
+        # jax.numpy path alone, without the fused kernel's custom JVP and platform switch.
+        return gpu_kernel.mode(raw_dtype, compute_dtype, bands, device)
+    usable = fused.mode(raw_dtype, compute_dtype, bands)
+    return None if usable is None else usable if asked == fused.AUTO else asked
+
+
 def _on_device(raw, device) -> bool:
     """True when raw is a jax.Array on exactly `device`."""
     try:
@@ -386,7 +439,5 @@ def plan_for(calibration: pipeline.Calibration, shape, dtype) -> Plan:
         return Plan(calibration, shape, dtype)
     compute_dtype = pipeline._compute_dtype(jax.ShapeDtypeStruct(shape, dtype), calibration)
     device = _device_of(calibration)
-    # The kernel runs on CPU only; asking `fused.mode` elsewhere would time its variants for nothing.
-    on_cpu = device is not None and device.platform == "cpu"
-    kernel_mode = fused.mode(dtype, compute_dtype, calibration.bands) if on_cpu else None
+    kernel_mode = _kernel_mode(fused.AUTO, dtype, compute_dtype, calibration.bands, device)
     return calibration._plan((shape, dtype.str, kernel_mode), lambda: Plan(calibration, shape, dtype, kernel_mode))

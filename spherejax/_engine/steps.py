@@ -9,8 +9,8 @@ dtypes, the patch box's shape and the static options), whichever calibration it 
     image_step_into    image_step writing into the memory of donated outputs (CPU, `buffers`)
 
 The equations are `spherejax.pipeline`'s (`_pixel_outputs`, `_patch_ratio_of_box`); how they run
-on CPU (the fused kernel, cache-sized blocks of the jax.numpy path) is decided here, at trace
-time, by `kernel_mode` and `jax.lax.platform_dependent`.
+(the fused CPU kernel, the GPU kernel, cache-sized blocks of the jax.numpy path on CPU) is decided
+here, at trace time, by `kernel_mode` and `jax.lax.platform_dependent`.
 
 jax.jit rather than eqx.filter_jit: every array is a leaf and everything else static, so plain
 jit applies, and its C++ dispatch saves about 0.3 ms a call (6 % of a 256 x 256 correction).
@@ -28,7 +28,7 @@ import numpy as np
 from .. import pipeline, uncertainty
 from ..grid import N_WAVELENGTHS
 from ..pixel_constants import PatchConstants, PixelConstants
-from . import fused
+from . import fused, gpu_kernel
 
 #: Pixels per block of the jax.numpy path on CPU (`pixel_outputs_in_blocks`): a block's
 #: intermediates (16 + 34 channels of float32, about 3.5 MB) stay in the L2/L3 caches.
@@ -165,6 +165,14 @@ def _pixels_plain(raw, p, constants: PixelConstants, *, saturation, intermediate
     plain = functools.partial(
         pipeline._pixel_outputs, saturation=saturation, intermediates=intermediates, no_flat_field=no_flat_field
     )
+    if kernel_mode in gpu_kernel.MODES:  # the GPU kernel, chosen by the plan for its device
+        reflectance, lab, quality = gpu_kernel.pixel_outputs(
+            raw, p, constants, saturation=saturation, kernel_mode=kernel_mode
+        )
+        cubes = ()
+        if intermediates:  # as for the fused CPU kernel below
+            _, _, _, *cubes = plain(raw, p, constants)
+        return pipeline.CorrectionResult(reflectance, lab, quality, p, *cubes)
     if kernel_mode is not None:
         c = constants
         reflectance, lab, quality = fused.correct_pixels(
@@ -193,8 +201,9 @@ def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates:
                 noise=None, p_u=None, out=None, no_flat_field=None) -> pipeline.CorrectionResult:
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
-    `kernel_mode` (static; `fused.mode`, decided by the caller so that the environment switch is
-    part of the cache key): None for the jax.numpy path, else the fused CPU kernel's mode. With a
+    `kernel_mode` (static; `fused.mode` or `gpu_kernel.mode`, decided by the caller so that the
+    environment switch is part of the cache key): None for the jax.numpy path, else the fused CPU
+    kernel's mode or the GPU kernel's (`gpu_kernel.MODES`). With a
     `NoiseModel` (and p's uncertainty p_u (..., B)) the result also carries the uncertainties
     (`uncertainty.pixel_uncertainty`); None traces none of that. `out`: None, or donated arrays
     of the three outputs' shapes whose memory the jax.numpy path's outputs take on CPU
