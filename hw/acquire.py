@@ -1,6 +1,7 @@
 """`spherejax acquire`: the acquisition protocol of docs/instrument.md, written as a session.
 
-    connect      wheels (*idn?, pcount? against the profile, sensors=0), shutter (id?, closed),
+    connect      wheels (*idn?, pcount? against the profile, sensors=0) or a tunable filter
+                 (identity, tuning range against the bands, warm-up), shutter (id?, closed),
                  camera, lamp state; nothing moves before every check has passed
     warm-up      white standard in place: one band's central-region mean imaged every interval
                  until it drifts less than warmup_drift_percent over warmup_checks intervals
@@ -85,6 +86,7 @@ def acquire(
     out,
     *,
     emulate: bool = False,
+    real_camera: bool = False,
     resume: bool = False,
     operator: Operator,
     settings: Settings | None = None,
@@ -95,8 +97,10 @@ def acquire(
     Args:
       profile_path: the instrument profile (TOML, `hw.profile`).
       out: the session folder to write; SESSION.partial beside it holds the work in progress.
-      emulate: emulated wheels and shutter on pseudo-terminals and the simulated camera
+      emulate: emulated wheels or tunable filter and shutter on pseudo-terminals and the simulated camera
         (whatever the profile's ports and camera), the lamp state kept in SESSION.partial.
+      real_camera: with `emulate`, open the profile's [camera] instead of the simulated one
+        (a real camera, or Aravis's fake GigE Vision camera, behind emulated wheels and shutter).
       resume: continue an interrupted acquisition of the same profile.
       operator: prompts (`Operator`).
       settings: sleep / log / progress hooks.
@@ -119,7 +123,7 @@ def acquire(
     profile = load_profile(profile_path)
     out = pathlib.Path(out)
     partial = out.with_name(out.name + PARTIAL_SUFFIX)
-    if emulate and profile.camera.backend != "sim":
+    if emulate and not real_camera and profile.camera.backend != "sim":
         profile = dataclasses.replace(profile, camera=dataclasses.replace(profile.camera, backend="sim", options={}))
     _check_ownership(profile, out, partial, emulate=emulate)
     if resume:

@@ -87,12 +87,15 @@ class Journal:
 
 
 def _profile_identity(profile: Profile) -> dict:
-    return {
+    identity = {
         "instrument_id": profile.instrument_id,
         "bands": {str(k): list(v) for k, v in profile.bands.items()},
         "samples": [dataclasses.asdict(s) for s in profile.samples],
         "camera": profile.camera.backend,
     }
+    if profile.tunable_filter is not None:  # only then: a wheel profile's identity stays as it was
+        identity["tunable_filter"] = {"model": profile.tunable_filter.model, "bands": list(profile.band_centres_nm)}
+    return identity
 
 
 def _check_resume(partial: pathlib.Path, profile: Profile) -> None:

@@ -236,16 +236,16 @@ def _set_scene(camera: Camera, scene: str | None) -> None:
         camera.set_scene(scene)
 
 
-def _image_metadata(instrument: Instrument, band: int, positions: dict, exposure: float, frames: int, saturated: int) -> dict:
+def _image_metadata(instrument: Instrument, band: int, selection, exposure: float, frames: int, saturated: int) -> dict:
+    """A band image's metadata; `selection` is what the band selector's `select` returned (the
+    wheels' slots, or the wavelength a tunable filter reads back)."""
     return {
         "band_nm": band,
-        "wheel": instrument.profile.bands[band][0],
-        "slot": instrument.profile.bands[band][1],
-        "positions": positions,
+        **instrument.bank.image_metadata(band, selection),
         "exposure_s": exposure,
         "frames_averaged": frames,
         "timestamp": _utc_now(),
-        "temperature_c": float(instrument.camera.temperature_c()),
+        "temperature_c": instrument.camera.temperature_c(),  # °C, or None (JSON null): hw.camera
         "lamp_hours": round(float(instrument.lamp.hours()), 4),
         "saturated_pixels": saturated,
     }
@@ -254,14 +254,14 @@ def _image_metadata(instrument: Instrument, band: int, positions: dict, exposure
 def _take_image(instrument: Instrument, partial: pathlib.Path, journal: Journal, capture: Capture, band: int, exposure: float, frames: int) -> None:
     from spherejax import io
 
-    positions = instrument.bank.select(band)
+    selection = instrument.bank.select(band)
     camera = instrument.camera
     camera.exposure_s = exposure
     average = camera.average(frames)
     full = _full_scale(camera)
     saturated = int(np.count_nonzero(average >= full))
     image = np.clip(np.rint(average), 0, 65535).astype(np.uint16)
-    metadata = _image_metadata(instrument, band, positions, exposure, frames, saturated)
+    metadata = _image_metadata(instrument, band, selection, exposure, frames, saturated)
     relative = f"captures/{capture.id}/{band}nm.tif"
     path = partial / relative
     path.parent.mkdir(parents=True, exist_ok=True)

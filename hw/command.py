@@ -37,7 +37,10 @@ def add_command(commands) -> None:
                       help="session folder to write (new, or an interrupted one with --resume)")
     acquire.add_argument("--yes", action="store_true", help="answer every operator prompt as done (scripts, tests)")
     acquire.add_argument("--emulate", action="store_true",
-                         help="emulated wheels and shutter on pseudo-terminals and the simulated camera: no hardware")
+                         help="emulated wheels or tunable filter and shutter on pseudo-terminals and the simulated "
+                              "camera: no hardware")
+    acquire.add_argument("--real-camera", action="store_true",
+                         help="with --emulate: the profile's [camera] instead of the simulated one (emulated wheels and shutter)")
     acquire.add_argument("--resume", action="store_true",
                          help="complete an interrupted acquisition without retaking what it captured")
     acquire.set_defaults(run=run_acquire)
@@ -67,7 +70,7 @@ def run_acquire(args) -> int:
     try:
         with interrupt.stop_requests():  # SIGINT / SIGTERM: stop between band images (`main` reports)
             session = acquire.acquire(
-                args.profile, args.output, emulate=args.emulate, resume=args.resume,
+                args.profile, args.output, emulate=args.emulate, real_camera=args.real_camera, resume=args.resume,
                 operator=acquire.Operator(yes=args.yes), settings=settings,
             )
     except acquire.AcquisitionStopped as error:

@@ -71,6 +71,12 @@ class FilterBank:
             )
         return dict(self.positions)
 
+    def image_metadata(self, band_nm: int, positions: dict[str, int]) -> dict:
+        """What a band image records of the selector: the band's wheel and slot, and every wheel's
+        slot as read back by `select`."""
+        wheel, slot = self.profile.bands[band_nm]
+        return {"wheel": wheel, "slot": slot, "positions": positions}
+
     def band_in_path(self) -> int | None:
         """The band the last read-back positions put in the path (None: none, or ambiguous)."""
         return self.profile.band_at(self.positions)

@@ -25,6 +25,19 @@ mapping belongs in a profile, never in code):
     400 = ["a", 1]
     ...
 
+Bands selected by a liquid-crystal tunable filter instead of wheels (hw.tunablefilter): a
+[tunable_filter] table in place of [wheels] and [bands]:
+
+    [tunable_filter]
+    model = "VariSpec-VIS"    # Kurios-VIS (420-730 nm), Kurios-NIR (650-1100) or VariSpec-VIS (400-720)
+    port = "/dev/ttyUSB0"
+    bands = [420, 440, 460]   # optional: band centres in nm (default the 16 centres 400..700 step 20),
+                              #   each inside the model's range, or the profile is refused here
+    settle_s = 0.1            # optional: seconds after each tune before the read-back and the frame
+    warmup_timeout_s = 600.0  # optional: how long the filter's warm-up may take before the first frame
+    bandwidth = "wide"        # Kurios only: "wide", "medium" or "narrow" (its BW= modes)
+    warmup_s = 0.0            # VariSpec only: seconds to wait before the first frame (no warm-up query)
+
 Optional sections (defaults in `AcquisitionSettings` and `Layout`):
 
     [acquisition]
@@ -78,6 +91,7 @@ from spherejax.io.documents import Document, Expect, NonEmptyStr, Rectangle, che
 
 from .camera import PROFILE_OPTIONS, ProfileOption
 from .errors import InstrumentError
+from .tunablefilter import KURIOS_BANDWIDTHS, MODELS as TUNABLE_FILTER_MODELS
 
 #: Positions of each filter wheel model (Thorlabs: pcount accepts only 6 or 12).
 WHEEL_POSITIONS = {"FW102C": 6, "FW212C": 12}
@@ -115,6 +129,23 @@ class WheelConfig:
 class ShutterConfig:
     port: str
     model: str
+
+
+#: The band centres of a [tunable_filter] profile that lists none: the instrument's 16.
+DEFAULT_BANDS_NM = tuple(range(400, 701, 20))
+
+
+@dataclasses.dataclass(frozen=True)
+class TunableFilterConfig:
+    """[tunable_filter]: the filter's model and port, the bands it is tuned to (nm, increasing),
+    and the family's options (`options`: bandwidth for a Kurios, warmup_s for a VariSpec)."""
+
+    model: str
+    port: str
+    bands: tuple[int, ...]
+    settle_s: float = 0.1
+    warmup_timeout_s: float = 600.0
+    options: Mapping = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,7 +192,8 @@ class SamplePlan:
 @dataclasses.dataclass(frozen=True)
 class Profile:
     """A checked instrument profile (module docstring). `bands` maps band centre (nm) to
-    (wheel name, slot), in increasing band order."""
+    (wheel name, slot), in increasing band order; with a tunable filter `wheels` and `bands` are
+    empty and `tunable_filter` lists the bands."""
 
     path: pathlib.Path
     instrument_id: str
@@ -174,9 +206,12 @@ class Profile:
     lamp_state_file: pathlib.Path
     samples: tuple[SamplePlan, ...]
     noise: NoiseSettings = NoiseSettings()
+    tunable_filter: TunableFilterConfig | None = None
 
     @property
     def band_centres_nm(self) -> list[int]:
+        if self.tunable_filter is not None:
+            return list(self.tunable_filter.bands)
         return list(self.bands)
 
     def positions_for(self, band_nm: int) -> dict[str, int]:
@@ -225,6 +260,40 @@ _ProfileRectangle = Annotated[Rectangle, Expect("[r0, r1, c0, c1], integers with
 
 class _Instrument(Document):
     id: NonEmptyStr
+
+
+_FilterModel = Annotated[Literal[tuple(TUNABLE_FILTER_MODELS)], Expect(f"one of {sorted(TUNABLE_FILTER_MODELS)}")]
+_Bandwidth = Annotated[Literal[tuple(m for m in KURIOS_BANDWIDTHS if m != "black")], Expect("one of wide, medium, narrow")]
+
+
+class _TunableFilter(Document):
+    model: _FilterModel
+    port: _Port
+    bands: Annotated[list[integer(1)], pydantic.Field(min_length=1), Expect("a list of band centres in nm")] | None = None
+    settle_s: Annotated[number(ge=0), Expect("seconds >= 0")] = TunableFilterConfig.settle_s
+    warmup_timeout_s: Annotated[number(gt=0), Expect("seconds > 0")] = TunableFilterConfig.warmup_timeout_s
+    bandwidth: _Bandwidth | None = None
+    warmup_s: Annotated[number(ge=0), Expect("seconds >= 0")] | None = None
+
+    @pydantic.model_validator(mode="after")
+    def _bands_the_model_tunes(self):
+        family = TUNABLE_FILTER_MODELS[self.model].family
+        for key, only in (("bandwidth", "kurios"), ("warmup_s", "varispec")):
+            if getattr(self, key) is not None and family != only:
+                raise refuse(f"is given for a {self.model}", f"no {key}: it is a {only.capitalize()} option", (key,))
+        bands = list(DEFAULT_BANDS_NM if self.bands is None else self.bands)
+        if sorted(set(bands)) != bands:
+            raise refuse(f"is {bands}", "band centres in increasing order, each once", ("bands",))
+        low, high = TUNABLE_FILTER_MODELS[self.model].range_nm
+        outside = [band for band in bands if not low <= band <= high]
+        if outside:
+            where = "bands" if self.bands is not None else "model"
+            listed = "lists" if self.bands is not None else "has no bands list, so asks for the 16 centres with"
+            raise refuse(
+                f"{listed} {outside} nm, outside the {self.model}'s {low:g}-{high:g} nm",
+                f"bands = [...] of centres inside {low:g}-{high:g} nm", (where,),
+            )
+        return self
 
 
 class _Wheel(Document):
@@ -317,10 +386,12 @@ class _Noise(Document):
 
 class _Profile(Document):
     instrument: Annotated[_Instrument, _Table]
-    wheels: Annotated[dict[str, Annotated[_Wheel, _Table]], pydantic.Field(min_length=1), Expect("a table of [wheels.NAME] tables")]
+    # Wheels and their [bands], or a [tunable_filter]: one band selector (_one_band_selector).
+    wheels: Annotated[dict[str, Annotated[_Wheel, _Table]], pydantic.Field(min_length=1), Expect("a table of [wheels.NAME] tables")] | None = None
+    tunable_filter: Annotated[_TunableFilter, _Table] | None = None
     shutter: Annotated[_Shutter, _Table]
     camera: Annotated[dict[str, Any], _Table]  # its keys depend on the backend: _CAMERA_TABLES
-    bands: Annotated[dict[str, _BandPlace], pydantic.Field(min_length=1), Expect('a table of lines "NM = [WHEEL, SLOT]"')]
+    bands: Annotated[dict[str, _BandPlace], pydantic.Field(min_length=1), Expect('a table of lines "NM = [WHEEL, SLOT]"')] | None = None
     layout: Annotated[_Layout, _Table] = _Layout()
     lamp: Annotated[_Lamp, _Table] = _Lamp()
     samples: Annotated[list[Annotated[_Sample, _Table]], Expect("[[samples]] tables")] = []
@@ -328,9 +399,24 @@ class _Profile(Document):
     noise: Annotated[_Noise, _Table] = _Noise()
 
     @pydantic.model_validator(mode="after")
+    def _one_band_selector(self):
+        if self.tunable_filter is not None:
+            for key in ("wheels", "bands"):
+                if getattr(self, key) is not None:
+                    raise refuse(
+                        "is given beside [tunable_filter]",
+                        "either [wheels] with [bands], or [tunable_filter] with its bands = [...]", (key,),
+                    )
+        elif self.wheels is None:
+            raise refuse("is missing", "a table of [wheels.NAME] tables with [bands], or a [tunable_filter] table", ("wheels",))
+        elif self.bands is None:
+            raise refuse("is missing", 'a table of lines "NM = [WHEEL, SLOT]"', ("bands",))
+        return self
+
+    @pydantic.model_validator(mode="after")
     def _bands_on_slots(self):
         owner = {}
-        for key, (wheel, slot) in self.bands.items():
+        for key, (wheel, slot) in (self.bands or {}).items():
             at = ("bands", key)
             if not re.fullmatch(r"[1-9]\d{2,3}", key):
                 raise refuse("is not a band centre", "an integer wavelength in nm", at)
@@ -390,6 +476,18 @@ def _inside(path: pathlib.Path, key: str, value: str) -> pathlib.Path:
     return target
 
 
+def _tunable_filter(table: _TunableFilter | None) -> TunableFilterConfig | None:
+    if table is None:
+        return None
+    options = {key: getattr(table, key) for key in ("bandwidth", "warmup_s") if getattr(table, key) is not None}
+    return TunableFilterConfig(
+        model=table.model, port=table.port,
+        bands=tuple(DEFAULT_BANDS_NM if table.bands is None else table.bands),
+        settle_s=float(table.settle_s), warmup_timeout_s=float(table.warmup_timeout_s),
+        options={key: float(value) if key == "warmup_s" else value for key, value in options.items()},
+    )
+
+
 def load_profile(path) -> Profile:
     """Read and check an instrument profile (module docstring).
 
@@ -428,11 +526,12 @@ def load_profile(path) -> Profile:
         instrument_id=doc.instrument.id,
         wheels={
             name: WheelConfig(name, wheel.port, wheel.model, wheel.open_slot, float(wheel.move_timeout_s))
-            for name, wheel in doc.wheels.items()
+            for name, wheel in (doc.wheels or {}).items()
         },
         shutter=ShutterConfig(doc.shutter.port, doc.shutter.model),
         camera=camera,
-        bands={int(key): place for key, place in sorted(doc.bands.items(), key=lambda item: int(item[0]))},
+        bands={int(key): place for key, place in sorted((doc.bands or {}).items(), key=lambda item: int(item[0]))},
+        tunable_filter=_tunable_filter(doc.tunable_filter),
         acquisition=AcquisitionSettings(
             frames_averaged=acquisition.frames_averaged,
             dark_frames=acquisition.dark_frames,
@@ -459,6 +558,8 @@ __all__ = [
     "ProfileError",
     "WheelConfig",
     "ShutterConfig",
+    "TunableFilterConfig",
+    "DEFAULT_BANDS_NM",
     "CameraConfig",
     "AcquisitionSettings",
     "Layout",

@@ -54,7 +54,7 @@ try:  # tcflush on a vanished pty raises termios.error, which is not an OSError.
 except ImportError:  # pragma: no cover - Windows has no termios
     _PORT_FAILURES = (serial.SerialException, OSError)
 
-__all__ = ["PromptedSerialDevice", "ERROR_MARKERS", "POLL_S", "DRAIN_QUIET_S", "PORT_EXPECTED", "open_problem",
+__all__ = ["PromptedSerialDevice", "Scan", "ERROR_MARKERS", "POLL_S", "DRAIN_QUIET_S", "PORT_EXPECTED", "open_problem",
            "failure_problem"]
 
 log = logging.getLogger(__name__)
@@ -168,7 +168,7 @@ def _is_error(line: str) -> bool:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Scan:
+class Scan:
     """What the bytes read so far for one command amount to."""
 
     echo: bool  # the echo of the command has arrived
@@ -178,7 +178,7 @@ class _Scan:
     ends_in_prompt: bool  # the text so far ends with ">"
 
 
-def _scan(command: str, raw: bytes) -> _Scan:
+def _scan(command: str, raw: bytes) -> Scan:
     """Parse the bytes read so far in answer to ``command``.
 
     Lines are split on \\r or \\n. The echo is the first line ending in the command once stale
@@ -201,10 +201,10 @@ def _scan(command: str, raw: bytes) -> _Scan:
             if value.strip():
                 values.append(value.strip())
             if prompt:
-                return _Scan(True, True, values, [], True)
-        return _Scan(True, False, values, [], False)
+                return Scan(True, True, values, [], True)
+        return Scan(True, False, values, [], False)
     unechoed = [ln for ln in (_LEADING_PROMPTS.sub("", x).strip() for x in lines) if ln]
-    return _Scan(False, False, [], unechoed, _ends_in_prompt(text))
+    return Scan(False, False, [], unechoed, _ends_in_prompt(text))
 
 
 class PromptedSerialDevice:
@@ -220,6 +220,12 @@ class PromptedSerialDevice:
         baudrate: line speed in baud (8N1, no flow control).
         timeout_s: seconds to wait for a complete reply to an ordinary command or query.
     """
+
+    #: Bytes `connect` sends before draining the line: a bare CR, which the Thorlabs units answer
+    #: with an echo (or an error) and their prompt.
+    WAKE = b"\r"
+    #: Whether the device ends every reply with the ``>`` prompt (the drain waits for one).
+    PROMPTED = True
 
     def __init__(self, port: str, *, baudrate: int, timeout_s: float = 1.0):
         if timeout_s <= 0:
@@ -315,7 +321,7 @@ class PromptedSerialDevice:
         Raises:
             DeviceTimeout, ProtocolError (no value line), DeviceError (``Command error``), PortError.
         """
-        lines = self._transact(command, timeout_s)
+        lines = self._transact(command, timeout_s, expect_value=True)
         if not lines:
             raise ProtocolError(self.port, command, "no value line in the reply", self.last_reply)
         # One value line is the protocol; several are joined rather than dropped so nothing is lost.
@@ -331,13 +337,19 @@ class PromptedSerialDevice:
         Raises:
             DeviceTimeout, ProtocolError (a value line where none belongs), DeviceError, PortError.
         """
-        lines = self._transact(command, timeout_s)
+        lines = self._transact(command, timeout_s, expect_value=False)
         if lines:
             raise ProtocolError(
                 self.port, command, f"unexpected value line {lines[0]!r} after a set command", self.last_reply
             )
 
-    def _transact(self, command: str, timeout_s: float | None) -> list[str]:
+    def _scan_reply(self, command: str, raw: bytes, expect_value: bool) -> Scan:
+        """Hook: what the bytes read so far in answer to ``command`` amount to (`_scan`: echo,
+        value lines, prompt). A device with another framing overrides it; ``expect_value`` says
+        whether a value line belongs to the reply (a query) or not (a set command)."""
+        return _scan(command, raw)
+
+    def _transact(self, command: str, timeout_s: float | None, *, expect_value: bool) -> list[str]:
         """Write ``command\\r`` and read up to its prompt; return the value lines after the echo."""
         if not command or any(c in command for c in "\r\n"):
             raise ValueError(f"command must be one non-empty line, got {command!r}")
@@ -351,12 +363,12 @@ class PromptedSerialDevice:
             log.debug("%s <- %r", self.port, data)
             raw = bytearray()
             deadline = time.monotonic() + timeout
-            scan = _scan(command, b"")
+            scan = self._scan_reply(command, b"", expect_value)
             while True:
                 chunk = self._read_chunk(ser, command)
                 if chunk:
                     raw += chunk
-                    scan = _scan(command, bytes(raw))
+                    scan = self._scan_reply(command, bytes(raw), expect_value)
                     if scan.complete or (not scan.echo and scan.ends_in_prompt and scan.unechoed):
                         break
                 if time.monotonic() >= deadline:
@@ -376,7 +388,7 @@ class PromptedSerialDevice:
                 raise ProtocolError(self.port, command, "non-protocol bytes in the reply", self.last_reply)
             return scan.values
 
-    def _failure(self, command: str, scan: _Scan, timeout: float) -> Exception:
+    def _failure(self, command: str, scan: Scan, timeout: float) -> Exception:
         """The exception for a reply that ended (prompt or deadline) without echo + prompt."""
         raw = self.last_reply
         lines = scan.values if scan.echo else scan.unechoed
@@ -415,13 +427,14 @@ class PromptedSerialDevice:
         return chunk
 
     def _drain(self) -> None:
-        """Send a bare ``\\r`` and read until a prompt followed by ``DRAIN_QUIET_S`` of silence.
+        """Send ``WAKE`` (a bare ``\\r``) and read until a prompt (any byte, for a device without
+        one) followed by ``DRAIN_QUIET_S`` of silence.
 
         Never raises for silence or garbage: the identity query that follows judges the device.
         """
         ser = self._require_open(None)
         self._flush_input(ser, None)
-        self._port_call(None, ser.write, b"\r")
+        self._port_call(None, ser.write, self.WAKE)
         raw = bytearray()
         start = last = time.monotonic()
         while True:
@@ -430,7 +443,7 @@ class PromptedSerialDevice:
             if chunk:
                 raw += chunk
                 last = now
-            elif _ends_in_prompt(_text(bytes(raw))) and now - last >= DRAIN_QUIET_S:
+            elif (_ends_in_prompt(_text(bytes(raw))) or not self.PROMPTED) and now - last >= DRAIN_QUIET_S:
                 break
             if now - start >= self.timeout_s:
                 break
