@@ -79,6 +79,13 @@ class KuriosEmulator(_LineEmulator):
         self.clock = clock
         self._ready_at = clock() + float(warmup_s) * float(time_scale)
 
+    #: Set commands: KEY -> (the attribute set, which values the unit takes).
+    _SETTINGS = {
+        "WL": ("wavelength_nm", lambda self, nm: self.range_nm[0] <= nm <= self.range_nm[1]),
+        "BW": ("bandwidth", lambda self, mode: mode in (1, 2, 4, 8) and bool(self.features & int(mode))),
+        "OM": ("output_mode", lambda self, mode: mode in (1, 2, 3, 4, 5)),
+    }
+
     def _reply(self, line: str) -> bytes:
         try:
             value = self._execute(line.strip())
@@ -97,32 +104,18 @@ class KuriosEmulator(_LineEmulator):
                 return f"WLmax={high:.3f}\rWLmin={low:.3f}"
             if key == "OH":
                 return f"OH={self.features}"
-            if key == "WL":
-                return f"WL={self.wavelength_nm:.3f}"
-            if key == "BW":
-                return f"BW={self.bandwidth}"
-            if key == "OM":
-                return f"OM={self.output_mode}"
+            if key in self._SETTINGS:
+                value = getattr(self, self._SETTINGS[key][0])
+                return f"{key}={value:.3f}" if key == "WL" else f"{key}={value}"
             if key == "ST":
                 return f"ST={2 if self.clock() >= self._ready_at else 1}"
-        if sign == "=":
-            number = _NUMBER.fullmatch(argument.strip())
-            if key == "WL":
-                low, high = self.range_nm
-                if not number or not low <= float(argument) <= high:
-                    raise ValueError(CMD_ARG_INVALID)
-                self.wavelength_nm = round(float(argument), 3)
-                return None
-            if key == "BW":
-                if not number or argument.strip() not in ("1", "2", "4", "8") or not self.features & int(argument):
-                    raise ValueError(CMD_ARG_INVALID)
-                self.bandwidth = int(argument)
-                return None
-            if key == "OM":
-                if not number or argument.strip() not in ("1", "2", "3", "4", "5"):
-                    raise ValueError(CMD_ARG_INVALID)
-                self.output_mode = int(argument)
-                return None
+        if sign == "=" and key in self._SETTINGS:
+            attribute, allowed = self._SETTINGS[key]
+            if not _NUMBER.fullmatch(argument.strip()) or not allowed(self, float(argument)):
+                raise ValueError(CMD_ARG_INVALID)
+            value = float(argument)
+            setattr(self, attribute, round(value, 3) if key == "WL" else int(value))
+            return None
         raise ValueError(CMD_NOT_DEFINED)
 
 
