@@ -329,11 +329,18 @@ def test_a_mistyped_switch_is_refused(monkeypatch):
         gpu_kernel.mode(np.uint16, np.float32, 16, CUDA)
 
 
-def test_a_kernel_that_does_not_compile_leaves_the_plan_on_the_jax_numpy_path(caplog):
-    """A plan asked for the compiled kernel where Pallas cannot compile it (here the CPU, which
-    Pallas runs in interpret mode only) corrects by the jax.numpy path, with its flat-field mask,
-    and says why at DEBUG."""
+@pytest.mark.parametrize("failure", ["pallas refuses", "lowering raises"])
+def test_a_kernel_that_does_not_compile_leaves_the_plan_on_the_jax_numpy_path(caplog, monkeypatch, failure):
+    """A plan asked for the compiled kernel where it cannot be compiled corrects by the jax.numpy
+    path, with its flat-field mask, and says why at DEBUG: Pallas itself refusing (on the CPU,
+    which Pallas runs in interpret mode only; on a GPU the same failure is injected), or the
+    kernel's construction raising as a JAX without the Triton backend would."""
     raw, _, calibration = make_calibration_case(24, 40, raw_dtype=np.uint16)
+    if failure == "lowering raises" or jax.default_backend() != "cpu":
+        def unavailable(*args, **kwargs):
+            raise NotImplementedError("no Triton backend in this JAX")
+
+        monkeypatch.setattr(gpu_kernel, "pixel_outputs_pallas", unavailable)
     with caplog.at_level(logging.DEBUG, logger="spherejax._engine.plan"):
         plan = Plan(calibration, raw.shape, raw.dtype, kernel_mode=gpu_kernel.GPU)
     assert plan.kernel_mode is None and plan.no_flat_field is not None
