@@ -17,7 +17,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import pathlib
+import time
 from collections.abc import Iterator
+
+from spherejax import interrupt
 
 from .camera import Camera, CameraError, open_camera
 from .errors import AcquisitionError, HardwareError
@@ -69,7 +72,8 @@ def _band_selector(profile: Profile, stack: contextlib.ExitStack, emulated) -> F
         port = emulated["tunable_filter"].path if emulated else config.port
         with _naming(f"tunable filter {config.model} ([tunable_filter])"):
             selector = stack.enter_context(open_filter(
-                port, model=config.model, bands_nm=profile.band_centres_nm, settle_s=config.settle_s, **config.options
+                port, model=config.model, bands_nm=profile.band_centres_nm, settle_s=config.settle_s,
+                sleep=_sleep_unless_stopped, **config.options,
             ))
             selector.check()
             selector.wait_until_ready(config.warmup_timeout_s)
@@ -85,6 +89,14 @@ def _band_selector(profile: Profile, stack: contextlib.ExitStack, emulated) -> F
     with _naming("filter wheels"):
         bank.check()
     return bank
+
+
+def _sleep_unless_stopped(seconds: float) -> None:
+    """time.sleep, a safe point before and after (`spherejax.interrupt`): a filter's warm-up can
+    take minutes, and SIGINT or SIGTERM must stop the run within one poll, not after it."""
+    interrupt.check()
+    time.sleep(seconds)
+    interrupt.check()
 
 
 def _emulated_band(profile: Profile, emulated) -> int | None:

@@ -176,3 +176,26 @@ def test_a_filter_that_stops_answering_or_vanishes_is_one_line(no_leaks, fault):
 def test_an_unknown_model_is_refused():
     with pytest.raises(ValueError, match=r"model 'Kurios-UV': expected one of \['Kurios-NIR', 'Kurios-VIS', 'VariSpec-VIS'\]"):
         open_filter("/dev/null", model="Kurios-UV", bands_nm=BANDS)
+
+
+def test_a_stop_request_during_a_long_warm_up_stops_it_within_one_poll(no_leaks):
+    """SIGTERM while the acquisition waits for a Kurios's warm-up (it can take minutes): the wait
+    the acquisition gives the driver is a safe point (`spherejax.interrupt`), so the run stops
+    within one 0.5 s poll instead of after the warm-up timeout."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from spherejax import interrupt
+    from spherejax_hw.acquisition_devices import _sleep_unless_stopped
+
+    with EmulatedPort(KuriosEmulator(warmup_s=1e9)) as port:
+        with open_filter(port.path, model="Kurios-VIS", bands_nm=BANDS, sleep=_sleep_unless_stopped) as lctf:
+            timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
+            start = time.monotonic()
+            with interrupt.stop_requests(), pytest.raises(interrupt.Interrupted) as info:
+                timer.start()
+                lctf.wait_until_ready(timeout_s=600.0)
+            timer.join()
+    assert info.value.signum == signal.SIGTERM and time.monotonic() - start < 2.0
