@@ -16,6 +16,9 @@ def as_array(name: str, x) -> jax.Array:
     """`jnp.asarray(x)`, turning a conversion failure into a ValueError naming `name`, and
     refusing what the conversion would silently change: complex values (`require_real`) and
     float64 values beyond float32's range when JAX computes in float32 (`require_representable`)."""
+    if isinstance(x, jax.Array):  # already one (a tracer too): nothing to convert
+        require_real(name, x)
+        return x
     if isinstance(x, np.ndarray):  # before the conversion, which casts or makes infinities
         require_real(name, x)
         require_representable(name, x)

@@ -192,6 +192,27 @@ def test_threads_share_one_plan(large):
         assert_same_bits(result, results[0])
 
 
+def test_a_kept_plan_is_found_before_anything_is_worked_out(monkeypatch):
+    """The second call of a shape finds its plan by the frames' shape and dtype and the kernels'
+    switches alone: the calibration's device, dtypes and kernel mode are worked out once (they
+    cost about 0.2 ms a call, benchmarks/bench_call_overhead.py); a device-resident frame is not
+    converted again. A switch set between calls still takes effect (another key)."""
+    calibration = make_calibration(32, seed=3)
+    raw = jnp.asarray(make_frames(calibration, seed=5))
+    first = sj.correct(raw, calibration)
+
+    def worked_out(*args):
+        raise AssertionError("worked out again for a kept plan")
+
+    monkeypatch.setattr(plans, "_device_of", worked_out)
+    monkeypatch.setattr(plans, "_concrete", worked_out)
+    monkeypatch.setattr(jnp, "asarray", worked_out)
+    assert_same_bits(sj.correct(raw, calibration), first)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    with pytest.raises(AssertionError, match="worked out again"):
+        sj.correct(raw, calibration)
+
+
 @pytest.mark.parametrize("shape, dtype, message", [
     ((256, 256), np.uint16, r"shape: expected \(H, W, B\) or \(\.\.\., H, W, B\) with H, W, B = \(256, 256, 16\), got \(256, 256\)"),
     ((256, 255, 16), np.uint16, r"shape: expected .* got \(256, 255, 16\)"),
