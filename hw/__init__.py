@@ -9,7 +9,8 @@ pyserial, and emulated devices that follow the vendors' protocols (docs/instrume
     shutter       Thorlabs SC10 shutter controller
     filterbank    stacked wheels as one band selector (band -> wheel and slot from the profile)
     camera        the camera interface; simcamera (renders frames from spherejax's simulator),
-                  pvcam (PyVCAM, imported lazily)
+                  pvcam (PyVCAM, imported lazily), genicam (GigE Vision / USB3 Vision cameras
+                  through Aravis 0.8 and PyGObject, imported lazily)
     lamp          the xenon lamp as a manual device: lamp hours and warm-up in a state file
     profile       the instrument profile (TOML)
     emulators     FW102C / FW212C and SC10 state machines served on pseudo-terminals

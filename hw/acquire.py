@@ -87,6 +87,7 @@ def acquire(
     *,
     emulate: bool = False,
     real_camera: bool = False,
+    through_gige: bool = False,
     resume: bool = False,
     operator: Operator,
     settings: Settings | None = None,
@@ -101,6 +102,9 @@ def acquire(
         (whatever the profile's ports and camera), the lamp state kept in SESSION.partial.
       real_camera: with `emulate`, open the profile's [camera] instead of the simulated one
         (a real camera, or Aravis's fake GigE Vision camera, behind emulated wheels and shutter).
+      through_gige: with `emulate` and the simulated camera, its frames served through Aravis's
+        fake GigE Vision camera on 127.0.0.1 and read by the GenICam backend
+        (`hw.simulated_gige`): the real camera protocol end to end, the simulator's pixels.
       resume: continue an interrupted acquisition of the same profile.
       operator: prompts (`Operator`).
       settings: sleep / log / progress hooks.
@@ -120,6 +124,8 @@ def acquire(
     from spherejax.io import atomic
 
     settings = settings or Settings()
+    if through_gige and (not emulate or real_camera):
+        raise ValueError("through_gige: the simulated camera's route, with emulate and without real_camera")
     profile = load_profile(profile_path)
     out = pathlib.Path(out)
     partial = out.with_name(out.name + PARTIAL_SUFFIX)
@@ -152,7 +158,7 @@ def acquire(
     Lamp(lamp_file).is_on
 
     with contextlib.ExitStack() as stack:
-        instrument = connect(profile, stack, emulate=emulate, lamp_state_file=lamp_file)
+        instrument = connect(profile, stack, emulate=emulate, lamp_state_file=lamp_file, through_gige=through_gige)
         captures = _captures(profile, instrument.camera)  # checked before anything moves
         _layout(profile, instrument.camera)
         partial.mkdir(parents=True, exist_ok=True)

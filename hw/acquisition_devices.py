@@ -107,8 +107,11 @@ def _emulated_band(profile: Profile, emulated) -> int | None:
     return profile.band_at({name: port.emulator.position for name, port in emulated["wheels"].items()})
 
 
-def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lamp_state_file: pathlib.Path) -> Instrument:
-    """Open and check every device; nothing moves until all checks pass.
+def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lamp_state_file: pathlib.Path,
+            through_gige: bool = False) -> Instrument:
+    """Open and check every device; nothing moves until all checks pass. `through_gige`: the
+    simulated camera's frames through Aravis's fake GigE Vision camera and the GenICam backend
+    (`hw.simulated_gige`).
 
     Raises AcquisitionError naming the device for an *idn?/id? mismatch, a pcount? that
     disagrees with the profile, a tunable filter whose range misses a band or whose warm-up does
@@ -137,6 +140,13 @@ def connect(profile: Profile, stack: contextlib.ExitStack, *, emulate: bool, lam
                 f"{profile.path}: bands {missing} nm: the simulated camera renders only "
                 f"{camera.band_centres_nm[0]}..{camera.band_centres_nm[-1]} nm step 20"
             )
+        if through_gige:
+            from .simulated_gige import SimulatorThroughGigE
+
+            try:
+                camera = SimulatorThroughGigE(camera)
+            except (CameraError, ValueError) as error:
+                raise AcquisitionError(f"camera: {error}") from None
     else:
         try:
             camera = open_camera(profile.camera.backend, **profile.camera.options)

@@ -7,15 +7,19 @@ Conventions, stated once:
 - `binning` is square (b x b on-chip summing); frames have shape `frame_shape` =
   (roi height // b, roi width // b);
 - frames are (H, W) uint16 with values < 2**bit_depth (a 12-14 bit ADC read as 16-bit words);
-  `average` returns float64 so that averaging does not round.
+  `average` returns float64 so that averaging does not round;
+- `temperature_c()` is the sensor temperature in °C, a finite float, or None for a camera that
+  does not report one (a GenICam camera without the DeviceTemperature feature): never a made-up
+  value, and None is JSON's null in the acquisition's metadata.
 
 As in python-microscope's `microscope/abc.py`, the public methods here validate their arguments
 and keep the shared state; each backend implements only small hooks (`_set_exposure`,
 `_apply_roi_binning`, `_snap`, `_read_temperature`, `_close`). A backend therefore cannot be
 handed an exposure of NaN or a ROI off the sensor, and every backend reports the same errors.
 
-`open_camera("sim" | "pvcam", **options)` picks a backend by name; the backends' modules are
-imported lazily, so this module needs neither JAX (simulated camera) nor PyVCAM (PVCAM).
+`open_camera("sim" | "pvcam" | "genicam", **options)` picks a backend by name; the backends'
+modules are imported lazily, so this module needs neither JAX (simulated camera), PyVCAM (PVCAM)
+nor PyGObject and Aravis (GenICam).
 `PROFILE_OPTIONS` declares, per backend, the options an instrument profile's `[camera]` table may
 pass to it, so that the profile is checked against them when it is read (`hw.profile`), without
 importing the backend, instead of failing with a TypeError once the devices are open.
@@ -86,8 +90,8 @@ class Camera(abc.ABC):
         """Expose and read one frame, (H, W) uint16 of `frame_shape`."""
 
     @abc.abstractmethod
-    def _read_temperature(self) -> float:
-        """Sensor temperature, °C."""
+    def _read_temperature(self) -> float | None:
+        """Sensor temperature, °C, or None if the camera has no temperature sensor."""
 
     def _close(self) -> None:
         """Release the device (called once)."""
@@ -226,10 +230,17 @@ class Camera(abc.ABC):
             total += self.snap()
         return total / np.float64(count)
 
-    def temperature_c(self) -> float:
-        """Sensor temperature, °C (recorded with every frame)."""
+    def temperature_c(self) -> float | None:
+        """Sensor temperature, °C (recorded with every frame), or None when the camera does not
+        report one. A NaN or infinite reading is a CameraError: it would not be valid JSON."""
         self._check_open()
-        return float(self._read_temperature())
+        reading = self._read_temperature()
+        if reading is None:
+            return None
+        value = float(reading)
+        if not math.isfinite(value):
+            raise CameraError(self._error(f"reported a sensor temperature of {reading!r} °C"))
+        return value
 
     @property
     def closed(self) -> bool:
@@ -254,12 +265,17 @@ class Camera(abc.ABC):
 
 #: Backend name -> (module, relative to this package, class): imported only when chosen (PyVCAM or
 #: JAX are heavy or absent).
-BACKENDS = {"pvcam": (".pvcam", "PVCAMCamera"), "sim": (".simcamera", "SimulatedCamera")}
+BACKENDS = {
+    "genicam": (".genicam", "GenICamCamera"),
+    "pvcam": (".pvcam", "PVCAMCamera"),
+    "sim": (".simcamera", "SimulatedCamera"),
+}
 
 
 def open_camera(backend: str, **options) -> Camera:
     """Open a camera by backend name: "sim" -> `SimulatedCamera(**options)`, "pvcam" ->
-    `PVCAMCamera(**options)`. An unknown name raises ValueError naming it and the choices."""
+    `PVCAMCamera(**options)`, "genicam" -> `GenICamCamera(**options)`. An unknown name raises
+    ValueError naming it and the choices."""
     if backend not in BACKENDS:
         choices = ", ".join(repr(name) for name in sorted(BACKENDS))
         raise ValueError(f"unknown camera backend {backend!r}: choose one of {choices}")
@@ -281,6 +297,14 @@ def _is_shape(value) -> bool:
     return len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in value)
 
 
+def _is_roi(value) -> bool:
+    return (
+        len(value) == 4
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+        and value[0] >= 0 and value[1] >= 0 and value[2] >= 1 and value[3] >= 1
+    )
+
+
 #: Backend name -> {keyword: ProfileOption}: what a profile may pass to each backend's constructor.
 #: Only values TOML can spell: the simulated camera's callables, InstrumentModel and
 #: ExperimentDesign are the acquisition's to pass. tests/hw/test_camera.py checks every name here
@@ -295,6 +319,20 @@ PROFILE_OPTIONS: dict[str, dict[str, ProfileOption]] = {
     "pvcam": {
         "camera_name": ProfileOption(str, "a PVCAM camera name, a non-empty string", bool),
         "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0", lambda v: v > 0),
+    },
+    # hw.genicam.GenICamCamera; pixel formats as hw.genicam.MONO_FORMATS (not imported: that
+    # module is the backend, loaded only when chosen).
+    "genicam": {
+        "device_id": ProfileOption(str, "an Aravis device id as arv-tool-0.8 lists it, or an IP address", bool),
+        "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0", lambda v: v > 0),
+        "gain": ProfileOption((int, float), "a gain >= 0 in the camera's unit (dB on most)", lambda v: v >= 0),
+        "pixel_format": ProfileOption(
+            str, 'one of "Mono8", "Mono10", "Mono12", "Mono14", "Mono16"',
+            lambda v: v in ("Mono8", "Mono10", "Mono12", "Mono14", "Mono16"),
+        ),
+        "roi": ProfileOption(list, "[row0, col0, height, width] in unbinned sensor pixels", _is_roi),
+        "binning": ProfileOption(int, "a square binning, an integer >= 1", lambda v: v >= 1),
+        "timeout_s": ProfileOption((int, float), "seconds > 0 a frame may take beyond its exposure", lambda v: v > 0),
     },
 }
 

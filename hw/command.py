@@ -41,6 +41,9 @@ def add_command(commands) -> None:
                               "camera: no hardware")
     acquire.add_argument("--real-camera", action="store_true",
                          help="with --emulate: the profile's [camera] instead of the simulated one (emulated wheels and shutter)")
+    acquire.add_argument("--through-gige", action="store_true",
+                         help="with --emulate: the simulated camera's frames served through Aravis's fake GigE Vision "
+                              "camera on 127.0.0.1 and read by the GenICam backend (needs Aravis and PyGObject)")
     acquire.add_argument("--resume", action="store_true",
                          help="complete an interrupted acquisition without retaking what it captured")
     acquire.set_defaults(run=run_acquire)
@@ -51,6 +54,10 @@ def run_acquire(args) -> int:
     # Imported when the command runs, so that the other commands never load serial drivers.
     from . import acquire
 
+    if args.through_gige and (not args.emulate or args.real_camera):
+        console.say("spherejax: error: --through-gige: expected it with --emulate and without --real-camera "
+                    "(it routes the simulated camera's frames)", logging.ERROR)
+        return EXIT_BAD_INPUT
     bar = None
     if not args.quiet and console.on_terminal():
         bar = console.bar(unit="image", desc="band images")
@@ -70,7 +77,8 @@ def run_acquire(args) -> int:
     try:
         with interrupt.stop_requests():  # SIGINT / SIGTERM: stop between band images (`main` reports)
             session = acquire.acquire(
-                args.profile, args.output, emulate=args.emulate, real_camera=args.real_camera, resume=args.resume,
+                args.profile, args.output, emulate=args.emulate, real_camera=args.real_camera,
+                through_gige=args.through_gige, resume=args.resume,
                 operator=acquire.Operator(yes=args.yes), settings=settings,
             )
     except acquire.AcquisitionStopped as error:

@@ -18,9 +18,10 @@ mapping belongs in a profile, never in code):
     port = "/dev/ttyUSB2"
     model = "SC10"
     [camera]
-    backend = "sim"           # "sim" or "pvcam"; the other keys are the backend's options:
-    seed = 0                  #   sim: seed, image_shape = [H, W], name; pvcam: camera_name,
-                              #   exposure_s (hw.camera.PROFILE_OPTIONS)
+    backend = "sim"           # "sim", "pvcam" or "genicam"; the other keys are the backend's
+    seed = 0                  #   options: sim: seed, image_shape = [H, W], name; pvcam:
+                              #   camera_name, exposure_s; genicam: device_id, exposure_s, gain,
+                              #   pixel_format, roi, binning, timeout_s (hw.camera.PROFILE_OPTIONS)
     [bands]                   # band centre in nm = [wheel, slot]
     400 = ["a", 1]
     ...

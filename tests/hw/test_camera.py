@@ -172,11 +172,30 @@ def test_close_and_context_manager():
         camera.exposure_s = 1.0
 
 
+@pytest.mark.parametrize("reading, expected", [(None, None), (-10, -10.0), (np.float32(21.5), 21.5)])
+def test_temperature_is_a_float_or_none(monkeypatch, reading, expected):
+    """A camera without a thermometer reports None (JSON null in the acquisition's metadata)."""
+    camera = FakeCamera()
+    monkeypatch.setattr(camera, "_read_temperature", lambda: reading)
+    value = camera.temperature_c()
+    assert value == expected and (value is None or type(value) is float)
+
+
+@pytest.mark.parametrize("reading", [math.nan, math.inf, -math.inf])
+def test_a_temperature_that_is_not_finite_is_refused(monkeypatch, reading):
+    """NaN or infinity would not be valid JSON in the metadata: a CameraError naming it."""
+    camera = FakeCamera()
+    monkeypatch.setattr(camera, "_read_temperature", lambda: reading)
+    with pytest.raises(CameraError) as error:
+        camera.temperature_c()
+    assert one_line(error) == f"camera 'fake': reported a sensor temperature of {reading!r} °C"
+
+
 def test_open_camera_unknown_backend():
     with pytest.raises(ValueError) as error:
         open_camera("qcam")
-    assert one_line(error) == "unknown camera backend 'qcam': choose one of 'pvcam', 'sim'"
-    assert set(BACKENDS) == {"sim", "pvcam"}
+    assert one_line(error) == "unknown camera backend 'qcam': choose one of 'genicam', 'pvcam', 'sim'"
+    assert set(BACKENDS) == {"sim", "pvcam", "genicam"}
 
 
 def test_open_camera_sim():
@@ -200,7 +219,7 @@ def test_pvcam_without_pyvcam(monkeypatch):
 
 
 #: Keywords of each backend's constructor that the acquisition passes, never a profile.
-SET_BY_ACQUIRE = {"sim": {"light_path", "shutter_open", "instrument", "design", "lamp_on_s", "clock"}, "pvcam": set()}
+SET_BY_ACQUIRE = {"sim": {"light_path", "shutter_open", "instrument", "design", "lamp_on_s", "clock"}, "pvcam": set(), "genicam": set()}
 
 
 @pytest.mark.parametrize("backend", sorted(BACKENDS))

@@ -1,12 +1,14 @@
 """The camera contract (`hw.camera.Camera`'s module docstring) run against every backend in
-`hw.camera.BACKENDS`: the simulated camera, and PVCAM through a fake `pyvcam` that follows
+`hw.camera.BACKENDS`: the simulated camera, PVCAM through a fake `pyvcam` that follows
 PyVCAM's documented API (tests/hw/fake_pyvcam/README.md), since PyVCAM and the PVCAM SDK cannot
-be installed here.
+be installed here, and GenICam through Aravis against Aravis's own fake GigE Vision camera on
+loopback (tests/hw/fake_gv_camera.py; skipped only where PyGObject or Aravis is absent).
 
 Every backend must give frames of `frame_shape`, uint16 below 2**bit_depth, for any ROI and
 binning the interface accepts; read back the exposure it uses (within its time resolution);
-refuse what the interface refuses with a one-line ValueError; report a temperature; and, once
-closed, refuse everything with a CameraError and release the device.
+refuse what the interface refuses with a one-line ValueError; report a finite temperature or,
+for a camera without a sensor thermometer, None; and, once closed, refuse everything with a
+CameraError and release the device.
 """
 
 import math
@@ -18,27 +20,36 @@ import pytest
 
 from spherejax_hw.camera import BACKENDS, CameraError, open_camera
 
+from tests.hw import fake_gv_camera
+
 FAKE_PYVCAM = pathlib.Path(__file__).parent / "fake_pyvcam"
 
 
 @pytest.fixture(params=sorted(BACKENDS))
 def backend(request, monkeypatch):
-    """(backend name, options, the fake pvc module or None), with the fake PyVCAM importable."""
+    """(backend name, options, the fake pvc module or None), with the fake PyVCAM importable
+    and, for GenICam, Aravis's fake GigE Vision camera running for the test."""
     name = request.param
+    if name == "genicam":
+        fake_gv_camera.require_aravis()
+        with fake_gv_camera.running() as fake:
+            yield name, {"device_id": fake.device_id, "exposure_s": 0.005}, None
+        return
     if name == "pvcam":
         monkeypatch.syspath_prepend(str(FAKE_PYVCAM))
         for module in [m for m in sys.modules if m == "pyvcam" or m.startswith("pyvcam.")]:
             monkeypatch.delitem(sys.modules, module)
         from pyvcam import pvc
 
-        return name, {"exposure_s": 0.05}, pvc
+        yield name, {"exposure_s": 0.05}, pvc
+        return
     # The light path and shutter are the acquisition's to wire (`hw.acquire.connect`): here a
     # 500 nm filter in the path (band index 5) and an open shutter.
-    return name, {"seed": 3, "image_shape": [48, 96], "light_path": lambda: 5, "shutter_open": lambda: True}, None
+    yield name, {"seed": 3, "image_shape": [48, 96], "light_path": lambda: 5, "shutter_open": lambda: True}, None
 
 
 def test_this_checks_every_backend():
-    assert set(BACKENDS) == {"sim", "pvcam"}  # a new backend gets a fixture entry above
+    assert set(BACKENDS) == {"sim", "pvcam", "genicam"}  # a new backend gets a fixture entry above
 
 
 def test_frames_follow_roi_and_binning(backend):
@@ -85,7 +96,11 @@ def test_what_the_interface_refuses_every_backend_refuses(backend):
 def test_temperature_and_closing(backend):
     name, options, pvc = backend
     camera = open_camera(name, **options)
-    assert isinstance(camera.temperature_c(), float) and math.isfinite(camera.temperature_c())
+    temperature = camera.temperature_c()
+    if name == "genicam":  # Aravis's fake camera has no DeviceTemperature feature
+        assert temperature is None
+    else:
+        assert isinstance(temperature, float) and math.isfinite(temperature)
     camera.close()
     camera.close()  # closing twice is harmless
     assert camera.closed
