@@ -231,9 +231,14 @@ class DaskExecutor:
                 self.scratch = ScratchSpace()
                 self.cluster = LocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True,
-                    host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR,
+                    # The scheduler serves HTTP (its health and metrics routes) whatever the
+                    # dashboard; dashboard_address=None means dask's default port 8787, and when
+                    # something holds that port (another cluster, a notebook's, a second run)
+                    # dask warns on stderr, which breaks the command line's one-line messages.
+                    # A free port on loopback, and no dashboard: a batch has no one to show it to.
+                    host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
                     local_directory=self.scratch.path,  # the workers' (through their nannies)
-                    scheduler_kwargs={"local_directory": self.scratch.path},
+                    scheduler_kwargs={"local_directory": self.scratch.path, "dashboard": False},
                 )
                 self.client = Client(self.cluster)
             else:

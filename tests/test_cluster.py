@@ -42,6 +42,30 @@ def test_two_local_workers_match_the_in_process_run(batch, tmp_path, capsys, mon
     assert any((tmp_path / "jax-cache").iterdir())
 
 
+def test_a_local_cluster_starts_when_port_8787_is_taken():
+    """Something else holds dask's default dashboard port (a notebook's cluster, another
+    `correct --workers` run): the cluster still starts, with no warning (a warning on stderr would
+    break the command line's one-line messages; pytest turns it into an error here). Before the
+    fix the scheduler's HTTP server went to 8787, and a second run warned "Port 8787 is already
+    in use" (seen when two test processes started clusters at once)."""
+    import socket
+
+    holder = socket.socket()
+    try:
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            holder.bind(("", 8787))
+        except OSError:  # held already (another process): the case under test either way
+            pass
+        else:
+            holder.listen()
+        with cluster.DaskExecutor(workers=1) as executor:
+            assert executor.client.submit(sum, [1, 2, 3]).result(timeout=60) == 6
+            assert executor.cluster.scheduler.http_server.port != 8787
+    finally:
+        holder.close()
+
+
 def test_executor_arguments():
     with pytest.raises(ValueError, match="exactly one of workers"):
         cluster.DaskExecutor()
