@@ -50,11 +50,17 @@ from `temperature_c()` (the contract allows it; the acquisition records null).
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 
 from .camera import Camera, CameraError
+
+log = logging.getLogger(__name__)
+
+#: Snaps of one frame before an incomplete frame is an error (`GenICamCamera._snap`).
+FRAME_ATTEMPTS = 3
 
 #: Unpacked PFNC monochrome formats -> bits of each value (the words are 8 or 16 bits wide).
 MONO_FORMATS = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono14": 14, "Mono16": 16}
@@ -244,12 +250,20 @@ class GenICamCamera(Camera):
 
     def _snap(self) -> np.ndarray:
         timeout_s = self.exposure_s + self._timeout_s
-        buffer = self._call("acquiring a frame", self._cam.acquisition, int(timeout_s * 1e6))
-        if buffer is None:
-            raise CameraError(self._error(f"no frame within {timeout_s:.3g} s (camera gone, or frames lost on the network)"))
-        status = buffer.get_status()
-        if status != self._aravis.BufferStatus.SUCCESS:
-            raise CameraError(self._error(f"frame not received whole ({status.value_nick})"))
+        # A GigE Vision frame travels as UDP packets: one can arrive incomplete (packets lost, or
+        # the buffer cleared, as seen under load on loopback: ARV_BUFFER_STATUS_CLEARED) from a
+        # camera that is fine. Such a frame is taken again, FRAME_ATTEMPTS times in all; no frame
+        # at all (the camera gone) is not retried.
+        for attempt in range(1, FRAME_ATTEMPTS + 1):
+            buffer = self._call("acquiring a frame", self._cam.acquisition, int(timeout_s * 1e6))
+            if buffer is None:
+                raise CameraError(self._error(f"no frame within {timeout_s:.3g} s (camera gone, or frames lost on the network)"))
+            status = buffer.get_status()
+            if status == self._aravis.BufferStatus.SUCCESS:
+                break
+            log.debug("%s: frame %d of %d not received whole (%s)", self.name, attempt, FRAME_ATTEMPTS, status.value_nick)
+        else:
+            raise CameraError(self._error(f"frame not received whole ({status.value_nick}) in {FRAME_ATTEMPTS} attempts"))
         height, width = buffer.get_image_height(), buffer.get_image_width()
         if (height, width) != self.frame_shape:
             raise CameraError(self._error(f"sent a {height} x {width} frame, expected {self.frame_shape[0]} x {self.frame_shape[1]}"))
@@ -277,4 +291,4 @@ class GenICamCamera(Camera):
         self._cam = None
 
 
-__all__ = ["GenICamCamera", "MONO_FORMATS", "unavailable_reason"]
+__all__ = ["FRAME_ATTEMPTS", "GenICamCamera", "MONO_FORMATS", "unavailable_reason"]
