@@ -6,12 +6,17 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
+import warnings
 
 from .. import console, interrupt
 from .._engine.allocator import keep_freed_memory
 from .number_types import BadNumber
 from .parser import DEPRECATED_SPELLINGS, _version_line, build_parser
 from .shared import EXIT_BAD_INPUT, _one_line
+
+
+#: The start of JAX's warning about a torn persistent compilation cache entry (`_run`).
+TORN_CACHE_ENTRY_WARNING = "Error reading persistent compilation cache entry"
 
 
 def _error_line(error: BaseException) -> str:
@@ -55,7 +60,12 @@ def _run(args) -> int:
         fused.switch()
         # SIGTERM, like SIGINT, unwinds through the clean-up wherever a command is (`correct` and
         # `acquire` turn both into stop requests at their safe points instead).
-        with interrupt.at_once():
+        with interrupt.at_once(), warnings.catch_warnings():
+            # JAX warns on stderr when an entry of its persistent compilation cache is torn (a
+            # process killed while writing it, on JAX releases that do not write entries
+            # atomically: seen with jax 0.10.2 in a clean-clone CI run), then recompiles, which
+            # is all there is to do; the warning would break the one-line messages of every run.
+            warnings.filterwarnings("ignore", message=TORN_CACHE_ENTRY_WARNING, category=UserWarning)
             return args.run(args)
     except interrupt.Interrupted as stopped:
         # A stop request honoured at a safe point (`correct`, `acquire`): what was finished is
