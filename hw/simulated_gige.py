@@ -187,8 +187,12 @@ class SimulatorThroughGigE(Camera):
     def scene_frames(self):
         return self._simulated.scene_frames()
 
-    def __getattr__(self, name):
-        # Anything else the acquisition reads of the simulated camera (metadata) comes from it.
-        if name.startswith("_"):
-            raise AttributeError(name)
-        return getattr(self._simulated, name)
+    @property
+    def white_patch(self) -> tuple[int, int, int, int]:
+        """The white patch in frame pixels (the session's layout where the profile gives none)."""
+        return self._simulated.white_patch
+
+    @property
+    def holder(self) -> tuple[int, int, int, int]:
+        """The sample holder in frame pixels (as `white_patch`)."""
+        return self._simulated.holder
