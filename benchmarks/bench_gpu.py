@@ -17,6 +17,10 @@ What it measures
        (`spherejax._engine.gpu_kernel`), also "on device, jax.numpy": a plan of the same frames
        that runs the jax.numpy path instead, timed back to back with the others and checked
        against the default's outputs first (quality identical, values to float32 rounding);
+       and "on device, streamed": STREAMED_CALLS device-resident calls queued and waited for
+       once at the end (`streamed`), reported a call: "on device" waits for every call, so the
+       host's work for a call adds to the GPU's, where a loop that leaves its outputs on the
+       device overlaps them;
     3. a stack of --stack (default 8) frames of --stack-size (default 1024) in one `correct`
        call, both ways, and `jax.jit(jax.vmap(lambda r: correct(r, calibration)))` over it on
        the device, each first checked against the frames corrected one by one;
@@ -282,6 +286,28 @@ def on_device(raw: jax.Array, calibration):
     return jax.block_until_ready(spherejax.correct(raw, calibration))
 
 
+#: Calls queued by `streamed` before its one wait.
+STREAMED_CALLS = 20
+
+
+def streamed(raw: jax.Array, calibration, calls: int = STREAMED_CALLS):
+    """`calls` device-resident `correct` calls queued one after another and waited for once, at
+    the end: what a loop that keeps its frames and outputs on the device sees. JAX dispatches
+    asynchronously, so the host's work for a call (the checks, the plan lookup, the dispatch)
+    overlaps the GPU's work for the calls before it, where "on device" waits for each call and
+    so adds the host's work and the wait's wake-up to every call."""
+    result = None
+    for _ in range(calls):
+        result = spherejax.correct(raw, calibration)
+    return jax.block_until_ready(result)
+
+
+def per_call(timing: dict, calls: int) -> dict:
+    """A `harness.time_back_to_back` entry of `calls` calls at a time, as seconds a call."""
+    return {"median_s": timing["median_s"] / calls, "min_s": timing["min_s"] / calls,
+            "all_s": [t / calls for t in timing["all_s"]]}
+
+
 def jax_numpy_way(raw: jax.Array, calibration, result: spherejax.CorrectionResult):
     """None where `correct`'s plan of raw runs the jax.numpy path already; else a call of a plan
     of the same frames that runs the jax.numpy path (kernel_mode None), what ran on GPUs before
@@ -355,14 +381,18 @@ def time_sizes(sizes, inputs_of, calibration_of, copies, hbm_bytes_per_s, repeat
         ways = {
             "numpy in/out": lambda: numpy_in_out(raw_np, calibration),  # noqa: B023
             "on device": lambda: on_device(raw_dev, calibration),  # noqa: B023
+            "on device, streamed": lambda: streamed(raw_dev, calibration),  # noqa: B023
         }
         if jax_numpy is not None:
             ways["on device, jax.numpy"] = jax_numpy
         timings = time_each_back_to_back(ways, repeats)
+        timings["on device, streamed"] = per_call(timings["on device, streamed"], STREAMED_CALLS)
         pixels = size * size
         rows.append(row(f"{size}^2 numpy in/out", timings["numpy in/out"], first_np, pixels,
                         link_s=link_seconds(raw_np, out_bytes, copies)))
         rows.append(row(f"{size}^2 on device", timings["on device"], first_dev, pixels,
+                        hbm_bytes=hbm_bytes, hbm_bytes_per_s=hbm_bytes_per_s))
+        rows.append(row(f"{size}^2 on device, streamed", timings["on device, streamed"], first_dev, pixels,
                         hbm_bytes=hbm_bytes, hbm_bytes_per_s=hbm_bytes_per_s))
         if jax_numpy is not None:
             rows.append(row(f"{size}^2 on device, jax.numpy", timings["on device, jax.numpy"], first_jax_numpy,

@@ -20,7 +20,7 @@ import pytest
 
 import spherejax as sj
 from spherejax import colorimetry, pipeline
-from spherejax._engine import allocator, fused, steps
+from spherejax._engine import allocator, fused, gpu_kernel, steps
 from spherejax.flatfield import white_signal_usable
 from spherejax.pixel_constants import PixelConstants
 
@@ -140,6 +140,7 @@ class TestNoFlatField:
         assert calibrations[0].dark is calibrations[1].dark
         raw = np.rint(dark_frame + 5000 * rng.uniform(0.05, 0.95, dark.shape)).astype(np.uint16)
         monkeypatch.setenv(fused.SWITCH, "0")
+        monkeypatch.setenv(gpu_kernel.SWITCH, "0")  # on a GPU the jax.numpy path too
         for turn in range(4):
             calibration, bad = calibrations[turn % 2], expected[turn % 2]
             result = sj.correct(raw, calibration)

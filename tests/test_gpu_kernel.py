@@ -22,7 +22,8 @@ import pytest
 
 import spherejax as sj
 from spherejax import pipeline
-from spherejax._engine import gpu_kernel
+from spherejax._engine import fused, gpu_kernel
+from spherejax._engine import plan as plan_module
 from spherejax._engine.gpu_kernel import pixel_outputs_pallas
 from spherejax._engine.plan import Plan
 from spherejax.pixel_constants import PixelConstants
@@ -323,6 +324,17 @@ def test_which_plans_take_the_kernel(monkeypatch, device, raw_dtype, compute_dty
     assert gpu_kernel.mode(raw_dtype, compute_dtype, bands, device) == expected
 
 
+@pytest.mark.parametrize("value", ["off", "AVX2"])
+def test_a_mistyped_cpu_kernel_switch_is_refused_on_a_gpu_too(monkeypatch, value):
+    """SPHEREJAX_FUSED (the CPU kernel's switch) is refused on a GPU as on the CPU: a plan on an
+    H100 took SPHEREJAX_FUSED=off silently, since only the CPU's plans read it."""
+    monkeypatch.setenv(fused.SWITCH, value)
+    with pytest.raises(ValueError, match=rf"SPHEREJAX_FUSED: expected one of .* or unset, got '{value}'"):
+        plan_module._kernel_mode(fused.AUTO, np.uint16, np.float32, 16, CUDA)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    assert plan_module._kernel_mode(fused.AUTO, np.uint16, np.float32, 16, CUDA) == gpu_kernel.GPU
+
+
 def test_a_mistyped_switch_is_refused(monkeypatch):
     monkeypatch.setenv(gpu_kernel.SWITCH, "off")
     with pytest.raises(ValueError, match="SPHEREJAX_GPU_KERNEL='off': expected one of 0, 1"):
@@ -341,6 +353,9 @@ def test_a_kernel_that_does_not_compile_leaves_the_plan_on_the_jax_numpy_path(ca
             raise NotImplementedError("no Triton backend in this JAX")
 
         monkeypatch.setattr(gpu_kernel, "pixel_outputs_pallas", unavailable)
+        # jit keeps the traces of earlier tests: one of this signature (on a GPU, a plan of the
+        # same frames) would be reused without tracing the failing kernel again (seen on an H100).
+        jax.clear_caches()
     with caplog.at_level(logging.DEBUG, logger="spherejax._engine.plan"):
         plan = Plan(calibration, raw.shape, raw.dtype, kernel_mode=gpu_kernel.GPU)
     assert plan.kernel_mode is None and plan.no_flat_field is not None

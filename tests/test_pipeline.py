@@ -11,7 +11,7 @@ import pytest
 import spherejax as sj
 from spherejax import spectra
 
-from .helpers import TABLE_2, gaussian_sensitivity, lambertian_sphere_frames
+from .helpers import ON_CPU, TABLE_2, gaussian_sensitivity, lambertian_sphere_frames
 
 H, W, B = 20, 28, 16
 
@@ -107,7 +107,11 @@ class TestCorrect:
         from_float = sj.correct(raw16.astype(np.float32), calibration)
         assert from_uint16.reflectance.dtype == np.float32
         np.testing.assert_array_equal(np.asarray(from_uint16.reflectance), np.asarray(from_float.reflectance))
-        np.testing.assert_array_equal(np.asarray(from_uint16.lab), np.asarray(from_float.lab))
+        # Bit for bit on the CPU (one kernel, the same arithmetic after the exact conversion). On
+        # an H100 (jax 0.11.2) the GPU kernel's two compilations (uint16 and float32 raw) round
+        # Lab's sums differently: 187 of 1680 values, at most 6.1e-5 apart, reflectance equal.
+        lab_atol = 0.0 if ON_CPU else 2e-4
+        np.testing.assert_allclose(np.asarray(from_uint16.lab), np.asarray(from_float.lab), rtol=0, atol=lab_atol)
 
     def test_table_2_coefficients_apply(self, scene):
         calibration = scene["calibration"]

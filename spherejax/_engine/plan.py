@@ -160,7 +160,14 @@ class Plan:
             box = (0, self.shape[-3], 0, self.shape[-2])
         self.box = box
         self.box_shape = None if box is None else (box[1] - box[0], box[3] - box[2])
-        self.box_origin = None if box is None else np.array([box[0], box[2]], np.int32)
+        # The box's origin is an argument of the programs (patches of one size share one), kept
+        # where the computation runs: a NumPy origin would be copied to the device at every call
+        # (on a GPU a host-to-device transfer before each program). The host copy is what the
+        # direct route slices the frames with.
+        self.box_origin_host = None if box is None else np.array([box[0], box[2]], np.int32)
+        self.box_origin = self.box_origin_host
+        if self.box_origin is not None and self.device is not None:
+            self.box_origin = jax.device_put(self.box_origin, self.device)
         # The jax.numpy path reads the (H, W) mask of pixels without a flat field instead of
         # reducing over both frames at every call (on CPU a fifth of its time).
         with_mask = self.concrete and self.kernel_mode is None
@@ -317,7 +324,7 @@ class Plan:
         of uint16). The outputs are written into reused NumPy memory (`buffers.take_host`) and
         handed to JAX without a copy. p comes from `steps.patch_ratio_step` on the patch's box of
         the frames (a small copy): the program `_whole` traces into its own."""
-        (r0, c0), (h, w) = self.box_origin, self.box_shape
+        (r0, c0), (h, w) = self.box_origin_host, self.box_shape
         p = steps.patch_ratio_step(
             raw[..., r0:r0 + h, c0:c0 + w, :], self.patch, self.box_origin, box_shape=self.box_shape,
             saturation=self.saturation, raw_is_box=True,
@@ -414,7 +421,10 @@ def _kernel_mode(asked, raw_dtype, compute_dtype, bands: int, device) -> str | N
         return asked if gpu_kernel.supports(raw_dtype, compute_dtype, bands) else None
     if device is not None and device.platform != "cpu":
         # The fused kernel runs on CPU only: a plan elsewhere traces the GPU kernel or the
-        # jax.numpy path alone, without the fused kernel's custom JVP and platform switch.
+        # jax.numpy path alone, without the fused kernel's custom JVP and platform switch. Its
+        # switch is still read, so that a mistyped value is refused here as on the CPU (on an
+        # H100 SPHEREJAX_FUSED=off was taken silently: tests/test_gpu_kernel.py).
+        fused.switch()
         return gpu_kernel.mode(raw_dtype, compute_dtype, bands, device)
     usable = fused.mode(raw_dtype, compute_dtype, bands)
     return None if usable is None else usable if asked == fused.AUTO else asked
