@@ -134,10 +134,12 @@ SEED = 20190816
 #: The timed runs, in the order they run, and how the table names them.
 RUN_LABELS = {
     "reference": "numpy + colour-science (ref)",
+    "before": "spherejax before (--compare-with)",
     "spherejax": "spherejax, in-process",
     "workers": "spherejax, 2 dask workers",
     "floor": "I/O floor, no fsync",
     "floor-fsync": "I/O floor, fsync per output",
+    "raw-floor": "raw floor: bytes read, written, fsync",
     "spherejax-nofsync": "diagnostic: spherejax, fsync no-op",
 }
 
@@ -284,15 +286,16 @@ def write_envi(header_path: pathlib.Path, pixels: np.ndarray, band_names, wavele
 
 
 def write_outputs(stem: pathlib.Path, arrays: dict, output_format: str = "exr", fsync: bool = False,
-                  steps: dict | None = None) -> None:
-    """One input's outputs in `output_format`, named as spherejax names them ("<stem>.<kind>");
-    with `fsync`, each file is fsynced once written. `steps` collects seconds per step."""
+                  steps: dict | None = None, exr_compression: str = io.DEFAULT_EXR_COMPRESSION) -> None:
+    """One input's outputs in `output_format`, named as spherejax names them ("<stem>.<kind>"),
+    EXRs with `exr_compression`; with `fsync`, each file is fsynced once written. `steps`
+    collects seconds per step."""
     paths = {kind: stem.parent / f"{stem.name}.{kind}" for kind in archive.OUTPUT_KINDS_BY_FORMAT[output_format]}
     if output_format == "exr":
         writes = {
             "reflectance.exr": lambda: write_image(paths["reflectance.exr"], arrays["reflectance"], REFLECTANCE_NAMES,
-                                                   io.DEFAULT_EXR_COMPRESSION),
-            "lab.exr": lambda: write_image(paths["lab.exr"], arrays["lab"], LAB_NAMES, io.DEFAULT_EXR_COMPRESSION),
+                                                   exr_compression),
+            "lab.exr": lambda: write_image(paths["lab.exr"], arrays["lab"], LAB_NAMES, exr_compression),
         }
     else:
         writes = {
@@ -375,7 +378,8 @@ def reference_outputs(raw: np.ndarray, calibration: dict) -> dict:
     }
 
 
-def reference_batch(inputs: list, out: pathlib.Path, calibration_path, output_format: str = "exr") -> list[float]:
+def reference_batch(inputs: list, out: pathlib.Path, calibration_path, output_format: str = "exr",
+                    exr_compression: str = io.DEFAULT_EXR_COMPRESSION) -> list[float]:
     """Correct every input into `out` the plain way; returns each file's seconds."""
     calibration = load_reference_calibration(calibration_path)
     out.mkdir(parents=True, exist_ok=True)
@@ -383,7 +387,8 @@ def reference_batch(inputs: list, out: pathlib.Path, calibration_path, output_fo
     for path in inputs:
         start = time.perf_counter()
         raw = read_image(path, oiio.UINT16)
-        write_outputs(out / pathlib.Path(path).stem, reference_outputs(raw, calibration), output_format)
+        write_outputs(out / pathlib.Path(path).stem, reference_outputs(raw, calibration), output_format,
+                      exr_compression=exr_compression)
         seconds.append(time.perf_counter() - start)
     return seconds
 
@@ -392,7 +397,8 @@ def reference_batch(inputs: list, out: pathlib.Path, calibration_path, output_fo
 # The I/O floor
 
 
-def io_floor(inputs: list, out: pathlib.Path, arrays: dict, fsync: bool, output_format: str = "exr") -> tuple[list[float], dict]:
+def io_floor(inputs: list, out: pathlib.Path, arrays: dict, fsync: bool, output_format: str = "exr",
+             exr_compression: str = io.DEFAULT_EXR_COMPRESSION) -> tuple[list[float], dict]:
     """Read (decode) every input and write the precomputed `arrays` as its four outputs.
 
     Returns each file's seconds and the seconds of each step per file (read, each output,
@@ -404,7 +410,46 @@ def io_floor(inputs: list, out: pathlib.Path, arrays: dict, fsync: bool, output_
         start = time.perf_counter()
         read_image(path, oiio.UINT16)
         steps["read"].append(time.perf_counter() - start)
-        write_outputs(out / pathlib.Path(path).stem, arrays, output_format, fsync=fsync, steps=steps)
+        write_outputs(out / pathlib.Path(path).stem, arrays, output_format, fsync=fsync, steps=steps,
+                      exr_compression=exr_compression)
+        seconds.append(time.perf_counter() - start)
+    return seconds, steps
+
+
+def raw_floor(inputs: list, out: pathlib.Path, outputs: dict[str, bytes]) -> tuple[list[float], dict]:
+    """The raw floor: for each input, read its bytes (a plain read, no decoding) and write
+    `outputs` (kind -> the bytes of one input's outputs as spherejax wrote them in the agreement
+    check, precomputed) as plain files under the same fsync policy as spherejax's
+    (`spherejax.io.atomic`): each file written under a temporary name, fsynced, renamed into
+    place, and its folder fsynced. No decoding, correction or encoding: what the disk and the
+    kernel alone cost. Returns each file's seconds and the seconds of each step per file."""
+    out.mkdir(parents=True, exist_ok=True)
+    seconds, steps = [], {"read": [], "write": [], "fsync": []}
+    for path in inputs:
+        start = time.perf_counter()
+        with open(path, "rb") as handle:
+            handle.read()
+        steps["read"].append(time.perf_counter() - start)
+        written = fsynced = 0.0
+        for kind, data in outputs.items():
+            final = out / f"{pathlib.Path(path).stem}.{kind}"
+            temporary = final.with_name(f".{final.name}.tmp")
+            begin = time.perf_counter()
+            with open(temporary, "wb") as handle:
+                handle.write(data)
+                handle.flush()
+                middle = time.perf_counter()
+                os.fsync(handle.fileno())
+            os.replace(temporary, final)
+            folder = os.open(out, os.O_RDONLY)
+            try:
+                os.fsync(folder)
+            finally:
+                os.close(folder)
+            written += middle - begin
+            fsynced += time.perf_counter() - middle
+        steps["write"].append(written)
+        steps["fsync"].append(fsynced)
         seconds.append(time.perf_counter() - start)
     return seconds, steps
 
@@ -419,9 +464,11 @@ def _cpu_s() -> float:
     return t.user + t.system + t.children_user + t.children_system
 
 
-def _spherejax_batch(job: dict, executor=None) -> tuple[list[float], float]:
-    """run_batch over the inputs folder; (each file's seconds in completion order, wall)."""
+def _spherejax_batch(job: dict, executor=None, options: dict | None = None) -> tuple[list[float], float]:
+    """run_batch over the inputs folder with the job's output options (`options` instead where
+    given); (each file's seconds in completion order, wall)."""
     seconds = []
+    options = job["spherejax_options"] if options is None else options
 
     def on_result(spec, result):
         if result is None or result.status != "done":
@@ -430,7 +477,7 @@ def _spherejax_batch(job: dict, executor=None) -> tuple[list[float], float]:
 
     start = time.perf_counter()
     archive.run_batch([job["inputs_dir"]], job["out"], job["calibration"], output_format=job["output_format"],
-                      on_result=on_result, executor=executor)
+                      on_result=on_result, executor=executor, **options)
     return seconds, time.perf_counter() - start
 
 
@@ -443,16 +490,30 @@ def child_run(kind: str, job: dict) -> dict:
     cpu_0 = _cpu_s()
     if kind == "reference":
         start = time.perf_counter()
-        seconds = reference_batch(inputs, out, job["calibration"], job["output_format"])
+        seconds = reference_batch(inputs, out, job["calibration"], job["output_format"], job["exr_compression"])
         wall = time.perf_counter() - start
     elif kind in ("floor", "floor-fsync"):
         arrays = read_outputs(pathlib.Path(job["floor_stem"]), job["output_format"])  # not timed: precomputed
         cpu_0 = _cpu_s()
         start = time.perf_counter()
-        seconds, steps = io_floor(inputs, out, arrays, fsync=kind == "floor-fsync", output_format=job["output_format"])
+        seconds, steps = io_floor(inputs, out, arrays, fsync=kind == "floor-fsync", output_format=job["output_format"],
+                                  exr_compression=job["exr_compression"])
         wall = time.perf_counter() - start
         record["median_step_s"] = {step: statistics.median(t) for step, t in steps.items()}
+    elif kind == "raw-floor":
+        stem = pathlib.Path(job["spherejax_stem"])
+        outputs = {kind: (stem.parent / f"{stem.name}.{kind}").read_bytes()
+                   for kind in archive.OUTPUT_KINDS_BY_FORMAT[job["output_format"]]}  # not timed
+        cpu_0 = _cpu_s()
+        start = time.perf_counter()
+        seconds, steps = raw_floor(inputs, out, outputs)
+        wall = time.perf_counter() - start
+        record["median_step_s"] = {step: statistics.median(t) for step, t in steps.items()}
+    elif kind == "before":
+        seconds, wall = _spherejax_batch(job, options=job["before_options"])
     elif kind == "spherejax":
+        from spherejax.archive import stage_times
+
         # Time spent inside os.fsync, measured directly (the wrapper only reads the clock).
         # spherejax calls os.fsync through the os module at call time, so this reaches it.
         real_fsync, fsync_time = os.fsync, {"s": 0.0, "calls": 0}
@@ -466,8 +527,10 @@ def child_run(kind: str, job: dict) -> dict:
                 fsync_time["calls"] += 1
 
         os.fsync = timed_fsync
-        seconds, wall = _spherejax_batch(job)
+        with stage_times.collecting() as stages:
+            seconds, wall = _spherejax_batch(job)
         record["fsync_s"], record["fsync_calls"] = fsync_time["s"], fsync_time["calls"]
+        record["stages"] = stages
     elif kind == "spherejax-nofsync":
         os.fsync = lambda fd: None  # diagnostic only: what the run costs without durability
         seconds, wall = _spherejax_batch(job)
@@ -510,7 +573,9 @@ def run_in_child(kind: str, job: dict, workdir: pathlib.Path) -> dict:
     # `python -c`, not this file as the main script: dask starts its workers with "spawn", which
     # re-imports a main script (and with it numpy, colour, JAX) in every worker; `spherejax
     # correct`'s workers import only the small spherejax.cli.
-    launcher = (f"import sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); "
+    # The "before" run imports spherejax from the --compare-with tree, ahead of the installed one.
+    before = f"sys.path.insert(0, {job['compare_with']!r}); " if kind == "before" else ""
+    launcher = (f"import sys; {before}sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); "
                 "import bench_archive; sys.exit(bench_archive.main(sys.argv[1:]))")
     command = [sys.executable, "-c", launcher, "--child", kind, "--job", json.dumps(job)]
     os.sync()  # the previous run's writeback is not this run's cost
@@ -527,7 +592,7 @@ def run_in_child(kind: str, job: dict, workdir: pathlib.Path) -> dict:
 
 
 def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib.Path,
-                    output_format: str = "exr") -> tuple[dict, pathlib.Path]:
+                    output_format: str = "exr", exr_compression: str = io.DEFAULT_EXR_COMPRESSION) -> tuple[dict, pathlib.Path]:
     """Correct the first input both ways and compare the files; raise if they disagree.
 
     Returns the agreement figures and the reference outputs' stem (the I/O floor writes them).
@@ -535,8 +600,11 @@ def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib
     calibration = load_reference_calibration(calibration_path)
     reference_stem = folder / "reference" / first_input.stem
     reference_stem.parent.mkdir(parents=True)
-    write_outputs(reference_stem, reference_outputs(read_image(first_input, oiio.UINT16), calibration), output_format)
-    summary = archive.run_batch([first_input], folder / "spherejax", calibration_path, output_format=output_format)
+    write_outputs(reference_stem, reference_outputs(read_image(first_input, oiio.UINT16), calibration), output_format,
+                  exr_compression=exr_compression)
+    options = {"exr_compression": exr_compression} if output_format == "exr" else {}
+    summary = archive.run_batch([first_input], folder / "spherejax", calibration_path, output_format=output_format,
+                                **options)
     if summary.corrected != 1:
         raise RuntimeError(f"spherejax did not correct {first_input}: {summary.failed}")
     spherejax_stem = folder / "spherejax" / first_input.stem
@@ -609,12 +677,39 @@ def summarise(runs: dict, files: int, megapixels: float) -> dict:
         # Measured inside the headline run: seconds in os.fsync over its wall time.
         "fsync_time_share_in_process": runs["spherejax"]["fsync_s"] / runs["spherejax"]["wall_s"],
     }
+    sj = runs["spherejax"]
+    if "raw-floor" in runs:
+        derived["spherejax_vs_raw_floor"] = sj["wall_s"] / runs["raw-floor"]["wall_s"]
+        if "workers" in runs:
+            derived["workers_vs_raw_floor"] = runs["workers"]["wall_s"] / runs["raw-floor"]["wall_s"]
+    if "before" in runs:
+        derived["files_per_s_vs_before"] = sj["files_per_s"] / runs["before"]["files_per_s"]
+    derived["stages"] = stage_table(sj.get("stages", []), files)
     if "spherejax-nofsync" in runs:
         # Diagnostic: also counts what fsync changes outside the call (writeback left to the
         # kernel instead); two separate runs, so subject to run-to-run noise.
         normal, no_fsync = runs["spherejax"]["wall_s"], runs["spherejax-nofsync"]["wall_s"]
         derived["fsync_share_in_process_vs_noop_run"] = (normal - no_fsync) / normal
     return derived
+
+
+def stage_table(records: list[dict], files: int) -> dict:
+    """Per stage (`spherejax.archive.stage_times`): the median seconds per input and the total
+    over the run; plus "other" (an input's seconds in no stage: opening, checks, and where
+    inputs overlap, the wait for the interpreter) and "input" (an input's wall seconds)."""
+    if not records:
+        return {}
+    names = sorted({name for record in records for name in record["stages"]},
+                   key=lambda name: (name.split(" ")[0] in ("encode", "commit"), name))
+    table = {}
+    for name in names:
+        values = [record["stages"].get(name, 0.0) for record in records]
+        table[name] = {"median_s": statistics.median(values), "total_s": sum(values)}
+    other = [record["seconds"] - sum(record["stages"].values()) for record in records]
+    table["other"] = {"median_s": statistics.median(other), "total_s": sum(other)}
+    table["input"] = {"median_s": statistics.median(r["seconds"] for r in records),
+                      "total_s": sum(r["seconds"] for r in records)}
+    return table
 
 
 def print_report(record: dict) -> None:
@@ -670,7 +765,25 @@ def print_report(record: dict) -> None:
         print(f"; diagnostic run with os.fsync a no-op: {100 * derived['fsync_share_in_process_vs_noop_run']:.0f}% "
               f"less wall time{noise}", end="")
     print()
-    for kind in ("floor", "floor-fsync"):
+    stages = derived.get("stages") or {}
+    if stages:
+        wall = sj["wall_s"]
+        print(f"\nspherejax in-process, where an input's time goes ({record['files']} inputs, "
+              f"{sj['cpu_cores_busy']:.2f} cores busy; inputs overlap, so the totals add up to more than the wall "
+              f"{wall:.2f} s):")
+        print(f"{'stage':<30}{'median s/input':>15}{'total s':>10}{'share of wall':>15}")
+        for name, t in stages.items():
+            print(f"{name:<30}{t['median_s']:>15.3f}{t['total_s']:>10.2f}{100 * t['total_s'] / wall:>14.0f}%")
+        print(f"(fsync, inside the commits: {sj['fsync_s'] / record['files']:.3f} s per input)")
+    if "spherejax_vs_raw_floor" in derived:
+        print(f"spherejax in-process / raw floor: {derived['spherejax_vs_raw_floor']:.2f}x the raw floor's wall time", end="")
+        if "workers_vs_raw_floor" in derived:
+            print(f"; 2 dask workers {derived['workers_vs_raw_floor']:.2f}x", end="")
+        print()
+    if "files_per_s_vs_before" in derived:
+        print(f"spherejax in-process / before: {derived['files_per_s_vs_before']:.2f}x the files per second of "
+              f"{record['compare_with']}")
+    for kind in ("floor", "floor-fsync", "raw-floor"):
         if kind in runs:
             steps = ", ".join(f"{step} {t:.3f}" for step, t in runs[kind]["median_step_s"].items())
             print(f"{RUN_LABELS[kind]}, median s per file: {steps}")
@@ -700,6 +813,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="the outputs' format for every run, spherejax's --format (default exr)")
     parser.add_argument("--skip-workers", action="store_true", help="leave out the 2-worker dask run")
     parser.add_argument("--skip-diagnostic", action="store_true", help="leave out the fsync no-op diagnostic run")
+    parser.add_argument("--exr-compression", choices=io.EXR_COMPRESSIONS, default=None,
+                        help="spherejax's --exr-compression, also the reference's and the I/O floor's (default: "
+                             "spherejax's default; the --compare-with run keeps its own default unless this is given)")
+    parser.add_argument("--compare-with", metavar="TREE",
+                        help="a checkout of spherejax (its fused kernel built in place) whose `correct` is timed in "
+                             "the same run as \"before\", with its own defaults: today's code against the code it replaces")
     parser.add_argument("--child", help=argparse.SUPPRESS)  # internal: one timed run
     parser.add_argument("--job", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -737,7 +856,13 @@ def main(argv=None) -> int:
 
         print("checking that the reference agrees with spherejax on the first capture ...", flush=True)
         start = time.perf_counter()
-        agreement, reference_stem = check_agreement(inputs[0], calibration_path, workdir / "check", args.format)
+        exr_compression = args.exr_compression or io.DEFAULT_EXR_COMPRESSION
+        agreement, reference_stem = check_agreement(inputs[0], calibration_path, workdir / "check", args.format,
+                                                    exr_compression)
+        # What the raw floor writes: one input's outputs as the timed spherejax run writes them.
+        spherejax_options = {"exr_compression": exr_compression} if args.format == "exr" else {}
+        archive.run_batch([inputs[0]], workdir / "floor-bytes", calibration_path, output_format=args.format,
+                          **spherejax_options)
         setup["check_s"] = time.perf_counter() - start
         need = int(1.2 * args.files * agreement["output_bytes_per_file"])
         free = shutil.disk_usage(workdir).free
@@ -747,10 +872,15 @@ def main(argv=None) -> int:
         job = {
             "inputs_dir": str(inputs_dir), "calibration": str(calibration_path),
             "floor_stem": str(reference_stem), "jax_cache": str(workdir / "jax-cache"),
-            "output_format": args.format,
+            "spherejax_stem": str(workdir / "floor-bytes" / inputs[0].stem),
+            "output_format": args.format, "exr_compression": exr_compression,
+            "spherejax_options": spherejax_options,
+            "before_options": {"exr_compression": args.exr_compression} if args.exr_compression else {},
+            "compare_with": os.path.abspath(args.compare_with) if args.compare_with else None,
         }
         kinds = [k for k in RUN_LABELS
-                 if not (args.skip_workers and k == "workers") and not (args.skip_diagnostic and k == "spherejax-nofsync")]
+                 if not (args.skip_workers and k == "workers") and not (args.skip_diagnostic and k == "spherejax-nofsync")
+                 and not (k == "before" and not args.compare_with)]
         runs = {}
         for kind in kinds:
             print(f"timing: {RUN_LABELS[kind]} ...", flush=True)
@@ -762,7 +892,8 @@ def main(argv=None) -> int:
             "benchmark": "bench_archive",
             "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "files": args.files, "size": args.size, "bands": len(BAND_NAMES), "distinct": args.distinct,
-            "output_format": args.format,
+            "output_format": args.format, "exr_compression": exr_compression,
+            "compare_with": job["compare_with"],
             "megapixels_per_file": megapixels,
             "input_bytes_per_file": sum(p.stat().st_size for p in inputs) / len(inputs),
             "input_noise_dn": INPUT_NOISE_DN, "seed": SEED,

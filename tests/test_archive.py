@@ -3,6 +3,7 @@ resume, and kill-and-resume byte identity (SIGKILL; SIGINT and SIGTERM, in proce
 
 from __future__ import annotations
 
+import argparse
 import collections
 import fcntl
 import json
@@ -703,8 +704,55 @@ def test_exr_compression_is_lossless(cal, tmp_path, rng, capsys, compression):
 
 def test_unknown_exr_compression_is_refused_before_anything(cal, tmp_path, rng):
     io.write_frame(tmp_path / "a.tif", frame(rng))
-    with pytest.raises(ValueError, match=r"exr_compression: expected one of \['piz', 'zip', 'none'\], got 'lzw'"):
+    with pytest.raises(ValueError, match=r"exr_compression: expected one of \['none', 'piz', 'zip'\], got 'lzw'"):
         archive.run_batch([tmp_path / "a.tif"], tmp_path / "out", cal, exr_compression="lzw")
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_command_lines_exr_options_are_ios(capsys):
+    """`spherejax correct`'s --exr-compression and --reflectance-type offer what io writes, with
+    io's defaults (the parser spells them out so as not to import OpenImageIO)."""
+    commands = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    actions = {action.dest: action for action in commands.choices["correct"]._actions}
+    assert actions["exr_compression"].default == io.DEFAULT_EXR_COMPRESSION
+    assert tuple(actions["exr_compression"].choices) == io.EXR_COMPRESSIONS
+    assert actions["reflectance_type"].default == "float"
+    assert tuple(actions["reflectance_type"].choices) == io.EXR_PIXEL_TYPES
+
+
+def test_half_float_reflectance_is_the_float_rounded_to_half(cal, tmp_path, rng, capsys):
+    """--reflectance-type half: the reflectance EXR holds OpenEXR half floats, each the float32
+    reflectance rounded to the nearest half (NaN kept), half the size uncompressed; Lab, quality
+    and preview are those of the float batch, and the manifest records the setting."""
+    raw = frame(rng)
+    io.write_frame(tmp_path / "a.tif", raw)
+    status, _, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "half"),
+                          "--reflectance-type", "half"], capsys)
+    assert status == 0, err
+    assert run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "float")], capsys)[0] == 0
+    image = oiio.ImageInput.open(str(tmp_path / "half" / "a.reflectance.exr"))
+    assert image.spec().format == oiio.TypeDesc("half")
+    stored = image.read_image("half")
+    image.close()
+    expected = np.asarray(spherejax.correct(raw, io.load_calibration(cal)[0]).reflectance)
+    np.testing.assert_array_equal(stored, expected.astype(np.float16))
+    half_size, float_size = ((tmp_path / o / "a.reflectance.exr").stat().st_size for o in ("half", "float"))
+    assert half_size < 0.55 * float_size
+    for kind in ("lab.exr", "quality.png", "preview.png"):
+        assert (tmp_path / "half" / f"a.{kind}").read_bytes() == (tmp_path / "float" / f"a.{kind}").read_bytes()
+    assert manifest_records(tmp_path / "half")[0]["settings"]["reflectance_type"] == "half"
+    assert manifest_records(tmp_path / "float")[0]["settings"]["reflectance_type"] == "float"
+
+
+def test_half_float_envi_is_refused_before_anything(cal, tmp_path, rng, capsys):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    status, _, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out"),
+                          "--format", "envi", "--reflectance-type", "half"], capsys)
+    assert status == 2
+    assert err.strip().splitlines() == [
+        "spherejax: error: reflectance_type: expected 'float' with output_format 'envi' (half floats are an OpenEXR type; "
+        "ENVI has none), got 'half'"
+    ]
     assert not (tmp_path / "out").exists()
 
 

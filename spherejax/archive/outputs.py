@@ -14,6 +14,7 @@ import numpy as np
 from .. import interrupt, io
 from ..grid import WAVELENGTHS_NM
 from ..io import envi, spectral_layout
+from . import stage_times
 from .discovery import InputSpec
 
 #: The outputs of one input in each output format (`--format`): "<name>.<kind>" in OUT.
@@ -32,15 +33,18 @@ ALL_OUTPUT_KINDS = tuple(dict.fromkeys(kind for kinds in OUTPUT_KINDS_BY_FORMAT.
 PREVIEW_BAD_PIXEL = (255, 0, 255)
 
 
-def output_settings(calibration: io.CalibrationFile, output_format: str, exr_compression: str) -> dict:
+def output_settings(calibration: io.CalibrationFile, output_format: str, exr_compression: str,
+                    reflectance_type: str = "float") -> dict:
     """The options that shape an input's outputs beyond the input and the calibration: the Lab
     illuminant in effect (the calibration's or --illuminant), the format and, for EXR, its
-    compression. Each manifest record carries them and `--resume` redoes an input whose record
-    holds other ones (`is_done`)."""
+    compression and the reflectance's pixel type. Each manifest record carries them and
+    `--resume` redoes an input whose record holds other ones (`is_done`)."""
+    exr = output_format == "exr"
     return {
         "illuminant": calibration.patch_calibration.illuminant,
         "format": output_format,
-        "exr_compression": exr_compression if output_format == "exr" else None,
+        "exr_compression": exr_compression if exr else None,
+        "reflectance_type": reflectance_type if exr else None,
     }
 
 
@@ -84,6 +88,19 @@ class OutputWriter(Protocol):
     def __exit__(self, *exc_info) -> None: ...
 
 
+class _TimedReads:
+    """A cube whose row reads count as the "read" stage (`stage_times`), as `correct_strips`
+    reads it (its shape and `read_rows`): the rest of a strip's time is its correction."""
+
+    def __init__(self, cube: io.CubeReader):
+        self.shape = cube.shape
+        self._cube = cube
+
+    def read_rows(self, row0: int, row1: int) -> np.ndarray:
+        with stage_times.stage("read"):
+            return self._cube.read_rows(row0, row1)
+
+
 class _OneFile:
     """An image writer of one file (`io.open_exr`, `io.open_png`, `io.open_quality_png`, whose
     `commit` gives that file's digest) as an `OutputWriter`."""
@@ -110,10 +127,12 @@ LAB_CHANNELS = ("L*", "a*", "b*")
 
 def output_openers(
     output_format: str, paths: dict[str, pathlib.Path], shape: tuple[int, int], attributes: dict,
-    exr_compression: str, stem: str,
+    exr_compression: str, stem: str, reflectance_type: str = "float",
 ) -> dict[str, Callable[[], OutputWriter]]:
     """{"reflectance", "lab", "quality", "preview": a function opening that output's writer} in
-    `output_format`, `paths` by kind (`OUTPUT_KINDS_BY_FORMAT`), images of `shape` (H, W)."""
+    `output_format`, `paths` by kind (`OUTPUT_KINDS_BY_FORMAT`), images of `shape` (H, W); an
+    EXR reflectance of `reflectance_type` (`io.EXR_PIXEL_TYPES`; Lab stays float: half floats
+    would round L* to 1/16 near 100)."""
     height, width = shape
     spectral_names = spectral_layout.reflectance_channel_names(WAVELENGTHS_NM.tolist())
     lab_names = list(LAB_CHANNELS)
@@ -122,7 +141,7 @@ def output_openers(
         openers = {
             "reflectance": lambda: _OneFile(io.open_exr(
                 paths["reflectance.exr"], (height, width, len(spectral_names)), channel_names=spectral_names,
-                attributes=spectral_attributes, compression=exr_compression,
+                attributes=spectral_attributes, compression=exr_compression, pixel_type=reflectance_type,
             )),
             "lab": lambda: _OneFile(io.open_exr(
                 paths["lab.exr"], (height, width, 3), channel_names=lab_names, attributes=attributes,
@@ -144,8 +163,10 @@ def output_openers(
             ),
         }
     openers["quality"] = lambda: _OneFile(io.open_quality_png(paths["quality.png"], (height, width, 1)))
+    # The preview is for browsing: written fast (`io.open_png`'s `fast`: a tenth of the time,
+    # a third of a megabyte larger).
     openers["preview"] = lambda: _OneFile(
-        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"])
+        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"], fast=True)
     )
     return openers
 
@@ -153,7 +174,7 @@ def output_openers(
 def correct_into(
     cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
     attributes: dict, rows_per_strip: int | None, exr_compression: str, output_format: str = "exr",
-    before_commit: Callable[[], None] | None = None,
+    before_commit: Callable[[], None] | None = None, reflectance_type: str = "float",
 ) -> dict[pathlib.Path, str]:
     """Correct `cube` strip by strip (`stripwise.correct_strips`) into its outputs in
     `output_format` (`OUTPUT_KINDS_BY_FORMAT`), each written under a temporary name and renamed
@@ -168,11 +189,18 @@ def correct_into(
         if path.is_symlink() or path.is_dir():
             raise io.SpherejaxFileError(path, "is a link or a folder", "a file spherejax may replace")
     height, width, _ = cube.shape
-    openers = output_openers(output_format, paths, (height, width), attributes, exr_compression, stem)
+    openers = output_openers(output_format, paths, (height, width), attributes, exr_compression, stem, reflectance_type)
     committed: dict[pathlib.Path, str] = {}
+    names = {output: next(kind for kind in kinds if kind.startswith(f"{output}.")) for output in openers}
     with contextlib.ExitStack() as stack:
         writers: dict[str, OutputWriter] = {}
-        for row0, arrays in correct_strips(cube, calibration, rows_per_strip=rows_per_strip):
+        strips = correct_strips(_TimedReads(cube), calibration, rows_per_strip=rows_per_strip)
+        while True:
+            with stage_times.stage("correct"):  # less the reads, which count as "read"
+                strip = next(strips, None)
+            if strip is None:
+                break
+            row0, arrays = strip
             interrupt.check()  # a safe point: leaving here removes the temporary files (ExitStack)
             if not writers:
                 # Opened once the first strip is corrected: an input that fails before (in its
@@ -180,17 +208,21 @@ def correct_into(
                 # stderr about a PNG closed without rows).
                 for output, open_writer in openers.items():
                     writers[output] = stack.enter_context(open_writer())
-            writers["reflectance"].write_rows(row0, arrays["reflectance"])
-            writers["lab"].write_rows(row0, arrays["lab"])
-            writers["quality"].write_rows(row0, arrays["quality"][..., None])
-            writers["preview"].write_rows(row0, srgb_preview(arrays["reflectance"]))
+            with stage_times.stage("preview"):
+                preview = srgb_preview(arrays["reflectance"])
+            rows = {"reflectance": arrays["reflectance"], "lab": arrays["lab"],
+                    "quality": arrays["quality"][..., None], "preview": preview}
+            for output, writer in writers.items():
+                with stage_times.stage(f"encode {names[output]}"):
+                    writer.write_rows(row0, rows[output])
         # The last safe point: from here the outputs go into place together.
         interrupt.check()
         if before_commit is not None:
             before_commit()
         try:
-            for writer in writers.values():
-                committed.update(writer.commit())
+            for output, writer in writers.items():
+                with stage_times.stage(f"commit {names[output]}"):
+                    committed.update(writer.commit())
         except BaseException:
             for path in committed:
                 path.unlink(missing_ok=True)

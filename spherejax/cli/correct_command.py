@@ -65,6 +65,7 @@ def cmd_correct(args) -> int:
             summary = archive.run_batch(
                 args.inputs, args.output, args.calibration, resume=args.resume,
                 illuminant=args.illuminant, exr_compression=args.exr_compression, output_format=args.output_format,
+                reflectance_type=args.reflectance_type,
                 on_start=progress.start, on_result=progress.result, on_warning=console.warn, executor=running,
             )
     finally:

@@ -362,7 +362,8 @@ def read_band_files(paths: Sequence, *, expected_shape: Sequence[int]) -> np.nda
 def _output_spec(path, shape, dtype, channel_names, attributes) -> oiio.ImageSpec:
     height, width, channels = shape
     names, attributes = _frame_names_and_attributes(path, channels, channel_names, attributes)
-    sample_type = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8}[np.dtype(dtype)]
+    sample_type = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.float16): oiio.HALF,
+                   np.dtype(np.uint8): oiio.UINT8}[np.dtype(dtype)]
     spec = oiio.ImageSpec(width, height, channels, sample_type)
     spec.channelnames = tuple(names)
     spec.alpha_channel = -1  # "a" of Lab or a band is never alpha
@@ -378,33 +379,62 @@ def _require_image_shape(path, shape, what: str, channels=None) -> tuple[int, in
     return shape
 
 
-#: Lossless OpenEXR compressions `open_exr` offers. PIZ (wavelet + Huffman) is the default: on
-#: corrected reflectance, whose low mantissa bits are camera noise, it measured 31 % smaller than
-#: uncompressed and faster than ZIP, which saves only 6 % and was the slowest step of a batch
-#: (1024 x 1024 x 31 float32: none 0.25 s, PIZ 1.3 s, ZIP 1.5-2.8 s on 2 cores).
-EXR_COMPRESSIONS = ("piz", "zip", "none")
-DEFAULT_EXR_COMPRESSION = "piz"
+#: Lossless OpenEXR compressions `open_exr` offers. None is the default, by measurement: on
+#: corrected reflectance, whose low mantissa bits are camera noise, no lossless codec saves much,
+#: and each costs far more than the rest of a file's work. Writing 1024 x 1024 x 31 float32
+#: through OpenImageIO 3.2 on 2 EPYC cores (median of 5; benchmarks/README.md, bench_archive.py):
+#: none 0.16-0.26 s, 130 MB; PIZ 1.7 s on one core (1.0 s with OpenEXR's two threads), 95 MB
+#: (-27 %); ZIP 2.0 s (1.2), 122 MB (-6 %); RLE and ZIPS (one scanline per block) save 0-4 % at
+#: 0.4 and 1.7 s. A batch on 2 cores corrects and writes a megapixel capture in about a third of
+#: a second uncompressed; PIZ alone would take three times that. For smaller files, half floats
+#: (`pixel_type="half"`, OpenEXR's own 16-bit type) halve the reflectance at no cost in time,
+#: within 4.9e-4 of every reflectance (archive docstring); PIZ stays for those who want lossless
+#: and smaller.
+EXR_COMPRESSIONS = ("none", "piz", "zip")
+DEFAULT_EXR_COMPRESSION = "none"
+#: OpenEXR pixel types `open_exr` writes: 32-bit float, or 16-bit half float (OpenImageIO converts
+#: the float32 rows it is given, rounding to nearest).
+EXR_PIXEL_TYPES = ("float", "half")
 
 
-def open_exr(path, shape, *, channel_names, attributes=None, compression: str = DEFAULT_EXR_COMPRESSION) -> AtomicImageWriter:
-    """An `AtomicImageWriter` for a float32 (H, W, C) OpenEXR, losslessly compressed
+def open_exr(path, shape, *, channel_names, attributes=None, compression: str = DEFAULT_EXR_COMPRESSION,
+             pixel_type: str = "float") -> AtomicImageWriter:
+    """An `AtomicImageWriter` for an (H, W, C) OpenEXR of float32 rows, stored as `pixel_type`
+    (`EXR_PIXEL_TYPES`: "float", or "half", rounded to nearest), losslessly compressed
     (`EXR_COMPRESSIONS`), with named channels and string `attributes` in its header, and no date:
     OpenImageIO would stamp the current time, and a rerun must give the same bytes."""
     path = pathlib.Path(path)
     if compression not in EXR_COMPRESSIONS:
         raise ValueError(f"compression: expected one of {list(EXR_COMPRESSIONS)}, got {compression!r}")
+    if pixel_type not in EXR_PIXEL_TYPES:
+        raise ValueError(f"pixel_type: expected one of {list(EXR_PIXEL_TYPES)}, got {pixel_type!r}")
     shape = _require_image_shape(path, shape, "(H, W, C) float32")
-    spec = _output_spec(path, shape, np.float32, channel_names, attributes)
+    spec = _output_spec(path, shape, np.float16 if pixel_type == "half" else np.float32, channel_names, attributes)
     spec.attribute("compression", compression)
     spec.attribute("DateTime", "")  # an empty value suppresses OpenImageIO's time stamp
     return AtomicImageWriter(path, spec, "openexr")
 
 
-def open_png(path, shape, *, channel_names) -> AtomicImageWriter:
-    """An `AtomicImageWriter` for a uint8 (H, W, C) PNG, C = 1 (grey) or 3 (RGB)."""
+#: zlib level and row filter of `open_png(..., fast=True)`: level 1 and no filter. The sRGB
+#: preview of a 1024 x 1024 capture through OpenImageIO 3.2 on an EPYC core (median of 5):
+#: libpng's defaults (level 6, adaptive filters) 370 ms, 0.98 MB; level 1 with adaptive filters
+#: 98 ms, 1.14 MB; level 1 unfiltered 36 ms, 1.30 MB; level 0 59 ms, 3.2 MB. A third of a
+#: megabyte more, beside the outputs' 140, for a tenth of the time.
+FAST_PNG_LEVEL = 1
+FAST_PNG_FILTER = 8  # libpng's PNG_FILTER_NONE, as OpenImageIO's "png:filter" takes it
+
+
+def open_png(path, shape, *, channel_names, fast: bool = False) -> AtomicImageWriter:
+    """An `AtomicImageWriter` for a uint8 (H, W, C) PNG, C = 1 (grey) or 3 (RGB); `fast`: zlib
+    level 1 without row filters (`FAST_PNG_LEVEL`), else libpng's defaults (smaller, ten times
+    slower)."""
     path = pathlib.Path(path)
     shape = _require_image_shape(path, shape, "(H, W, 1) or (H, W, 3) uint8", channels=(1, 3))
-    return AtomicImageWriter(path, _output_spec(path, shape, np.uint8, channel_names, None), "png")
+    spec = _output_spec(path, shape, np.uint8, channel_names, None)
+    if fast:
+        spec.attribute("png:compressionLevel", FAST_PNG_LEVEL)
+        spec.attribute("png:filter", FAST_PNG_FILTER)
+    return AtomicImageWriter(path, spec, "png")
 
 
 def _write_whole(open_writer, path, array, dtype, what: str, **kwargs) -> str:

@@ -210,7 +210,7 @@ def test_an_input_replaced_while_corrected_fails_and_leaves_nothing(cal, tmp_pat
 # -------------------------------------------------------------------------------- resume settings
 
 
-@pytest.mark.parametrize("changed", [["--illuminant", "A"], ["--exr-compression", "zip"]])
+@pytest.mark.parametrize("changed", [["--illuminant", "A"], ["--exr-compression", "zip"], ["--reflectance-type", "half"]])
 def test_resume_redoes_inputs_corrected_with_other_settings(cal, tmp_path, rng, capsys, changed):
     """Reproducer 7: a D65 batch resumed with --illuminant A skipped the D65 outputs as done."""
     inputs = tmp_path / "in"
@@ -228,6 +228,7 @@ def test_resume_redoes_inputs_corrected_with_other_settings(cal, tmp_path, rng, 
     for value in settings.values():
         assert value["illuminant"] == ("A" if "A" in changed else "D65")
         assert value["exr_compression"] == ("zip" if "zip" in changed else io.DEFAULT_EXR_COMPRESSION)
+        assert value["reflectance_type"] == ("half" if "half" in changed else "float")
     # The same settings again: everything is verified and skipped.
     status, stdout, _ = run(_correct(cal, [inputs], out, "--resume", *changed), capsys)
     assert status == 0 and stdout.strip() == "0 corrected, 3 skipped (already done), 0 failed"
