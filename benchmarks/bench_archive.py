@@ -137,6 +137,7 @@ RUN_LABELS = {
     "before": "spherejax before (--compare-with)",
     "spherejax": "spherejax, in-process",
     "workers": "spherejax, 2 dask workers",
+    "before-workers": "spherejax before, 2 dask workers",
     "floor": "I/O floor, no fsync",
     "floor-fsync": "I/O floor, fsync per output",
     "raw-floor": "raw floor: bytes read, written, fsync",
@@ -534,7 +535,7 @@ def child_run(kind: str, job: dict) -> dict:
     elif kind == "spherejax-nofsync":
         os.fsync = lambda fd: None  # diagnostic only: what the run costs without durability
         seconds, wall = _spherejax_batch(job)
-    elif kind == "workers":
+    elif kind in ("workers", "before-workers"):
         from spherejax.cluster import DaskExecutor
 
         # An empty compilation cache of our own: the workers' first files compile, every run.
@@ -542,7 +543,8 @@ def child_run(kind: str, job: dict) -> dict:
         start = time.perf_counter()
         with DaskExecutor(workers=2) as executor:
             record["startup_s"] = time.perf_counter() - start
-            seconds, wall = _spherejax_batch(job, executor)
+            options = job["before_options"] if kind == "before-workers" else None
+            seconds, wall = _spherejax_batch(job, executor, options=options)
             shutdown = time.perf_counter()
         record["shutdown_s"] = time.perf_counter() - shutdown
         # Worker CPU is counted once the workers have been reaped, i.e. only after shutdown:
@@ -551,6 +553,9 @@ def child_run(kind: str, job: dict) -> dict:
     else:
         raise ValueError(f"unknown run {kind!r}")
     record["cpu_s"] = _cpu_s() - cpu_0
+    import spherejax
+
+    record["spherejax_file"] = spherejax.__file__  # which spherejax ran (the "before" runs check it)
     start = time.perf_counter()
     os.sync()
     record["sync_after_s"] = time.perf_counter() - start
@@ -573,16 +578,22 @@ def run_in_child(kind: str, job: dict, workdir: pathlib.Path) -> dict:
     # `python -c`, not this file as the main script: dask starts its workers with "spawn", which
     # re-imports a main script (and with it numpy, colour, JAX) in every worker; `spherejax
     # correct`'s workers import only the small spherejax.cli.
-    # The "before" run imports spherejax from the --compare-with tree, ahead of the installed one.
-    before = f"sys.path.insert(0, {job['compare_with']!r}); " if kind == "before" else ""
+    # The "before" runs import spherejax from the --compare-with tree, first on the path of the
+    # child and of the dask workers it starts (spawned with the parent's sys.path). The child
+    # runs in the work folder: with `python -c` the current folder is on the path, and in a
+    # checkout it would hold a spherejax of its own.
+    before = f"sys.path.insert(0, {job['compare_with']!r}); " if kind.startswith("before") else ""
     launcher = (f"import sys; {before}sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); "
                 "import bench_archive; sys.exit(bench_archive.main(sys.argv[1:]))")
+    env = dict(os.environ, BENCH_ARCHIVE_RESULT=str(result_path))
     command = [sys.executable, "-c", launcher, "--child", kind, "--job", json.dumps(job)]
     os.sync()  # the previous run's writeback is not this run's cost
     with LoadWithChildren() as load:
-        subprocess.run(command, check=True, env=dict(os.environ, BENCH_ARCHIVE_RESULT=str(result_path)))
+        subprocess.run(command, check=True, env=env, cwd=workdir)
     record = json.loads(result_path.read_text())
     record["other_processes_cpu_fraction"] = load.fraction
+    if kind.startswith("before") and not record.get("spherejax_file", "").startswith(job["compare_with"]):
+        raise RuntimeError(f"the {kind} run imported {record.get('spherejax_file')}, not --compare-with's spherejax")
     shutil.rmtree(job["out"])  # N x ~100 MB at 1 MP: only one run's outputs on disk at a time
     return record
 
@@ -649,6 +660,32 @@ def check_agreement(first_input: pathlib.Path, calibration_path, folder: pathlib
     return agreement, reference_stem
 
 
+def half_float_accuracy(spherejax_stem: pathlib.Path) -> dict:
+    """What `--reflectance-type half` costs on the first capture (a simulated one): the float32
+    reflectance spherejax wrote, rounded to half floats as OpenImageIO writes them (to nearest),
+    against itself: the largest spectral error, and ΔE00 (CIEDE2000, colour-science) between the
+    D65 Lab of the two (ASTM E308 weights, reference.py), over the valid pixels."""
+    import colour
+
+    reflectance = read_image(spherejax_stem.parent / f"{spherejax_stem.name}.reflectance.exr", oiio.FLOAT)
+    valid = np.all(np.isfinite(reflectance), axis=-1)
+    full = reflectance[valid].astype(np.float64)
+    half = reflectance[valid].astype(np.float16).astype(np.float64)
+    xyz_weights, whitepoint_xy = reference_constants()
+
+    def lab(r):
+        return colour.XYZ_to_Lab(r @ xyz_weights.astype(np.float64) / 100.0, whitepoint_xy)
+
+    delta_e = colour.delta_E(lab(full), lab(half), method="CIE 2000")
+    return {
+        "valid_pixels": int(valid.sum()),
+        "max_abs_spectral_error": float(np.max(np.abs(half - full))),
+        "p99_abs_spectral_error": float(np.percentile(np.abs(half - full), 99)),
+        "max_delta_e00": float(np.max(delta_e)), "p99_delta_e00": float(np.percentile(delta_e, 99)),
+        "mean_delta_e00": float(np.mean(delta_e)),
+    }
+
+
 # --------------------------------------------------------------------------------------------
 # Report
 
@@ -663,8 +700,8 @@ def summarise(runs: dict, files: int, megapixels: float) -> dict:
         r["speed_vs_reference"] = reference_wall / wall
         r["first_file_s"] = r["per_file_s"][0]
         r["median_file_s"] = statistics.median(r["per_file_s"])
-        r["cpu_cores_busy"] = r["cpu_s"] / wall if kind != "workers" else None
-        if kind == "workers":
+        r["cpu_cores_busy"] = r["cpu_s"] / wall if not kind.endswith("workers") else None
+        if kind.endswith("workers"):
             # Completion order: the first result of each worker is among the first two; the
             # slower of those carries the compile.
             r["first_file_s"] = max(r["per_file_s"][:2])
@@ -684,6 +721,11 @@ def summarise(runs: dict, files: int, megapixels: float) -> dict:
             derived["workers_vs_raw_floor"] = runs["workers"]["wall_s"] / runs["raw-floor"]["wall_s"]
     if "before" in runs:
         derived["files_per_s_vs_before"] = sj["files_per_s"] / runs["before"]["files_per_s"]
+    for kind in ("workers", "before-workers"):
+        # How the 2 workers scale: their files per second over the same code's in-process run's.
+        in_process = "spherejax" if kind == "workers" else "before"
+        if kind in runs and in_process in runs:
+            derived[f"{kind}_vs_in_process"] = runs[kind]["files_per_s"] / runs[in_process]["files_per_s"]
     derived["stages"] = stage_table(sj.get("stages", []), files)
     if "spherejax-nofsync" in runs:
         # Diagnostic: also counts what fsync changes outside the call (writeback left to the
@@ -726,6 +768,11 @@ def print_report(record: dict) -> None:
           f"both): reflectance max |diff| {a['reflectance_max_abs_diff']:.2e}, Lab {a['lab_max_abs_diff']:.2e}, "
           f"quality identical, preview max {a['preview_max_level_diff']} level(s) in "
           f"{a['preview_pixels_differing']} pixels")
+    if "half_float" in a:
+        h = a["half_float"]
+        print(f"--reflectance-type half on this capture: spectral error max {h['max_abs_spectral_error']:.2e} "
+              f"(99th percentile {h['p99_abs_spectral_error']:.2e}), ΔE00 max {h['max_delta_e00']:.3f}, "
+              f"99th percentile {h['p99_delta_e00']:.3f}, mean {h['mean_delta_e00']:.4f} over {h['valid_pixels']} pixels")
     print(f"inputs {record['input_bytes_per_file'] / 2**20:.1f} MiB/file, outputs "
           f"{a['output_bytes_per_file'] / 2**20:.1f} MiB/file")
 
@@ -747,7 +794,7 @@ def print_report(record: dict) -> None:
         if kind == "spherejax-nofsync":
             print("-" * len(header))
         row(label, r, r["wall_s"], r["files_per_s"], r["mp_per_s"], r["speed_vs_reference"])
-        if kind == "workers":
+        if kind.endswith("workers"):
             s = r["with_startup"]
             print(f"{'  + dask start-up ' + format(r['startup_s'], '.2f') + ' s':<36}{s['wall_s']:>9.2f}"
                   f"{s['files_per_s']:>9.2f}{s['mp_per_s']:>8.2f}{s['speed_vs_reference']:>7.2f}x")
@@ -783,6 +830,12 @@ def print_report(record: dict) -> None:
     if "files_per_s_vs_before" in derived:
         print(f"spherejax in-process / before: {derived['files_per_s_vs_before']:.2f}x the files per second of "
               f"{record['compare_with']}")
+    for kind in ("workers", "before-workers"):
+        if f"{kind}_vs_in_process" in derived:
+            print(f"{RUN_LABELS[kind]}: {derived[f'{kind}_vs_in_process']:.2f}x the files per second of the same code "
+                  f"in-process (without the dask start-up)")
+    if "all_wall_s" in runs.get("raw-floor", {}):
+        print(f"raw floor: the median of three runs, {', '.join(f'{s:.2f}' for s in runs['raw-floor']['all_wall_s'])} s")
     for kind in ("floor", "floor-fsync", "raw-floor"):
         if kind in runs:
             steps = ", ".join(f"{step} {t:.3f}" for step, t in runs[kind]["median_step_s"].items())
@@ -816,6 +869,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--exr-compression", choices=io.EXR_COMPRESSIONS, default=None,
                         help="spherejax's --exr-compression, also the reference's and the I/O floor's (default: "
                              "spherejax's default; the --compare-with run keeps its own default unless this is given)")
+    parser.add_argument("--reflectance-type", choices=("float", "half"), default="float",  # io.EXR_PIXEL_TYPES
+                        help="spherejax's --reflectance-type (EXR only; the reference, the floors and the "
+                             "--compare-with run write float32)")
     parser.add_argument("--compare-with", metavar="TREE",
                         help="a checkout of spherejax (its fused kernel built in place) whose `correct` is timed in "
                              "the same run as \"before\", with its own defaults: today's code against the code it replaces")
@@ -840,7 +896,7 @@ def main(argv=None) -> int:
         return 0
 
     info = machine_info()
-    workdir = pathlib.Path(tempfile.mkdtemp(prefix="bench_archive-", dir=args.workdir))
+    workdir = pathlib.Path(tempfile.mkdtemp(prefix="bench_archive-", dir=args.workdir)).resolve()
     print(f"work folder: {workdir}", flush=True)
     try:
         setup = {}
@@ -861,9 +917,13 @@ def main(argv=None) -> int:
                                                     exr_compression)
         # What the raw floor writes: one input's outputs as the timed spherejax run writes them.
         spherejax_options = {"exr_compression": exr_compression} if args.format == "exr" else {}
+        if args.reflectance_type != "float":
+            spherejax_options["reflectance_type"] = args.reflectance_type
         archive.run_batch([inputs[0]], workdir / "floor-bytes", calibration_path, output_format=args.format,
                           **spherejax_options)
         setup["check_s"] = time.perf_counter() - start
+        if args.format == "exr":
+            agreement["half_float"] = half_float_accuracy(workdir / "check" / "spherejax" / inputs[0].stem)
         need = int(1.2 * args.files * agreement["output_bytes_per_file"])
         free = shutil.disk_usage(workdir).free
         if need > free:
@@ -880,12 +940,28 @@ def main(argv=None) -> int:
         }
         kinds = [k for k in RUN_LABELS
                  if not (args.skip_workers and k == "workers") and not (args.skip_diagnostic and k == "spherejax-nofsync")
-                 and not (k == "before" and not args.compare_with)]
+                 and not (k.startswith("before") and not args.compare_with)
+                 and not (args.skip_workers and k == "before-workers")]
         runs = {}
+        # The raw floor three times, first, after spherejax's in-process run and last: on a
+        # virtual machine's disk the same bytes took from 0.04 to 0.34 s a file to write from one
+        # run to the next (writeback of the runs before, the host's cache), so one measurement
+        # made the ratios to it swing by half. The median of the three is the floor.
+        kinds.remove("raw-floor")
+        kinds.insert(0, "raw-floor")
+        kinds.insert(kinds.index("spherejax") + 1, "raw-floor")
+        kinds.append("raw-floor")
+        floors = []
         for kind in kinds:
             print(f"timing: {RUN_LABELS[kind]} ...", flush=True)
-            runs[kind] = run_in_child(kind, job, workdir)
-            print(f"  {runs[kind]['wall_s']:.2f} s", flush=True)
+            record = run_in_child(kind, job, workdir)
+            print(f"  {record['wall_s']:.2f} s", flush=True)
+            if kind == "raw-floor":
+                floors.append(record)
+            else:
+                runs[kind] = record
+        floors.sort(key=lambda record: record["wall_s"])
+        runs["raw-floor"] = dict(floors[1], all_wall_s=[record["wall_s"] for record in floors])
         megapixels = args.size * args.size / 1e6
         derived = summarise(runs, args.files, megapixels)
         record = {
@@ -893,7 +969,7 @@ def main(argv=None) -> int:
             "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "files": args.files, "size": args.size, "bands": len(BAND_NAMES), "distinct": args.distinct,
             "output_format": args.format, "exr_compression": exr_compression,
-            "compare_with": job["compare_with"],
+            "reflectance_type": args.reflectance_type, "compare_with": job["compare_with"],
             "megapixels_per_file": megapixels,
             "input_bytes_per_file": sum(p.stat().st_size for p in inputs) / len(inputs),
             "input_noise_dn": INPUT_NOISE_DN, "seed": SEED,

@@ -40,7 +40,8 @@ of the inputs' parent folders, so an input's own name is kept): ``batch/a.tif`` 
 a session ``s`` -> ``OUT/s/frames/<id>``, band files ``x/a_400nm.tif``... -> ``OUT/x/a`` (no
 prefix: ``OUT/x``). For each input name N:
 
-    N.reflectance.exr  float32 in the spectral layout of Fichet et al. (2021) (`io.spectral_layout`):
+    N.reflectance.exr  float32 (or half float, --reflectance-type half) in the spectral layout of
+                       Fichet et al. (2021) (`io.spectral_layout`):
                        channels "T.400nm".."T.700nm" (31), spectralLayoutVersion "1.0";
                        attributes spherejax:calibration_checksum, spherejax:software_version,
                        spherejax:source (the input relative to that common folder),
@@ -60,6 +61,24 @@ preview as above.
 
 Bad pixels are NaN in both EXR files and the ENVI files' "data ignore value" (-9999) in ENVI
 ones. Outputs carry no time stamps: a rerun writes the same bytes.
+
+The EXRs are uncompressed unless `exr_compression` says "piz" or "zip" (lossless; `io.cubes`'s
+EXR_COMPRESSIONS gives the measurements behind the default). `reflectance_type="half"` stores the
+reflectance as OpenEXR half floats, each the float32 value rounded to nearest: within 4.9e-4 of
+every reflectance factor between 0 and 1.03 (the half spacing there, 2^-11), at most 0.041 ΔE00
+(99th percentile 0.012) on two synthetic 1-megapixel cubes (benchmarks/README.md); Lab stays
+float32 (half floats would round L* near 100 to 1/16).
+
+Throughput
+----------
+In process, two inputs are under way at once, each corrected whole by `correct_input` in a thread
+of its own (`batch._in_process`): one input's outputs are encoded, hashed and fsynced while the
+next is hashed, decoded and corrected, so both cores of a 2-core machine work. The steps that take
+the time release Python's GIL (OpenImageIO's reads and writes, hashlib, zlib, the correction,
+fsync). OpenImageIO's and OpenEXR's own thread pools are left at their default, one thread per
+core: with one OpenEXR thread the two inputs' PIZ writes queue on it (measured). Results, the
+manifest's lines, stops and failures are as for one input at a time. `stage_times` says where an
+input's time goes when asked (`benchmarks/bench_archive.py`).
 
 Out of core
 -----------
@@ -90,7 +109,7 @@ gets one JSON line per finished input (`FileResult.to_json`), appended with a si
 fsync (`spherejax.io.journal`, the format of an acquisition's journal too): the last line of an input wins. Without --resume an OUT holding a manifest is refused.
 With it, an input is skipped when its last line is "done" with the same input and calibration
 checksums, the same software version and settings (`output_settings`: illuminant, format, EXR
-compression) and every output is present with the recorded SHA-256; anything else is redone.
+compression and reflectance type) and every output is present with the recorded SHA-256; anything else is redone.
 Hashing and reading the manifest are safe points (below): a signal never waits for them.
 
 OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run, and one JSON object: the
@@ -119,7 +138,8 @@ Modules
                `commit` gives {path: SHA-256}), the sRGB preview, output folders and clean-up
     manifest   OUT/manifest.jsonl: `FileResult`, the one record type, and what --resume reads
     lock       OUT/.spherejax.lock (`OutputLock`) and the ownership check of every output
-    batch      `run_batch` and `correct_input`
+    batch      `run_batch`, `correct_input`, and the two inputs under way at once
+    stage_times  seconds per stage of each input, collected only when asked (the benchmark)
     errors     `BatchError`, `NoInputError`
 
 The names below are this package's public interface (`spherejax.archive.X`); the modules' other

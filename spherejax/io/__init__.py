@@ -53,8 +53,9 @@ band frames is read with `read_band_files`.
 
 Corrected outputs (`write_exr`, `write_png`)
 ---------------------------------------------
-float32 OpenEXR (PIZ-compressed by default, or ZIP or none: all lossless) with named channels and
-string attributes, and 8-bit PNG. A reflectance EXR follows the spectral layout of Fichet,
+float32 OpenEXR, or half float (`open_exr`'s `pixel_type`), uncompressed by default or PIZ or ZIP
+(all lossless; `EXR_COMPRESSIONS` says why none is the default) with named channels and string
+attributes, and 8-bit PNG. A reflectance EXR follows the spectral layout of Fichet,
 Pacanowski, Wilkie (JCGT 10(3), 2021; `spectral_layout`): channels "T.400nm".."T.700nm" and
 spectralLayoutVersion "1.0"; older ones named "400nm".."700nm" still read. Neither
 carries a time stamp, so writing the same pixels twice gives the same bytes (`spherejax.archive`

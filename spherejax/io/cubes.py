@@ -390,7 +390,7 @@ def _require_image_shape(path, shape, what: str, channels=None) -> tuple[int, in
 #: (`pixel_type="half"`, OpenEXR's own 16-bit type) halve the reflectance at no cost in time,
 #: within 4.9e-4 of every reflectance (archive docstring); PIZ stays for those who want lossless
 #: and smaller.
-EXR_COMPRESSIONS = ("none", "piz", "zip")
+EXR_COMPRESSIONS = ("piz", "zip", "none")
 DEFAULT_EXR_COMPRESSION = "none"
 #: OpenEXR pixel types `open_exr` writes: 32-bit float, or 16-bit half float (OpenImageIO converts
 #: the float32 rows it is given, rounding to nearest).
