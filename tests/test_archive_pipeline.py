@@ -4,6 +4,7 @@ early; and the per-stage times the benchmark reads (`spherejax.archive.stage_tim
 
 from __future__ import annotations
 
+import pathlib
 import threading
 import time
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from spherejax import archive, interrupt, io
-from spherejax.archive import batch, stage_times
+from spherejax.archive import batch, outputs, stage_times
 
 from .batch_support import NAMES, frame, manifest_records, outputs_of, run
 
@@ -127,6 +128,45 @@ def test_a_consumer_that_stops_early_waits_for_the_inputs_under_way(cal, tmp_pat
     results.close()  # f1 was under way
     assert "in/f1" in finished
     assert not [t for t in threading.enumerate() if t.name.startswith("spherejax-input")]
+
+
+def test_a_folder_made_meanwhile_by_another_input_is_used_not_refused(tmp_path, monkeypatch):
+    """Two inputs of one folder started at once both found OUT/in missing and both made it: the
+    second failed, "OUT/in: cannot be created: File exists" (the clean-clone CI run, with two
+    inputs under way). A folder made between the look and the mkdir is used as found, and is not
+    this input's to remove."""
+    out = tmp_path / "out"
+    out.mkdir()
+    real_exists = pathlib.Path.exists
+    raced = []
+
+    def exists_then_made_by_another(path):
+        if path == out.resolve() / "in" and not raced:
+            raced.append(path)
+            path.mkdir()  # the other input makes it right after this one looked
+            return False
+        return real_exists(path)
+
+    monkeypatch.setattr(pathlib.Path, "exists", exists_then_made_by_another)
+    folder, created = outputs.output_folder(out, "in/a")
+    assert raced and folder == out.resolve() / "in" and created == []
+    outputs.release_folder(out, "in/a")
+
+
+def test_a_failed_input_leaves_a_folder_another_input_is_using(tmp_path):
+    """The folder an input made is removed when it fails only while no other input under way
+    uses it: the other has not written into it yet and would find it gone."""
+    out = tmp_path / "out"
+    out.mkdir()
+    _, made_by_a = outputs.output_folder(out, "in/a")
+    _, made_by_b = outputs.output_folder(out, "in/b")
+    assert made_by_a == [out.resolve() / "in"] and made_by_b == []
+    outputs.release_folder(out, "in/a")  # a fails
+    outputs.remove_empty_folders(made_by_a)
+    assert (out / "in").is_dir()  # b is still under way
+    outputs.release_folder(out, "in/b")  # b fails too
+    outputs.remove_empty_folders(made_by_a)
+    assert not (out / "in").exists()
 
 
 def test_stage_times_add_up_and_name_every_stage(cal, tmp_path, rng):

@@ -20,8 +20,8 @@ from .inputs import check_unchanged, hash_input, load_calibration, max_input_byt
 from .lock import OutputLock, claim_outputs
 from .manifest import MANIFEST_NAME, FileResult, Manifest, is_done, manifest_state
 from .outputs import (
-    OUTPUT_FORMATS, OUTPUT_KINDS_BY_FORMAT, correct_into, output_folder, output_settings, remove_empty_folders,
-    remove_outputs, remove_temporaries,
+    OUTPUT_FORMATS, OUTPUT_KINDS_BY_FORMAT, correct_into, output_folder, output_settings, release_folder,
+    remove_empty_folders, remove_outputs, remove_temporaries,
 )
 
 
@@ -64,6 +64,14 @@ def _correct_input(
     start = time.perf_counter()
     checksum = calibration_checksum = None
     created: list[pathlib.Path] = []
+    in_use = False  # this input's output folders are marked in use (`output_folder`)
+
+    def release() -> None:
+        nonlocal in_use
+        if in_use:
+            release_folder(out_root, source.name)
+            in_use = False
+
     try:
         calibration = load_calibration(calibration_path, illuminant)
         calibration_checksum = calibration.header["checksum"]
@@ -80,11 +88,13 @@ def _correct_input(
                 "spherejax:illuminant": calibration.patch_calibration.illuminant,
             }
             folder, created = output_folder(out_root, source.name)
+            in_use = True
             stem = pathlib.PurePosixPath(source.name).name
             written = correct_into(
                 cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression, output_format,
                 before_commit=lambda: check_unchanged(source, states), reflectance_type=reflectance_type,
             )
+        release()  # the outputs are in place: their folders are no longer empty
         # An earlier run in the other format left files the manifest will no longer list.
         remove_outputs(out_root, source, keep=OUTPUT_KINDS_BY_FORMAT[output_format])
         outputs = {
@@ -104,11 +114,13 @@ def _correct_input(
         # Stopped at a safe point: the writers removed their temporary files and nothing was
         # renamed into place; the folders this input created go too. Outputs an earlier run left
         # stay as they are (the manifest says what they are): this run changed nothing of them.
+        release()
         remove_empty_folders(created)
         raise
     except Exception as error:  # noqa: BLE001 -- the batch boundary: one bad input never stops it
         if source.problem is None:  # (a repeated name's outputs are the other input's)
             remove_outputs(out_root, source)
+        release()
         remove_empty_folders(created)
         reason = " ".join(str(error).split()) or type(error).__name__
         if isinstance(error, OSError) and error.strerror:  # "[Errno 13] Permission denied: 'PATH'"

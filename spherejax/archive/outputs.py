@@ -3,9 +3,11 @@ folders, and the clean-up of an input's outputs (package docstring, "Output name
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import os
+import threading
 import pathlib
 from collections.abc import Callable, Sequence
 from typing import Protocol
@@ -251,34 +253,66 @@ def correct_into(
 # ------------------------------------------------------------------------- folders and clean-up
 
 
+#: The output folders the inputs under way in this process use, and how many use each: an input
+#: that fails removes the folders it created only while no other input uses them (the in-process
+#: batch corrects two at once: `batch._in_process`). Guarded by `_folders_lock`, which also makes
+#: creating a folder and removing it one step each.
+_folders_in_use: collections.Counter = collections.Counter()
+_folders_lock = threading.Lock()
+
+
 def output_folder(out_root: pathlib.Path, name: str) -> tuple[pathlib.Path, list[pathlib.Path]]:
     """The folder of `name`'s outputs, created inside OUT, and the folders that were created.
 
     Each existing component is resolved before anything is created below it, so a link inside
-    OUT can never make mkdir or a write land outside OUT.
+    OUT can never make mkdir or a write land outside OUT. The folders are marked in use until
+    `release_folder(out_root, name)`; a folder another input (or process) creates at the same
+    moment is used as found, not reported as created.
     """
     parts = pathlib.PurePosixPath(name).parts
     if not parts or pathlib.PurePosixPath(name).is_absolute() or ".." in parts:
         raise io.SpherejaxFileError(out_root / name, "would be written outside OUT", f"a path inside {out_root}")
-    root = out_root.resolve()
+    with _folders_lock:
+        folder, created = _make_folders(out_root.resolve(), parts[:-1], out_root / name)
+        for depth in range(1, len(parts)):
+            _folders_in_use[out_root.resolve().joinpath(*parts[:depth])] += 1
+    return folder, created
+
+
+def release_folder(out_root: pathlib.Path, name: str) -> None:
+    """`name`'s output folders are no longer used by this input (`output_folder`)."""
+    parts = pathlib.PurePosixPath(name).parts
+    with _folders_lock:
+        for depth in range(1, len(parts)):
+            folder = out_root.resolve().joinpath(*parts[:depth])
+            _folders_in_use[folder] -= 1
+            if _folders_in_use[folder] <= 0:
+                del _folders_in_use[folder]
+
+
+def _make_folders(root: pathlib.Path, parts, target) -> tuple[pathlib.Path, list[pathlib.Path]]:
+    """`root`/parts, each component made if missing and checked if found (`output_folder`):
+    (the folder, the folders made). `target`: the output named in messages."""
     folder, created = root, []
-    for part in parts[:-1]:
+    for part in parts:
         folder = folder / part
-        if folder.exists() or folder.is_symlink():
-            if not folder.resolve().is_relative_to(root):
-                raise io.SpherejaxFileError(
-                    out_root / name,
-                    f"would be written outside OUT: {folder} resolves to {folder.resolve()}",
-                    f"outputs inside {root}",
-                )
-            if not folder.is_dir():
-                raise io.SpherejaxFileError(folder, "is not a folder: outputs cannot go there", "a folder")
-        else:
+        if not (folder.exists() or folder.is_symlink()):
             try:
                 folder.mkdir()
+            except FileExistsError:
+                pass  # made meanwhile by another process (a dask worker): checked below, as found
             except OSError as error:
                 raise io.SpherejaxFileError(folder, f"cannot be created: {error.strerror}") from None
-            created.append(folder)
+            else:
+                created.append(folder)
+                continue
+        if not folder.resolve().is_relative_to(root):
+            raise io.SpherejaxFileError(
+                target, f"would be written outside OUT: {folder} resolves to {folder.resolve()}",
+                f"outputs inside {root}",
+            )
+        if not folder.is_dir():
+            raise io.SpherejaxFileError(folder, "is not a folder: outputs cannot go there", "a folder")
     return folder, created
 
 
@@ -301,12 +335,17 @@ def remove_outputs(out_root: pathlib.Path, spec: InputSpec, keep: Sequence[str] 
 
 
 def remove_empty_folders(created: list[pathlib.Path]) -> None:
-    """Remove the output folders an input created, deepest first, while they are empty."""
-    for folder in reversed(created):
-        try:
-            folder.rmdir()  # only if still empty: never another input's outputs
-        except OSError:
-            break
+    """Remove the output folders an input created, deepest first, while they are empty and no
+    other input under way in this process uses them (`output_folder`: one that has not written
+    into it yet would find it gone). Call after `release_folder`."""
+    with _folders_lock:
+        for folder in reversed(created):
+            if _folders_in_use[folder.resolve()] > 0:
+                break
+            try:
+                folder.rmdir()  # only if still empty: never another input's outputs
+            except OSError:
+                break
 
 
 def remove_temporaries(out_root: pathlib.Path) -> int:
@@ -347,6 +386,7 @@ def written_for(out_root: pathlib.Path, spec: InputSpec) -> bool:
 
 __all__ = [
     "ALL_OUTPUT_KINDS", "LAB_CHANNELS", "OUTPUT_FORMATS", "OUTPUT_KINDS", "OUTPUT_KINDS_BY_FORMAT", "PREVIEW_BAD_PIXEL",
-    "OutputWriter", "correct_into", "output_folder", "output_openers", "output_settings", "remove_empty_folders",
+    "OutputWriter", "correct_into", "output_folder", "output_openers", "output_settings", "release_folder",
+    "remove_empty_folders",
     "remove_outputs", "remove_temporaries", "srgb_preview", "written_for",
 ]
