@@ -340,7 +340,7 @@ def remove_empty_folders(created: list[pathlib.Path]) -> None:
     into it yet would find it gone). Call after `release_folder`."""
     with _folders_lock:
         for folder in reversed(created):
-            if _folders_in_use[folder.resolve()] > 0:
+            if _folders_in_use[folder] > 0:  # keyed as output_folder names them: OUT resolved, then the parts
                 break
             try:
                 folder.rmdir()  # only if still empty: never another input's outputs
