@@ -764,6 +764,16 @@ def test_half_float_reflectance_is_the_float_rounded_to_half(cal, tmp_path, rng,
     assert manifest_records(tmp_path / "float")[0]["settings"]["reflectance_type"] == "float"
 
 
+def test_an_unknown_reflectance_type_is_refused_before_anything(cal, tmp_path, rng):
+    io.write_frame(tmp_path / "a.tif", frame(rng))
+    with pytest.raises(ValueError, match=r"^reflectance_type: expected one of \['float', 'half'\], got 'double'$"):
+        archive.run_batch([tmp_path / "a.tif"], tmp_path / "out", cal, reflectance_type="double")
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match=r"^pixel_type: expected one of \['float', 'half'\], got 'double'$"):
+        io.open_exr(tmp_path / "b.exr", (2, 2, 1), channel_names=["Y"], pixel_type="double")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.tif"]
+
+
 def test_half_float_envi_is_refused_before_anything(cal, tmp_path, rng, capsys):
     io.write_frame(tmp_path / "a.tif", frame(rng))
     status, _, err = run(["correct", "-c", str(cal), str(tmp_path / "a.tif"), "-o", str(tmp_path / "out"),

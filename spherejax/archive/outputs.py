@@ -274,20 +274,23 @@ def output_folder(out_root: pathlib.Path, name: str) -> tuple[pathlib.Path, list
         raise io.SpherejaxFileError(out_root / name, "would be written outside OUT", f"a path inside {out_root}")
     with _folders_lock:
         folder, created = _make_folders(out_root.resolve(), parts[:-1], out_root / name)
-        for depth in range(1, len(parts)):
-            _folders_in_use[out_root.resolve().joinpath(*parts[:depth])] += 1
+        _folders_in_use.update(_folders_of(out_root, name))
     return folder, created
 
 
 def release_folder(out_root: pathlib.Path, name: str) -> None:
     """`name`'s output folders are no longer used by this input (`output_folder`)."""
-    parts = pathlib.PurePosixPath(name).parts
     with _folders_lock:
-        for depth in range(1, len(parts)):
-            folder = out_root.resolve().joinpath(*parts[:depth])
-            _folders_in_use[folder] -= 1
-            if _folders_in_use[folder] <= 0:
-                del _folders_in_use[folder]
+        _folders_in_use.subtract(_folders_of(out_root, name))
+        for folder in [folder for folder, count in _folders_in_use.items() if count <= 0]:
+            del _folders_in_use[folder]
+
+
+def _folders_of(out_root: pathlib.Path, name: str) -> list[pathlib.Path]:
+    """The folders that hold `name`'s outputs below OUT, outermost first, named as `_make_folders`
+    names them (OUT resolved, then the parts): the keys of `_folders_in_use`."""
+    root, parts = out_root.resolve(), pathlib.PurePosixPath(name).parts
+    return [root.joinpath(*parts[:depth]) for depth in range(1, len(parts))]
 
 
 def _make_folders(root: pathlib.Path, parts, target) -> tuple[pathlib.Path, list[pathlib.Path]]:
