@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 from collections.abc import Iterator
 
 
@@ -50,9 +51,15 @@ def _reraise_as(error_type: type[SpherejaxFileError]) -> Iterator[None]:
 
 
 def _show(value) -> str:
-    """A short one-line rendering of a value found in a file, for error messages."""
+    """A short one-line rendering of a value found in a file, for error messages.
+
+    Runs of spaces are written as JSON escapes (two spaces: "\\u0020\\u0020"): a message is
+    made one line by collapsing its whitespace (`_one_line`), which showed a value of two spaces
+    as one (found by the property test of tests/test_io_documents.py). json.dumps escapes every
+    other whitespace character already."""
     try:
         text = json.dumps(value)
     except (TypeError, ValueError):
         text = repr(value)
+    text = re.sub(r" {2,}", lambda run: "\\u0020" * len(run.group()), text)
     return text if len(text) <= 80 else text[:77] + "..."
