@@ -59,7 +59,9 @@ attributes, and 8-bit PNG. A reflectance EXR follows the spectral layout of Fich
 Pacanowski, Wilkie (JCGT 10(3), 2021; `spectral_layout`): channels "T.400nm".."T.700nm" and
 spectralLayoutVersion "1.0"; older ones named "400nm".."700nm" still read. Neither
 carries a time stamp, so writing the same pixels twice gives the same bytes (`spherejax.archive`
-relies on it to resume a batch into byte-identical outputs).
+relies on it to resume a batch into byte-identical outputs). Uncompressed EXRs with spherejax's
+own attributes are written by `exr_uncompressed` (OpenImageIO's bytes, without its cost), and
+they and the ENVI outputs go past the page cache where the file system allows it (`direct_io`).
 
 Session (format "spherejax-session", version 1)
 -----------------------------------------------
