@@ -24,7 +24,7 @@ LAYERS = {
          "number_text", "labelled", "_checks"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
-         "simulated_targets", "simulated_instrument", "simulated_layout", "simulated_rendering", "figures"], WORKFLOWS),
+         "simulated_targets", "kubelka_munk", "simulated_instrument", "simulated_layout", "simulated_rendering", "figures"], WORKFLOWS),
     **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "console", "cli", "__main__", "hw"],
                     FILES),
 }

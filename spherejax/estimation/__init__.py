@@ -19,6 +19,10 @@ the code cites one, and a mapping from the method's name to its function:
                     targets), each method's regularisers chosen on them, the "auto" choice,
                     `estimate_system`.
   covariance        the sampling covariance of an estimator from its training set (C1).
+  kernel_residual   "kernel": an affine estimator plus a kernel regression of its residuals
+                    on targets of the material measured (E8-E11), `fit_kernel_estimator`; not
+                    affine, so not yet one of `METHODS` (the correction applies affine
+                    estimators only).
 
 `fit_wiener(responses, reflectances, method=...)` fits one: `METHODS` maps each method's name to
 its cross-validated fit, and `METHOD_NAMES` ("auto" and the names of `METHODS`) are the names any
@@ -64,6 +68,13 @@ from .haneishi2000 import (
     markov_correlation,
     model_estimator,
     wiener_from_system,
+)
+from .kernel_residual import (
+    INDUCING_POINTS,
+    KERNEL_LENGTHSCALE_GRID,
+    KERNEL_RIDGE_GRID,
+    ResidualKernelEstimator,
+    cross_validate_kernel,
 )
 from .regression import RELATIVE_NOISE_GRID, _training_fit, training_estimator
 
@@ -142,6 +153,15 @@ def fit_wiener(
             "fixed regularisers inside"
         )
     _check_determined(V, R, "a Wiener estimator")
+    scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, offset)
+    W, r0 = ranked[0].fit()
+    reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
+    return WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=reports)
+
+
+def _affine_candidates(V, R, method, groups, folds, sensitivity, offset):
+    """(scale, V / scale, R, fold weights (F, n), folds' description, the affine methods'
+    Candidates ranked, the best first) for checked targets V (n, B), R (n, 31)."""
     # Fit in units where the responses' rms is about 1: responses of 1e30 (or 1e-30) would
     # overflow (underflow) the squares of the fits in float32. A power of two, so that scaling is
     # exact and responses near 1 (flat-fielded ones) give the same bits as unscaled.
@@ -154,9 +174,51 @@ def fit_wiener(
     ranked = rank_candidates(
         METHODS[name](V, R, weights, folds_text, offset=offset, sensitivity=M) for name in names
     )
-    W, r0 = ranked[0].fit()
-    reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
-    return WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=reports)
+    return scale, V, R, weights, folds_text, ranked
+
+
+def fit_kernel_estimator(
+    responses,
+    reflectances,
+    *,
+    mean: str = "auto",
+    groups=None,
+    folds: int = DEFAULT_FOLDS,
+    sensitivity=None,
+    inducing_points: int = INDUCING_POINTS,
+) -> ResidualKernelEstimator:
+    """The residual kernel estimator r = W v + r0 + A k(v) (E8-E11) from targets of known
+    reflectance: the affine estimator `fit_wiener` would choose as its mean, and a kernel
+    regression of what it leaves, its lengthscale and ridge chosen by the same cross-validation.
+
+    Args:
+      responses: (n, B). reflectances: (n, 31). groups, folds, sensitivity: as `fit_wiener`.
+      mean: the affine method of the mean, "auto" (default), "training" or "model".
+      inducing_points: m, the kernel's centres (per-pixel cost 3 B m + 31 m multiply-adds).
+
+    Returns:
+      ResidualKernelEstimator; .cross_validation: the kernel's held-out errors first (its
+      settings name the mean, lengthscale, ridge and m), then every affine method tried.
+
+    Raises:
+      ValueError: as `fit_wiener`, and on inducing_points < 1.
+    """
+    V, R = _check_training(responses, reflectances)
+    method = validate_method(mean, "mean")
+    if not isinstance(inducing_points, (int, np.integer)) or inducing_points < 1:
+        raise ValueError(f"inducing_points: expected an integer >= 1, got {inducing_points!r}")
+    if not (_checks.is_concrete(V) and _checks.is_concrete(R)):
+        raise ValueError("fit_kernel_estimator: cross-validation needs concrete data, not traced values")
+    _check_determined(V, R, "a kernel estimator")
+    scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, True)
+    kernel = cross_validate_kernel(V, R, weights, folds_text, ranked[0], inducing_points=int(inducing_points))
+    W, r0, mu, S, Z, A = kernel.fit()
+    affine_reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
+    # Back to the caller's response units: u = S (v / scale - mu) = (S / scale) (v - scale mu).
+    affine = WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=affine_reports)
+    return ResidualKernelEstimator(
+        affine, mu * scale, S / scale, Z, A, cross_validation=(kernel.cross_validation, *affine_reports),
+    )
 
 
 def _unit_scale(V) -> float:
@@ -173,6 +235,12 @@ def _in_response_units(report: CrossValidation, scale: float) -> CrossValidation
 
 __all__ = [
     "DEFAULT_FOLDS",
+    "INDUCING_POINTS",
+    "KERNEL_LENGTHSCALE_GRID",
+    "KERNEL_RIDGE_GRID",
+    "ResidualKernelEstimator",
+    "cross_validate_kernel",
+    "fit_kernel_estimator",
     "MARKOV_PRIOR_CORRELATION",
     "METHODS",
     "METHOD_NAMES",

@@ -84,12 +84,18 @@ def wiener(v, W):
 
     Args:
       v: corrected responses, shape (..., B).
-      W: a `WienerEstimator` (from `fit_wiener`), or a plain matrix (31, B) (r0 = 0).
+      W: a `WienerEstimator` (from `fit_wiener`), a plain matrix (31, B) (r0 = 0), or a
+        `kernel_residual.ResidualKernelEstimator` (its affine mean plus its residual, E8).
 
     Returns:
       reflectance, shape (..., 31), 400..700 nm step 10.
     """
+    from .kernel_residual import ResidualKernelEstimator, residual_of  # it builds on this module
+
     v = _checks.band_array("v", v)
+    if isinstance(W, ResidualKernelEstimator):
+        dtype = _checks.float_dtype(v, W.matrix)
+        return wiener(v.astype(dtype), W.affine) + residual_of(v.astype(dtype), W)
     estimator = as_estimator(W)
     W = estimator.matrix
     _checks.require_shape("W", W, (N_WAVELENGTHS, v.shape[-1]), "31 wavelengths x the bands of v")
