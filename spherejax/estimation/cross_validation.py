@@ -188,17 +188,21 @@ def _delta_e_d65(estimates, R) -> float:
 # would compile on its own (seconds in all, against milliseconds of work).
 _training_fit_jit = jax.jit(_training_fit, static_argnames=("offset",))
 _model_fit_jit = jax.jit(_model_fit)
+# The same over rows of fold weights (`Candidate.fit_folds`).
+_training_fit_folds = jax.jit(jax.vmap(_training_fit, in_axes=(None, None, 0, None, None)), static_argnums=(4,))
+_model_fit_folds = jax.jit(jax.vmap(_model_fit, in_axes=(None, None, 0, None, None, None, None)))
 
 
 class Candidate(NamedTuple):
     """One method at its chosen regularisers: `cross_validation` its held-out errors, `fit()`
     its (W (31, B), r0 (31,)) on all the targets (computed only when called), and, for an affine
-    method, `fit_weighted(w)` the same fit on the targets weighted by w (n,) (jit- and
-    vmap-friendly: the folds of an estimator built on it, `kernel_residual`)."""
+    method, `fit_folds(weights)` the same fit at the same regularisers on each row of fold
+    weights (F, n): (W (F, 31, B), r0 (F, 31)), the folds of an estimator built on it
+    (`kernel_residual`)."""
 
     cross_validation: CrossValidation
     fit: Callable[[], tuple]
-    fit_weighted: Callable[[jax.Array], tuple[jax.Array, jax.Array]] | None = None
+    fit_folds: Callable[[jax.Array], tuple[jax.Array, jax.Array]] | None = None
 
 
 def cross_validate_training(V, R, weights, folds_text: str, *, offset: bool = True, sensitivity=None) -> Candidate:
@@ -216,7 +220,7 @@ def cross_validate_training(V, R, weights, folds_text: str, *, offset: bool = Tr
     sigma2 = jnp.asarray(candidates[k])
     return Candidate(
         result, functools.partial(_training_fit_jit, V, R, jnp.ones(V.shape[0], V.dtype), sigma2, offset),
-        lambda w: _training_fit(V, R, w, sigma2, offset),
+        lambda weights: _training_fit_folds(V, R, weights, sigma2, offset),
     )
 
 
@@ -244,7 +248,7 @@ def cross_validate_model(V, R, weights, folds_text: str, *, offset: bool = True,
     arguments = (jnp.asarray(penalty_weight, V.dtype), jnp.asarray(shrinkage, V.dtype), _penalty_root(penalty, V.dtype), sensitivity)
     return Candidate(
         result, functools.partial(_model_fit_jit, V, R, jnp.ones(V.shape[0], V.dtype), *arguments),
-        lambda w: _model_fit(V, R, w, *arguments),
+        lambda weights: _model_fit_folds(V, R, weights, *arguments),
     )
 
 

@@ -167,6 +167,16 @@ def _residual_weights(K_nm, K_mm, E, w, ridge):
 
 
 @jax.jit
+def _final_fit(V, R, W, r0, U, Z, ridge):
+    """A (31, m) of (E11) on all the targets, whitened responses U and inducing points Z with the
+    lengthscale folded in."""
+    E = R - (jnp.matmul(V, W.T, precision=_HIGHEST) + r0)
+    eye = jnp.eye(U.shape[1], dtype=U.dtype)
+    K_nm, K_mm = kernel_features(U, 0.0, eye, Z), kernel_features(Z, 0.0, eye, Z)
+    return _residual_weights(K_nm, K_mm, E, jnp.ones(V.shape[0], V.dtype), ridge)
+
+
+@jax.jit
 def _kernel_cv(V, R, U, Z, weights, W, r0, lengthscales, ridges):
     """Held-out estimates (L, K, n, 31) for each lengthscale (L,) and ridge (K,) over the folds
     `weights` (F, n): each target estimated by the fit of the fold that held it out, on the
@@ -191,7 +201,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
     `weights` (F, n); returns a `cross_validation.Candidate` whose `fit()` gives the estimator's
     arrays (W, r0, mu, S / l, z / l, A) on all the targets.
 
-    The affine mean is refitted in each fold (`affine.fit_weighted`), so the held-out errors are
+    The affine mean is refitted in each fold (`affine.fit_folds`), so the held-out errors are
     those of the whole estimator.
     """
     from .cross_validation import Candidate, _best, _delta_e_d65
@@ -201,7 +211,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
     U = (np.asarray(V, np.float64) - mu) @ S.T
     Z = inducing_points_of(U, inducing_points)
     weights = jnp.asarray(weights, dtype)
-    W_folds, r0_folds = jax.jit(jax.vmap(affine.fit_weighted))(weights)
+    W_folds, r0_folds = affine.fit_folds(weights)
     estimates = np.asarray(_kernel_cv(
         V, R, jnp.asarray(U, dtype), jnp.asarray(Z, dtype), weights, W_folds, r0_folds,
         jnp.asarray(KERNEL_LENGTHSCALE_GRID, dtype), jnp.asarray(KERNEL_RIDGE_GRID, dtype),
@@ -219,13 +229,8 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
 
     def fit():
         W, r0 = affine.fit()
-        E = R - (jnp.matmul(V, W.T, precision=_HIGHEST) + r0)
-        U_l = jnp.asarray(U / lengthscale, dtype)
-        Z_l = jnp.asarray(Z / lengthscale, dtype)
-        eye = jnp.eye(U.shape[1], dtype=dtype)
-        K_nm = kernel_features(U_l, 0.0, eye, Z_l)
-        K_mm = kernel_features(Z_l, 0.0, eye, Z_l)
-        A = _residual_weights(K_nm, K_mm, E, jnp.ones(V.shape[0], dtype), jnp.asarray(ridge, dtype))
+        U_l, Z_l = jnp.asarray(U / lengthscale, dtype), jnp.asarray(Z / lengthscale, dtype)
+        A = _final_fit(V, R, W, r0, U_l, Z_l, jnp.asarray(ridge, dtype))
         return W, r0, jnp.asarray(mu, dtype), jnp.asarray(S / lengthscale, dtype), Z_l, A
 
     return Candidate(result, fit)
