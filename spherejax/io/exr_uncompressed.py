@@ -27,20 +27,13 @@ it, and every OpenEXR reader reads it. The layout, from "OpenEXR File Layout"
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import os
-import pathlib
 import re
 import struct
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .atomic import fsync_folder, open_exclusive, temp_sibling
-from .direct_io import DirectFile
-from .errors import SpherejaxFileError
-from .library_messages import write_limit
+from .streamed_writer import StreamedImageWriter
 
 #: OpenEXR pixel type codes (HALF, FLOAT) and the NumPy types of their samples.
 _PIXEL_TYPES = {"half": (1, np.dtype("<f2")), "float": (2, np.dtype("<f4"))}
@@ -87,10 +80,11 @@ def _header(height: int, width: int, channel_names: Sequence[str], pixel_type: i
     return struct.pack("<ii", _MAGIC, 2 | (_LONG_NAMES if long_names else 0)) + header
 
 
-class UncompressedExrWriter:
+class UncompressedExrWriter(StreamedImageWriter):
     """An uncompressed scanline OpenEXR (H, W, C) written in row strips under a temporary name,
-    renamed into place by `commit` once every row is written; the same interface and the same
-    guarantees as `io.AtomicImageWriter` (which `io.open_exr` returns for compressed files).
+    renamed into place by `commit` once every row is written (`streamed_writer`: the same
+    interface and guarantees as `io.AtomicImageWriter`, which `io.open_exr` returns for
+    compressed files).
 
     Args:
       path: the file to write.
@@ -103,46 +97,24 @@ class UncompressedExrWriter:
 
     def __init__(self, path, shape: Sequence[int], *, channel_names: Sequence[str],
                  attributes: Mapping[str, str] | None = None, pixel_type: str = "float"):
-        self.path = pathlib.Path(path)
-        self.height, self.width, channels = (int(n) for n in shape)
+        height, self.width, channels = (int(n) for n in shape)
         attributes = dict(attributes or {})
         if not takes_attributes(attributes):
             raise ValueError(f"attributes: only {_NAME_TAKEN.pattern} with string values, got {sorted(attributes)}")
-        code, self._sample = _PIXEL_TYPES[pixel_type]
+        code, sample = _PIXEL_TYPES[pixel_type]
         names = list(channel_names)
         # OpenEXR stores channels sorted by name (byte order); rows arrive in the caller's order.
         self._order = sorted(range(channels), key=lambda i: names[i].encode())
-        header = _header(self.height, self.width, [names[i] for i in self._order], code, attributes)
-        row_bytes = 8 + channels * self.width * self._sample.itemsize
-        first = len(header) + 8 * self.height
-        offsets = np.arange(self.height, dtype="<u8") * row_bytes + first
-        self._block = np.dtype([("y", "<i4"), ("size", "<i4"), ("rows", self._sample, (channels, self.width))])
-        self._next_row = 0
-        self._digest = hashlib.sha256()
-        self._temp = temp_sibling(self.path)
-        self._file = None
-        self._direct: DirectFile | None = None
+        header = _header(height, self.width, [names[i] for i in self._order], code, attributes)
+        row_bytes = 8 + channels * self.width * sample.itemsize
+        offsets = np.arange(height, dtype="<u8") * row_bytes + len(header) + 8 * height
+        self._block = np.dtype([("y", "<i4"), ("size", "<i4"), ("rows", sample, (channels, self.width))])
         self._blocks: np.ndarray | None = None  # the last strip's scanline blocks, reused
-        try:
-            self._file = open_exclusive(self._temp)
-            self._direct = DirectFile(self._file.fileno())
-            self._write(header)
-            self._write(offsets.tobytes())
-        except OSError as error:
-            self.abort()
-            raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
+        super().__init__(path, height)
+        self._write(header)
+        self._write(offsets)
 
-    def _write(self, data) -> None:
-        block = memoryview(data).cast("B")
-        self._direct.write(block)
-        self._digest.update(block)
-
-    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
-        """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows of the image."""
-        if self._file is None:
-            raise SpherejaxFileError(self.path, "is no longer open for writing")
-        if row0 != self._next_row:
-            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+    def _encode_rows(self, row0: int, pixels) -> None:
         rows = len(pixels)
         if self._blocks is None or len(self._blocks) != rows:
             self._blocks = np.empty(rows, self._block)
@@ -156,49 +128,11 @@ class UncompressedExrWriter:
             pixels = pixels[:, :, self._order]
         with np.errstate(over="ignore"):  # beyond half's range is inf, as OpenEXR makes it
             np.copyto(blocks["rows"], pixels.transpose(0, 2, 1), casting="same_kind")
-        try:
-            self._write(blocks)
-        except OSError as error:
-            self.abort()
-            raise SpherejaxFileError(self.path, f"could not be written: {write_limit(self._temp) or error.strerror or error}") from None
-        self._next_row = row0 + rows
-
-    def commit(self) -> str:
-        """Finish the file, fsync it, rename it into place; return its SHA-256 (hex)."""
-        if self._file is None:
-            raise SpherejaxFileError(self.path, "is no longer open for writing")
-        if self._next_row != self.height:
-            self.abort()
-            raise SpherejaxFileError(self.path, f"has {self._next_row} of its {self.height} rows", "every row written")
-        try:
-            self._direct.finish()  # the last bytes, fsynced: on disk before the rename
-            file, self._file = self._file, None
-            file.close()
-            os.replace(self._temp, self.path)
-            fsync_folder(self.path.parent)
-        except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {write_limit(self._temp) or error.strerror or error}") from None
-        finally:
-            self.abort()
-        return self._digest.hexdigest()
+        self._write(blocks)
 
     def abort(self) -> None:
-        """Drop what was written: the temporary file goes, `path` is untouched."""
-        file, self._file = self._file, None
-        if self._direct is not None:
-            self._direct.release()
         self._blocks = None
-        if file is not None:
-            with contextlib.suppress(OSError):
-                file.close()
-        with contextlib.suppress(OSError):
-            self._temp.unlink(missing_ok=True)
-
-    def __enter__(self) -> UncompressedExrWriter:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.abort()
+        super().abort()
 
 
 __all__ = ["UncompressedExrWriter", "takes_attributes"]

@@ -24,9 +24,6 @@ are the bits.
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import os
 import pathlib
 import re
 import struct
@@ -35,9 +32,8 @@ import zlib
 import numpy as np
 
 from .. import pipeline
-from .atomic import fsync_folder, open_exclusive, temp_sibling
 from .errors import SpherejaxFileError
-from .library_messages import write_limit
+from .streamed_writer import StreamedImageWriter
 
 _EXPECTED = "a spherejax quality PNG: 8-bit palette indices (or grey values) holding the quality bits"
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -72,31 +68,22 @@ def _chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
 
-class QualityPngWriter:
+class QualityPngWriter(StreamedImageWriter):
     """The quality PNG of shape (H, W) written in row strips, under a temporary name beside `path`
-    made the file by `commit` (fsync, then rename) once every row is written; the same interface
-    and rules as `frames.AtomicImageWriter` (the temporary name created with O_EXCL, removed on
-    `abort` or leaving the `with` block uncommitted; `path` untouched until the rename). Rows in
+    made the file by `commit` (fsync, then rename) once every row is written
+    (`streamed_writer`: the same interface and rules as `frames.AtomicImageWriter`). Rows in
     order, top to bottom; the bytes do not depend on the strips."""
 
     def __init__(self, path, shape):
-        self.path = pathlib.Path(path)
         shape = tuple(int(n) for n in shape)
         if len(shape) == 3 and shape[-1] == 1:
             shape = shape[:2]
         if len(shape) != 2 or 0 in shape or max(shape) >= 2**31:
-            raise SpherejaxFileError(self.path, f"cannot hold an image of shape {shape}", "(H, W) or (H, W, 1) uint8")
-        self.height, self.width = shape
-        self._next_row = 0
-        self._digest = hashlib.sha256()
+            raise SpherejaxFileError(pathlib.Path(path), f"cannot hold an image of shape {shape}", "(H, W) or (H, W, 1) uint8")
+        height, self.width = shape
         self._pending = b""
         self._compressor = zlib.compressobj(9, zlib.DEFLATED, 15, 9, zlib.Z_DEFAULT_STRATEGY)
-        self._temp = temp_sibling(self.path)
-        self._file = None
-        try:
-            self._file = open_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
-        except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
+        super().__init__(path, height)
         from .. import __version__
 
         header = struct.pack(">IIBBBBB", self.width, self.height, 8, 3, 0, 0, 0)  # 8-bit palette, not interlaced
@@ -106,31 +93,14 @@ class QualityPngWriter:
             + _chunk(b"tEXt", b"Software\0" + f"spherejax {__version__}".encode("latin-1"))
         )
 
-    def _why(self, error: OSError) -> str:
-        """Why a write failed, in the words of `library_messages.write_limit` where the file-size
-        limit or a full disk explains it, else the system's reason, never the temporary name."""
-        return write_limit(self._temp) or error.strerror or " ".join(str(error).split())
-
-    def _write(self, data: bytes) -> None:
-        try:
-            self._file.write(data)
-        except OSError as error:
-            self.abort()
-            raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
-        self._digest.update(data)
-
     def _idat(self, data: bytes, final: bool = False) -> None:
         self._pending += data
         if len(self._pending) >= _IDAT_BYTES or (final and self._pending):
             pending, self._pending = self._pending, b""
             self._write(_chunk(b"IDAT", pending))
 
-    def write_rows(self, row0: int, pixels) -> None:
-        """Write rows row0:row0 + len(pixels), (rows, W) or (rows, W, 1) uint8, the next rows."""
-        if self._file is None:
-            raise SpherejaxFileError(self.path, "is no longer open for writing")
-        if row0 != self._next_row:
-            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+    def _encode_rows(self, row0: int, pixels) -> None:
+        """Rows row0:row0 + len(pixels), (rows, W) or (rows, W, 1) uint8."""
         pixels = np.asarray(pixels)
         if pixels.ndim == 3 and pixels.shape[-1] == 1:
             pixels = pixels[..., 0]
@@ -141,46 +111,10 @@ class QualityPngWriter:
         for row in pixels:
             # Filter type 0 (None) on every row, as the PNG specification advises for palette images.
             self._idat(self._compressor.compress(b"\0" + row.tobytes()))
-        self._next_row = row0 + len(pixels)
 
-    def commit(self) -> str:
-        """Finish the file, fsync it, rename it into place; return its SHA-256 (hex)."""
-        if self._file is None:
-            raise SpherejaxFileError(self.path, "is no longer open for writing")
-        if self._next_row != self.height:
-            self.abort()
-            raise SpherejaxFileError(self.path, f"has {self._next_row} of its {self.height} rows", "every row written")
-        try:
-            self._idat(self._compressor.flush(), final=True)
-            self._write(_chunk(b"IEND", b""))
-            file, self._file = self._file, None
-            try:
-                file.flush()
-                os.fsync(file.fileno())  # on disk before the rename makes it the file
-            finally:
-                file.close()
-            os.replace(self._temp, self.path)
-            fsync_folder(self.path.parent)  # and the rename on disk too
-        except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
-        finally:
-            self.abort()
-        return self._digest.hexdigest()
-
-    def abort(self) -> None:
-        """Drop what was written: the temporary file goes, `path` is untouched."""
-        file, self._file = self._file, None
-        if file is not None:
-            with contextlib.suppress(OSError):
-                file.close()
-        with contextlib.suppress(OSError):
-            self._temp.unlink(missing_ok=True)
-
-    def __enter__(self) -> QualityPngWriter:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.abort()
+    def _finish(self) -> None:
+        self._idat(self._compressor.flush(), final=True)
+        self._write(_chunk(b"IEND", b""))
 
 
 def open_quality_png(path, shape) -> QualityPngWriter:
