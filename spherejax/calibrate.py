@@ -34,7 +34,7 @@ import numpy as np
 from .pipeline import Calibration, correct
 from .polynomial import MIN_SAMPLES, STATUS_NAMES, UNDETERMINED, fit_stage2_detailed, identity_coeffs, stage2, why_undetermined
 from .uncertainty import NoiseModel
-from .estimation import EstimatorCovariance, estimator_covariance, fit_wiener, validate_method
+from .estimation import ESTIMATOR_NAMES, EstimatorCovariance, estimator_covariance, fit_kernel_estimator, fit_wiener, validate_method
 from .grid import N_WAVELENGTHS
 from .number_text import json_ready
 
@@ -497,7 +497,8 @@ def calibrate_session(
       loss: "l2" (closed form, default), "huber", "cauchy" or "tukey" (`fit_stage2_detailed`);
         bands whose fit did not converge are listed in the report, not raised.
       illuminant: stored in the Calibration for Lab.
-      wiener_method: "auto" (default), "training" or "model" (`fit_wiener`).
+      wiener_method: "auto" (default), "training" or "model" (`fit_wiener`), or "kernel" (the
+        residual kernel estimator on the affine one "auto" chooses, `fit_kernel_estimator`).
       wiener_groups: a manifest field naming each target capture's group (`target_groups`):
         cross-validation then holds out one group at a time; None: k folds of alike targets.
       gain: the camera's electrons per count (a number or one per band), overriding the
@@ -529,7 +530,7 @@ def calibrate_session(
     residual = np.sqrt(np.nanmean((prediction - target) ** 2, axis=0))
 
     with_stage2 = dataclasses.replace(base, coeffs=coeffs.astype(np.float32))
-    validate_method(wiener_method, "wiener method")
+    validate_method(wiener_method, "wiener method", ESTIMATOR_NAMES)
     groups = None if wiener_groups is None else target_groups(session, targets, wiener_groups)
     target_measurements = [m for m in measure_frames(session, targets, with_stage2) if m.reflectance is not None]
     responses = np.asarray(stage2(np.stack([m.v for m in target_measurements]), np.stack([m.p for m in target_measurements]), coeffs))
@@ -544,9 +545,16 @@ def calibrate_session(
     if groups is not None:
         groups = [g for g, keep in zip(groups, usable) if keep]
         _check_groups(session, groups, wiener_groups)
-    estimator = fit_wiener(responses[usable], reflectances[usable], method=wiener_method, groups=groups)
+    if wiener_method == "kernel":
+        estimator = fit_kernel_estimator(responses[usable], reflectances[usable], groups=groups)
+        kernel_residual = estimator.kernel.astype(np.float32)
+    else:
+        estimator = fit_wiener(responses[usable], reflectances[usable], method=wiener_method, groups=groups)
+        kernel_residual = None
+    # The estimator covariance (N7) is the affine estimator's (of a kernel estimator, its mean's,
+    # whose residuals on the targets are the larger: conservative).
     noise_model, noise_notes = build_noise_model(
-        session, fit, responses[usable], reflectances[usable], estimator,
+        session, fit, responses[usable], reflectances[usable], getattr(estimator, "affine", estimator),
         gain=gain, read_noise=read_noise, white_reflectance_u=white_reflectance_u,
     )
 
@@ -554,7 +562,7 @@ def calibrate_session(
         dark=base.dark, white=base.white, patch=base.patch,
         coeffs=coeffs.astype(np.float32), wiener=np.asarray(estimator.matrix, np.float32),
         wiener_offset=np.asarray(estimator.offset, np.float32),
-        illuminant=illuminant, saturation=base.saturation,
+        illuminant=illuminant, saturation=base.saturation, wiener_residual=kernel_residual,
     )
     report = CalibrationReport(
         reference_background=reference,

@@ -32,6 +32,7 @@ import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .calibrate import RegionMeasurement, measure_frames
@@ -111,10 +112,15 @@ def _assemble(measurements, calibration, kappa, white_r) -> StageData:
             truth[i] = m.reflectance
     with np.errstate(invalid="ignore"):
         responses = {s: np.where(counts > 0, sums[s] / np.maximum(counts, 1), np.nan) for s in STAGES}
-    # The affine Wiener estimate r = W v + r0 of every stage's responses; unmeasured (NaN) stay NaN.
+    # The calibration's estimate of every stage's responses: r = W v + r0 (E1), plus its kernel
+    # residual A k(v) (E8) where it has one; unmeasured (NaN) stay NaN.
     W = np.asarray(calibration.wiener, np.float64)
     r0 = np.asarray(calibration.wiener_offset, np.float64)
     reflectance = {s: responses[s] @ W.T + r0 for s in STAGES}
+    if calibration.wiener_residual is not None:
+        with jax.enable_x64(True):
+            kernel = calibration.wiener_residual.astype(jnp.float64)
+            reflectance = {s: reflectance[s] + np.asarray(kernel(jnp.asarray(responses[s])), np.float64) for s in STAGES}
     return StageData(patches, backgrounds, responses, reflectance, truth)
 
 

@@ -178,23 +178,33 @@ def _region_statistics(raw_f, pixel_weights, p, p_u, constants: PixelConstants, 
       (mean reflectance (31,), spread (31,), {source: reflectance covariance (31, 31)}).
     """
     dark, white, coeffs = constants.dark, constants.white, constants.coeffs
-    wiener, wiener_offset = constants.wiener, constants.wiener_offset
+    wiener, wiener_offset, residual = constants.wiener, constants.wiener_offset, constants.wiener_residual
     w = pixel_weights / jnp.sum(pixel_weights)
     safe = pixel_weights[..., None] > 0
     raw_safe = jnp.where(safe, raw_f, white)  # flagged pixels out of harm's way, as `correct`
-    j_reflectance, _ = uncertainty.linear_jacobians(wiener, wiener_offset, jnp.zeros((wiener.shape[0], 3), wiener.dtype))
     p_pixel = p[None, None, :]
     if noise is None:
         from .flatfield import flat_field_unchecked
         from .polynomial import stage2_unchecked
 
         v_tilde = stage2_unchecked(flat_field_unchecked(raw_safe, dark, white), p_pixel, coeffs)
-        budget = {}
     else:
         v_tilde, tangents, coeff_jacobian = uncertainty.band_tangents(
             raw_safe, dark, white, p_pixel, p_u[None, None, :], coeffs, noise
         )
-        budget = {}
+    v_tilde = jnp.where(safe, v_tilde, 0.0)
+    mean_v_tilde = jnp.sum(w[..., None] * v_tilde, axis=(0, 1))
+
+    def estimate(v):
+        """The calibration's estimate of responses v (..., B) (E1, or E8 with a kernel residual)."""
+        reflectance = jnp.matmul(v, wiener.T, precision=_HIGHEST) + wiener_offset
+        return reflectance if residual is None else reflectance + residual(v)
+
+    # The region's reflectance is the estimate of its mean response: its first order there (W
+    # itself for an affine estimator).
+    j_reflectance = jax.jacfwd(estimate)(mean_v_tilde)
+    budget = {}
+    if noise is not None:
         for name in PIXEL_SOURCES:  # independent pixels: Σ w_i² t_i²
             variance = jnp.sum((w**2)[..., None] * jnp.where(safe, tangents[name], 0.0) ** 2, axis=(0, 1))
             budget[name] = (j_reflectance * variance) @ j_reflectance.T
@@ -207,13 +217,11 @@ def _region_statistics(raw_f, pixel_weights, p, p_u, constants: PixelConstants, 
             mean_jacobian = jnp.sum(w[..., None, None] * jnp.where(safe[..., None], coeff_jacobian, 0.0), axis=(0, 1))
             variance = uncertainty.coefficient_variance(mean_jacobian, noise.coeffs_covariance)
             budget["Stage II coefficients"] = (j_reflectance * variance) @ j_reflectance.T
-    v_tilde = jnp.where(safe, v_tilde, 0.0)
-    mean_v_tilde = jnp.sum(w[..., None] * v_tilde, axis=(0, 1))
-    if noise is not None and noise.estimator_covariance is not None:
-        scale = uncertainty.estimator_scale(mean_v_tilde, noise.estimator_covariance)
-        budget[ESTIMATOR_SOURCE] = scale * noise.estimator_covariance.residual.astype(raw_f.dtype)
-    mean = jnp.matmul(wiener, mean_v_tilde, precision=_HIGHEST) + wiener_offset
-    pixel_reflectance = jnp.matmul(v_tilde, wiener.T, precision=_HIGHEST) + wiener_offset
+        if noise.estimator_covariance is not None:
+            scale = uncertainty.estimator_scale(mean_v_tilde, noise.estimator_covariance)
+            budget[ESTIMATOR_SOURCE] = scale * noise.estimator_covariance.residual.astype(raw_f.dtype)
+    mean = estimate(mean_v_tilde)
+    pixel_reflectance = estimate(v_tilde)
     spread = jnp.sqrt(jnp.sum(w[..., None] * (pixel_reflectance - mean) ** 2, axis=(0, 1)))
     return mean, spread, budget
 

@@ -45,6 +45,7 @@ from . import _checks, colorimetry, uncertainty
 from ._engine import buffers
 from .colorimetry import xyz_to_lab
 from .correction_result import CorrectionResult, delta_e_map
+from .estimation.kernel_residual import KernelResidual
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .grid import N_WAVELENGTHS
 from .pixel_constants import PatchConstants, PixelConstants
@@ -104,7 +105,12 @@ class Calibration(eqx.Module):
       wiener_offset: the estimator's offset r0 (31,), reflectance (dimensionless, 400..700 nm
         step 10): the estimate is r = W v_tilde + r0 (`wiener.fit_wiener`). Default zeros, the
         plain linear Wiener estimate, which gives the same numbers as before the offset existed.
-        Last among the fields so that positional construction keeps its meaning.
+      wiener_residual: the estimator's kernel residual (`estimation.KernelResidual`, from
+        `estimation.fit_kernel_estimator`): the estimate is then r = W v_tilde + r0 + A k(v_tilde)
+        (E8). None (default): the affine estimator. `correct` applies it on the jax.numpy path:
+        the fused CPU kernel and the GPU kernel apply affine estimators only.
+      wiener_offset and wiener_residual come last among the fields, so that positional
+      construction keeps its meaning.
     """
 
     dark: jax.Array = eqx.field(converter=jnp.asarray)
@@ -120,6 +126,7 @@ class Calibration(eqx.Module):
     wiener_offset: jax.Array = eqx.field(
         converter=jnp.asarray, default_factory=lambda: np.zeros(N_WAVELENGTHS, np.float32)
     )
+    wiener_residual: KernelResidual | None = None
 
     def __check_init__(self):
         # Unknown names raise here, at construction, rather than at the first correction.
@@ -145,6 +152,11 @@ class Calibration(eqx.Module):
         _checks.require_shape(
             "wiener_offset", self.wiener_offset, (N_WAVELENGTHS,), "one reflectance offset r0 per wavelength, 400..700 nm step 10"
         )
+        if self.wiener_residual is not None:
+            if not isinstance(self.wiener_residual, KernelResidual):
+                raise ValueError(f"wiener_residual: expected an estimation.KernelResidual or None, got {type(self.wiener_residual).__name__}")
+            if self.wiener_residual.bands != bands:
+                raise ValueError(f"wiener_residual: expected a residual of the {bands} bands, got one of {self.wiener_residual.bands}")
         if self.saturation is not None and not float(self.saturation) > 0:
             raise ValueError(f"saturation: expected a level > 0 or None, got {self.saturation!r}")
         for name in PARAMETERS:
@@ -406,6 +418,11 @@ def _pixel_outputs(raw, p, constants: PixelConstants, *, saturation, intermediat
     # the slices are copies.)
     reflectance = _project_good_pixels(good, v_stage2_safe, constants.wiener.T, constants.wiener_offset)
     xyz = _project_good_pixels(good, v_stage2_safe, *constants.xyz_projection())
+    if constants.wiener_residual is not None:
+        # The kernel residual (E8) of every pixel (NaN stays NaN on the bad ones), and its XYZ.
+        residual = constants.wiener_residual(v_stage2_safe)
+        reflectance = reflectance + residual
+        xyz = xyz + jnp.matmul(residual, constants.tristimulus_weights, precision=_HIGHEST)
     lab = xyz_to_lab(xyz, constants.white_xyz())
     if not intermediates:
         return reflectance, lab, quality

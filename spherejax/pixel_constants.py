@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import colorimetry
+from .estimation.kernel_residual import KernelResidual
 
 _HIGHEST = jax.lax.Precision.HIGHEST
 
@@ -31,6 +32,8 @@ class PixelConstants(eqx.Module):
       wiener_offset: the estimator's offset r0 (31,), reflectance (r = W v_tilde + r0).
       tristimulus_weights: ASTM E308 weights (31, 3) of the illuminant and observer, scaled so
         that the perfect diffuser has Y = 100 (`colorimetry.tristimulus_weights`).
+      wiener_residual: the estimator's kernel residual (`estimation.KernelResidual`: r = W
+        v_tilde + r0 + A k(v_tilde), E8), or None for an affine estimator.
 
     H and W may be rows or a box of the image (`rows`, `box`): the per-pixel step needs the dark
     and white frames of exactly the pixels it corrects.
@@ -42,6 +45,7 @@ class PixelConstants(eqx.Module):
     wiener: jax.Array
     wiener_offset: jax.Array
     tristimulus_weights: jax.Array
+    wiener_residual: KernelResidual | None = None
 
     @classmethod
     def of(cls, calibration, dtype) -> PixelConstants:
@@ -54,6 +58,7 @@ class PixelConstants(eqx.Module):
             dark=calibration.dark.astype(dtype), white=calibration.white.astype(dtype),
             coeffs=calibration.coeffs.astype(dtype), wiener=calibration.wiener.astype(dtype),
             wiener_offset=calibration.wiener_offset.astype(dtype), tristimulus_weights=jnp.asarray(weights, dtype),
+            wiener_residual=None if calibration.wiener_residual is None else calibration.wiener_residual.astype(dtype),
         )
 
     @property
@@ -78,7 +83,8 @@ class PixelConstants(eqx.Module):
     def pixels(self, dark, white) -> PixelConstants:
         """The same constants with other dark and white frames (rows, a box or blocks of pixels
         of these: the per-pixel step reads only the frames' pixels it corrects)."""
-        return PixelConstants(dark, white, self.coeffs, self.wiener, self.wiener_offset, self.tristimulus_weights)
+        return PixelConstants(dark, white, self.coeffs, self.wiener, self.wiener_offset, self.tristimulus_weights,
+                              self.wiener_residual)
 
     def box(self, row0: int, row1: int, col0: int, col1: int) -> PixelConstants:
         """The constants of the pixels rows row0:row1, columns col0:col1."""

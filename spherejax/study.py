@@ -19,7 +19,9 @@ closed form's value while W moves would tie W to an intercept fitted for another
 anchor then moves with the estimator, the objective adds the mean ΔE00 of the target chart
 against the targets' known reflectances, which keeps (W, r0) a reflectance estimator (and pins
 r0, which the consistency term alone cannot see: a common offset shifts a patch's colour on
-every background alike). Without `fit_wiener` both stay as the calibration has them.
+every background alike). Without `fit_wiener` both stay as the calibration has them. A kernel
+residual of the estimator (`Calibration.wiener_residual`, E8) is applied throughout and always
+stays as the calibration has it.
 
 The result is validated on the held-out test captures (patches and backgrounds that the study
 never saw) with `spherejax.evaluate`, in the format of the paper's Table 6.
@@ -37,6 +39,7 @@ import optimistix as optx
 
 from .calibrate import RegionMeasurement, base_calibration, measure_frames, reference_background, stage2_training_data
 from .colorimetry import delta_e_2000, reflectance_to_lab
+from .estimation.kernel_residual import KernelResidual
 from .number_text import json_ready
 from .pipeline import Calibration
 from .polynomial import stage2_unchecked
@@ -63,9 +66,13 @@ class StudyResult:
     fit_wiener: bool
 
 
-def _lab_of_responses(responses, W, r0, illuminant):
-    """Lab of the affine Wiener estimate r = W v + r0 of responses (n, B); W (31, B), r0 (31,)."""
-    return reflectance_to_lab(jnp.matmul(responses, W.T, precision=_HIGHEST) + r0, illuminant)
+def _lab_of_responses(responses, W, r0, illuminant, residual=None):
+    """Lab of the estimate r = W v + r0 (+ A k(v), the calibration's kernel residual, E8, if it
+    has one) of responses (n, B); W (31, B), r0 (31,)."""
+    reflectance = jnp.matmul(responses, W.T, precision=_HIGHEST) + r0
+    if residual is not None:
+        reflectance = reflectance + residual(responses)
+    return reflectance_to_lab(reflectance, illuminant)
 
 
 def _training_arrays(measurements: list[RegionMeasurement], reference: str):
@@ -89,6 +96,7 @@ class _Problem(eqx.Module):
     fixed_offset: jax.Array
     response_scale: jax.Array
     response_weight: float
+    residual: KernelResidual | None  # the calibration's kernel residual (E8), held fixed
     illuminant: str = eqx.field(static=True)
     fit_wiener: bool = eqx.field(static=True)
 
@@ -98,15 +106,16 @@ def _objective(params, problem: _Problem):
     W = params["wiener"] if problem.fit_wiener else problem.fixed_W
     r0 = params["wiener_offset"] if problem.fit_wiener else problem.fixed_offset
     responses = stage2_unchecked(problem.v, problem.p, coeffs)
-    lab = _lab_of_responses(responses, W, r0, problem.illuminant)
-    lab_anchor = _lab_of_responses(problem.anchor, W, r0, problem.illuminant)
+    lab = _lab_of_responses(responses, W, r0, problem.illuminant, problem.residual)
+    lab_anchor = _lab_of_responses(problem.anchor, W, r0, problem.illuminant, problem.residual)
     inconsistency = jnp.mean(delta_e_2000(lab, lab_anchor))
     # Eq. 21 in units of the closed form's residual: pins the band combinations that ΔE00 of
     # grey training patches cannot see.
     inconsistency = inconsistency + problem.response_weight * jnp.mean(((responses - problem.anchor) / problem.response_scale) ** 2)
     if not problem.fit_wiener:
         return inconsistency
-    target_lab = _lab_of_responses(stage2_unchecked(problem.target_v, problem.target_p, coeffs), W, r0, problem.illuminant)
+    target_lab = _lab_of_responses(stage2_unchecked(problem.target_v, problem.target_p, coeffs), W, r0, problem.illuminant,
+                                   problem.residual)
     return inconsistency + jnp.mean(delta_e_2000(target_lab, problem.target_lab))
 
 
@@ -154,6 +163,7 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
             v, p, anchor, target_v, target_p, target_lab, calibration.wiener, calibration.wiener_offset, response_scale,
         )),
         response_weight=float(response_weight),
+        residual=None if calibration.wiener_residual is None else calibration.wiener_residual.astype(dtype),
         illuminant=calibration.illuminant, fit_wiener=fit_wiener,
     )
     start = {"coeffs": jnp.asarray(calibration.coeffs, dtype)}

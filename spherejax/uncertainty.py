@@ -357,6 +357,25 @@ def linear_jacobians(wiener, wiener_offset, weights):
     return jax.jacfwd(estimate)(jnp.zeros((bands,), wiener.dtype))
 
 
+def _kernel_estimate_variances(v_tilde, variance, j_affine, weights, residual):
+    """(reflectance variance (..., 31), XYZ covariance (..., 3, 3)) of an estimate with a kernel
+    residual, r = W v_tilde + r0 + A k(v_tilde) (E8), by first order at each pixel's v_tilde:
+    column b of the Jacobian is W[:, b] + ∂(A k)/∂v_b, the latter one tangent of the residual
+    linearised once (`jax.linearize`), the bands independent as in the affine case."""
+    _, tangent_of = jax.linearize(residual, v_tilde)
+    bands = v_tilde.shape[-1]
+    eye = jnp.eye(bands, dtype=v_tilde.dtype)
+    reflectance_var = jnp.zeros((*v_tilde.shape[:-1], j_affine.shape[0]), v_tilde.dtype)
+    xyz_cov = jnp.zeros((*v_tilde.shape[:-1], 3, 3), v_tilde.dtype)
+    for b in range(bands):
+        column = j_affine[:, b] + tangent_of(jnp.broadcast_to(eye[b], v_tilde.shape))  # (..., 31)
+        xyz_column = jnp.matmul(column, weights, precision=_HIGHEST)  # (..., 3)
+        var_b = variance[..., b, None]
+        reflectance_var = reflectance_var + var_b * column**2
+        xyz_cov = xyz_cov + var_b[..., None] * xyz_column[..., :, None] * xyz_column[..., None, :]
+    return reflectance_var, xyz_cov
+
+
 def lab_jacobian(xyz, white_xyz):
     """(..., 3, 3) ∂Lab/∂XYZ at every pixel: `xyz_to_lab` linearised once (`jax.linearize`),
     then one tangent per column (the map acts pixel by pixel, so a tangent of e_i at every pixel
@@ -415,10 +434,13 @@ def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
     v_tilde = jnp.where(good, v_tilde, 0.0)
 
     j_reflectance, j_xyz = linear_jacobians(wiener, wiener_offset, weights)
-    reflectance_var = jnp.matmul(variance, (j_reflectance**2).T, precision=_HIGHEST)
-    # Σ_xyz[i, j] = Σ_b J_ib J_jb var_b: one (B, 9) product per pixel.
-    pairs = (j_xyz[:, None, :] * j_xyz[None, :, :]).reshape(9, -1).T
-    xyz_cov = jnp.matmul(variance, pairs, precision=_HIGHEST).reshape(*variance.shape[:-1], 3, 3)
+    if constants.wiener_residual is None:
+        reflectance_var = jnp.matmul(variance, (j_reflectance**2).T, precision=_HIGHEST)
+        # Σ_xyz[i, j] = Σ_b J_ib J_jb var_b: one (B, 9) product per pixel.
+        pairs = (j_xyz[:, None, :] * j_xyz[None, :, :]).reshape(9, -1).T
+        xyz_cov = jnp.matmul(variance, pairs, precision=_HIGHEST).reshape(*variance.shape[:-1], 3, 3)
+    else:
+        reflectance_var, xyz_cov = _kernel_estimate_variances(v_tilde, variance, j_reflectance, weights, constants.wiener_residual)
     if noise.estimator_covariance is not None:
         scale = estimator_scale(v_tilde, noise.estimator_covariance)[..., None]
         residual = noise.estimator_covariance.residual.astype(dtype)
@@ -427,6 +449,8 @@ def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
         xyz_cov = xyz_cov + scale[..., None] * xyz_residual
 
     xyz = jnp.matmul(v_tilde, j_xyz.T, precision=_HIGHEST) + jnp.matmul(wiener_offset, weights, precision=_HIGHEST)
+    if constants.wiener_residual is not None:
+        xyz = xyz + jnp.matmul(constants.wiener_residual(v_tilde), weights, precision=_HIGHEST)
     jacobian = lab_jacobian(xyz, jnp.sum(weights, axis=0))
     lab_cov = congruence_3x3(jacobian, xyz_cov)
     reflectance_u = jnp.where(good, jnp.sqrt(reflectance_var), jnp.nan)

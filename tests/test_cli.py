@@ -83,6 +83,25 @@ class TestCommands:
         report = header["metadata"]["calibration_report"]
         assert report["wiener_method"] == "training" and len(report["wiener_cross_validation"]) == 1
 
+    def test_calibrate_with_the_kernel_estimator_and_use_it(self, workspace, tmp_path, capsys):
+        """--wiener-method kernel: the file stores the kernel residual (format version 5), the
+        report puts the kernel's cross-validated errors first, then the affine methods', and
+        evaluate corrects the session through it."""
+        status, _, _ = run(["-q", "calibrate", str(workspace / "session"), "-o", str(tmp_path / "k.h5"),
+                            "--wiener-method", "kernel"], capsys)
+        assert status == 0
+        calibration, header = io.load_calibration(tmp_path / "k.h5")
+        report = header["metadata"]["calibration_report"]
+        assert report["wiener_method"] == "kernel"
+        assert [entry["method"] for entry in report["wiener_cross_validation"]][0] == "kernel"
+        assert {entry["method"] for entry in report["wiener_cross_validation"][1:]} == {"training", "model"}
+        residual = calibration.wiener_residual
+        assert residual is not None and residual.inducing.shape == (16, 16)  # every one of the 16 targets
+        assert header["arrays"]["wiener_residual_weights"]["shape"] == [31, 16]
+        status, _, err = run(["-q", "evaluate", str(workspace / "session"), "-c", str(tmp_path / "k.h5"),
+                              "--out", str(tmp_path / "e")], capsys)
+        assert status == 0, err
+
     def test_calibrate_holds_out_named_groups_of_targets(self, workspace, tmp_path, capsys):
         """Two target charts named by a metadata field: each is held out in turn."""
         session = tmp_path / "session"

@@ -114,11 +114,11 @@ class TestHelp:
         assert "OUT" in parsers["simulate"].format_help() and "deprecated" in parsers["simulate"].format_help()
 
     def test_the_estimator_choices_are_the_librarys(self):
-        from spherejax.estimation import METHOD_NAMES
+        from spherejax.estimation import ESTIMATOR_NAMES
 
-        assert cli.WIENER_METHODS == METHOD_NAMES
+        assert cli.WIENER_METHODS == ESTIMATOR_NAMES
         action = next(a for a in subcommand_parsers()["calibrate"]._actions if a.dest == "wiener_method")
-        assert tuple(action.choices) == METHOD_NAMES
+        assert tuple(action.choices) == ESTIMATOR_NAMES
 
     def test_global_options_are_listed_on_every_command(self):
         for name, parser in subcommand_parsers().items():

@@ -5,6 +5,7 @@ Each refusal checks the exception type, that the message is one line starting wi
 names, the problem (`match=`), and that nothing new or partial is left on disk.
 """
 
+import dataclasses
 import datetime
 import hashlib
 import json
@@ -33,6 +34,9 @@ from tests.helpers import (
 H, W = 12, 10
 BANDS = list(range(400, 701, 20))
 B = len(BANDS)
+
+#: The kernel residual's arrays, format version 5 on (`io.calibration_checks.RESIDUAL_ARRAYS`, written out).
+RESIDUAL = ("wiener_residual_centre", "wiener_residual_whitening", "wiener_residual_inducing", "wiener_residual_weights")
 
 
 # --------------------------------------------------------------------------------------- helpers
@@ -109,7 +113,7 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert loaded.illuminant == "A" and loaded.observer == calibration.observer
     assert loaded.saturation == saturation and type(loaded.saturation) is type(saturation)
 
-    assert header["format"] == "spherejax-calibration" and header["format_version"] == 4
+    assert header["format"] == "spherejax-calibration" and header["format_version"] == 5
     assert header["noise_model"] is None  # none given (tests/test_noise_model_files.py: one given)
     assert header["software_version"] == sj.__version__
     assert header["instrument_id"] == "sim-sphere-1" and header["band_centres_nm"] == BANDS
@@ -124,16 +128,22 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert header["arrays"]["wiener_offset"]["shape"] == [31]
     assert header["arrays"]["wiener_offset"]["dtype"] == np.dtype(dtype).str
     assert "r0" in header["arrays"]["wiener_offset"]["description"]
+    # An affine estimator: a kernel residual of m = 0 inducing points (format version 5).
+    assert [header["arrays"][name]["shape"] for name in RESIDUAL] == [[B], [B, B], [0, B], [31, 0]]
+    assert loaded.wiener_residual is None
     for name, entry in header["arrays"].items():
-        assert re.search(r"Eq\.|Section", entry["description"]), name
+        assert re.search(r"Eq\.|Section|E\d", entry["description"]), name
 
     # Self-describing without spherejax: h5py alone reads the header and the arrays.
     with h5py.File(path, "r") as stored:
         assert json.loads(stored.attrs["header"]) == header
         assert list(stored.attrs) == ["header"]
-        assert sorted(stored) == ["coeffs", "dark", "patch", "white", "wiener", "wiener_offset"]
+        assert sorted(stored) == sorted(["coeffs", "dark", "patch", "white", "wiener", "wiener_offset", *RESIDUAL])
         for name, dataset in stored.items():
             assert dataset.attrs["description"] == header["arrays"][name]["description"], name
+            if name in RESIDUAL:
+                assert not dataset[()].any() and dataset[()].dtype == np.dtype(dtype), name
+                continue
             original = np.asarray(getattr(calibration, name))
             assert dataset[()].dtype == original.dtype and dataset[()].tobytes() == original.tobytes(), name
             assert dataset.compression is None, name
@@ -402,12 +412,14 @@ def test_load_calibration_dataset_of_the_wrong_dtype(calibration_path):
 
 
 def test_load_calibration_version_in_the_other_container(calibration_path, tmp_path):
-    """Format version 4 is HDF5, versions 1 to 3 an .npz: either in the other is refused."""
+    """Format versions 4 and 5 are HDF5, versions 1 to 3 an .npz: either in the other is refused."""
     entries = calibration_entries(calibration_path)
-    rewrite_file(tmp_path / "v4.npz", entries, container="npz")
-    with refused(CalibrationFileError, tmp_path / "v4.npz", r"is an \.npz archive of format version 4 \(expected HDF5 from"):
-        io.load_calibration(tmp_path / "v4.npz")
-    header = {**header_of(entries), "format_version": 3}
+    rewrite_file(tmp_path / "v5.npz", entries, container="npz")
+    with refused(CalibrationFileError, tmp_path / "v5.npz", r"is an \.npz archive of format version 5 \(expected HDF5 from"):
+        io.load_calibration(tmp_path / "v5.npz")
+    entries = {k: v for k, v in entries.items() if k not in RESIDUAL}
+    header = {**header_of(calibration_entries(calibration_path)), "format_version": 3}
+    header["arrays"] = {k: v for k, v in header["arrays"].items() if k not in RESIDUAL}
     rewrite_file(tmp_path / "v3.h5", entries, header, recompute_checksum=True, container="hdf5")
     with refused(CalibrationFileError, tmp_path / "v3.h5", r"is HDF5 of format version 3 \(expected HDF5 from format version 4 on"):
         io.load_calibration(tmp_path / "v3.h5")
@@ -423,11 +435,11 @@ def test_load_calibration_wrong_format(calibration_path):
 
 def test_load_calibration_newer_version(calibration_path):
     entries = calibration_entries(calibration_path)
-    header = {**header_of(entries), "format_version": 5, "new_field": "whatever a newer one adds"}
+    header = {**header_of(entries), "format_version": 6, "new_field": "whatever a newer one adds"}
     rewrite_file(calibration_path, entries, header)
     match = (
-        "is spherejax-calibration format version 5, newer than spherejax 0.1.0 reads "
-        r"\(expected format version 4 or older; upgrade spherejax"
+        "is spherejax-calibration format version 6, newer than spherejax 0.1.0 reads "
+        r"\(expected format version 5 or older; upgrade spherejax"
     )
     with refused(CalibrationFileError, calibration_path, match):
         io.load_calibration(calibration_path)
@@ -436,14 +448,16 @@ def test_load_calibration_newer_version(calibration_path):
 def written_checksum(header: dict, entries: dict) -> str:
     """The checksum as the io module docstring specifies it, written out here (not taken from io)
     so that a change of io's checksum shows: SHA-256 of the canonical header JSON without the
-    checksum, then, for dark, white, patch, coeffs, wiener and wiener_offset (none in format
-    version 1), the line "<name> <dtype.str> <shape>\\n" and the array's bytes in C order."""
+    checksum, then, for dark, white, patch, coeffs, wiener, wiener_offset (none in format
+    version 1) and the four arrays of the kernel residual (format version 5 on), the line
+    "<name> <dtype.str> <shape>\\n" and the array's bytes in C order."""
     digest = hashlib.sha256(json.dumps(
         {k: v for k, v in header.items() if k != "checksum"},
         sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False,
     ).encode("utf-8"))
-    names = ("dark", "white", "patch", "coeffs", "wiener", "wiener_offset")
-    for name in names[:5] if header["format_version"] == 1 else names:
+    names = ("dark", "white", "patch", "coeffs", "wiener", "wiener_offset", *RESIDUAL)
+    version = header["format_version"]
+    for name in names[:5] if version == 1 else names[:6] if version < 5 else names:
         array = entries[name]
         digest.update(f"{name} {array.dtype.str} {json.dumps(list(array.shape))}\n".encode("ascii"))
         digest.update(np.ascontiguousarray(array).tobytes())
@@ -458,9 +472,9 @@ def write_older(path, calibration: sj.Calibration, version: int) -> dict:
     entries = calibration_entries(path)
     header = {k: v for k, v in header.items() if k != "checksum" and (version >= 3 or k != "noise_model")}
     header["format_version"] = version
-    if version == 1:
-        del entries["wiener_offset"]
-        header["arrays"] = {k: v for k, v in header["arrays"].items() if k != "wiener_offset"}
+    dropped = (*RESIDUAL, "wiener_offset") if version == 1 else RESIDUAL  # the kernel residual: version 5 on
+    entries = {k: v for k, v in entries.items() if k not in dropped}
+    header["arrays"] = {k: v for k, v in header["arrays"].items() if k not in dropped}
     header["checksum"] = written_checksum(header, entries)
     entries["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
     with open(path, "wb") as file:  # np.savez(path) would add .npz to another name
@@ -643,8 +657,9 @@ def test_old_version_3_npz_gives_the_same_calibration(tmp_path, rng, monkeypatch
     written = write_older(old, calibration, 3)
     (from_new, _), (from_old, header) = io.load_calibration(new), io.load_calibration(old, band_centres_nm=BANDS)
     assert header == written and header["format_version"] == 3
-    for name in io.CALIBRATION_ARRAYS:
+    for name in (name for name in io.CALIBRATION_ARRAYS if name not in RESIDUAL):
         assert np.asarray(getattr(from_old, name)).tobytes() == np.asarray(getattr(from_new, name)).tobytes(), name
+    assert from_old.wiener_residual is None and from_new.wiener_residual is None
     assert (from_old.illuminant, from_old.observer, from_old.saturation) == (from_new.illuminant, from_new.observer, from_new.saturation)
     monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 0)  # an .npz is read whole all the same
     with io.open_calibration(old) as opened:
@@ -701,3 +716,32 @@ def test_save_calibration_closes_the_hdf5_file_before_the_rename(tmp_path, rng, 
     io.save_calibration(tmp_path / "cal.h5", make_calibration(rng), instrument_id="sim-sphere-1", band_centres_nm=BANDS)
     assert [event[0] for event in events] == ["close", "fsync", "rename", "fsync"]
     assert io.atomic.is_temp_sibling(events[2][1], "cal.h5")
+
+
+def test_a_kernel_residual_round_trips_and_bad_shapes_are_refused(tmp_path, rng):
+    """Format version 5 stores the estimator's kernel residual (E8): read back bit for bit, in
+    the whole calibration and in its rows; shapes that do not fit the bands or one m are refused
+    in one line naming the array."""
+    from spherejax.estimation import KernelResidual
+
+    calibration = make_calibration(rng)
+    residual = KernelResidual(*(np.asarray(x, np.float32) for x in (
+        rng.normal(size=B), rng.normal(size=(B, B)), rng.normal(size=(5, B)), rng.normal(size=(31, 5)))))
+    kernel = dataclasses.replace(calibration, wiener_residual=residual)
+    path = tmp_path / "kernel.h5"
+    header = io.save_calibration(path, kernel, instrument_id="sim-sphere-1", band_centres_nm=BANDS)
+    assert header["arrays"]["wiener_residual_inducing"]["shape"] == [5, B]
+    loaded, _ = io.load_calibration(path)
+    with io.open_calibration(path) as opened:
+        rows = opened.rows(2, 4)
+    for got in (loaded.wiener_residual, rows.wiener_residual):
+        for name in ("centre", "whitening", "inducing", "weights"):
+            assert np.asarray(getattr(got, name)).tobytes() == np.asarray(getattr(residual, name)).tobytes(), name
+    entries = calibration_entries(path)
+    entries["wiener_residual_weights"] = entries["wiener_residual_weights"][:, :4]
+    header = header_of(entries)
+    header["arrays"]["wiener_residual_weights"]["shape"] = [31, 4]  # as the header says: a residual of two m
+    rewrite_file(path, entries, header, recompute_checksum=True)
+    match = r"array 'wiener_residual_weights' has shape \[31, 4\] \(expected a kernel residual of the 16 bands"
+    with refused(CalibrationFileError, path, match):
+        io.load_calibration(path)

@@ -23,10 +23,10 @@ def _numpy_features(v, mu, S, Z):
 
 def _random_estimator(rng, bands=16, m=12, dtype=np.float64):
     affine = estimation.WienerEstimator(jnp.asarray(rng.normal(size=(31, bands)), dtype), jnp.asarray(rng.normal(size=31), dtype))
-    return kernel_residual.ResidualKernelEstimator(
-        affine, jnp.asarray(rng.normal(size=bands), dtype), jnp.asarray(rng.normal(size=(bands, bands)) / 4, dtype),
+    return kernel_residual.ResidualKernelEstimator(affine, kernel_residual.KernelResidual(
+        jnp.asarray(rng.normal(size=bands), dtype), jnp.asarray(rng.normal(size=(bands, bands)) / 4, dtype),
         jnp.asarray(rng.normal(size=(m, bands)), dtype), jnp.asarray(rng.normal(size=(31, m)), dtype),
-    )
+    ))
 
 
 @pytest.mark.parametrize("dtype, tolerance", [(np.float64, 1e-12), (np.float32, 2e-5)])
@@ -34,13 +34,13 @@ def test_the_estimate_is_the_affine_mean_plus_the_kernel_residual_line_by_line(d
     rng = np.random.default_rng(0)
     estimator = _random_estimator(rng, dtype=dtype)
     v = rng.normal(size=(50, 16)).astype(dtype)
-    features = _numpy_features(*(np.asarray(x, np.float64) for x in (v, estimator.centre, estimator.whitening, estimator.inducing)))
+    features = _numpy_features(*(np.asarray(x, np.float64) for x in (v, estimator.kernel.centre, estimator.kernel.whitening, estimator.kernel.inducing)))
     expected = (v.astype(np.float64) @ np.asarray(estimator.matrix, np.float64).T + np.asarray(estimator.offset, np.float64)
-                + features @ np.asarray(estimator.residual, np.float64).T)
+                + features @ np.asarray(estimator.kernel.weights, np.float64).T)
     got = estimation.wiener(jnp.asarray(v), estimator)
     assert got.dtype == dtype and got.shape == (50, 31)
     np.testing.assert_allclose(np.asarray(got, np.float64), expected, rtol=tolerance, atol=tolerance * np.abs(expected).max())
-    k = kernel_residual.kernel_features(jnp.asarray(v), estimator.centre, estimator.whitening, estimator.inducing)
+    k = kernel_residual.kernel_features(jnp.asarray(v), estimator.kernel.centre, estimator.kernel.whitening, estimator.kernel.inducing)
     np.testing.assert_allclose(np.asarray(k, np.float64), features, atol=tolerance * 10)
 
 
@@ -156,8 +156,11 @@ def test_bad_arguments_are_refused_in_one_line():
     with pytest.raises(ValueError, match=r"mean: expected one of .*got 'wiener'"):
         estimation.fit_kernel_estimator(V, R, mean="wiener")
     with pytest.raises(ValueError, match=r"inducing: expected shape \(m, 16\)"):
+        kernel_residual.KernelResidual(jnp.zeros(16), jnp.eye(16), jnp.zeros((4, 3)), jnp.zeros((31, 4)))
+    with pytest.raises(ValueError, match=r"kernel: expected a residual of the affine estimator's 16 bands, got 8"):
         kernel_residual.ResidualKernelEstimator(
-            estimation.WienerEstimator(jnp.zeros((31, 16)), jnp.zeros(31)), jnp.zeros(16), jnp.eye(16), jnp.zeros((4, 3)), jnp.zeros((31, 4)),
+            estimation.WienerEstimator(jnp.zeros((31, 16)), jnp.zeros(31)),
+            kernel_residual.KernelResidual(jnp.zeros(8), jnp.eye(8), jnp.zeros((4, 8)), jnp.zeros((31, 4))),
         )
 
 

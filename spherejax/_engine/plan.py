@@ -154,6 +154,10 @@ class Plan:
         self._calibration = weakref.ref(calibration) if self.concrete else (lambda: calibration)
         self.device = _device_of(calibration) if self.concrete else None
         on_cpu = self.device is not None and self.device.platform == "cpu"
+        if calibration.wiener_residual is not None:
+            # The fused CPU kernel and the GPU kernel apply affine estimators only: a calibration
+            # with a kernel residual (E8) runs the jax.numpy path on every device.
+            kernel_mode = None
         self.kernel_mode = _kernel_mode(kernel_mode, self.dtype, self.compute_dtype, calibration.bands, self.device)
         box = calibration.patch_box if calibration.patch is not None else None
         if calibration.patch is not None and box is None:  # a traced patch: the whole frame

@@ -15,8 +15,8 @@ EXIT_BAD_INPUT = 2
 #: Stage II losses (spherejax.polynomial.LOSSES, repeated so --help needs no JAX import).
 LOSSES = ("l2", "huber", "cauchy", "tukey")
 
-#: Reflectance estimators (spherejax.estimation.METHOD_NAMES, repeated for the same reason).
-WIENER_METHODS = ("auto", "training", "model")
+#: Reflectance estimators (spherejax.estimation.ESTIMATOR_NAMES, repeated for the same reason).
+WIENER_METHODS = ("auto", "training", "model", "kernel")
 
 
 def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:

@@ -73,6 +73,7 @@ from .kernel_residual import (
     INDUCING_POINTS,
     KERNEL_LENGTHSCALE_GRID,
     KERNEL_RIDGE_GRID,
+    KernelResidual,
     ResidualKernelEstimator,
     cross_validate_kernel,
 )
@@ -91,11 +92,18 @@ METHODS = types.MappingProxyType({
 METHOD_NAMES = ("auto", *METHODS)
 
 
-def validate_method(method, name: str = "method") -> str:
-    """`method` if it is one of `METHOD_NAMES`; else ValueError naming `name`, the value and the
-    choices, e.g. "method: expected one of ('auto', 'training', 'model'), got 'wiener'"."""
-    if not isinstance(method, str) or method not in METHOD_NAMES:
-        raise ValueError(f"{name}: expected one of {METHOD_NAMES}, got {method!r}")
+#: The estimators a calibration can be made with (`calibrate_session`'s wiener_method, the command
+#: line's --wiener-method): the affine methods (`METHOD_NAMES`) and "kernel", the residual kernel
+#: estimator on the affine one "auto" chooses (`fit_kernel_estimator`).
+ESTIMATOR_NAMES = (*METHOD_NAMES, "kernel")
+
+
+def validate_method(method, name: str = "method", names: tuple[str, ...] = METHOD_NAMES) -> str:
+    """`method` if it is one of `names` (default `METHOD_NAMES`); else ValueError naming `name`,
+    the value and the choices, e.g. "method: expected one of ('auto', 'training', 'model'), got
+    'wiener'"."""
+    if not isinstance(method, str) or method not in names:
+        raise ValueError(f"{name}: expected one of {names}, got {method!r}")
     return method
 
 
@@ -217,7 +225,7 @@ def fit_kernel_estimator(
     # Back to the caller's response units: u = S (v / scale - mu) = (S / scale) (v - scale mu).
     affine = WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=affine_reports)
     return ResidualKernelEstimator(
-        affine, mu * scale, S / scale, Z, A, cross_validation=(kernel.cross_validation, *affine_reports),
+        affine, KernelResidual(mu * scale, S / scale, Z, A), cross_validation=(kernel.cross_validation, *affine_reports),
     )
 
 
@@ -235,9 +243,11 @@ def _in_response_units(report: CrossValidation, scale: float) -> CrossValidation
 
 __all__ = [
     "DEFAULT_FOLDS",
+    "ESTIMATOR_NAMES",
     "INDUCING_POINTS",
     "KERNEL_LENGTHSCALE_GRID",
     "KERNEL_RIDGE_GRID",
+    "KernelResidual",
     "ResidualKernelEstimator",
     "cross_validate_kernel",
     "fit_kernel_estimator",

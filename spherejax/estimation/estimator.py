@@ -90,12 +90,12 @@ def wiener(v, W):
     Returns:
       reflectance, shape (..., 31), 400..700 nm step 10.
     """
-    from .kernel_residual import ResidualKernelEstimator, residual_of  # it builds on this module
+    from .kernel_residual import ResidualKernelEstimator  # it builds on this module
 
     v = _checks.band_array("v", v)
     if isinstance(W, ResidualKernelEstimator):
         dtype = _checks.float_dtype(v, W.matrix)
-        return wiener(v.astype(dtype), W.affine) + residual_of(v.astype(dtype), W)
+        return wiener(v.astype(dtype), W.affine) + W.kernel(v.astype(dtype))
     estimator = as_estimator(W)
     W = estimator.matrix
     _checks.require_shape("W", W, (N_WAVELENGTHS, v.shape[-1]), "31 wavelengths x the bands of v")

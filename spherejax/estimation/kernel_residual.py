@@ -70,39 +70,68 @@ KERNEL_RIDGE_GRID = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
 _WHITENING_FLOOR = 1e-8
 
 
-class ResidualKernelEstimator(eqx.Module):
-    """r = W v + r0 + A k(v) (E8-E10), a pytree.
+class KernelResidual(eqx.Module):
+    """The residual term A k(v) of (E8-E10), a pytree: what a calibration adds to its affine
+    estimator (`spherejax.Calibration.wiener_residual`).
 
-    affine: the mean, a `WienerEstimator` (W (31, B), r0 (31,)).
     centre: mu (B,). whitening: S / l (B, B), rows applied to v - mu. inducing: z / l (m, B).
-    residual: A (31, m).
+    weights: A (31, m). Called on responses (..., B): the residual (..., 31).
+    """
+
+    centre: jax.Array
+    whitening: jax.Array
+    inducing: jax.Array
+    weights: jax.Array
+
+    def __check_init__(self):
+        if self.centre.ndim != 1:
+            raise ValueError(f"centre: expected shape (B,), one value per band, got {tuple(self.centre.shape)}")
+        bands = self.centre.shape[0]
+        _checks.require_shape("whitening", self.whitening, (bands, bands), "bands x bands")
+        if self.inducing.ndim != 2 or self.inducing.shape[1] != bands:
+            raise ValueError(f"inducing: expected shape (m, {bands}), got {tuple(self.inducing.shape)}")
+        _checks.require_shape("weights", self.weights, (N_WAVELENGTHS, self.inducing.shape[0]), "31 x inducing points")
+
+    @property
+    def bands(self) -> int:
+        return int(self.centre.shape[0])
+
+    def astype(self, dtype) -> KernelResidual:
+        return KernelResidual(*(x.astype(dtype) for x in (self.centre, self.whitening, self.inducing, self.weights)))
+
+    def __call__(self, v):
+        """A k(v) (..., 31) for responses v (..., B), in v's float dtype."""
+        dtype = v.dtype
+        k = kernel_features(v, self.centre.astype(dtype), self.whitening.astype(dtype), self.inducing.astype(dtype))
+        return jnp.matmul(k, self.weights.astype(dtype).T, precision=_HIGHEST)
+
+
+class ResidualKernelEstimator(eqx.Module):
+    """r = W v + r0 + A k(v) (E8-E10), a pytree: `affine` (a `WienerEstimator`, W (31, B) and
+    r0 (31,)) and `kernel` (its `KernelResidual`).
+
     method: "kernel" (static). cross_validation: every method tried, the chosen one first
     (static), as `WienerEstimator.cross_validation`.
     """
 
     affine: WienerEstimator
-    centre: jax.Array
-    whitening: jax.Array
-    inducing: jax.Array
-    residual: jax.Array
+    kernel: KernelResidual
     method: str = eqx.field(static=True, default="kernel")
     cross_validation: tuple[CrossValidation, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         bands = self.affine.matrix.shape[1]
-        _checks.require_shape("centre", self.centre, (bands,), "one value per band")
-        _checks.require_shape("whitening", self.whitening, (bands, bands), "bands x bands")
-        if self.inducing.ndim != 2 or self.inducing.shape[1] != bands:
-            raise ValueError(f"inducing: expected shape (m, {bands}), got {tuple(self.inducing.shape)}")
-        _checks.require_shape("residual", self.residual, (N_WAVELENGTHS, self.inducing.shape[0]), "31 x inducing points")
+        if self.kernel.bands != bands:
+            raise ValueError(f"kernel: expected a residual of the affine estimator's {bands} bands, got {self.kernel.bands}")
 
     @property
     def matrix(self) -> jax.Array:
-        """The affine mean's W (31, B): what a caller of the linear part needs (its band count)."""
+        """The affine mean's W (31, B)."""
         return self.affine.matrix
 
     @property
     def offset(self) -> jax.Array:
+        """The affine mean's r0 (31,)."""
         return self.affine.offset
 
     def __call__(self, v):
@@ -119,13 +148,6 @@ def kernel_features(v, centre, whitening, inducing):
     squared = (jnp.sum(u * u, axis=-1, keepdims=True) - 2.0 * jnp.matmul(u, inducing.T, precision=_HIGHEST)
                + jnp.sum(inducing * inducing, axis=-1))
     return jnp.exp(-0.5 * jnp.maximum(squared, 0.0))
-
-
-def residual_of(v, estimator: ResidualKernelEstimator):
-    """A k(v) (..., 31): the residual term of (E8), in v's float dtype."""
-    dtype = v.dtype
-    k = kernel_features(v, estimator.centre.astype(dtype), estimator.whitening.astype(dtype), estimator.inducing.astype(dtype))
-    return jnp.matmul(k, estimator.residual.astype(dtype).T, precision=_HIGHEST)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,10 +262,10 @@ __all__ = [
     "INDUCING_POINTS",
     "KERNEL_LENGTHSCALE_GRID",
     "KERNEL_RIDGE_GRID",
+    "KernelResidual",
     "ResidualKernelEstimator",
     "cross_validate_kernel",
     "inducing_points_of",
     "kernel_features",
-    "residual_of",
     "whitening_of",
 ]

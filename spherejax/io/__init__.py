@@ -98,15 +98,16 @@ and a region is
 Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
 camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
 
-Calibration file (format "spherejax-calibration", version 4)
+Calibration file (format "spherejax-calibration", version 5)
 ------------------------------------------------------------
 An HDF5 file (h5py; told by its first 8 bytes, b"\\x89HDF\\r\\n\\x1a\\n", not its name,
 conventionally .h5) whose root group holds one dataset per array of a `Calibration`
     dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B),
-    wiener_offset (31,)
+    wiener_offset (31,), wiener_residual_centre (B,), wiener_residual_whitening (B, B),
+    wiener_residual_inducing (m, B), wiener_residual_weights (31, m)
 each with its meaning as the string attribute "description", and nothing else; and the root's
 attribute "header", a string of UTF-8 JSON:
-    {"format": "spherejax-calibration", "format_version": 4, "software_version",
+    {"format": "spherejax-calibration", "format_version": 5, "software_version",
      "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
      "saturation": number or null, "created": UTC ISO 8601,
      "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
@@ -118,14 +119,19 @@ storage). Read it with ``json.loads(h5py.File(path)["/"].attrs["header"])`` and
 ``h5py.File(path)["dark"][r0:r1]``. The checksum is SHA-256 over
 the header JSON without the "checksum" field, serialised with sorted keys, separators "," and ":"
 and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
-wiener, wiener_offset, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
+wiener, wiener_offset, wiener_residual_centre, wiener_residual_whitening, wiener_residual_inducing,
+wiener_residual_weights, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
 the array's raw bytes in C order (as h5py reads the dataset: a bool patch is one byte per
 pixel, 0 or 1). It is computed from the parsed header, so the stored JSON's layout does not
 matter, and it is the same in both containers. "metadata" is free JSON from the writer
 (`save_calibration(..., metadata=)`), e.g. how the Stage II and Wiener fits were made.
 
-The reflectance estimate is affine, r = W v_tilde + r0, with W the "wiener" array and r0 the
-"wiener_offset" array.
+The reflectance estimate is r = W v_tilde + r0 + A k(v_tilde), with W the "wiener" array, r0 the
+"wiener_offset" array and the kernel residual A k (`spherejax.estimation.kernel_residual`, E8-E10):
+k_j(v) = exp(-|S (v - mu) - z_j|^2 / 2), mu the "wiener_residual_centre", S the
+"wiener_residual_whitening" (the lengthscale folded in), z_j the rows of
+"wiener_residual_inducing" and A the "wiener_residual_weights". An affine estimator has m = 0
+(no inducing point: k and A k are empty and zero) and zeros for mu and S.
 
 "noise_model" (optional; absent or null: none) is the camera's noise and the calibration's
 uncertainties for per-pixel uncertainties (`spherejax.uncertainty.NoiseModel`, as its
@@ -142,11 +148,13 @@ every value back exactly):
        estimator's sampling covariance, `spherejax.EstimatorCovariance`), or null}
 All numbers finite. Only "gain_e_per_count" and "read_noise_counts" are required inside it.
 
-Older versions are still read (whole). Version 3 is version 4 in an .npz archive
+Older versions are still read (whole). Version 4 is version 5 without the four
+"wiener_residual_*" arrays (an affine estimator), in the header's "arrays" and in the checksum.
+Version 3 is version 4 in an .npz archive
 (`numpy.savez`, no pickled objects; told by its first bytes, b"PK\\x03\\x04"), read with
 `numpy.load(allow_pickle=False)`: one .npy member per array and "header", a uint8 array of the
-same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Version 4 is HDF5 only and
-versions 1 to 3 .npz only.
+same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Versions 4 and 5 are HDF5
+only and versions 1 to 3 .npz only.
 Version 2 is version 3 without "noise_model" (no noise model;
 a null one is read as absent, any other is refused).
 Version 1 (before the offset existed) is version 2 without the member "wiener_offset", in the

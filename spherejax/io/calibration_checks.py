@@ -22,7 +22,7 @@ from .documents import (
 from .errors import CalibrationFileError, _one_line, _show
 
 CALIBRATION_FORMAT = "spherejax-calibration"
-CALIBRATION_FORMAT_VERSION = 4
+CALIBRATION_FORMAT_VERSION = 5
 #: Arrays of a calibration file in checksum order, with the description stored in its header.
 CALIBRATION_ARRAYS = {
     "dark": "dark frame (H, W, B) in raw counts, subtracted in the flat field (Eq. 10)",
@@ -34,9 +34,25 @@ CALIBRATION_ARRAYS = {
     "wiener_offset": "Wiener estimator offset r0 (31,), reflectance (dimensionless) at 400..700 nm "
     "step 10: reflectance = wiener @ v_tilde + wiener_offset, the affine form of the Wiener "
     "estimate (Section 2, Wiener estimation; new in format version 2, 0 in version 1)",
+    "wiener_residual_centre": "kernel residual of the estimator, mu (B,): the training responses' mean "
+    "(E9 of spherejax.estimation.kernel_residual; zeros for an affine estimator; new in format version 5)",
+    "wiener_residual_whitening": "kernel residual, S / l (B, B): the whitening of responses v - mu divided by "
+    "the kernel's lengthscale (E9; zeros for an affine estimator; new in format version 5)",
+    "wiener_residual_inducing": "kernel residual, z / l (m, B): the m inducing points in whitened units "
+    "(E10; m = 0 for an affine estimator; new in format version 5)",
+    "wiener_residual_weights": "kernel residual, A (31, m): reflectance = wiener @ v_tilde + wiener_offset "
+    "+ A @ exp(-|S (v_tilde - mu) / l - z_j / l|^2 / 2) (E8; m = 0 for an affine estimator; new in format "
+    "version 5)",
 }
+#: The arrays of a kernel residual (`estimation.KernelResidual`: centre, whitening, inducing,
+#: weights), in that order; m = 0 rows of inducing points for an affine estimator.
+RESIDUAL_ARRAYS = ("wiener_residual_centre", "wiener_residual_whitening", "wiener_residual_inducing", "wiener_residual_weights")
+_AFFINE_ARRAYS = tuple(name for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS)
 #: The arrays of an older calibration format version, where they differ from CALIBRATION_ARRAYS.
-_OLDER_CALIBRATION_ARRAYS = {1: tuple(name for name in CALIBRATION_ARRAYS if name != "wiener_offset")}
+_OLDER_CALIBRATION_ARRAYS = {
+    1: tuple(name for name in _AFFINE_ARRAYS if name != "wiener_offset"),
+    **dict.fromkeys((2, 3, 4), _AFFINE_ARRAYS),
+}
 #: The calibration format version that added the header's "noise_model".
 _NOISE_MODEL_SINCE = 3
 #: The format version that moved from .npz to HDF5.
@@ -81,8 +97,15 @@ class _ArraysV1(Document):
     wiener: _Entry
 
 
-class _Arrays(_ArraysV1):
+class _ArraysV2(_ArraysV1):
     wiener_offset: _Entry
+
+
+class _Arrays(_ArraysV2):
+    wiener_residual_centre: _Entry
+    wiener_residual_whitening: _Entry
+    wiener_residual_inducing: _Entry
+    wiener_residual_weights: _Entry
 
 
 class _CalibrationHeader(Document):
@@ -107,13 +130,21 @@ class _CalibrationHeaderV1(_CalibrationHeader):
     arrays: Annotated[_ArraysV1, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[1])}")]
 
 
+class _CalibrationHeaderV2(_CalibrationHeader):
+    arrays: Annotated[_ArraysV2, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[2])}")]
+
+
+#: The header's document of each older format version (the current one: _CalibrationHeader).
+_OLDER_HEADERS = {1: _CalibrationHeaderV1, 2: _CalibrationHeaderV2, 3: _CalibrationHeaderV2, 4: _CalibrationHeaderV2}
+
+
 def _check_calibration_header(path, header) -> None:
     """Check the header's fields, format and version first (a newer file may differ in the rest)."""
     if not isinstance(header, dict):
         raise CalibrationFileError(path, f"has a header of {_show(header)}", "a JSON object")
     error = located(CalibrationFileError, path)
     version = _check_format(header, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, error=error, where="header")
-    model = _CalibrationHeaderV1 if version in _OLDER_CALIBRATION_ARRAYS else _CalibrationHeader
+    model = _OLDER_HEADERS.get(version, _CalibrationHeader)
     check_document(model, header, error=error, where="header")
     noise_model_of(path, header)
 
@@ -206,6 +237,22 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
             f"{arrays['dark'].shape}",
             "one band centre per band of the arrays",
         )
+    if RESIDUAL_ARRAYS[0] in names:
+        _check_residual_shapes(path, len(bands), *(arrays[name].shape for name in RESIDUAL_ARRAYS))
+
+
+def _check_residual_shapes(path, bands: int, centre, whitening, inducing, weights) -> None:
+    """The kernel residual's arrays fit B bands and one m (the docstring of spherejax.io)."""
+    m = inducing[0] if len(inducing) == 2 else -1
+    expected = {"wiener_residual_centre": (bands,), "wiener_residual_whitening": (bands, bands),
+                "wiener_residual_inducing": (m, bands), "wiener_residual_weights": (N_WAVELENGTHS, m)}
+    for name, shape in zip(RESIDUAL_ARRAYS, (centre, whitening, inducing, weights)):
+        if tuple(shape) != expected[name] or m < 0:
+            raise CalibrationFileError(
+                path, f"array {name!r} has shape {list(shape)}",
+                f"a kernel residual of the {bands} bands: centre ({bands},), whitening ({bands}, {bands}), "
+                f"inducing (m, {bands}) and weights (31, m), m >= 0 (0: an affine estimator)",
+            )
 
 
 def _decode_header(path, raw: bytes | None, container: str) -> dict:

@@ -16,6 +16,7 @@ import pathlib
 from collections.abc import Iterator
 
 import h5py
+import jax.numpy as jnp
 import numpy as np
 
 from ..grid import N_WAVELENGTHS
@@ -26,7 +27,7 @@ from ..uncertainty import NoiseModel
 # `_utc_now` and `IN_MEMORY_BYTES` here. The block sizes `_READ_BLOCK` and `_CHUNK_BYTES` are read
 # in `calibration_hdf5` (patch them there) and are not re-exported, so a patch here fails loudly.
 from .calibration_checks import (
-    CALIBRATION_ARRAYS, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, _HDF5_SINCE, _array_entry,
+    CALIBRATION_ARRAYS, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, RESIDUAL_ARRAYS, _HDF5_SINCE, _array_entry,
     _check_calibration_contents, _decode_header, _require_usable_patch, noise_model_of,
 )
 from .calibration_hdf5 import (
@@ -83,7 +84,8 @@ def save_calibration(
         raise CalibrationFileError(
             path, f"cannot hold a noise model of type {type(noise_model).__name__}", "a spherejax.NoiseModel or None"
         )
-    arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS}
+    arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS}
+    arrays.update(_residual_arrays(calibration))
     header = {
         "format": CALIBRATION_FORMAT,
         "format_version": CALIBRATION_FORMAT_VERSION,
@@ -105,6 +107,19 @@ def save_calibration(
     _require_usable_patch(path, arrays["dark"], arrays["white"], arrays["patch"])
     _write_hdf5(path, header, arrays)
     return header
+
+
+def _residual_arrays(calibration: Calibration) -> dict[str, np.ndarray]:
+    """The kernel residual's arrays as stored (`RESIDUAL_ARRAYS`): the calibration's, or those of
+    no residual (m = 0 inducing points, zeros) for an affine estimator."""
+    residual = calibration.wiener_residual
+    if residual is None:
+        bands, dtype = calibration.bands, np.asarray(calibration.wiener).dtype
+        values = (np.zeros(bands, dtype), np.zeros((bands, bands), dtype), np.zeros((0, bands), dtype),
+                  np.zeros((N_WAVELENGTHS, 0), dtype))
+    else:
+        values = (residual.centre, residual.whitening, residual.inducing, residual.weights)
+    return {name: np.asarray(value) for name, value in zip(RESIDUAL_ARRAYS, values)}
 
 
 def _native(array: np.ndarray) -> np.ndarray:
@@ -183,9 +198,17 @@ class CalibrationFile:
             **self._calibration_fields,
         )
 
-    def _small_arrays(self) -> dict[str, np.ndarray]:
-        """The arrays every part of the calibration shares: coeffs, wiener and wiener_offset."""
-        return {name: self._value(name) for name in ("coeffs", "wiener", "wiener_offset")}
+    def _small_arrays(self) -> dict:
+        """What every part of the calibration shares: coeffs, wiener, wiener_offset and the
+        estimator's kernel residual (None when the file has none: format version 4 and older,
+        or m = 0)."""
+        small = {name: self._value(name) for name in ("coeffs", "wiener", "wiener_offset")}
+        residual = None
+        if RESIDUAL_ARRAYS[0] in self._arrays and self._arrays["wiener_residual_inducing"].shape[0] > 0:
+            from ..estimation import KernelResidual
+
+            residual = KernelResidual(*(jnp.asarray(self._value(name)) for name in RESIDUAL_ARRAYS))
+        return {**small, "wiener_residual": residual}
 
     @property
     def noise_model(self) -> NoiseModel | None:
@@ -212,7 +235,8 @@ class CalibrationFile:
     def calibration(self) -> Calibration:
         """The whole `Calibration` in memory."""
         return Calibration(
-            **{name: self._value(name) for name in CALIBRATION_ARRAYS}, **self._calibration_fields
+            **{name: self._value(name) for name in ("dark", "white", "patch")}, **self._small_arrays(),
+            **self._calibration_fields,
         )
 
     def close(self) -> None:
