@@ -745,3 +745,14 @@ def test_a_kernel_residual_round_trips_and_bad_shapes_are_refused(tmp_path, rng)
     match = r"array 'wiener_residual_weights' has shape \[31, 4\] \(expected a kernel residual of the 16 bands"
     with refused(CalibrationFileError, path, match):
         io.load_calibration(path)
+
+
+def test_a_centre_without_inducing_points_is_refused(calibration_path):
+    """m = 0 is an affine estimator: a non-zero centre (or whitening) there would be read as
+    nothing, so the file is refused rather than silently taken for affine."""
+    entries = calibration_entries(calibration_path)
+    entries["wiener_residual_centre"] = entries["wiener_residual_centre"] + 1
+    rewrite_file(calibration_path, entries, header_of(entries), recompute_checksum=True)
+    match = r"array 'wiener_residual_centre' is not zero with no inducing point \(m = 0\)"
+    with refused(CalibrationFileError, calibration_path, match):
+        io.load_calibration(calibration_path)

@@ -25,6 +25,9 @@ BANDS = list(range(400, 701, 20))
 B = len(BANDS)
 ARRAYS_V1 = ("dark", "white", "patch", "coeffs", "wiener")
 ARRAYS_V2 = (*ARRAYS_V1, "wiener_offset")
+#: Format version 5 added the estimator's kernel residual (four arrays, m = 0 for an affine one).
+RESIDUAL = ("wiener_residual_centre", "wiener_residual_whitening", "wiener_residual_inducing", "wiener_residual_weights")
+ARRAYS_V5 = (*ARRAYS_V2, *RESIDUAL)
 
 
 # --------------------------------------------------------------------------------------- helpers
@@ -128,10 +131,18 @@ def written_checksum(header: dict, entries: dict, names) -> str:
     return "sha256:" + digest.hexdigest()
 
 
-def rewrite(path, entries, header, *, names=ARRAYS_V2, checksum=True) -> dict:
+def rewrite(path, entries, header, *, names=None, checksum=True) -> dict:
     """Write `entries` back with `header` (its checksum recomputed unless `checksum` is False):
-    HDF5, or an .npz as the writers of format versions 1 to 3 wrote (`write_calibration_entries`)."""
+    HDF5, or an .npz as the writers of format versions 1 to 3 wrote (`write_calibration_entries`);
+    for a header of format version 4 or older without the kernel residual's arrays, which came in
+    version 5, as those writers wrote. `names`: the arrays the checksum covers (default: the
+    header's version's)."""
     header = dict(header)
+    if header["format_version"] < 5:
+        entries = {k: v for k, v in entries.items() if k not in RESIDUAL}
+        header["arrays"] = {k: v for k, v in header["arrays"].items() if k not in RESIDUAL}
+    if names is None:
+        names = ARRAYS_V5 if header["format_version"] >= 5 else ARRAYS_V2
     if checksum:
         header["checksum"] = written_checksum(header, entries, names)
     entries = {**entries, "header": np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)}
