@@ -109,3 +109,26 @@ def test_a_residual_of_other_bands_is_refused(calibrations):
     other = estimation.KernelResidual(jnp.zeros(8), jnp.eye(8), jnp.zeros((4, 8)), jnp.zeros((31, 4)))
     with pytest.raises(ValueError, match=r"wiener_residual: expected a residual of the 16 bands, got one of 8"):
         dataclasses.replace(affine, wiener_residual=other)
+
+
+def test_large_frames_get_the_residual_too():
+    """Frames of 8 MiB of outputs and more take the plan's prepared-constants route, which built
+    its constants without the residual (found at 1024 x 1024: the kernel calibration corrected as
+    the affine one)."""
+    rng = np.random.default_rng(1)
+    H = W = 256
+    dark = rng.uniform(90, 110, (H, W, B)).astype(np.float32)
+    white = rng.uniform(9000, 11000, (H, W, B)).astype(np.float32)
+    patch = np.zeros((H, W), bool)
+    patch[10:40, 10:40] = True
+    affine = sj.Calibration(dark=dark, white=white, patch=patch, coeffs=np.tile([0.0, 1.0, 0.0, 0.0], (B, 1)).astype(np.float32),
+                            wiener=rng.normal(scale=0.1, size=(31, B)).astype(np.float32), wiener_offset=np.zeros(31, np.float32))
+    residual = estimation.KernelResidual(
+        jnp.full(B, 0.5, jnp.float32), jnp.eye(B, dtype=jnp.float32) * 3, jnp.asarray(rng.normal(size=(16, B)), jnp.float32),
+        jnp.asarray(rng.normal(scale=0.01, size=(31, 16)), jnp.float32),
+    )
+    kernel = dataclasses.replace(affine, wiener_residual=residual)
+    raw = (dark + rng.uniform(0.2, 0.8, (H, W, B)) * (white - dark)).astype(np.uint16)
+    got = np.asarray(sj.correct(raw, kernel).reflectance, np.float64)
+    v = np.asarray(sj.correct(raw, kernel, intermediates=True).v_stage2, np.float64)
+    np.testing.assert_allclose(got, _numpy_estimate(v, kernel), atol=2e-5)

@@ -102,9 +102,11 @@ def _prepare(calibration, dtype, box, with_mask: bool):
     def host(x):
         return jax.device_put(np.ascontiguousarray(x), device)
 
+    residual = calibration.wiener_residual
     constants = PixelConstants(
         cast(calibration.dark), cast(calibration.white), cast(calibration.coeffs), cast(calibration.wiener),
         cast(calibration.wiener_offset), host(np.asarray(weights, dtype)),
+        None if residual is None else type(residual)(*(cast(x) for x in jax.tree_util.tree_leaves(residual))),
     )
     patch = None
     if box is not None:

@@ -239,16 +239,18 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
         )
     if RESIDUAL_ARRAYS[0] in names:
         _check_residual_shapes(path, len(bands), *(arrays[name].shape for name in RESIDUAL_ARRAYS))
-        if arrays["wiener_residual_inducing"].shape[0] == 0:
-            for name in RESIDUAL_ARRAYS[:2]:
-                array = arrays[name]
-                # A stored array (HDF5, read when needed) is read here: (B,) and (B, B) are small.
-                if (array.read() if hasattr(array, "read") else np.asarray(array)).any():
-                    # m = 0 is an affine estimator: a centre or whitening there would be read as nothing.
-                    raise CalibrationFileError(
-                        path, f"array {name!r} is not zero with no inducing point (m = 0)",
-                        "zeros for an affine estimator's kernel residual",
-                    )
+
+
+
+def _check_no_residual(path, centre: np.ndarray, whitening: np.ndarray) -> None:
+    """With m = 0 inducing points (an affine estimator) the residual's centre and whitening are
+    zeros: anything else would be read as nothing, silently."""
+    for name, array in zip(RESIDUAL_ARRAYS, (centre, whitening)):
+        if np.asarray(array).any():
+            raise CalibrationFileError(
+                path, f"array {name!r} is not zero with no inducing point (m = 0)",
+                "zeros for an affine estimator's kernel residual",
+            )
 
 
 def _check_residual_shapes(path, bands: int, centre, whitening, inducing, weights) -> None:

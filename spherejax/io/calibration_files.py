@@ -28,7 +28,7 @@ from ..uncertainty import NoiseModel
 # in `calibration_hdf5` (patch them there) and are not re-exported, so a patch here fails loudly.
 from .calibration_checks import (
     CALIBRATION_ARRAYS, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, RESIDUAL_ARRAYS, _HDF5_SINCE, _array_entry,
-    _check_calibration_contents, _decode_header, _require_usable_patch, noise_model_of,
+    _check_calibration_contents, _check_no_residual, _decode_header, _require_usable_patch, noise_model_of,
 )
 from .calibration_hdf5 import (
     _EXPECTED_FILE, _StoredArray, _checksum, _container, _hdf5_errors, _index_hdf5, _write_hdf5,
@@ -180,6 +180,8 @@ class CalibrationFile:
             self._patch_calibration = self._crop(*self.patch_box)
             crop = self._patch_calibration
             _require_usable_patch(path, np.asarray(crop.dark), np.asarray(crop.white), np.asarray(crop.patch))
+        if RESIDUAL_ARRAYS[0] in arrays and arrays["wiener_residual_inducing"].shape[0] == 0:
+            _check_no_residual(path, self._value("wiener_residual_centre"), self._value("wiener_residual_whitening"))
         self._noise_model = noise_model_of(path, header)
         self._file = file
 
