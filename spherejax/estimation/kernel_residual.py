@@ -52,9 +52,10 @@ from .estimator import _HIGHEST, CrossValidation, WienerEstimator
 #: multiply-adds), the accuracy with it up to the full regression (m = n). Measured on the four
 #: Kubelka-Munk families (`kubelka_munk.km_family_responses`, 200 targets, 200 other recipes held
 #: out, spherejax's default k-means folds), held-out spectral rms against the affine estimator's:
-#: m = 32 0.83-0.89, m = 64 0.61-0.80, m = 200 (every target) 0.51-0.61; on the other three
-#: families at most 1.046, 1.020 and 1.057 times the affine one's. 64 keeps most of the gain at a
-#: third of the full regression's cost per pixel.
+#: m = 32 0.83-0.89, m = 64 0.61-0.80, m = 200 (every target) 0.51-0.61 (one-off runs); on the
+#: other three families 0.97-1.05 times the affine one's at m = 64 (`benchmarks/bench_wiener.py`,
+#: above 1.02 on one pair of twelve). 64 keeps most of the gain at a third of the full
+#: regression's cost per pixel.
 INDUCING_POINTS = 64
 
 #: Candidate lengthscales l of (E10), in whitened response units (1 = one standard deviation of
