@@ -132,3 +132,9 @@ def test_large_frames_get_the_residual_too():
     got = np.asarray(sj.correct(raw, kernel).reflectance, np.float64)
     v = np.asarray(sj.correct(raw, kernel, intermediates=True).v_stage2, np.float64)
     np.testing.assert_allclose(got, _numpy_estimate(v, kernel), atol=2e-5)
+
+
+def test_a_residual_that_is_not_a_kernel_residual_is_refused(calibrations):
+    affine, kernel, _ = calibrations
+    with pytest.raises(ValueError, match=r"wiener_residual: expected an estimation.KernelResidual or None, got dict"):
+        dataclasses.replace(affine, wiener_residual={"weights": kernel.wiener_residual.weights})

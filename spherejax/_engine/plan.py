@@ -106,7 +106,7 @@ def _prepare(calibration, dtype, box, with_mask: bool):
     constants = PixelConstants(
         cast(calibration.dark), cast(calibration.white), cast(calibration.coeffs), cast(calibration.wiener),
         cast(calibration.wiener_offset), host(np.asarray(weights, dtype)),
-        None if residual is None else type(residual)(*(cast(x) for x in jax.tree_util.tree_leaves(residual))),
+        None if residual is None else jax.tree_util.tree_map(cast, residual),  # a pytree of arrays
     )
     patch = None
     if box is not None:

@@ -127,7 +127,7 @@ class DirectFile:
                 # Refused as a direct write (alignment the device does not take): the same
                 # bytes, at the same offset, through the page cache.
                 self.direct = False
-                if _set_direct(self._descriptor, False) is False:
+                if not _set_direct(self._descriptor, False):
                     raise
                 continue
             block = block[written:]
