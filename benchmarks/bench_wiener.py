@@ -158,7 +158,7 @@ def np_fit(V, R, method):
 
 
 def np_kernel_fit(V, R, W_folds, r0_folds, weights, W, r0, inducing_points):
-    """The residual kernel estimator's choice and residual weights (E9-E11), written again with
+    """The residual kernel estimator's choice and residual weights (E9-E12), written again with
     numpy: (lengthscale, ridge, A (31, m)). The affine means (per fold and on all the targets)
     are spherejax's, checked above; the inducing points are the same deterministic k-means."""
     from spherejax.estimation.cross_validation import _kmeans_labels
@@ -176,7 +176,11 @@ def np_kernel_fit(V, R, W_folds, r0_folds, weights, W, r0, inducing_points):
 
     def solve(K_nm, K_mm, E, w, ridge):
         m = len(K_mm)
-        return np.linalg.solve(K_nm.T @ (w[:, None] * K_nm) + ridge * K_mm + 1e-8 * m * np.eye(m), K_nm.T @ (w[:, None] * E)).T
+        A = np.linalg.solve(K_nm.T @ (w[:, None] * K_nm) + ridge * K_mm + 1e-8 * m * np.eye(m), K_nm.T @ (w[:, None] * E)).T
+        # (E12): the best approximation of rank RESIDUAL_RANK.
+        U_, singular, Vt = np.linalg.svd(A, full_matrices=False)
+        r = we.kernel_residual.RESIDUAL_RANK
+        return (U_[:, :r] * singular[:r]) @ Vt[:r]
 
     best = None
     for ell in we.KERNEL_LENGTHSCALE_GRID:

@@ -383,9 +383,10 @@ def test_the_direct_kernel_refuses_what_it_cannot_read():
         fused.correct_arrays(**{**good, "dark": good["dark"].astype(np.float64)}, saturation=None, kernel_mode="auto", out=out, threads=2)
     with pytest.raises(ValueError, match=r"lab: expected a C-contiguous float32 array of shape \(1, 64, 3\)"):
         fused.correct_arrays(**good, saturation=None, kernel_mode="auto", out=(out[0], out[1][:, :32], out[2]), threads=2)
+    no_residual = (np.asarray(x) for x in fused.residual_constants(None, None, bands))
     arguments = [good["raw"], True, *(good[k] for k in ("dark", "white", "p", "coeffs", "projection", "bias", "white_xyz")),
-                 images, pixels, bands, float("nan"), False, 2, *out]
-    arguments[9] = 2 * pixels  # pixels the buffers do not hold
+                 *no_residual, images, pixels, bands, 0, 0, float("nan"), False, 2, *out]
+    arguments[14] = 2 * pixels  # pixels the buffers do not hold
     with pytest.raises(ValueError, match="buffer sizes do not match"):
         fused._fused_correct.correct_arrays(*arguments)
 

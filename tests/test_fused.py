@@ -729,20 +729,22 @@ def test_a_variant_the_cpu_does_not_run_is_refused(monkeypatch):
 
     # The kernel's own check, below the Python one: codes it does not know (and, on a CPU that
     # lacks one, the variants it does not run) are refused by the CPython entry and the FFI handler.
+    no_residual = tuple(np.asarray(x) for x in fused.residual_constants(None, None, bands))
     unsupported = [getattr(fused._fused_correct, f"VARIANT_{name.upper()}")
                    for name in fused.VARIANTS if name not in fused._fused_correct.supported_variants()]
     for code in (9, -1, *unsupported):
         with pytest.raises(ValueError, match=rf"correct_arrays: variant: .*, got {code}"):
-            fused._fused_correct.correct_arrays(arrays[0], True, *arrays[1:], images, pixels, bands,
-                                                float("nan"), code, 1, *out)
+            fused._fused_correct.correct_arrays(arrays[0], True, *arrays[1:], *no_residual, images, pixels, bands,
+                                                0, 0, float("nan"), code, 1, *out)
     out_types = (jax.ShapeDtypeStruct((images, pixels, 31), jnp.float32),
                  jax.ShapeDtypeStruct((images, pixels, 3), jnp.float32),
                  jax.ShapeDtypeStruct((images, pixels), jnp.uint8))
     assert fused._register()
     ffi = jax.ffi.ffi_call(fused.TARGET, out_types)
     with pytest.raises(Exception, match=r"variant: expected 0 \(the widest this CPU runs\)"):
-        jax.block_until_ready(ffi(*arrays, saturation=np.float32(np.nan), variant=np.int32(9)))
+        jax.block_until_ready(ffi(*arrays, *no_residual, saturation=np.float32(np.nan), variant=np.int32(9)))
     # Code 0 leaves the choice to the kernel (the widest the CPU runs): accepted by both entries.
-    fused._fused_correct.correct_arrays(arrays[0], True, *arrays[1:], images, pixels, bands, float("nan"), 0, 1, *out)
+    fused._fused_correct.correct_arrays(arrays[0], True, *arrays[1:], *no_residual, images, pixels, bands, 0, 0,
+                                        float("nan"), 0, 1, *out)
     assert (out[2] == 0).all()
-    jax.block_until_ready(ffi(*arrays, saturation=np.float32(np.nan), variant=np.int32(0)))
+    jax.block_until_ready(ffi(*arrays, *no_residual, saturation=np.float32(np.nan), variant=np.int32(0)))

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import estimation
+from spherejax import estimation, pixel_constants
+from spherejax._engine import fused
 from tests.batch_support import B, frame, make_calibration
 
 
@@ -51,9 +52,8 @@ def test_correct_applies_the_residual_and_lab_follows_the_reflectance(calibratio
     np.testing.assert_allclose(np.asarray(result.lab)[good], lab[good], atol=2e-3)
 
 
-def test_the_plan_takes_the_jax_numpy_path_and_strips_give_the_whole_image(calibrations):
+def test_strips_give_the_whole_image_and_zero_weights_the_affine_estimate(calibrations):
     affine, kernel, raw = calibrations
-    assert sj.plan(kernel, raw.shape, dtype=raw.dtype).kernel_mode is None
     whole = sj.correct(raw, kernel)
     p = sj.patch_ratio(raw, kernel)
     rows = sj.correct(raw[10:26], kernel.rows(10, 26), p=p)
@@ -63,6 +63,115 @@ def test_the_plan_takes_the_jax_numpy_path_and_strips_give_the_whole_image(calib
     zero = dataclasses.replace(kernel, wiener_residual=dataclasses.replace(kernel.wiener_residual, weights=jnp.zeros((31, 8), jnp.float32)))
     np.testing.assert_allclose(np.asarray(sj.correct(raw, zero).reflectance), np.asarray(sj.correct(raw, affine).reflectance),
                                atol=2e-6)
+
+
+@pytest.fixture(scope="module")
+def near_the_frame():
+    """A calibration whose residual matters on its frame: whitened on the frame's own Stage II
+    responses, inducing points at 24 of its pixels, lengthscale 2 (so k(v) spans 1 down to
+    nothing), weights of rank 24 (more than the fused kernel's RESIDUAL_RANK) and the same cut to
+    that rank, as the fit cuts them."""
+    rng = np.random.default_rng(5)
+    affine, _, _ = make_calibration(rng)
+    raw = frame(rng)
+    result = sj.correct(raw, affine, intermediates=True)
+    v = np.asarray(result.v_stage2, np.float64)[np.asarray(result.quality) == 0]
+    mu, S = estimation.kernel_residual.whitening_of(v)
+    S = S / 2.0
+    Z = (v[rng.choice(len(v), 24, replace=False)] - mu) @ S.T
+    A = rng.normal(scale=0.05, size=(31, 24))
+    full = estimation.KernelResidual(*(jnp.asarray(x, jnp.float32) for x in (mu, S, Z, A)))
+    cut_weights = estimation.kernel_residual._at_rank(jnp.asarray(A), estimation.kernel_residual.RESIDUAL_RANK)
+    cut = dataclasses.replace(full, weights=jnp.asarray(cut_weights, jnp.float32))
+    return affine, dataclasses.replace(affine, wiener_residual=full), dataclasses.replace(affine, wiener_residual=cut), raw
+
+
+#: The fused kernel's variants that apply a kernel residual, among those this CPU runs.
+RESIDUAL_VARIANTS = [name for name in (fused.AVX512, fused.GENERIC) if name in fused.supported_variants()]
+
+
+@pytest.mark.parametrize("variant", RESIDUAL_VARIANTS)
+def test_the_fused_kernel_applies_the_residual_as_the_jax_numpy_path_does(near_the_frame, monkeypatch, variant):
+    affine, _, cut, raw = near_the_frame
+    monkeypatch.setenv(fused.SWITCH, variant)
+    assert sj.plan(cut, raw.shape, dtype=raw.dtype).kernel_mode == variant
+    got = sj.correct(raw, cut, intermediates=True)
+    monkeypatch.setenv(fused.SWITCH, "0")
+    assert sj.plan(cut, raw.shape, dtype=raw.dtype).kernel_mode is None
+    want = sj.correct(raw, cut)
+    np.testing.assert_array_equal(np.asarray(got.quality), np.asarray(want.quality))
+    good = np.asarray(want.quality) == 0
+    # The residual is no small part of the estimate here, and the kernel gives it as the
+    # jax.numpy path and as float64 numpy (E9-E10 written out) do.
+    residual = np.asarray(want.reflectance) - np.asarray(sj.correct(raw, affine).reflectance)
+    assert np.abs(residual[good]).max() > 0.02
+    np.testing.assert_allclose(np.asarray(got.reflectance)[good], np.asarray(want.reflectance)[good], atol=2e-6)
+    np.testing.assert_allclose(np.asarray(got.lab)[good], np.asarray(want.lab)[good], atol=2e-4)
+    expected = _numpy_estimate(np.asarray(got.v_stage2, np.float64), cut)
+    np.testing.assert_allclose(np.asarray(got.reflectance, np.float64)[good], expected[good], atol=1e-5)
+    assert np.isnan(np.asarray(got.reflectance)[~good]).all() and np.isnan(np.asarray(got.lab)[~good]).all()
+
+
+def test_a_residual_the_kernel_does_not_fit_takes_the_jax_numpy_path(near_the_frame, monkeypatch):
+    """Weights of rank 24 (a calibration file not made by the fit, which keeps RESIDUAL_RANK) are not
+    cut: the plan takes the jax.numpy path, which applies them whole. So do the AVX2 variant (its
+    block has no residual) and the GPU kernel."""
+    _, full, cut, raw = near_the_frame
+    assert not fused.residual_fits(full.wiener_residual) and fused.residual_fits(cut.wiener_residual)
+    assert sj.plan(full, raw.shape, dtype=raw.dtype).kernel_mode is None
+    good = np.asarray(sj.correct(raw, full).quality) == 0
+    expected = _numpy_estimate(np.asarray(sj.correct(raw, full, intermediates=True).v_stage2, np.float64), full)
+    np.testing.assert_allclose(np.asarray(sj.correct(raw, full).reflectance, np.float64)[good], expected[good], atol=1e-5)
+    if fused.AVX2 in fused.supported_variants():
+        monkeypatch.setenv(fused.SWITCH, fused.AVX2)
+        assert sj.plan(cut, raw.shape, dtype=raw.dtype).kernel_mode is None
+        assert sj.plan(cut.rows(0, 8), (8, *raw.shape[1:]), dtype=raw.dtype).kernel_mode is None
+
+
+def test_the_kernel_called_as_avx2_with_a_residual_runs_the_generic_code(near_the_frame):
+    """correct_arrays asked for the AVX2 variant with a residual gives the generic code's bits
+    (call.cc: the AVX2 block has no residual), not the affine estimate."""
+    if fused.AVX2 not in fused.supported_variants():
+        pytest.skip("this CPU does not run AVX2")
+    _, _, cut, raw = near_the_frame
+    outputs = {}
+    for variant in (fused.AVX2, fused.GENERIC):
+        arrays = _direct_arrays(cut, raw)
+        out = (np.empty((1, arrays["pixels"], 31), np.float32), np.empty((1, arrays["pixels"], 3), np.float32),
+               np.empty((1, arrays["pixels"]), np.uint8))
+        fused.correct_arrays(arrays["raw"], arrays["dark"], arrays["white"], arrays["p"], arrays["coeffs"],
+                             arrays["projection"], arrays["bias"], arrays["white_xyz"], None, variant, out, 2,
+                             residual=arrays["residual"])
+        outputs[variant] = out
+    for got, want in zip(outputs[fused.AVX2], outputs[fused.GENERIC]):
+        np.testing.assert_array_equal(got, want)
+
+
+def _direct_arrays(calibration, raw):
+    """The arrays the fused kernel reads for one frame (`fused.correct_arrays`)."""
+    c = pixel_constants.PixelConstants.of(calibration, jnp.float32)
+    projection, bias, white_xyz = fused.kernel_constants(c.wiener, c.wiener_offset, c.tristimulus_weights)
+    residual = fused.residual_constants(c.wiener_residual, c.tristimulus_weights, B)
+    pixels = raw.shape[0] * raw.shape[1]
+    return {
+        "raw": np.ascontiguousarray(raw.reshape(1, pixels, B)), "pixels": pixels,
+        "dark": np.asarray(c.dark).reshape(pixels, B), "white": np.asarray(c.white).reshape(pixels, B),
+        "p": np.asarray(sj.patch_ratio(raw, calibration), np.float32).reshape(1, B), "coeffs": np.asarray(c.coeffs),
+        "projection": np.asarray(projection), "bias": np.asarray(bias), "white_xyz": np.asarray(white_xyz),
+        "residual": tuple(np.asarray(x) for x in residual),
+    }
+
+
+def test_the_kernel_refuses_residual_widths_that_are_not_whole_vectors(near_the_frame):
+    _, _, cut, raw = near_the_frame
+    arrays = _direct_arrays(cut, raw)
+    whitening, inducing, factor, basis = arrays["residual"]
+    out = (np.empty((1, arrays["pixels"], 31), np.float32), np.empty((1, arrays["pixels"], 3), np.float32),
+           np.empty((1, arrays["pixels"]), np.uint8))
+    with pytest.raises(ValueError, match="whitening and inducing rows in eights"):
+        fused.correct_arrays(arrays["raw"], arrays["dark"], arrays["white"], arrays["p"], arrays["coeffs"],
+                             arrays["projection"], arrays["bias"], arrays["white_xyz"], None, fused.GENERIC, out, 1,
+                             residual=(whitening, inducing[:22], factor[:22], basis))
 
 
 def test_gradients_with_respect_to_the_residual_are_finite(calibrations):
@@ -125,10 +234,17 @@ def test_large_frames_get_the_residual_too():
                             wiener=rng.normal(scale=0.1, size=(31, B)).astype(np.float32), wiener_offset=np.zeros(31, np.float32))
     residual = estimation.KernelResidual(
         jnp.full(B, 0.5, jnp.float32), jnp.eye(B, dtype=jnp.float32) * 3, jnp.asarray(rng.normal(size=(16, B)), jnp.float32),
-        jnp.asarray(rng.normal(scale=0.01, size=(31, 16)), jnp.float32),
+        jnp.asarray(rng.normal(scale=0.01, size=(31, 8)) @ rng.normal(size=(8, 16)), jnp.float32),  # rank 8: the fused kernel's
     )
     kernel = dataclasses.replace(affine, wiener_residual=residual)
     raw = (dark + rng.uniform(0.2, 0.8, (H, W, B)) * (white - dark)).astype(np.uint16)
+    plan = sj.plan(kernel, raw.shape, dtype=raw.dtype)
+    # The fused kernel's direct route where this process's variant applies the residual (AVX-512,
+    # generic), the jax.numpy path where it does not (AVX2).
+    if fused.variant().name in (fused.AVX512, fused.GENERIC):
+        assert plan.kernel_mode == fused.variant().name and plan.route == "direct"
+    else:
+        assert plan.kernel_mode is None
     got = np.asarray(sj.correct(raw, kernel).reflectance, np.float64)
     v = np.asarray(sj.correct(raw, kernel, intermediates=True).v_stage2, np.float64)
     np.testing.assert_allclose(got, _numpy_estimate(v, kernel), atol=2e-5)

@@ -44,15 +44,39 @@ def test_the_estimate_is_the_affine_mean_plus_the_kernel_residual_line_by_line(d
     np.testing.assert_allclose(np.asarray(k, np.float64), features, atol=tolerance * 10)
 
 
-def test_the_fit_solves_equation_e11():
-    """A^T = (K_mn D K_nm + lambda K_mm + eps I)^-1 K_mn D E, against numpy's solve."""
+def test_the_fit_solves_equation_e11_and_keeps_rank_e12():
+    """A^T = (K_mn D K_nm + lambda K_mm + eps I)^-1 K_mn D E (E11), against numpy's solve, cut to
+    its best approximation of rank RESIDUAL_RANK (E12): numpy's SVD cut, of that rank, and no
+    nearer to the full solution could one of that rank be (Eckart-Young: the Frobenius error is
+    the root sum of the singular values dropped)."""
     rng = np.random.default_rng(1)
-    U, Z = rng.normal(size=(40, 5)), rng.normal(size=(9, 5))
+    m = 12  # more than RESIDUAL_RANK inducing points, so that the cut takes something away
+    U, Z = rng.normal(size=(40, 5)), rng.normal(size=(m, 5))
     E, w = rng.normal(size=(40, 31)), (rng.random(40) > 0.3).astype(np.float64)
     K_nm, K_mm = _numpy_features(U, 0.0, np.eye(5), Z), _numpy_features(Z, 0.0, np.eye(5), Z)
-    expected = np.linalg.solve(K_nm.T @ (w[:, None] * K_nm) + 0.01 * K_mm + 1e-8 * 9 * np.eye(9), K_nm.T @ (w[:, None] * E)).T
-    got = kernel_residual._residual_weights(jnp.asarray(K_nm), jnp.asarray(K_mm), jnp.asarray(E), jnp.asarray(w), 0.01)
-    np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-8, atol=1e-10)
+    full = np.linalg.solve(K_nm.T @ (w[:, None] * K_nm) + 0.01 * K_mm + 1e-8 * m * np.eye(m), K_nm.T @ (w[:, None] * E)).T
+    r = kernel_residual.RESIDUAL_RANK
+    assert r < m
+    U_, singular, Vt = np.linalg.svd(full, full_matrices=False)
+    expected = (U_[:, :r] * singular[:r]) @ Vt[:r]
+    got = np.asarray(kernel_residual._residual_weights(jnp.asarray(K_nm), jnp.asarray(K_mm), jnp.asarray(E), jnp.asarray(w), 0.01))
+    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-10)
+    assert np.linalg.matrix_rank(got, tol=1e-9 * singular[0]) == r
+    np.testing.assert_allclose(np.linalg.norm(full - got), np.sqrt(np.sum(singular[r:] ** 2)), rtol=1e-8)
+
+
+def test_a_fitted_residual_is_one_the_fused_kernel_applies():
+    """The fit's rank (E12) is no more than the fused CPU kernel's, so that a fitted kernel
+    calibration takes the kernel, not the jax.numpy fallback (fused.residual_fits)."""
+    from spherejax._engine import fused
+
+    assert kernel_residual.RESIDUAL_RANK <= fused.RESIDUAL_RANK
+    rng = np.random.default_rng(2)
+    V = rng.uniform(0.05, 0.9, (150, 16))
+    R = np.clip(V @ rng.uniform(0, 0.2, (16, 31)) + 0.3 * np.sin(3 * V[:, :1]), 0, 1)
+    estimator = estimation.fit_kernel_estimator(V, R)
+    assert fused.residual_fits(estimator.kernel.astype(jnp.float32))
+    assert np.linalg.matrix_rank(np.asarray(estimator.kernel.weights, np.float64), tol=1e-5) <= fused.RESIDUAL_RANK
 
 
 def test_whitening_gives_unit_covariance_and_inducing_points_are_cluster_centres():

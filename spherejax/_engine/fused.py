@@ -292,6 +292,7 @@ def _probe_problems(pixels: int, slices: int) -> list[tuple[tuple, tuple]]:
     projection = rng.uniform(0.0, 1.0 / bands, (bands, 34)).astype(np.float32)
     bias = np.zeros(34, np.float32)
     white_xyz = projection.sum(axis=0)[31:].astype(np.float32)
+    no_residual = tuple(np.asarray(x) for x in residual_constants(None, None, bands))
     total = pixels * slices
     reflectance = np.empty((total, 31), np.float32)
     lab = np.empty((total, 3), np.float32)
@@ -300,7 +301,7 @@ def _probe_problems(pixels: int, slices: int) -> list[tuple[tuple, tuple]]:
     for k in range(slices):
         rows = slice(k * pixels, (k + 1) * pixels)
         arguments = (raw[rows][None], True, dark[rows], white[rows], p, coeffs, projection, bias, white_xyz,
-                     1, pixels, bands, math.nan)
+                     *no_residual, 1, pixels, bands, 0, 0, math.nan)
         outputs = (reflectance[rows][None], lab[rows][None], quality[rows][None])
         problems.append((arguments, outputs))
     return problems
@@ -465,11 +466,13 @@ def mode(raw_dtype, compute_dtype, bands: int) -> str | None:
     return _resolve(switch(), bands)
 
 
-def _kernel_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation: float | None, kernel_mode: str):
+def _kernel_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation: float | None,
+                 kernel_mode: str, residual=None):
     """The custom call on arrays shaped as the kernel wants them (see kernel/fused_correct.h).
 
     raw (N, P, B); dark, white (P, B); p (N, B); coeffs (B, 4); projection (B, 34) = [W^T |
-    W^T weights]; bias (34,) = [r0 | r0 weights], the affine estimator's offset; white_xyz (3,).
+    W^T weights]; bias (34,) = [r0 | r0 weights], the affine estimator's offset; white_xyz (3,);
+    residual: the kernel residual's four arrays (`residual_constants`), None for none.
     Returns reflectance (N, P, 31), lab (N, P, 3) float32 and quality (N, P) uint8.
 
     Under `jax.vmap` (`_batched_kernel_call`): when only raw and p are mapped, the mapped images
@@ -479,7 +482,9 @@ def _kernel_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, satur
         functools.partial(_ffi_call, saturation=saturation, kernel_mode=kernel_mode)
     )
     call.def_vmap(functools.partial(_batched_kernel_call, call))
-    return call(raw, dark, white, p, coeffs, projection, bias, white_xyz)
+    if residual is None:
+        residual = residual_constants(None, None, raw.shape[-1])
+    return call(raw, dark, white, p, coeffs, projection, bias, white_xyz, *residual)
 
 
 def _batched_kernel_call(call, axis_size: int, in_batched, raw, dark, white, p, *constants):
@@ -508,7 +513,8 @@ def _batched_kernel_call(call, axis_size: int, in_batched, raw, dark, white, p, 
     ), (True, True, True)
 
 
-def _ffi_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, *, saturation: float | None, kernel_mode: str):
+def _ffi_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, whitening, inducing, factor, basis, *,
+              saturation: float | None, kernel_mode: str):
     """The XLA custom call itself (`_kernel_call`)."""
     _register()
     images, pixels, _ = raw.shape
@@ -521,7 +527,8 @@ def _ffi_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, *, satur
     # NaN saturation: the kernel's `value >= saturation` is then never true, i.e. no check.
     level = np.float32(np.nan if saturation is None else saturation)
     code = np.int32(_variant_code(_resolve(kernel_mode, raw.shape[2])))
-    return call(raw, dark, white, p, coeffs, projection, bias, white_xyz, saturation=level, variant=code)
+    return call(raw, dark, white, p, coeffs, projection, bias, white_xyz, whitening, inducing, factor, basis,
+                saturation=level, variant=code)
 
 
 def kernel_constants(wiener, wiener_offset, weights):
@@ -537,9 +544,66 @@ def kernel_constants(wiener, wiener_offset, weights):
     return projection, bias, jnp.sum(weights, axis=0)
 
 
+#: The rank of a kernel residual's weights A (31, m) the kernel applies (kernel/fused_correct.h,
+#: kResidualRank): A = P G with P (31, 8) and G (8, m), eight multiply-adds per inducing point and
+#: pixel. The fit keeps A at this rank or less (`estimation.kernel_residual.RESIDUAL_RANK`); a
+#: residual of higher rank (a file not made by the fit) takes the jax.numpy path (`residual_fits`).
+RESIDUAL_RANK = 8
+
+
+def _padded_rows(x, multiple: int):
+    """x (n, ...) with zero rows appended up to a multiple of `multiple` rows."""
+    return jnp.pad(x, [(0, -x.shape[0] % multiple)] + [(0, 0)] * (x.ndim - 1))
+
+
+def residual_fits(residual) -> bool:
+    """True if the kernel applies this kernel residual (`estimation.KernelResidual`, concrete)
+    exactly: weights of rank RESIDUAL_RANK or less (the singular values beyond it below 1e-5 of
+    the largest: float32 round-off of a rank-8 A). None (an affine estimator): True."""
+    if residual is None:
+        return True
+    A = np.asarray(residual.weights, np.float64)
+    singular = np.linalg.svd(A, compute_uv=False)
+    return len(singular) <= RESIDUAL_RANK or not singular[0] > 0 or singular[RESIDUAL_RANK] <= 1e-5 * singular[0]
+
+
+def residual_constants(residual, weights, bands: int):
+    """What the kernel takes of a kernel residual (E8-E10, `estimation.KernelResidual`: centre mu,
+    whitening S (d, B), inducing z (m, d), weights A (31, m)), float32, traceable:
+
+    whitening (D, B + 1): row i [S_i | -(S mu)_i] (u = S (v - mu));
+    inducing (M, B + 1): row j [Y_j | c_j] with Y = S^T z^T and c = -mu . Y - |z|^2 / 2, so that
+      -|u - z_j|^2 / 2 = Y_j . v + c_j - |u|^2 / 2;
+    factor (M, 8): G^T, basis (8, 34): [P | P^T weights]^T, from A's singular value
+      decomposition at rank RESIDUAL_RANK (A = P G, P = U Sigma, G = V^T): exact for the fit's A
+      (`residual_fits`);
+    D and M: d and m rounded up to multiples of 8 (the kernel takes rows in eights), the padding
+    zero (a padding inducing point has factor 0). None (an affine estimator): no rows, nothing
+    applied.
+    """
+    if residual is None:
+        return (jnp.zeros((0, bands + 1), jnp.float32), jnp.zeros((0, bands + 1), jnp.float32),
+                jnp.zeros((0, RESIDUAL_RANK), jnp.float32), jnp.zeros((RESIDUAL_RANK, 34), jnp.float32))
+    hi = jax.lax.Precision.HIGHEST
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    mu, S, Z, A = (f32(x) for x in (residual.centre, residual.whitening, residual.inducing, residual.weights))
+    whitening = _padded_rows(jnp.concatenate([S, -jnp.matmul(S, mu, precision=hi)[:, None]], axis=1), 8)
+    Y = jnp.matmul(Z, S, precision=hi)  # (m, B): row j is S^T z_j
+    c = -jnp.matmul(Y, mu, precision=hi) - 0.5 * jnp.sum(Z * Z, axis=1)
+    inducing = _padded_rows(jnp.concatenate([Y, c[:, None]], axis=1), 8)
+    U, singular, Vt = jnp.linalg.svd(A, full_matrices=False)
+    rank = min(RESIDUAL_RANK, singular.shape[0])
+    P = jnp.pad(U[:, :rank] * singular[:rank], ((0, 0), (0, RESIDUAL_RANK - rank)))  # (31, 8)
+    G = jnp.pad(Vt[:rank], ((0, RESIDUAL_RANK - rank), (0, 0)))  # (8, m)
+    factor = _padded_rows(G.T, 8)
+    basis = jnp.concatenate([P.T, jnp.matmul(P.T, f32(weights), precision=hi)], axis=1)
+    return whitening, inducing, factor, basis
+
+
 def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.ndarray, coeffs: np.ndarray,
                    projection: np.ndarray, bias: np.ndarray, white_xyz: np.ndarray, saturation: float | None,
-                   kernel_mode: str, out: tuple[np.ndarray, np.ndarray, np.ndarray], threads: int) -> None:
+                   kernel_mode: str, out: tuple[np.ndarray, np.ndarray, np.ndarray], threads: int,
+                   residual: tuple[np.ndarray, ...] | None = None) -> None:
     """The kernel on NumPy arrays, called directly rather than from XLA: the caller's frames are
     read where they lie (no copy into XLA's memory) and the outputs written into `out`.
 
@@ -552,18 +616,28 @@ def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.n
       out: reflectance (N, P, 31) float32, lab (N, P, 3) float32, quality (N, P) uint8,
         C-contiguous and writable.
       threads: how many threads share the work (the calling one and threads - 1 more).
+      residual: the kernel residual's whitening, inducing, factor and basis float32
+        (`residual_constants`), or None for an affine estimator.
 
     Raises:
       ValueError: a dtype, shape or layout the kernel does not take, or a variant this CPU does
         not run.
     """
     images, pixels, bands = raw.shape
+    if residual is None:
+        residual = tuple(np.asarray(x) for x in residual_constants(None, None, bands))
+    whitening, inducing, factor, basis = residual
+    whitened_rows, inducing_rows = whitening.shape[0], inducing.shape[0]
     expected = {
         "raw": (raw, raw.dtype if raw.dtype in RAW_DTYPES else RAW_DTYPES[0], (images, pixels, bands)),
         "dark": (dark, np.float32, (pixels, bands)), "white": (white, np.float32, (pixels, bands)),
         "p": (p, np.float32, (images, bands)), "coeffs": (coeffs, np.float32, (bands, 4)),
         "projection": (projection, np.float32, (bands, 34)), "bias": (bias, np.float32, (34,)),
         "white_xyz": (white_xyz, np.float32, (3,)),
+        "whitening": (whitening, np.float32, (whitened_rows, bands + 1)),
+        "inducing": (inducing, np.float32, (inducing_rows, bands + 1)),
+        "factor": (factor, np.float32, (inducing_rows, RESIDUAL_RANK)),
+        "basis": (basis, np.float32, (RESIDUAL_RANK, 34)),
         "reflectance": (out[0], np.float32, (images, pixels, 31)), "lab": (out[1], np.float32, (images, pixels, 3)),
         "quality": (out[2], np.uint8, (images, pixels)),
     }
@@ -574,19 +648,20 @@ def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.n
     level = np.float32(np.nan if saturation is None else saturation)  # NaN: no check
     code = _variant_code(_resolve(kernel_mode, bands))
     _fused_correct.correct_arrays(
-        raw, raw.dtype == np.uint16, dark, white, p, coeffs, projection, bias, white_xyz, images, pixels, bands,
-        float(level), code, int(threads), *out,
+        raw, raw.dtype == np.uint16, dark, white, p, coeffs, projection, bias, white_xyz, whitening, inducing,
+        factor, basis, images, pixels, bands, whitened_rows, inducing_rows, float(level), code, int(threads), *out,
     )
 
 
 def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_offset, weights, saturation,
-                   kernel_mode=AUTO):
+                   kernel_mode=AUTO, residual=None):
     """reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W): the kernel on CPU,
     `plain` elsewhere, with `plain`'s JVP everywhere (so also with respect to wiener_offset).
 
     Args:
       plain: the jax.numpy definition, called as plain(raw, dark, white, p, coeffs, wiener,
-        wiener_offset, weights) -> (reflectance, lab, quality), with `saturation` already bound.
+        wiener_offset, weights, residual) -> (reflectance, lab, quality), with `saturation`
+        already bound.
       raw: (..., H, W, B) uint16 or float32.
       dark, white: (H, W, B) float32.
       p: (..., B) float32, the white-patch ratio of each image.
@@ -596,8 +671,10 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
       weights: (31, 3) float32 tristimulus weights (white = their column sums).
       saturation: the saturation level, or None for no check.
       kernel_mode: the variant (`mode`), or AUTO or PORTABLE for the process's measured choice.
+      residual: the estimator's kernel residual (`estimation.KernelResidual`, float32, of rank
+        RESIDUAL_RANK or less: `residual_fits`) or None.
     """
-    arrays = (raw, dark, white, p, coeffs, wiener, wiener_offset, weights)
+    arrays = (raw, dark, white, p, coeffs, wiener, wiener_offset, weights, residual)
 
     @jax.custom_jvp
     def outputs(*arrays):
@@ -608,7 +685,7 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
         _, tangents_out = jax.jvp(plain, primals, tangents)
         return outputs(*primals), tangents_out
 
-    def on_cpu(raw, dark, white, p, coeffs, wiener, wiener_offset, weights):
+    def on_cpu(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, residual):
         height, width, bands = raw.shape[-3:]
         batch = raw.shape[:-3]
         images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
@@ -617,6 +694,7 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
             raw.reshape(images, pixels, bands), dark.reshape(pixels, bands),
             white.reshape(pixels, bands), jnp.broadcast_to(p, (*batch, bands)).reshape(images, bands),
             coeffs, projection, bias, white_xyz, saturation, kernel_mode,
+            residual=residual_constants(residual, weights, bands),
         )
         return (
             reflectance.reshape(*batch, height, width, 31),
@@ -637,6 +715,7 @@ __all__ = [
     "PORTABLE",
     "PROBE_PIXELS",
     "PROBE_REPEATS",
+    "RESIDUAL_RANK",
     "SWITCH",
     "SWITCH_VALUES",
     "TARGET",
@@ -653,6 +732,8 @@ __all__ = [
     "measure_variants",
     "measurement",
     "mode",
+    "residual_constants",
+    "residual_fits",
     "supported_variants",
     "switch",
     "unavailable_reason",

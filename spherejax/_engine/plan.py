@@ -156,11 +156,9 @@ class Plan:
         self._calibration = weakref.ref(calibration) if self.concrete else (lambda: calibration)
         self.device = _device_of(calibration) if self.concrete else None
         on_cpu = self.device is not None and self.device.platform == "cpu"
-        if calibration.wiener_residual is not None:
-            # The fused CPU kernel and the GPU kernel apply affine estimators only: a calibration
-            # with a kernel residual (E8) runs the jax.numpy path on every device.
-            kernel_mode = None
         self.kernel_mode = _kernel_mode(kernel_mode, self.dtype, self.compute_dtype, calibration.bands, self.device)
+        if calibration.wiener_residual is not None and not _kernel_applies_residual(self.kernel_mode, calibration):
+            self.kernel_mode = None
         box = calibration.patch_box if calibration.patch is not None else None
         if calibration.patch is not None and box is None:  # a traced patch: the whole frame
             box = (0, self.shape[-3], 0, self.shape[-2])
@@ -235,10 +233,11 @@ class Plan:
         c = self.constants
         pixels = self.shape[-3] * self.shape[-2]
         projection, bias, white_xyz = jax.jit(fused.kernel_constants)(c.wiener, c.wiener_offset, c.tristimulus_weights)
+        residual = jax.jit(fused.residual_constants, static_argnums=2)(c.wiener_residual, c.tristimulus_weights, c.bands)
         return {
             "dark": np.asarray(c.dark).reshape(pixels, c.bands), "white": np.asarray(c.white).reshape(pixels, c.bands),
             "coeffs": np.asarray(c.coeffs), "projection": np.asarray(projection), "bias": np.asarray(bias),
-            "white_xyz": np.asarray(white_xyz),
+            "white_xyz": np.asarray(white_xyz), "residual": tuple(np.asarray(x) for x in residual),
         }
 
     def _into_executable(self):
@@ -349,7 +348,7 @@ class Plan:
             k["coeffs"], k["projection"], k["bias"], k["white_xyz"], self.saturation, self.kernel_mode,
             (reflectance.reshape(images, pixels, N_WAVELENGTHS), lab.reshape(images, pixels, 3),
              quality.reshape(images, pixels)),
-            threads=buffers.cpus(),
+            threads=buffers.cpus(), residual=k["residual"],
         )
         outputs = tuple(jax.device_put(view, self.device, may_alias=True) for view, _ in pairs)
         del reflectance, lab, quality  # only the pool and the jax.Arrays refer to the memory now
@@ -434,6 +433,21 @@ def _kernel_mode(asked, raw_dtype, compute_dtype, bands: int, device) -> str | N
         return gpu_kernel.mode(raw_dtype, compute_dtype, bands, device)
     usable = fused.mode(raw_dtype, compute_dtype, bands)
     return None if usable is None else usable if asked == fused.AUTO else asked
+
+
+def _kernel_applies_residual(kernel_mode, calibration) -> bool:
+    """True if the per-pixel kernel `kernel_mode` applies the calibration's kernel residual (E8)
+    exactly: the fused CPU kernel's AVX-512 and generic code do (`fused.residual_fits`: rank 16 or
+    less, which the fit keeps, and at most 256 inducing points), for a concrete calibration.
+    Elsewhere the jax.numpy path applies it, the documented fallback: the GPU kernel (affine
+    estimators only), the AVX2 variant (its block has no residual; the generic code compiled for
+    AVX2 spills its vectors to the stack, fused.py), a traced calibration (its rank cannot be
+    checked) and a residual the kernel does not fit."""
+    return (
+        kernel_mode in (fused.AVX512, fused.GENERIC)
+        and _concrete(calibration)
+        and fused.residual_fits(calibration.wiener_residual)
+    )
 
 
 def _on_device(raw, device) -> bool:

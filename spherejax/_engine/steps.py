@@ -150,9 +150,10 @@ def pixel_outputs_in_blocks(raw, p, constants: PixelConstants, *, saturation, ou
 
 def _fused_plain(saturation):
     """`pipeline._pixel_outputs` in the positional form `fused.correct_pixels` calls its jax.numpy
-    definition with (raw, dark, white, p, coeffs, wiener, wiener_offset, tristimulus weights)."""
-    def plain(raw, dark, white, p, coeffs, wiener, wiener_offset, weights):
-        constants = PixelConstants(dark, white, coeffs, wiener, wiener_offset, weights)
+    definition with (raw, dark, white, p, coeffs, wiener, wiener_offset, tristimulus weights, kernel
+    residual)."""
+    def plain(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, residual):
+        constants = PixelConstants(dark, white, coeffs, wiener, wiener_offset, weights, residual)
         return pipeline._pixel_outputs(raw, p, constants, saturation=saturation, intermediates=False)
 
     return plain
@@ -177,7 +178,7 @@ def _pixels_plain(raw, p, constants: PixelConstants, *, saturation, intermediate
         c = constants
         reflectance, lab, quality = fused.correct_pixels(
             _fused_plain(saturation), raw, c.dark, c.white, p, c.coeffs, c.wiener, c.wiener_offset,
-            c.tristimulus_weights, saturation=saturation, kernel_mode=kernel_mode,
+            c.tristimulus_weights, saturation=saturation, kernel_mode=kernel_mode, residual=c.wiener_residual,
         )
         cubes = ()
         if intermediates:

@@ -28,11 +28,16 @@ Williams 2006, Section 8.3.1; Quiñonero-Candela & Rasmussen 2005):
 
 K_nm (n, m) the kernel between targets and inducing points, K_mm (m, m) between inducing points,
 D the targets' weights (a cross-validation fold's), lambda the ridge (the noise-to-signal ratio of
-a Gaussian-process reading of E11) and eps a jitter of 1e-8 x m for K_mm's round-off. The
+a Gaussian-process reading of E11) and eps a jitter of 1e-8 x m for K_mm's round-off, then cut to
+its best approximation of rank `RESIDUAL_RANK` (8; Eckart-Young, the singular value decomposition
+cut after 8 terms)                                                                       (E12)
+
+so that applying it is 8 multiply-adds per inducing point and 8 x 34 for the outputs. The
 lengthscale l and lambda are chosen by the same cross-validation as the affine regularisers
 (`KERNEL_LENGTHSCALE_GRID` x `KERNEL_RIDGE_GRID`); stored, l is folded into S and z_j (S / l,
 z_j / l), so that applying it is two matrix products and an exponential per pixel:
-3 B m + 31 m + B^2 multiply-adds and m exponentials, against the affine 31 B.
+B m + 8 m + 8 x 34 + B^2 multiply-adds and m exponentials (the fused CPU kernel,
+spherejax._engine.fused.residual_constants), against the affine 34 B.
 
 `ResidualKernelEstimator` is a pytree (equinox), applied by `estimation.wiener` like any other.
 """
@@ -57,6 +62,15 @@ from .estimator import _HIGHEST, CrossValidation, WienerEstimator
 #: above 1.02 on one pair of twelve). 64 keeps most of the gain at a third of the full
 #: regression's cost per pixel.
 INDUCING_POINTS = 64
+
+#: The rank of the residual's weights A (31, m): the fit keeps the best approximation of this rank
+#: (E12), so that applying A is 8 m + 8 x 34 multiply-adds a pixel instead of 34 m, which with the
+#: fused CPU kernel's lanes over pixels (spherejax._engine.fused.RESIDUAL_RANK, the same 8) keeps a
+#: kernel calibration's `correct` within 3x the affine one's (benchmarks/bench_wiener.py). Measured
+#: on the Kubelka-Munk families (as for INDUCING_POINTS, one-off runs), held-out spectral rms
+#: against the affine estimator's: rank 4 0.66-0.82, rank 8 0.62-0.80, rank 16 0.61-0.80, full
+#: rank (31) 0.61-0.80; on the other families the same at every rank (at most 1.02-1.023).
+RESIDUAL_RANK = 8
 
 #: Candidate lengthscales l of (E10), in whitened response units (1 = one standard deviation of
 #: the training responses along each principal direction).
@@ -181,12 +195,22 @@ def inducing_points_of(U: np.ndarray, m: int) -> np.ndarray:
 
 
 def _residual_weights(K_nm, K_mm, E, w, ridge):
-    """A (31, m) of (E11) for residuals E (n, 31) under weights w (n,)."""
+    """A (31, m) of (E11) for residuals E (n, 31) under weights w (n,), at rank `RESIDUAL_RANK`
+    or less (E12)."""
     m = K_mm.shape[0]
     Kw = K_nm * w[:, None]
     gram = jnp.matmul(Kw.T, K_nm, precision=_HIGHEST) + ridge * K_mm + 1e-8 * m * jnp.eye(m, dtype=K_mm.dtype)
     rhs = jnp.matmul(Kw.T, E, precision=_HIGHEST)
-    return jnp.linalg.solve(gram, rhs).T
+    return _at_rank(jnp.linalg.solve(gram, rhs).T, RESIDUAL_RANK)
+
+
+def _at_rank(A, rank: int):
+    """The best approximation of A (31, m) of rank `rank` or less in the Frobenius norm
+    (Eckart-Young): its singular value decomposition cut after `rank` terms."""
+    if min(A.shape) <= rank:
+        return A
+    U, singular, Vt = jnp.linalg.svd(A, full_matrices=False)
+    return jnp.matmul(U[:, :rank] * singular[:rank], Vt[:rank], precision=_HIGHEST)
 
 
 @jax.jit
@@ -264,6 +288,7 @@ __all__ = [
     "KERNEL_LENGTHSCALE_GRID",
     "KERNEL_RIDGE_GRID",
     "KernelResidual",
+    "RESIDUAL_RANK",
     "ResidualKernelEstimator",
     "cross_validate_kernel",
     "inducing_points_of",

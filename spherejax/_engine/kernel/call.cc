@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <new>
 
 namespace spherejax_fused {
@@ -56,7 +57,11 @@ void correct_range(const Problem& pr, int64_t first, int64_t last) {
 #if SPHEREJAX_X86
   // The variants' own code is for 16 bands only; resolve_variant has checked the CPU runs it.
   if (pr.bands == kLanes && pr.variant == Variant::kAvx512) return correct_range_avx512(pr, first, last);
-  if (pr.bands == kLanes && pr.variant == Variant::kAvx2) return correct_range_avx2(pr, first, last);
+  // The AVX2 block has no kernel residual: a call with one runs the generic code (whose
+  // target_clones take AVX2 there; spherejax._engine.plan takes the jax.numpy path instead).
+  if (pr.bands == kLanes && pr.variant == Variant::kAvx2 && pr.inducing_rows == 0) {
+    return correct_range_avx2(pr, first, last);
+  }
 #endif
   correct_range_generic(pr, first, last);
 }
@@ -85,11 +90,19 @@ std::unique_ptr<float[], FreeAligned> aligned_vectors(int64_t count) {
 
 }  // namespace
 
+const char* check_residual(const Residual& r) {
+  if (r.whitened_rows < 0 || r.whitened_rows % 8 != 0 || r.inducing_rows < 0 || r.inducing_rows % 8 != 0) {
+    return "residual: expected whitening and inducing rows in eights";
+  }
+  if (r.inducing_rows > 0 && r.whitened_rows == 0) return "residual: inducing points without a whitening";
+  return nullptr;
+}
+
 std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, const float* white,
                                   const float* ratio, const float* c, const float* m,
                                   const float* offsets, const float* wxyz, int64_t images, int64_t pixels,
-                                  int64_t bands, float saturation, Variant variant, float* reflectance,
-                                  float* lab, uint8_t* quality) {
+                                  int64_t bands, float saturation, Variant variant, const Residual& residual,
+                                  float* reflectance, float* lab, uint8_t* quality) {
   auto prepared = std::make_unique<Prepared>();
   prepared->gain = std::make_unique<float[]>(images * bands);
   prepared->offset = std::make_unique<float[]>(images * bands);
@@ -115,6 +128,14 @@ std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, 
   }
   float* bias_row = prepared->padded_bias.get();
   for (int64_t k = 0; k < kPadded; ++k) bias_row[k] = k < kOutputs ? offsets[k] : 0.0f;
+  if (residual.inducing_rows > 0) {
+    prepared->basis = aligned_vectors(3 * kResidualRank);
+    if (!prepared->basis) throw std::bad_alloc();
+    for (int64_t r = 0; r < kResidualRank; ++r) {
+      float* row = prepared->basis.get() + 3 * kLanes * r;
+      for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? residual.basis[r * kOutputs + k] : 0.0f;
+    }
+  }
 
   Problem& pr = prepared->shared->problem;
   pr.raw = raw;
@@ -132,6 +153,12 @@ std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, 
   pr.projection = reinterpret_cast<const Vec*>(prepared->padded.get());
   pr.bias = reinterpret_cast<const Vec*>(prepared->padded_bias.get());
   for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
+  pr.whitened_rows = residual.inducing_rows > 0 ? residual.whitened_rows : 0;
+  pr.inducing_rows = residual.inducing_rows;
+  pr.whitening = residual.whitening;
+  pr.inducing = residual.inducing;
+  pr.factor = residual.factor;
+  pr.basis = reinterpret_cast<const Vec*>(prepared->basis.get());
   pr.reflectance = reflectance;
   pr.lab = lab;
   pr.quality = quality;

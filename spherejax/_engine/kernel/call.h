@@ -61,15 +61,30 @@ struct Prepared {
   std::unique_ptr<float[]> gain, offset;
   std::unique_ptr<uint8_t[]> image_bad;
   std::unique_ptr<float[], FreeAligned> padded, padded_bias;
+  std::unique_ptr<float[], FreeAligned> basis;  // the kernel residual's, padded to whole vectors
 };
+
+// The kernel residual of a call (fused_correct.h, residual_of_16), as its caller passes it:
+// whitening (D, B + 1), inducing (M, B + 1), factor (M, kResidualRank) and basis (kResidualRank,
+// kOutputs), row-major floats; D and M multiples of 8, M = 0 for a call without one.
+struct Residual {
+  const float* whitening = nullptr;
+  const float* inducing = nullptr;
+  const float* factor = nullptr;
+  const float* basis = nullptr;
+  int64_t whitened_rows = 0, inducing_rows = 0;  // D, M
+};
+
+// nullptr if `r` is a residual the kernel takes (or none); else why not.
+const char* check_residual(const Residual& r);
 
 // The Problem of one call and what it points to. `variant`: a resolved one (resolve_variant).
 // Throws std::bad_alloc when memory runs out.
 std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, const float* white,
                                   const float* ratio, const float* c, const float* m,
                                   const float* offsets, const float* wxyz, int64_t images, int64_t pixels,
-                                  int64_t bands, float saturation, Variant variant, float* reflectance,
-                                  float* lab, uint8_t* quality);
+                                  int64_t bands, float saturation, Variant variant, const Residual& residual,
+                                  float* reflectance, float* lab, uint8_t* quality);
 
 // Runs the chunks on the calling thread and whatever helpers `schedule` started, then waits for
 // the last chunk.

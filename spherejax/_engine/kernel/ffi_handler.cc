@@ -18,7 +18,9 @@ namespace {
 ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F32> dark,
                    ffi::Buffer<ffi::F32> white, ffi::Buffer<ffi::F32> p,
                    ffi::Buffer<ffi::F32> coeffs, ffi::Buffer<ffi::F32> projection,
-                   ffi::Buffer<ffi::F32> bias, ffi::Buffer<ffi::F32> white_xyz, float saturation, int32_t variant,
+                   ffi::Buffer<ffi::F32> bias, ffi::Buffer<ffi::F32> white_xyz, ffi::Buffer<ffi::F32> whitening,
+                   ffi::Buffer<ffi::F32> inducing, ffi::Buffer<ffi::F32> factor, ffi::Buffer<ffi::F32> basis,
+                   float saturation, int32_t variant,
                    ffi::ResultBuffer<ffi::F32> reflectance, ffi::ResultBuffer<ffi::F32> lab,
                    ffi::ResultBuffer<ffi::U8> quality) {
   const auto dims = raw.dimensions();
@@ -35,6 +37,21 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
       white_xyz.element_count() != 3) {
     return ffi::Error::InvalidArgument("inputs: shapes do not match raw (N, P, B)");
   }
+  // The kernel residual: whitening (D, B + 1), inducing (M, B + 1), factor (M, 16), basis (16, 34).
+  Residual residual;
+  const auto whitening_dims = whitening.dimensions(), inducing_dims = inducing.dimensions();
+  if (whitening_dims.size() != 2 || inducing_dims.size() != 2 || whitening_dims[1] != bands + 1 ||
+      inducing_dims[1] != bands + 1 || factor.element_count() != size_t(inducing_dims[0] * kResidualRank) ||
+      basis.element_count() != size_t(kResidualRank * kOutputs)) {
+    return ffi::Error::InvalidArgument("residual: shapes do not match raw (N, P, B)");
+  }
+  residual.whitened_rows = whitening_dims[0];
+  residual.inducing_rows = inducing_dims[0];
+  residual.whitening = whitening.typed_data();
+  residual.inducing = inducing.typed_data();
+  residual.factor = factor.typed_data();
+  residual.basis = basis.typed_data();
+  if (const char* wrong = check_residual(residual)) return ffi::Error::InvalidArgument(wrong);
   const char* refused = nullptr;
   const Variant resolved = resolve_variant(variant, &refused);
   if (refused != nullptr) return ffi::Error::InvalidArgument(refused);
@@ -42,7 +59,7 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
   try {
     prepared = prepare(raw.untyped_data(), u16, dark.typed_data(), white.typed_data(), p.typed_data(),
                        coeffs.typed_data(), projection.typed_data(), bias.typed_data(), white_xyz.typed_data(),
-                       images, pixels, bands, saturation, resolved, reflectance->typed_data(),
+                       images, pixels, bands, saturation, resolved, residual, reflectance->typed_data(),
                        lab->typed_data(), quality->typed_data());
   } catch (const std::bad_alloc&) {
     return ffi::Error(ffi::ErrorCode::kResourceExhausted, "out of memory");
@@ -72,6 +89,10 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(SpherejaxFusedCorrect, spherejax_fused::Correct,
                                   .Arg<ffi::Buffer<ffi::F32>>()    // projection
                                   .Arg<ffi::Buffer<ffi::F32>>()    // bias
                                   .Arg<ffi::Buffer<ffi::F32>>()    // white_xyz
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // residual whitening
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // residual inducing
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // residual factor
+                                  .Arg<ffi::Buffer<ffi::F32>>()    // residual basis
                                   .Attr<float>("saturation")
                                   .Attr<int32_t>("variant")
                                   .Ret<ffi::Buffer<ffi::F32>>()    // reflectance

@@ -17,6 +17,9 @@
 //   [reflectance | XYZ] = v_tilde @ projection + bias                 (the affine Wiener estimate
 //            W v_tilde + r0, 16 -> 31, and the folded (B, 3) XYZ matrix with its offset r0 @
 //            weights: one (B, 34) product whose accumulators start at the (34,) bias)
+//   [reflectance | XYZ] += P G k(v_tilde)                              (the kernel residual A k(v) of
+//            an estimator with one, E8-E10 of spherejax/estimation/kernel_residual.py: see
+//            residual_of_16; absent when the call has no inducing points)
 //   Lab      = CIE 1976 from XYZ / white_xyz                          (CIE 15:2004)
 // and NaN in reflectance and Lab wherever quality != 0. The tests compare it with the plain
 // path on every branch (tests/test_fused.py).
@@ -25,7 +28,9 @@
 // never handled by a scalar tail), so a strip of an image gives the same bits as the whole image.
 //
 // Layout: raw (N, P, B) uint16 or float32, dark and white (P, B), p (N, B), coeffs (B, 4),
-// projection (B, 34), bias (34,), white_xyz (3,); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
+// projection (B, 34), bias (34,), white_xyz (3,), and the residual's whitening (D, B + 1), inducing
+// (M, B + 1), factor (M, 8) and basis (8, 34) (D and M multiples of 8, M = 0 for none; see
+// residual_of_16); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
 // (N, P) uint8. The work is split into chunks of pixels run on XLA's intra-op thread pool.
 //
 // The sources, by job (setup.py compiles them into one extension, spherejax._engine._fused_correct):
@@ -58,6 +63,8 @@ constexpr int64_t kOutputs = kReflectance + 3;  // reflectance then X, Y, Z
 constexpr int64_t kLanes = 16;                  // floats in one 512-bit vector
 constexpr int64_t kPadded = 48;                 // kOutputs rounded up to whole vectors
 constexpr int64_t kMaxBands = 64;
+constexpr int kInducingStep = 8;                // inducing points a step of residual_of_16 (M in eights)
+constexpr int64_t kResidualRank = 8;            // rank of its weights A = P G: 8 accumulators a lane
 constexpr int64_t kBlock = 32;                  // pixels whose XYZ are turned into Lab together
 constexpr int64_t kChunk = 8192;                // pixels per thread-pool task
 constexpr float kLabEpsilon = 216.0f / 24389.0f;
@@ -102,6 +109,15 @@ struct Problem {
   const Vec* projection;     // (bands, 3) vectors: the (B, 34) matrix padded to 48 columns
   const Vec* bias;           // 3 vectors: the (34,) bias [r0 | r0 @ weights] padded to 48
   float inverse_white[3];
+  // The kernel residual (residual_of_16), absent when inducing_rows is 0: whitening (whitened_rows,
+  // B + 1), inducing (inducing_rows, B + 1), factor (inducing_rows, kResidualRank) floats, row-major;
+  // basis kResidualRank x 3 Vecs (rows padded to 48 like the projection's). whitened_rows and
+  // inducing_rows multiples of 8.
+  int64_t whitened_rows, inducing_rows;
+  const float* whitening;
+  const float* inducing;
+  const float* factor;
+  const Vec* basis;
   float* reflectance;
   float* lab;
   uint8_t* quality;
@@ -139,6 +155,141 @@ SPHEREJAX_INLINE float lab_f(float t) {
   return above ? root : (kLabKappa / 116.0f) * t + 16.0f / 116.0f;
 }
 
+typedef int32_t IntVec __attribute__((vector_size(kLanes * sizeof(int32_t)), aligned(64)));
+
+SPHEREJAX_INLINE Vec abs_lanes(Vec x) {
+  IntVec bits;
+  std::memcpy(&bits, &x, sizeof bits);
+  bits &= 0x7fffffff;
+  std::memcpy(&x, &bits, sizeof x);
+  return x;
+}
+
+// min(max(x, -87), 0) lane by lane, as min(a, b) = (a + b - |a - b|) / 2: GCC turns vector-
+// extension comparisons into scalar code (avx512.cc), and this needs none. The jax.numpy path
+// clips at 0 as well (round-off can make -|u - z|^2 / 2 positive); -87 keeps e^x normal
+// (exp_nonpositive), where jax's e^-87 = 1.6e-38 is as good as nothing. NaN stays NaN.
+SPHEREJAX_INLINE Vec clip_exponent(Vec x) {
+  const Vec below_zero = 0.5f * (x - abs_lanes(x));
+  return 0.5f * ((below_zero - 87.0f) + abs_lanes(below_zero + 87.0f));
+}
+
+// e^x for x in [-87, 0], lane by lane: x log2(e) = n + f with n an integer (rounded to nearest by
+// the 1.5 x 2^23 trick) and |f| <= 1/2, 2^f by its Taylor polynomial of degree 6 (relative error
+// below 1.3e-7: (ln 2 / 2)^7 / 7!), and 2^n put into the exponent bits (n >= -126: a normal
+// float). Written out because libm's expf does not vectorise; within 2 ulp of jax's float32 exp
+// (tests/test_fused.py).
+SPHEREJAX_INLINE Vec exp_nonpositive(Vec x) {
+  const Vec t = x * 1.44269504088896341f;
+  const Vec magic = Vec{} + 12582912.0f;
+  const Vec n = (t + magic) - magic;
+  const Vec f = t - n;
+  Vec p = Vec{} + 1.5403530393381609e-4f;
+  p = p * f + 1.3333558146428443e-3f;
+  p = p * f + 9.6181291076284772e-3f;
+  p = p * f + 5.5504108664821580e-2f;
+  p = p * f + 2.4022650695910071e-1f;
+  p = p * f + 6.9314718055994531e-1f;
+  p = p * f + 1.0f;
+  const IntVec bits = (__builtin_convertvector(n, IntVec) + 127) << 23;
+  Vec scale;
+  std::memcpy(&scale, &bits, sizeof scale);
+  return p * scale;
+}
+
+// A Vec of 16 floats from memory on a 64-byte boundary.
+SPHEREJAX_INLINE Vec load_vec(const float* from) {
+  Vec x;
+  std::memcpy(&x, from, sizeof x);
+  return x;
+}
+
+// N outputs o0 .. o0 + N - 1 of [reflectance | XYZ] for 16 pixels, one a lane (residual_of_16):
+// bias + v_tilde . projection (the affine estimate, as correct_block computes it pixel by pixel)
+// + g . basis (the kernel residual P G k(v)), into out[o][first + lane].
+template <int N>
+SPHEREJAX_INLINE void outputs_of_16(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
+                                    const Vec* g, int64_t o0, float (*out)[kBlock]) {
+  const float* projection = reinterpret_cast<const float*>(pr.projection) + o0;
+  const float* basis = reinterpret_cast<const float*>(pr.basis) + o0;
+  const float* bias = reinterpret_cast<const float*>(pr.bias) + o0;
+  Vec acc[N];
+#pragma GCC unroll 8
+  for (int q = 0; q < N; ++q) acc[q] = Vec{} + bias[q];
+  for (int64_t b = 0; b < B; ++b) {
+    const Vec t = load_vec(tilde[b] + first);
+#pragma GCC unroll 8
+    for (int q = 0; q < N; ++q) acc[q] += t * projection[b * kPadded + q];
+  }
+#pragma GCC unroll 8
+  for (int64_t r = 0; r < kResidualRank; ++r) {
+#pragma GCC unroll 8
+    for (int q = 0; q < N; ++q) acc[q] += g[r] * basis[r * kPadded + q];
+  }
+#pragma GCC unroll 8
+  for (int q = 0; q < N; ++q) std::memcpy(out[o0 + q] + first, &acc[q], sizeof(Vec));
+}
+
+// The outputs [reflectance | XYZ] of 16 pixels with the kernel residual (E8-E10 of
+// spherejax/estimation/kernel_residual.py), one pixel a lane: their v_tilde are
+// tilde[b][first + lane] (b < B), their outputs go to out[o][first + lane] (o < 34). With rows of
+// the Problem's arrays
+//   whitening (D, B + 1): row i = [S_i | -(S mu)_i]   so  u_i = S_i v - (S mu)_i
+//   inducing (M, B + 1):  row j = [Y_j | c_j]          Y = S^T z^T, c_j = -mu . Y_j - |z_j|^2 / 2
+//   factor (M, 8):        row j = G^T_j                A = P G at rank kResidualRank or less
+//   basis (8, 48):        row r = [P_r | weights^T P_r]
+// it computes -|u - z_j|^2 / 2 = Y_j . v + c_j - |u|^2 / 2, k_j = exp of it (clipped at 0 as the
+// jax.numpy path clips), g = sum_j k_j G^T_j and the outputs bias + v . projection + g . basis.
+// Padding rows are zero (a padding inducing point has factor 0).
+//
+// Why lanes over pixels: one pixel's work is a chain of dependent sums (|u|^2 before every
+// k_j, every k_j before g), which one pixel at a time left the FMA units waiting (measured:
+// 560 cycles a pixel against 240 this way); 16 pixels a vector give every step 16 independent
+// lanes, each value loaded feeds 8 multiply-adds held in registers (D and M in eights), and the
+// 34 outputs take 34 x (B + 8) / 16 multiply-adds a pixel against 3 x (B + 8) for a pixel's
+// 48-float rows.
+template <typename Stage2>
+SPHEREJAX_INLINE void residual_of_16(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
+                                     float (*out)[kBlock]) {
+  const int64_t D = pr.whitened_rows, M = pr.inducing_rows, width = B + 1;
+  Vec squared = {};
+  for (int64_t i = 0; i < D; i += 8) {
+    const float* row = pr.whitening + i * width;
+    Vec u[8];
+#pragma GCC unroll 8
+    for (int q = 0; q < 8; ++q) u[q] = Vec{} + row[q * width + B];
+    for (int64_t b = 0; b < B; ++b) {
+      const Vec t = load_vec(tilde[b] + first);
+#pragma GCC unroll 8
+      for (int q = 0; q < 8; ++q) u[q] += t * row[q * width + b];
+    }
+#pragma GCC unroll 8
+    for (int q = 0; q < 8; ++q) squared += u[q] * u[q];
+  }
+  const Vec half = 0.5f * squared;
+  Vec g[kResidualRank] = {};
+  for (int64_t j = 0; j < M; j += kInducingStep) {
+    const float* y = pr.inducing + j * width;
+    Vec s[kInducingStep];
+#pragma GCC unroll 8
+    for (int q = 0; q < kInducingStep; ++q) s[q] = y[q * width + B] - half;
+    for (int64_t b = 0; b < B; ++b) {
+      const Vec t = load_vec(tilde[b] + first);
+#pragma GCC unroll 8
+      for (int q = 0; q < kInducingStep; ++q) s[q] += t * y[q * width + b];
+    }
+#pragma GCC unroll 8
+    for (int q = 0; q < kInducingStep; ++q) {
+      const Vec k = Stage2::kernel_exp(s[q]);
+      const float* f = pr.factor + (j + q) * kResidualRank;
+#pragma GCC unroll 8
+      for (int r = 0; r < kResidualRank; ++r) g[r] += k * f[r];
+    }
+  }
+  for (int64_t o0 = 0; o0 + 8 <= kOutputs; o0 += 8) outputs_of_16<8>(pr, B, tilde, first, g, o0, out);
+  outputs_of_16<kOutputs % 8>(pr, B, tilde, first, g, kOutputs - kOutputs % 8, out);
+}
+
 // Quality bits and v_tilde (Eq. 10, 17, 23) of one pixel, any band count: the generic Stage II.
 // A Stage II is a type with kBands (its band count, 0: any, pr.bands) and
 //   template <typename Raw> static uint8_t run(const Problem& pr, const Raw* r, const float* d,
@@ -149,6 +300,23 @@ SPHEREJAX_INLINE float lab_f(float t) {
 // each for 16 bands.
 struct GenericStage2 {
   static constexpr int64_t kBands = 0;
+
+  // e^min(x, 0) of the kernel residual (residual_of_16), lane by lane.
+  static SPHEREJAX_INLINE Vec kernel_exp(Vec x) { return exp_nonpositive(clip_exponent(x)); }
+
+  // A block's reflectance, out[o][pixel], written as a row of 31 per pixel to `to` (count pixels).
+  static SPHEREJAX_INLINE void write_rows(const float (*out)[kBlock], int64_t count, float* to) {
+    for (int64_t i = 0; i < count; ++i) {
+      for (int64_t o = 0; o < kReflectance; ++o) to[i * kReflectance + o] = out[o][i];
+    }
+  }
+
+  // A block's v_tilde, rows[pixel][band], as columns[band][pixel] (residual_of_16's layout).
+  static SPHEREJAX_INLINE void columns(const float (*rows)[kMaxBands], int64_t B, float (*columns)[kBlock]) {
+    for (int64_t i = 0; i < kBlock; ++i) {
+      for (int64_t b = 0; b < B; ++b) columns[b][i] = rows[i][b];
+    }
+  }
 
   template <typename Raw>
   static SPHEREJAX_INLINE uint8_t run(const Problem& pr, const Raw* r, const float* d, const float* w,
@@ -204,6 +372,27 @@ SPHEREJAX_INLINE uint8_t stage2_at(const Problem& pr, const BlockPixels& at, flo
   return q;
 }
 
+// Lab and the quality of a block's pixels from their XYZ (xyz[c][i]) and quality bits.
+SPHEREJAX_INLINE void finish_block(const Problem& pr, int64_t first, int64_t count, const float (*xyz)[kBlock],
+                                   const uint8_t* quality) {
+  alignas(64) float lab[3][kBlock];
+  for (int64_t i = 0; i < kBlock; ++i) {
+    const float fx = lab_f(xyz[0][i] * pr.inverse_white[0]);
+    const float fy = lab_f(xyz[1][i] * pr.inverse_white[1]);
+    const float fz = lab_f(xyz[2][i] * pr.inverse_white[2]);
+    lab[0][i] = 116.0f * fy - 16.0f;
+    lab[1][i] = 500.0f * (fx - fy);
+    lab[2][i] = 200.0f * (fy - fz);
+  }
+  for (int64_t i = 0; i < count; ++i) {
+    float* out = pr.lab + (first + i) * 3;
+    out[0] = lab[0][i];
+    out[1] = lab[1][i];
+    out[2] = lab[2][i];
+    pr.quality[first + i] = quality[i];
+  }
+}
+
 // One block of up to kBlock pixels starting at `first` (flat over images and pixels), one pixel
 // at a time: Stage II, the projection with the vector extension's Vec, then the block's Lab. The
 // generic variant's block (GenericStage2) and the AVX-512 one's (its 16-band Stage II: a Vec is one
@@ -247,30 +436,43 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
     xyz[2][i] = out2[1];
     at.next(pr, i);
   }
-  alignas(64) float lab[3][kBlock];
-  for (int64_t i = 0; i < kBlock; ++i) {
-    const float fx = lab_f(xyz[0][i] * pr.inverse_white[0]);
-    const float fy = lab_f(xyz[1][i] * pr.inverse_white[1]);
-    const float fz = lab_f(xyz[2][i] * pr.inverse_white[2]);
-    lab[0][i] = 116.0f * fy - 16.0f;
-    lab[1][i] = 500.0f * (fx - fy);
-    lab[2][i] = 200.0f * (fy - fz);
-  }
-  for (int64_t i = 0; i < count; ++i) {
-    float* out = pr.lab + (first + i) * 3;
-    out[0] = lab[0][i];
-    out[1] = lab[1][i];
-    out[2] = lab[2][i];
-    pr.quality[first + i] = quality[i];
-  }
+  finish_block(pr, first, count, xyz, quality);
 }
 
-// correct_block with the Stage II `Stage2`, as a Block type for correct_blocks.
+// correct_block for a call with a kernel residual: Stage II pixel by pixel, then the outputs 16
+// pixels at a time (residual_of_16: the affine estimate and the residual, band by band and output
+// by output), the reflectance turned back into a row per pixel (Stage2::write_rows), then Lab.
+// The block's pixels are consecutive in the outputs (flat index first + i).
+template <typename Raw, typename Stage2>
+SPHEREJAX_INLINE void correct_block_with_residual(const Problem& pr, int64_t first, int64_t count) {
+  const int64_t B = Stage2::kBands ? Stage2::kBands : pr.bands;
+  alignas(64) float rows[kBlock][kMaxBands];
+  alignas(64) float tilde[kMaxBands][kBlock];
+  alignas(64) float out[kPadded][kBlock];
+  uint8_t quality[kBlock];
+  BlockPixels at(pr, first, count);
+  for (int64_t i = 0; i < kBlock; ++i) {
+    at.at(i);
+    quality[i] = stage2_at<Raw, Stage2>(pr, at, rows[i]);
+    at.next(pr, i);
+  }
+  Stage2::columns(rows, B, tilde);
+  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += kLanes) residual_of_16<Stage2>(pr, B, tilde, lane0, out);
+  Stage2::write_rows(out, count, pr.reflectance + first * kReflectance);
+  finish_block(pr, first, count, out + kReflectance, quality);
+}
+
+// correct_block with the Stage II `Stage2`, as a Block type for correct_blocks; the residual's
+// block where the call has one.
 template <typename Stage2>
 struct PixelByPixel {
   template <typename Raw>
   static SPHEREJAX_INLINE void run(const Problem& pr, int64_t first, int64_t count) {
-    correct_block<Raw, Stage2>(pr, first, count);
+    if (pr.inducing_rows > 0) {
+      correct_block_with_residual<Raw, Stage2>(pr, first, count);
+    } else {
+      correct_block<Raw, Stage2>(pr, first, count);
+    }
   }
 };
 

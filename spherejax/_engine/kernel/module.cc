@@ -24,30 +24,43 @@ static PyObject* handler(PyObject*, PyObject*) {
   return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxFusedCorrect), nullptr, nullptr);
 }
 
-// correct_arrays(raw, raw_is_u16, dark, white, p, coeffs, projection, bias, white_xyz, images,
-// pixels, bands, saturation, variant, threads, reflectance, lab, quality): the same kernel on
+// correct_arrays(raw, raw_is_u16, dark, white, p, coeffs, projection, bias, white_xyz, whitening,
+// inducing, factor, basis, images, pixels, bands, whitened_rows, inducing_rows, saturation, variant,
+// threads, reflectance, lab, quality): the same kernel on
 // C-contiguous buffers from Python, run by the calling thread and threads - 1 helpers, without
 // XLA. spherejax._engine.fused.correct_arrays checks dtypes; this checks each buffer's byte size, so
 // that nothing is read or written outside a buffer, and that this CPU runs the variant (a code of
 // spherejax_fused::Variant: 0 the widest it runs, or VARIANT_AVX512, VARIANT_AVX2, VARIANT_GENERIC).
 // Releases the GIL while it runs.
 static PyObject* correct_arrays(PyObject*, PyObject* args) {
-  Py_buffer in[8] = {}, out[3] = {};
+  Py_buffer in[12] = {}, out[3] = {};
   int u16 = 0, variant = 0;
-  long long images = 0, pixels = 0, bands = 0;
+  long long images = 0, pixels = 0, bands = 0, whitened_rows = 0, inducing_rows = 0;
   float saturation = 0.0f;
   Py_ssize_t threads = 1;
-  if (!PyArg_ParseTuple(args, "y*py*y*y*y*y*y*y*LLLfinw*w*w*", &in[0], &u16, &in[1], &in[2], &in[3], &in[4],
-                        &in[5], &in[6], &in[7], &images, &pixels, &bands, &saturation, &variant, &threads,
-                        &out[0], &out[1], &out[2])) {
+  if (!PyArg_ParseTuple(args, "y*py*y*y*y*y*y*y*y*y*y*y*LLLLLfinw*w*w*", &in[0], &u16, &in[1], &in[2], &in[3],
+                        &in[4], &in[5], &in[6], &in[7], &in[8], &in[9], &in[10], &in[11], &images, &pixels,
+                        &bands, &whitened_rows, &inducing_rows, &saturation, &variant, &threads, &out[0], &out[1],
+                        &out[2])) {
     return nullptr;  // PyArg_ParseTuple releases what it had taken
   }
-  const long long expected_in[8] = {images * pixels * bands * (u16 ? 2 : 4), pixels * bands * 4,
-                                    pixels * bands * 4, images * bands * 4, bands * 4 * 4,
-                                    bands * kOutputs * 4, kOutputs * 4, 3 * 4};
+  const long long expected_in[12] = {images * pixels * bands * (u16 ? 2 : 4), pixels * bands * 4,
+                                     pixels * bands * 4, images * bands * 4, bands * 4 * 4,
+                                     bands * kOutputs * 4, kOutputs * 4, 3 * 4,
+                                     (bands + 1) * whitened_rows * 4, (bands + 1) * inducing_rows * 4,
+                                     inducing_rows * kResidualRank * 4, kResidualRank * kOutputs * 4};
+  Residual residual;
+  residual.whitened_rows = whitened_rows;
+  residual.inducing_rows = inducing_rows;
   const long long expected_out[3] = {images * pixels * kReflectance * 4, images * pixels * 3 * 4, images * pixels};
   bool sizes_match = images >= 0 && pixels >= 0 && bands >= 1 && bands <= kMaxBands && threads >= 1;
-  for (int k = 0; k < 8; ++k) sizes_match &= in[k].len == expected_in[k];
+  for (int k = 0; k < 12; ++k) sizes_match &= in[k].len == expected_in[k];
+  const char* wrong_residual = check_residual(residual);
+  sizes_match &= wrong_residual == nullptr;
+  residual.whitening = static_cast<const float*>(in[8].buf);
+  residual.inducing = static_cast<const float*>(in[9].buf);
+  residual.factor = static_cast<const float*>(in[10].buf);
+  residual.basis = static_cast<const float*>(in[11].buf);
   for (int k = 0; k < 3; ++k) sizes_match &= out[k].len == expected_out[k];
   const char* refused = nullptr;
   const Variant resolved = resolve_variant(variant, &refused);
@@ -58,7 +71,7 @@ static PyObject* correct_arrays(PyObject*, PyObject* args) {
         in[0].buf, u16 != 0, static_cast<const float*>(in[1].buf), static_cast<const float*>(in[2].buf),
         static_cast<const float*>(in[3].buf), static_cast<const float*>(in[4].buf),
         static_cast<const float*>(in[5].buf), static_cast<const float*>(in[6].buf),
-        static_cast<const float*>(in[7].buf), images, pixels, bands, saturation, resolved,
+        static_cast<const float*>(in[7].buf), images, pixels, bands, saturation, resolved, residual,
         static_cast<float*>(out[0].buf), static_cast<float*>(out[1].buf), static_cast<uint8_t*>(out[2].buf));
     } catch (const std::bad_alloc&) {
       for (auto& buffer : in) PyBuffer_Release(&buffer);
@@ -82,7 +95,8 @@ static PyObject* correct_arrays(PyObject*, PyObject* args) {
   for (auto& buffer : in) PyBuffer_Release(&buffer);
   for (auto& buffer : out) PyBuffer_Release(&buffer);
   if (!sizes_match) {
-    PyErr_SetString(PyExc_ValueError, "correct_arrays: buffer sizes do not match images, pixels and bands");
+    PyErr_SetString(PyExc_ValueError, wrong_residual != nullptr ? wrong_residual
+                                      : "correct_arrays: buffer sizes do not match images, pixels and bands");
     return nullptr;
   }
   if (refused != nullptr) {
