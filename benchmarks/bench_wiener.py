@@ -2,8 +2,9 @@
 
 What it measures
     1. Fit time of `spherejax.fit_wiener(V, R, method=m)` for m = "training", "model" and "auto"
-       (cross-validation over the regularisers included), on the 190 RAW-to-ACES training
-       patches seen by the simulated camera (`spherejax.simulated_targets`), float64.
+       (cross-validation over the regularisers included; "auto" also cross-validates the kernel
+       estimator, as its numpy reference then does), on the 190 RAW-to-ACES training patches
+       seen by the simulated camera (`spherejax.simulated_targets`), float64.
     2. The held-out-family table: every material family of `simulated_targets.FAMILIES`
        (ColorChecker, TCS and CQS, TM-30 CES, RAW to ACES) held out in turn, the estimators
        trained on the other three: spectral rms and mean ΔE00 (D65) of the default ("auto"), of
@@ -14,14 +15,16 @@ What it measures
        ratios of the default's spectral rms to the oracle's and to the first release's.
     4. Dyed materials (`spherejax.kubelka_munk`: four Kubelka-Munk families of six dyes, 20 x 20
        px patch means through the simulated camera): 200 targets of a family (seed 0) train the
-       affine default ("auto") and the residual kernel estimator
-       (`estimation.fit_kernel_estimator`), applied to 200 other recipes of the same family (seed
-       1) and to those of the other three. Spectral rms, mean ΔE00, and the kernel's rms as a
-       ratio to the affine one's (the issue asks at most 0.8 within the family and at most 1.02
-       on the others). The kernel fit is timed against a numpy implementation of E9-E11 with
-       the same folds, grids and inducing points, whose choices and residual weights must agree
-       first (both given the affine means, per fold and on all the targets, timed in section 1);
-       and applying each estimator to a megapixel of responses (jitted, CPU) is timed.
+       default ("auto": what it chose, with the kernel's cross-validated gain and paired z), its
+       affine part and the residual kernel estimator (`estimation.fit_kernel_estimator`), applied
+       to 200 other recipes of the same family (seed 1) and, the default, to those of the other
+       three. Spectral rms, mean ΔE00, and the ratios to the affine one's (the issue asks at most
+       0.8 within the family and at most 1.02 on the others). The kernel fit is timed against a
+       numpy implementation of E9-E12 with the same folds (drawn at random), grids and inducing
+       points, whose choices and residual weights must agree first (both given the affine means,
+       per fold and on all the targets, timed in section 1); and `spherejax.correct` of a 1024 x
+       1024 x 16 uint16 frame is timed with a calibration carrying the kernel estimator and with
+       the same calibration without its residual (the issue bounds the ratio at 3x).
 
 Against what
     A numpy implementation of the same formulas (E2-E7 of `spherejax/estimation/`,
@@ -41,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import os
 import sys
 
@@ -199,34 +203,54 @@ def np_kernel_fit(V, R, W_folds, r0_folds, weights, W, r0, inducing_points):
     return ell, ridge, A
 
 
+def np_auto_with_kernel(V, R):
+    """The numpy reference of "auto" from KERNEL_MIN_TARGETS targets on: the affine choice
+    (`np_fit`), then the kernel estimator on it over folds drawn at random (`np_kernel_fit`,
+    given spherejax's per-fold affine means as in section 4), then its gain and paired z."""
+    W, r0, name, settings = np_fit(V, R, "auto")
+    labels, _ = we.random_fold_labels(len(V))
+    weights = (labels[None, :] != np.unique(labels)[:, None]).astype(np.float64)
+    affine_labels, _ = we.fold_labels(R)
+    affine_weights = (affine_labels[None, :] != np.unique(affine_labels)[:, None]).astype(np.float64)
+    mean = next(c for c in (we.METHODS[m](V, R, affine_weights, "") for m in we.METHODS) if c.cross_validation.method == name)
+    W_folds, r0_folds = (np.asarray(x) for x in mean.fit_folds(weights))
+    ell, ridge, A = np_kernel_fit(V, R, W_folds, r0_folds, weights, W, r0, we.INDUCING_POINTS)
+    return W, r0, ell, ridge, A
+
+
 def kubelka_munk_tables(seed: int, repeats: int) -> tuple[dict, list[str]]:
     """Section 4 of the module docstring: the tables, the fit's timing against numpy, the cost of
-    applying each estimator; and any disagreement with the numpy reference."""
+    each estimator in `correct`; and any disagreement with the numpy reference."""
     from spherejax import kubelka_munk
-    from spherejax.estimation.cross_validation import fold_labels
 
     train = kubelka_munk.km_family_responses(seed=seed, n=200)
     test = kubelka_munk.km_family_responses(seed=seed + 1, n=200)
-    fitted = {name: {"auto": spherejax.fit_wiener(V, R), "kernel": we.fit_kernel_estimator(V, R)} for name, (V, R, _) in train.items()}
+    fitted = {}
+    for name, (V, R, _) in train.items():
+        default = spherejax.fit_wiener(V, R)
+        kernel = default if default.method == "kernel" else we.fit_kernel_estimator(V, R)
+        fitted[name] = {"default": default, "affine": kernel.affine, "kernel": kernel}
     within = {}
     for name, models in fitted.items():
         Vt, Rt, _ = test[name]
         within[name] = {label: {"spectral_rms": rms(e, Vt, Rt), "delta_e_d65": mean_delta_e(e, Vt, Rt)} for label, e in models.items()}
+        within[name]["default"]["method"] = models["default"].method
         within[name]["kernel_settings"] = dict(models["kernel"].cross_validation[0].settings)
-    pairs = {f"{a} -> {b}": rms(fitted[a]["kernel"], *test[b][:2]) / rms(fitted[a]["auto"], *test[b][:2]) for a in train for b in train}
+    pairs = {f"{a} -> {b}": rms(fitted[a]["default"], *test[b][:2]) / rms(fitted[a]["affine"], *test[b][:2]) for a in train for b in train}
 
-    # The fit against numpy, on the first family.
+    # The fit against numpy, on the first family: the kernel's folds are drawn at random.
     failures = []
     name = next(iter(train))
     V, R, _ = train[name]
     ours = fitted[name]["kernel"]
-    scale = 1.0  # flat-fielded responses: fit_wiener's power-of-two scale is 1 (checked)
-    labels, _ = fold_labels(R)
+    labels, _ = we.random_fold_labels(len(V))
     weights = (labels[None, :] != np.unique(labels)[:, None]).astype(np.float64)
-    ranked = we.rank_candidates(we.METHODS[m](V, R, weights, "") for m in we.METHODS)
+    affine_labels, _ = we.fold_labels(R)
+    affine_weights = (affine_labels[None, :] != np.unique(affine_labels)[:, None]).astype(np.float64)
+    ranked = we.rank_candidates(we.METHODS[m](V, R, affine_weights, "") for m in we.METHODS)
     W_folds, r0_folds = ranked[0].fit_folds(weights)
     ell, ridge, A = np_kernel_fit(V, R, np.asarray(W_folds), np.asarray(r0_folds), weights,
-                                  np.asarray(ours.affine.matrix) * scale, np.asarray(ours.affine.offset), we.INDUCING_POINTS)
+                                  np.asarray(ours.affine.matrix), np.asarray(ours.affine.offset), we.INDUCING_POINTS)
     settings = within[name]["kernel_settings"]
     if (settings["lengthscale"], settings["ridge"]) != (ell, ridge):
         failures.append(f"kernel: spherejax chose l {settings['lengthscale']} ridge {settings['ridge']}, numpy l {ell} ridge {ridge}")
@@ -235,7 +259,7 @@ def kubelka_munk_tables(seed: int, repeats: int) -> tuple[dict, list[str]]:
         if error > 1e-5:  # a 64 x 64 solve in two orders of summation
             failures.append(f"kernel: the residual weights differ from numpy's by {error:.2e} (relative)")
     # The same work both ways: the kernel's cross-validation and fit on the chosen affine mean
-    # (fit_kernel_estimator also cross-validates the affine methods, timed in section 1).
+    # (fit_wiener also cross-validates the affine methods, timed in section 1).
     def kernel_fit():
         return jax.block_until_ready(we.cross_validate_kernel(V, R, weights, "", ranked[0]).fit())
 
@@ -245,22 +269,42 @@ def kubelka_munk_tables(seed: int, repeats: int) -> tuple[dict, list[str]]:
         "numpy": lambda: np_kernel_fit(V, R, np.asarray(W_folds), np.asarray(r0_folds), weights, np.asarray(ours.affine.matrix),
                                        np.asarray(ours.affine.offset), we.INDUCING_POINTS),
     }, repeats)
-
-    # Applying each to a megapixel of responses (float32, jitted, CPU).
-    pixels = jax.numpy.asarray(np.resize(test[name][0], (1 << 20, V.shape[1])).astype(np.float32))
-    apply = jax.jit(spherejax.wiener)
-    as32 = lambda e: jax.tree_util.tree_map(lambda x: x.astype(np.float32) if hasattr(x, "astype") else x, e)  # noqa: E731
-    affine32, kernel32 = as32(fitted[name]["auto"]), as32(fitted[name]["kernel"])
-    jax.block_until_ready(apply(pixels, affine32)), jax.block_until_ready(apply(pixels, kernel32))
-    applied = time_interleaved({
-        "affine": lambda: jax.block_until_ready(apply(pixels, affine32)),
-        "kernel": lambda: jax.block_until_ready(apply(pixels, kernel32)),
-    }, repeats)
     return {
-        "within_family": within, "kernel_over_affine_pairs": pairs,
+        "within_family": within, "default_over_affine_pairs": pairs,
         "fit": {"family": name, "compile_s": compile_s, "timings": timed, "ratio": timed["numpy"]["median_s"] / timed["spherejax"]["median_s"]},
-        "apply_megapixel": applied,
+        "correct_megapixel": correct_megapixel(fitted[name]["kernel"], test[name][0], repeats),
     }, failures
+
+
+def correct_megapixel(kernel, responses, repeats: int, size: int = 1024) -> dict:
+    """`spherejax.correct` of a size x size x 16 uint16 frame (NumPy, as an archive reads it)
+    with a calibration whose estimator is `kernel` (a ResidualKernelEstimator) and with the same
+    calibration without its residual (the affine estimator): what the issue bounds at 3x. The
+    frame's Stage II responses are `responses` (the family's), resampled per pixel, so that the
+    kernel sees the distances of real samples; flat field 1 % to 100 % counts of white, no Stage
+    II change (c2 = 1), the white patch a 32 x 32 corner."""
+    rng = np.random.default_rng(0)
+    bands = responses.shape[1]
+    dark = rng.uniform(95.0, 105.0, (size, size, bands)).astype(np.float32)
+    white = (dark + rng.uniform(40000.0, 50000.0, (size, size, bands))).astype(np.float32)
+    patch = np.zeros((size, size), bool)
+    patch[:32, :32] = True
+    v = np.asarray(responses, np.float64)[rng.integers(0, len(responses), size * size)].reshape(size, size, bands)
+    raw = np.clip(np.rint(dark + np.clip(v, 0.0, 1.2) * (white - dark)), 0, 65535).astype(np.uint16)
+    raw[:32, :32] = np.rint(white[:32, :32]).astype(np.uint16)
+    coeffs = np.tile(np.float32([0.0, 1.0, 0.0, 0.0]), (bands, 1))
+    as32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    affine = spherejax.Calibration(dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=as32(kernel.matrix),
+                                   wiener_offset=as32(kernel.offset))
+    with_kernel = spherejax.Calibration(dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=as32(kernel.matrix),
+                                        wiener_offset=as32(kernel.offset), wiener_residual=kernel.kernel.astype(np.float32))
+    modes = {label: spherejax.plan(c, raw.shape, dtype=raw.dtype).kernel_mode for label, c in (("affine", affine), ("kernel", with_kernel))}
+    timed = time_interleaved({
+        "affine": lambda: jax.block_until_ready(spherejax.correct(raw, affine).lab),
+        "kernel": lambda: jax.block_until_ready(spherejax.correct(raw, with_kernel).lab),
+    }, max(repeats, 7))
+    return {"size": size, "kernel_modes": modes, "timings": timed,
+            "ratio": timed["kernel"]["median_s"] / timed["affine"]["median_s"]}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -327,6 +371,9 @@ def main(argv=None) -> int:
     for method in ("training", "model", "auto"):
         compile_s, ours = time_first_call(lambda: spherejax.fit_wiener(V, R, method=method))  # noqa: B023
         W, r0, name, settings = np_fit(V, R, method)
+        chosen_method = ours.method
+        if chosen_method == "kernel":  # the reference is of the affine choice, the kernel's mean
+            ours = ours.affine
         chosen = dict(ours.cross_validation[0].settings)
         if ours.method != name or any(
             not (chosen[k] == v if isinstance(v, str) else np.isclose(chosen[k], v, rtol=1e-9)) for k, v in settings.items()
@@ -337,13 +384,16 @@ def main(argv=None) -> int:
             error = float(np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b)))
             if error > TOLERANCE:
                 failures.append(f"{method}: {label} differs from the reference by {error:.2e} (relative) > {TOLERANCE}")
+        reference = functools.partial(np_fit, V, R, method)
+        if method == "auto" and len(V) >= we.KERNEL_MIN_TARGETS:
+            reference = functools.partial(np_auto_with_kernel, V, R)  # "auto" tries the kernel estimator too
         timed = time_interleaved({
             "spherejax": lambda: jax.block_until_ready(spherejax.fit_wiener(V, R, method=method).matrix),  # noqa: B023
-            "numpy": lambda: np_fit(V, R, method),  # noqa: B023
+            "numpy": reference,
         }, args.repeats)
         timings[method] = {
             "compile_s": compile_s, "timings": timed,
-            "ratio": timed["numpy"]["median_s"] / timed["spherejax"]["median_s"], "chosen": ours.method,
+            "ratio": timed["numpy"]["median_s"] / timed["spherejax"]["median_s"], "chosen": chosen_method,
         }
     if failures:
         print("agreement FAILED: " + "; ".join(failures))
@@ -377,18 +427,21 @@ def main(argv=None) -> int:
         print("agreement FAILED: " + "; ".join(km_failures))
         return 1
     print("\ndyed materials (Kubelka-Munk families, 200 targets, 200 other recipes held out): spectral rms / mean ΔE00 D65")
-    print(f"{'family':20} {'affine (auto)':>18} {'kernel':>18} {'kernel / affine':>16}  kernel settings")
+    print(f"{'family':20} {'default chose':>13} {'affine':>18} {'kernel':>18} {'kernel / affine':>16}  kernel gain, z in CV")
     for family, row in km["within_family"].items():
-        cells = " ".join(f"{row[n]['spectral_rms']:.5f} / {row[n]['delta_e_d65']:.3f}".rjust(18) for n in ("auto", "kernel"))
-        print(f"{family:20} {cells} {row['kernel']['spectral_rms'] / row['auto']['spectral_rms']:16.3f}  {row['kernel_settings']}")
-    others = [ratio for pair, ratio in km["kernel_over_affine_pairs"].items() if pair.split(" -> ")[0] != pair.split(" -> ")[1]]
-    print(f"  on the other families (12 pairs): kernel / affine from {min(others):.3f} to {max(others):.3f}; "
+        cells = " ".join(f"{row[n]['spectral_rms']:.5f} / {row[n]['delta_e_d65']:.3f}".rjust(18) for n in ("affine", "kernel"))
+        k = row["kernel_settings"]
+        print(f"{family:20} {row['default']['method']:>13} {cells} {row['kernel']['spectral_rms'] / row['affine']['spectral_rms']:16.3f}"
+              f"  {k['gain']:.3f}, {k['paired_z']:.1f} (l {k['lengthscale']}, ridge {k['ridge']})")
+    others = [ratio for pair, ratio in km["default_over_affine_pairs"].items() if pair.split(" -> ")[0] != pair.split(" -> ")[1]]
+    print(f"  the default on the other families (12 pairs): over the affine from {min(others):.3f} to {max(others):.3f}; "
           f"above 1.02 on {sum(r > 1.02 for r in others)}")
-    f, a = km["fit"], km["apply_megapixel"]
+    f, c = km["fit"], km["correct_megapixel"]
     print(f"  the kernel's cross-validation and fit on {f['family']}: {f['timings']['spherejax']['median_s'] * 1e3:.0f} ms, numpy "
           f"{f['timings']['numpy']['median_s'] * 1e3:.0f} ms ({f['ratio']:.1f}x), first call {f['compile_s']:.2f} s")
-    print(f"  applied to a megapixel (float32, jitted): affine {a['affine']['median_s'] * 1e3:.1f} ms, kernel "
-          f"{a['kernel']['median_s'] * 1e3:.1f} ms ({a['kernel']['median_s'] / a['affine']['median_s']:.1f}x)")
+    print(f"  correct, {c['size']} x {c['size']} x 16 uint16 (median of {max(args.repeats, 7)}): affine "
+          f"{c['timings']['affine']['median_s'] * 1e3:.1f} ms, kernel {c['timings']['kernel']['median_s'] * 1e3:.1f} ms "
+          f"({c['ratio']:.2f}x; the issue's bound 3x), per-pixel step {c['kernel_modes']}")
     if args.json:
         write_record(args.json, {
             "benchmark": "bench_wiener", "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

@@ -13,9 +13,10 @@ disagree about v, p or bad pixels:
    correction is as small as possible, and it is an option.
 3. Stage II fitted by `fit_stage2` (the closed form of Eq. 22 by default).
 4. The reflectance estimator from the target captures: their Stage II responses against their
-   known reflectances (`fit_wiener`: the affine training-based or model-based Wiener estimator,
-   method and regularisers chosen by cross-validation that holds out whole groups of targets,
-   e.g. charts or materials, when a manifest field names them).
+   known reflectances (`fit_estimator`: the affine training-based or model-based Wiener
+   estimator, or that plus the kernel regression of its residuals where the targets show a real
+   gain from it; method and regularisers chosen by cross-validation that holds out whole groups
+   of targets, e.g. charts or materials, when a manifest field names them).
 5. The noise model (`spherejax.uncertainty.NoiseModel`) for per-pixel uncertainties, when the
    camera's gain and read noise are known (arguments, or the session's metadata "camera"): the
    frames averaged from the frames' metadata "frames_averaged", the Stage II coefficients'
@@ -34,7 +35,14 @@ import numpy as np
 from .pipeline import Calibration, correct
 from .polynomial import MIN_SAMPLES, STATUS_NAMES, UNDETERMINED, fit_stage2_detailed, identity_coeffs, stage2, why_undetermined
 from .uncertainty import NoiseModel
-from .estimation import ESTIMATOR_NAMES, EstimatorCovariance, estimator_covariance, fit_kernel_estimator, fit_wiener, validate_method
+from .estimation import (
+    ESTIMATOR_NAMES,
+    EstimatorCovariance,
+    ResidualKernelEstimator,
+    estimator_covariance,
+    fit_estimator,
+    validate_method,
+)
 from .grid import N_WAVELENGTHS
 from .number_text import json_ready
 
@@ -497,8 +505,9 @@ def calibrate_session(
       loss: "l2" (closed form, default), "huber", "cauchy" or "tukey" (`fit_stage2_detailed`);
         bands whose fit did not converge are listed in the report, not raised.
       illuminant: stored in the Calibration for Lab.
-      wiener_method: "auto" (default), "training" or "model" (`fit_wiener`), or "kernel" (the
-        residual kernel estimator on the affine one "auto" chooses, `fit_kernel_estimator`).
+      wiener_method: "auto" (default: the affine method with the least cross-validated error,
+        or the kernel estimator on it where it gains enough, `fit_estimator`), "training" or
+        "model" (affine), or "kernel" (the residual kernel estimator whatever its gain).
       wiener_groups: a manifest field naming each target capture's group (`target_groups`):
         cross-validation then holds out one group at a time; None: k folds of alike targets.
       gain: the camera's electrons per count (a number or one per band), overriding the
@@ -545,12 +554,8 @@ def calibrate_session(
     if groups is not None:
         groups = [g for g, keep in zip(groups, usable) if keep]
         _check_groups(session, groups, wiener_groups)
-    if wiener_method == "kernel":
-        estimator = fit_kernel_estimator(responses[usable], reflectances[usable], groups=groups)
-        kernel_residual = estimator.kernel.astype(np.float32)
-    else:
-        estimator = fit_wiener(responses[usable], reflectances[usable], method=wiener_method, groups=groups)
-        kernel_residual = None
+    estimator = fit_estimator(responses[usable], reflectances[usable], method=wiener_method, groups=groups)
+    kernel_residual = estimator.kernel.astype(np.float32) if isinstance(estimator, ResidualKernelEstimator) else None
     # The estimator covariance (N7) is the affine estimator's (of a kernel estimator, its mean's,
     # whose residuals on the targets are the larger: conservative).
     noise_model, noise_notes = build_noise_model(

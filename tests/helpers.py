@@ -296,3 +296,15 @@ def image_program(raw, calibration, kernel_mode, intermediates=False):
         np.array([box[0], box[2]], np.int32), box_shape=(box[1] - box[0], box[3] - box[2]),
         saturation=pipeline._saturation_level(raw, calibration), intermediates=intermediates, kernel_mode=kernel_mode,
     )
+
+
+def nonlinear_targets(rng, n):
+    """Responses (n, 8) and reflectances (n, 31) of a family with three degrees of freedom t (as a
+    family of three dyes): responses linear in t, reflectances an affine map of the responses
+    plus a smooth nonlinear function of t."""
+    t = rng.uniform(0.0, 1.0, size=(n, 3))
+    fixed = np.random.default_rng(99)  # the same maps for every draw
+    V = 0.2 + t @ fixed.uniform(0.0, 0.5, size=(3, 8))
+    basis = np.sin(np.linspace(0, 3, 31))[None]
+    R = 0.3 + V @ fixed.normal(scale=0.05, size=(8, 31)) + 0.05 * np.sin(3 * t[:, :1] + 2 * t[:, 1:2]) * basis
+    return V, R

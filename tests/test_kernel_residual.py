@@ -14,6 +14,8 @@ import pytest
 from spherejax import estimation, kubelka_munk
 from spherejax.estimation import kernel_residual
 
+from .helpers import nonlinear_targets
+
 
 def _numpy_features(v, mu, S, Z):
     """exp(-|S (v - mu) - z_j|^2 / 2), the direct way (E9-E10, lengthscale folded in)."""
@@ -93,31 +95,26 @@ def test_whitening_gives_unit_covariance_and_inducing_points_are_cluster_centres
     np.testing.assert_array_equal(kernel_residual.inducing_points_of(U[:7], 10), U[:7])
 
 
-def _nonlinear_targets(rng, n):
-    """Responses (n, 8) and reflectances (n, 31) of a family with three degrees of freedom t (as a
-    family of three dyes): responses linear in t, reflectances an affine map of the responses
-    plus a smooth nonlinear function of t."""
-    t = rng.uniform(0.0, 1.0, size=(n, 3))
-    fixed = np.random.default_rng(99)  # the same maps for every draw
-    V = 0.2 + t @ fixed.uniform(0.0, 0.5, size=(3, 8))
-    basis = np.sin(np.linspace(0, 3, 31))[None]
-    R = 0.3 + V @ fixed.normal(scale=0.05, size=(8, 31)) + 0.05 * np.sin(3 * t[:, :1] + 2 * t[:, 1:2]) * basis
-    return V, R
-
-
 def test_a_nonlinear_map_is_recovered_where_the_affine_estimator_cannot_follow():
     rng = np.random.default_rng(3)
-    V, R = _nonlinear_targets(rng, 200)
-    Vt, Rt = _nonlinear_targets(rng, 200)
+    V, R = nonlinear_targets(rng, 200)
+    Vt, Rt = nonlinear_targets(rng, 200)
     folds = np.arange(200) % 5
-    affine = estimation.fit_wiener(V, R, groups=folds)
     kernel = estimation.fit_kernel_estimator(V, R, groups=folds)
+    affine = kernel.affine  # what "auto" would take of the affine methods
+    assert affine.method == estimation.fit_wiener(V, R, groups=folds, method=affine.method).method
     rms = lambda e: float(np.sqrt(np.mean((np.asarray(estimation.wiener(Vt, e)) - Rt) ** 2)))  # noqa: E731
     assert rms(kernel) < 0.3 * rms(affine), (rms(kernel), rms(affine))
     report = kernel.cross_validation
     assert report[0].method == "kernel" and [r.method for r in report[1:]] == [r.method for r in affine.cross_validation]
     settings = dict(report[0].settings)
     assert settings["mean"] == affine.method and settings["inducing_points"] == kernel_residual.INDUCING_POINTS
+    assert report[0].folds == "leave one group out (5 groups)"  # groups given: held out whole, as the affine methods'
+    # "auto" takes it: a gain far beyond KERNEL_MIN_GAIN, z far beyond KERNEL_MIN_Z.
+    assert settings["gain"] > 0.5 and settings["paired_z"] > 5
+    chosen = estimation.fit_wiener(V, R, groups=folds)
+    assert chosen.method == "kernel"
+    np.testing.assert_array_equal(np.asarray(chosen.kernel.weights), np.asarray(kernel.kernel.weights))
     assert settings["lengthscale"] in kernel_residual.KERNEL_LENGTHSCALE_GRID and settings["ridge"] in kernel_residual.KERNEL_RIDGE_GRID
     assert report[0].spectral_rms < 0.5 * report[1].spectral_rms and np.isfinite(report[0].delta_e_d65)
     # The mean is the affine estimator fit_wiener chooses, in the caller's units.
@@ -126,7 +123,7 @@ def test_a_nonlinear_map_is_recovered_where_the_affine_estimator_cannot_follow()
 
 def test_far_from_the_targets_it_is_the_affine_estimator():
     rng = np.random.default_rng(4)
-    V, R = _nonlinear_targets(rng, 120)
+    V, R = nonlinear_targets(rng, 120)
     kernel = estimation.fit_kernel_estimator(V, R)
     far = V[:5] + 50.0  # hundreds of whitened standard deviations away
     np.testing.assert_allclose(np.asarray(estimation.wiener(far, kernel)), np.asarray(estimation.wiener(far, kernel.affine)), rtol=0, atol=1e-12)
@@ -138,7 +135,7 @@ def test_the_units_of_the_responses_do_not_change_the_estimate():
     """Fitted on responses x 2^40 (the fit's power-of-two scaling), the estimate of the scaled
     responses is the estimate of the unscaled ones."""
     rng = np.random.default_rng(5)
-    V, R = _nonlinear_targets(rng, 100)
+    V, R = nonlinear_targets(rng, 100)
     one = estimation.fit_kernel_estimator(V, R)
     big = estimation.fit_kernel_estimator(V * 2.0**40, R)
     np.testing.assert_allclose(np.asarray(estimation.wiener(V * 2.0**40, big)), np.asarray(estimation.wiener(V, one)), rtol=1e-9, atol=1e-12)
@@ -174,7 +171,7 @@ def test_it_is_a_pytree_that_jit_takes():
 
 def test_bad_arguments_are_refused_in_one_line():
     rng = np.random.default_rng(8)
-    V, R = _nonlinear_targets(rng, 30)
+    V, R = nonlinear_targets(rng, 30)
     with pytest.raises(ValueError, match=r"inducing_points: expected an integer >= 1, got 0"):
         estimation.fit_kernel_estimator(V, R, inducing_points=0)
     with pytest.raises(ValueError, match=r"mean: expected one of .*got 'wiener'"):
@@ -189,19 +186,17 @@ def test_bad_arguments_are_refused_in_one_line():
 
 
 def test_held_out_targets_of_a_kubelka_munk_family_are_estimated_better_than_by_the_affine_estimator():
-    """What it is for (the issue's validation): trained on one family's targets, tested on other
-    recipes of that family (a second draw), spectral rms at most 0.8x the affine estimator's on
-    at least three of the four families. Folds: random, the targets of one family being one
-    material (a lab calibrates with targets of the material it measures)."""
+    """What it is for (the issue's validation): the default estimator ("auto"), trained on one
+    family's targets, takes the kernel estimator, and on other recipes of that family (a second
+    draw) its spectral rms is at most 0.8x the affine estimator's (its mean, what "auto" took
+    before) on every family."""
     train = kubelka_munk.km_family_responses(seed=0, n=200)
     test = kubelka_munk.km_family_responses(seed=1, n=200)
     ratios = {}
     for name, (V, R, _) in train.items():
-        folds = np.random.default_rng(0).permutation(len(V)) % 5
-        affine = estimation.fit_wiener(V, R, groups=folds)
-        kernel = estimation.fit_kernel_estimator(V, R, groups=folds)
+        chosen = estimation.fit_wiener(V, R)
+        assert chosen.method == "kernel", (name, chosen.cross_validation[0])
         Vt, Rt, _ = test[name]
         rms = lambda e: float(np.sqrt(np.mean((np.asarray(estimation.wiener(Vt, e)) - Rt) ** 2)))  # noqa: E731
-        ratios[name] = rms(kernel) / rms(affine)
-    assert sum(ratio <= 0.8 for ratio in ratios.values()) >= 3, ratios
-    assert max(ratios.values()) < 1.0, ratios
+        ratios[name] = rms(chosen) / rms(chosen.affine)
+    assert max(ratios.values()) <= 0.8, ratios

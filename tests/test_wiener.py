@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import simulated_targets, spectra, wiener_estimation
+from spherejax import estimation, simulated_targets, spectra, wiener_estimation
 from spherejax.estimation import _first_release
 
 from .helpers import gaussian_sensitivity
@@ -253,17 +253,29 @@ class TestCrossValidation:
         assert report.delta_e_d65 == pytest.approx(float(np.mean(de)), rel=1e-6)
         assert report.folds == "leave one group out (2 groups)"
 
-    def test_auto_reports_both_methods_and_applies_the_best(self, families):
+    def test_auto_reports_every_method_and_applies_the_best(self, families):
+        """Every method is reported with its held-out errors, the chosen one first: the affine
+        methods on the k-means folds, the best of them the estimator's affine part, and the kernel
+        estimator on it (99 targets: more than KERNEL_MIN_TARGETS), taken exactly when its gain
+        and paired z pass KERNEL_MIN_GAIN and KERNEL_MIN_Z."""
         V, R = families[0]["TM-30 CES"]
+        assert len(V) >= estimation.KERNEL_MIN_TARGETS
         estimator = sj.fit_wiener(V, R)
-        assert {c.method for c in estimator.cross_validation} == {"training", "model"}
-        chosen = estimator.cross_validation[0]
-        assert estimator.method == chosen.method
-        assert chosen.spectral_rms == min(c.spectral_rms for c in estimator.cross_validation)
+        reports = {c.method: c for c in estimator.cross_validation}
+        assert set(reports) == {"training", "model", "kernel"} and len(estimator.cross_validation) == 3
+        assert estimator.method == estimator.cross_validation[0].method
         for c in estimator.cross_validation:
             assert 0 < c.spectral_rms < 0.05 and 0 < c.delta_e_d65 < 5
+        affine_best = min(("training", "model"), key=lambda m: reports[m].spectral_rms)
+        kernel = dict(reports["kernel"].settings)
+        assert kernel["mean"] == affine_best
+        assert reports["kernel"].folds == "5 folds of targets drawn at random (seed 0)"
+        taken = kernel["gain"] >= estimation.KERNEL_MIN_GAIN and kernel["paired_z"] >= estimation.KERNEL_MIN_Z
+        assert (estimator.method == "kernel") == taken
+        mean = estimator.affine if taken else estimator
+        assert mean.method == affine_best
         again = {"training": sj.fit_wiener(V, R, method="training"), "model": sj.fit_wiener(V, R, method="model")}
-        np.testing.assert_array_equal(np.asarray(estimator.matrix), np.asarray(again[estimator.method].matrix))
+        np.testing.assert_array_equal(np.asarray(mean.matrix), np.asarray(again[affine_best].matrix))
 
 
 def held_out_family_table(families):
@@ -319,7 +331,7 @@ class TestAcrossMaterials:
         e64 = sj.fit_wiener(V, R)
         e32 = sj.fit_wiener(V.astype(np.float32), R.astype(np.float32))
         assert e32.matrix.dtype == np.float32 and e32.method == e64.method
-        assert rms(sj.wiener(V_test, np.asarray(e32.matrix, np.float64)) + np.asarray(e32.offset, np.float64), R_test) == pytest.approx(
+        assert rms(np.asarray(sj.wiener(V_test.astype(np.float32), e32), np.float64), R_test) == pytest.approx(
             rms(sj.wiener(V_test, e64), R_test), rel=0.02
         )
 
@@ -420,7 +432,7 @@ class TestBadInput:
             sj.fit_wiener(V, R)
 
     def test_unknown_method(self):
-        with pytest.raises(ValueError, match=r"method: expected one of \('auto', 'training', 'model'\), got 'wiener'"):
+        with pytest.raises(ValueError, match=r"method: expected one of \('auto', 'training', 'model', 'kernel'\), got 'wiener'"):
             sj.fit_wiener(np.eye(16), np.ones((16, 31)), method="wiener")
 
     def test_noise_variance_with_model(self):

@@ -197,9 +197,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--loss", default="l2", choices=list(LOSSES),
                        help="Stage II loss: l2 (closed form, Eq. 22; default) or a robust huber, cauchy, tukey")
         p.add_argument("--wiener-method", default="auto", choices=list(WIENER_METHODS),
-                       help="reflectance estimator: auto (default: the lower cross-validated error), "
-                            "training (regression on the targets), model (system model + Wiener) or kernel "
-                            "(auto's plus a kernel regression of its residuals: targets of the samples' material)")
+                       help="reflectance estimator: auto (default: the affine method of lower cross-validated "
+                            "error, plus a kernel regression of its residuals where that gains at least 5 %% "
+                            "beyond chance), training (regression on the targets), model (system model + Wiener) "
+                            "or kernel (auto's affine one plus the kernel regression, whatever its gain)")
         p.add_argument("--wiener-groups", metavar="FIELD", default=None,
                        help="manifest field naming each target capture's group (a key of its metadata, "
                             "or id, set, background): cross-validation holds out one group at a time")

@@ -105,6 +105,8 @@ def wiener_report_table(report) -> str:
     for entry in tried:
         chosen = "*" if entry["method"] == report.wiener_method else " "
         settings = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry["settings"].items())
+        if entry["folds"] != tried[0]["folds"]:  # the kernel estimator's own folds (random, not k-means)
+            settings += f", folds={entry['folds']}"
         lines.append(
             f"{chosen} {entry['method']:<10} {entry['spectral_rms']:>12.5f} {entry['delta_e_d65']:>14.3f}  {settings}"
         )

@@ -1,8 +1,9 @@
 """Estimation of 31-sample reflectance from 16-band camera responses, by method.
 
 Zou et al. (2019) reconstruct reflectance with a 31 x 16 matrix computed from 144 colour targets
-of known reflectance by Wiener estimation (Section 2 and their ref. [21]). Every estimator here is
-affine in the response, r = W v + r0 (E1), so that `correct` stays one matrix product per pixel.
+of known reflectance by Wiener estimation (Section 2 and their ref. [21]). The estimators here are
+affine in the response, r = W v + r0 (E1), or that plus a kernel regression of what it leaves
+(E8-E12), which dyed materials need (their reflectances lie on a curved set, Kubelka-Munk).
 Real responses carry an offset (a residual dark level, stray light) and noise that differs by
 band, and a lab's targets never match its samples exactly; both methods model that. As
 colour-science's `colour.recovery` does, one module per method, named after its reference where
@@ -20,13 +21,13 @@ the code cites one, and a mapping from the method's name to its function:
                     `estimate_system`.
   covariance        the sampling covariance of an estimator from its training set (C1).
   kernel_residual   "kernel": an affine estimator plus a kernel regression of its residuals
-                    on targets of the material measured (E8-E11), `fit_kernel_estimator`; not
-                    affine, so not yet one of `METHODS` (the correction applies affine
-                    estimators only).
+                    on targets of the material measured (E8-E12), `fit_kernel_estimator`; "auto"
+                    takes it where cross-validation shows a real gain (`fit_estimator`).
 
-`fit_wiener(responses, reflectances, method=...)` fits one: `METHODS` maps each method's name to
-its cross-validated fit, and `METHOD_NAMES` ("auto" and the names of `METHODS`) are the names any
-caller accepts, checked by `validate_method`.
+`fit_estimator(responses, reflectances, method=...)` (also `fit_wiener`, its name since the first
+release) fits one: `METHODS` maps each affine method's name to its cross-validated fit,
+`METHOD_NAMES` ("auto" and the names of `METHODS`) are the affine choices and `ESTIMATOR_NAMES`
+those and "kernel", checked by `validate_method`.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from .cross_validation import (
     estimate_system,
     fold_labels,
     fold_weights,
+    random_fold_labels,
     rank_candidates,
     _weights_of,
 )
@@ -76,6 +78,7 @@ from .kernel_residual import (
     KernelResidual,
     ResidualKernelEstimator,
     cross_validate_kernel,
+    kernel_gain,
 )
 from .regression import RELATIVE_NOISE_GRID, _training_fit, training_estimator
 
@@ -107,7 +110,27 @@ def validate_method(method, name: str = "method", names: tuple[str, ...] = METHO
     return method
 
 
-def fit_wiener(
+#: "auto" takes the kernel estimator only where its cross-validated spectral rms is at least this
+#: fraction below the best affine method's (on the same folds). Why 5 %: the kernel estimator
+#: costs up to 3x the affine one's time per pixel in `correct`, and on materials other than its
+#: targets' it was up to 2 % worse than the affine one (the Kubelka-Munk families,
+#: benchmarks/bench_wiener.py; before the lengthscale grid stopped at 4, up to 5 %), so it must
+#: buy more on its own material than it may cost on another.
+KERNEL_MIN_GAIN = 0.05
+
+#: ... and where the targets' paired differences (each target's held-out squared error, affine
+#: minus kernel) have a mean at least this many standard errors above zero: a gain the targets
+#: show together, not a few of them by chance (2: about 1 in 40 for a gain that is not there, the
+#: targets taken as independent).
+KERNEL_MIN_Z = 2.0
+
+#: "auto" tries the kernel estimator from this many targets on. Below it, a fold holds out fewer
+#: than 10 targets (5 folds): too few for a per-target comparison to tell a 5 % gain, and the
+#: regression of residuals on so few has little to learn.
+KERNEL_MIN_TARGETS = 50
+
+
+def fit_estimator(
     responses,
     reflectances,
     noise_variance=None,
@@ -117,8 +140,11 @@ def fit_wiener(
     folds: int = DEFAULT_FOLDS,
     sensitivity=None,
     offset: bool = True,
-) -> WienerEstimator:
-    """An affine reflectance estimator r = W v + r0 from targets of known reflectance.
+    inducing_points: int = INDUCING_POINTS,
+) -> WienerEstimator | ResidualKernelEstimator:
+    """A reflectance estimator from targets of known reflectance: affine (r = W v + r0, E1) or,
+    where its targets show what an affine map cannot follow, the residual kernel estimator
+    (r = W v + r0 + A k(v), E8-E12). `fit_wiener` is this function.
 
     Args:
       responses: corrected camera responses of the targets, shape (n, B) (144 targets in the
@@ -126,18 +152,26 @@ def fit_wiener(
       reflectances: their measured reflectances, shape (n, 31), 400..700 nm step 10.
       noise_variance: sigma^2 of the training form (>= 0, response units squared); given, it
         fixes the method to "training" with no cross-validation (the first release's call).
-      method: "auto" (default: the method and regularisers with the lowest cross-validated
-        spectral rms), "training" (E2) or "model" (E3-E7) (`METHOD_NAMES`).
+      method: "auto" (default): every affine method at its cross-validated regularisers, the one
+        with the least held-out spectral rms kept, and, from `KERNEL_MIN_TARGETS` targets on,
+        the kernel estimator on it, taken only where its held-out spectral rms is at least
+        `KERNEL_MIN_GAIN` lower and the per-target differences at least `KERNEL_MIN_Z` standard
+        errors above zero; "training" (E2) or "model" (E3-E7), affine; "kernel": the kernel
+        estimator whatever its gain (`ESTIMATOR_NAMES`).
       groups: optional label per target (n,), e.g. material or chart: cross-validation then holds
         out one group at a time. None: `folds` clusters of spectrally alike targets.
       folds: the number of folds without groups.
       sensitivity: a known sensitivity M (B, 31) for the model form (with "auto" the model form
         uses it; only b and K_n are then estimated).
-      offset: False fits the training form without r0 (the first release's form).
+      offset: False fits the training form without r0 (the first release's form; affine only).
+      inducing_points: m of the kernel estimator (`INDUCING_POINTS`).
 
     Returns:
-      WienerEstimator: .matrix (31, B), .offset (31,), .method, .cross_validation (each method
-      tried, the chosen one first, with its held-out spectral rms and mean ΔE00 under D65).
+      WienerEstimator (.matrix (31, B), .offset (31,)) or ResidualKernelEstimator (.affine, its
+      mean, and .kernel); either way .method (the one chosen) and .cross_validation: every
+      method tried with its held-out spectral rms and mean ΔE00 under D65, the chosen one first;
+      the kernel's settings include its gain over the best affine method and the paired z.
+      `wiener(v, estimator)` applies either.
 
     The fits run on the responses divided by the power of two nearest their rms (exact, so
     flat-fielded responses give the same bits), which keeps responses in any units, 1e-30 to
@@ -147,13 +181,18 @@ def fit_wiener(
       ValueError: on shapes, non-finite data, or targets that do not vary (nothing to fit).
     """
     V, R = _check_training(responses, reflectances)
-    method = validate_method(method)
+    method = validate_method(method, names=ESTIMATOR_NAMES)
     if noise_variance is not None:
-        if method == "model":
-            raise ValueError("noise_variance: applies to the training form; got it with method='model'")
+        if method != "training" and method != "auto":
+            raise ValueError(f"noise_variance: applies to the training form; got it with method={method!r}")
         _check_noise_variance(noise_variance)
         W, r0 = _training_fit(V, R, jnp.ones(V.shape[0], V.dtype), jnp.asarray(noise_variance, V.dtype), offset)
         return WienerEstimator(W, r0, method="training")
+    if method == "kernel":
+        if not offset:
+            raise ValueError("offset: the kernel estimator's affine mean has an offset; got offset=False with method='kernel'")
+        return fit_kernel_estimator(responses, reflectances, groups=groups, folds=folds, sensitivity=sensitivity,
+                                    inducing_points=inducing_points)
     if not (_checks.is_concrete(V) and _checks.is_concrete(R)):
         raise ValueError(
             "fit_wiener: choosing regularisers by cross-validation needs concrete data, not traced "
@@ -161,10 +200,21 @@ def fit_wiener(
             "fixed regularisers inside"
         )
     _check_determined(V, R, "a Wiener estimator")
+    _check_inducing_points(inducing_points)
     scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, offset)
+    affine_reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
+    if method == "auto" and offset and V.shape[0] >= KERNEL_MIN_TARGETS:
+        kernel = _kernel_candidate(V, R, weights, folds_text, ranked[0], groups, folds, inducing_points)
+        settings = dict(kernel.cross_validation.settings)
+        if settings["gain"] >= KERNEL_MIN_GAIN and settings["paired_z"] >= KERNEL_MIN_Z:
+            return _kernel_estimator(kernel, affine_reports, ranked[0], scale)
+        affine_reports = (*affine_reports, kernel.cross_validation)
     W, r0 = ranked[0].fit()
-    reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
-    return WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=reports)
+    return WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=affine_reports)
+
+
+#: `fit_estimator` under the name of the first releases (the paper's Wiener estimation; docs/design.md).
+fit_wiener = fit_estimator
 
 
 def _affine_candidates(V, R, method, groups, folds, sensitivity, offset):
@@ -206,24 +256,52 @@ def fit_kernel_estimator(
 
     Returns:
       ResidualKernelEstimator; .cross_validation: the kernel's held-out errors first (its
-      settings name the mean, lengthscale, ridge and m), then every affine method tried.
+      settings name the mean, lengthscale, ridge, m, its gain over the mean and the paired z of
+      `kernel_gain`), then every affine method tried.
 
     Raises:
       ValueError: as `fit_wiener`, and on inducing_points < 1.
     """
     V, R = _check_training(responses, reflectances)
     method = validate_method(mean, "mean")
-    if not isinstance(inducing_points, (int, np.integer)) or inducing_points < 1:
-        raise ValueError(f"inducing_points: expected an integer >= 1, got {inducing_points!r}")
+    _check_inducing_points(inducing_points)
     if not (_checks.is_concrete(V) and _checks.is_concrete(R)):
         raise ValueError("fit_kernel_estimator: cross-validation needs concrete data, not traced values")
     _check_determined(V, R, "a kernel estimator")
     scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, True)
-    kernel = cross_validate_kernel(V, R, weights, folds_text, ranked[0], inducing_points=int(inducing_points))
-    W, r0, mu, S, Z, A = kernel.fit()
+    kernel = _kernel_candidate(V, R, weights, folds_text, ranked[0], groups, folds, inducing_points)
     affine_reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
+    return _kernel_estimator(kernel, affine_reports, ranked[0], scale)
+
+
+def _kernel_candidate(V, R, weights, folds_text, mean: Candidate, groups, folds, inducing_points) -> Candidate:
+    """The kernel estimator's `Candidate` on the affine `mean`: cross-validated over the affine
+    methods' folds (`weights`, `folds_text`) where groups are given (a group held out whole), else
+    over `folds` folds of targets drawn at random (`random_fold_labels`).
+
+    Why not the affine methods' k-means folds: they hold out clusters of alike colours, which
+    asks how an estimator extrapolates to colours the targets lack, the question for an affine
+    estimator that must serve samples unlike its targets. The kernel estimator is for samples of
+    the targets' material, which lie among them: on the Kubelka-Munk families (200 targets) the
+    k-means folds showed a gain of 3-8 % for a kernel estimator that lowered the spectral rms of
+    200 new samples of the family by 30-38 %; folds drawn at random showed 21-38 %."""
+    if groups is None:
+        labels, folds_text = random_fold_labels(V.shape[0], folds)
+        weights = _weights_of(labels)
+    return cross_validate_kernel(V, R, weights, folds_text, mean, inducing_points=int(inducing_points))
+
+
+def _check_inducing_points(inducing_points) -> None:
+    if not isinstance(inducing_points, (int, np.integer)) or isinstance(inducing_points, bool) or inducing_points < 1:
+        raise ValueError(f"inducing_points: expected an integer >= 1, got {inducing_points!r}")
+
+
+def _kernel_estimator(kernel: Candidate, affine_reports, mean: Candidate, scale: float):
+    """The ResidualKernelEstimator of the kernel `Candidate` fitted on responses / scale, in the
+    caller's response units, its report first."""
+    W, r0, mu, S, Z, A = kernel.fit()
     # Back to the caller's response units: u = S (v / scale - mu) = (S / scale) (v - scale mu).
-    affine = WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=affine_reports)
+    affine = WienerEstimator(W / scale, r0, method=mean.cross_validation.method, cross_validation=affine_reports)
     return ResidualKernelEstimator(
         affine, KernelResidual(mu * scale, S / scale, Z, A), cross_validation=(kernel.cross_validation, *affine_reports),
     )
@@ -250,7 +328,12 @@ __all__ = [
     "KernelResidual",
     "ResidualKernelEstimator",
     "cross_validate_kernel",
+    "fit_estimator",
     "fit_kernel_estimator",
+    "kernel_gain",
+    "KERNEL_MIN_GAIN",
+    "KERNEL_MIN_TARGETS",
+    "KERNEL_MIN_Z",
     "MARKOV_PRIOR_CORRELATION",
     "METHODS",
     "METHOD_NAMES",

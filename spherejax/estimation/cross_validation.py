@@ -94,6 +94,21 @@ def fold_labels(reflectances, groups=None, folds: int = DEFAULT_FOLDS) -> tuple[
     return _kmeans_labels(shape, k), f"{k} folds of spectrally alike targets (k-means)"
 
 
+def random_fold_labels(n: int, folds: int = DEFAULT_FOLDS, seed: int = 0) -> tuple[np.ndarray, str]:
+    """(label per target (n,), a description) of `folds` folds of targets drawn at random: the
+    rank of each target in a permutation seeded by `seed`, modulo the folds (fold sizes differ by
+    at most one; the same split for the same n every time).
+
+    The split of the kernel estimator (`kernel_residual`), which is for samples of the targets'
+    own material: they lie among the targets, not beyond them as the colours a k-means fold holds
+    out do (`fold_labels`)."""
+    if not isinstance(folds, (int, np.integer)) or folds < 2:
+        raise ValueError(f"folds: expected an integer >= 2, got {folds!r}")
+    k = min(int(folds), n)
+    labels = np.random.default_rng(seed).permutation(n) % k
+    return labels.astype(np.int64), f"{k} folds of targets drawn at random (seed {seed})"
+
+
 def fold_weights(reflectances, groups=None, folds: int = DEFAULT_FOLDS) -> np.ndarray:
     """Training weights (F, n) of the F folds of `fold_labels`: 0 where a target is held out."""
     labels, _ = fold_labels(reflectances, groups, folds)
@@ -195,14 +210,16 @@ _model_fit_folds = jax.jit(jax.vmap(_model_fit, in_axes=(None, None, 0, None, No
 
 class Candidate(NamedTuple):
     """One method at its chosen regularisers: `cross_validation` its held-out errors, `fit()`
-    its (W (31, B), r0 (31,)) on all the targets (computed only when called), and, for an affine
-    method, `fit_folds(weights)` the same fit at the same regularisers on each row of fold
+    its (W (31, B), r0 (31,)) on all the targets (computed only when called), for an affine
+    method `fit_folds(weights)` the same fit at the same regularisers on each row of fold
     weights (F, n): (W (F, 31, B), r0 (F, 31)), the folds of an estimator built on it
-    (`kernel_residual`)."""
+    (`kernel_residual`), and `held_out` its held-out estimates (n, 31) float64, each target's by
+    the fit of the fold that held it out (what "auto" compares target by target)."""
 
     cross_validation: CrossValidation
     fit: Callable[[], tuple]
     fit_folds: Callable[[jax.Array], tuple[jax.Array, jax.Array]] | None = None
+    held_out: np.ndarray | None = None
 
 
 def cross_validate_training(V, R, weights, folds_text: str, *, offset: bool = True, sensitivity=None) -> Candidate:
@@ -220,7 +237,7 @@ def cross_validate_training(V, R, weights, folds_text: str, *, offset: bool = Tr
     sigma2 = jnp.asarray(candidates[k])
     return Candidate(
         result, functools.partial(_training_fit_jit, V, R, jnp.ones(V.shape[0], V.dtype), sigma2, offset),
-        lambda weights: _training_fit_folds(V, R, weights, sigma2, offset),
+        lambda weights: _training_fit_folds(V, R, weights, sigma2, offset), estimates[k],
     )
 
 
@@ -248,7 +265,7 @@ def cross_validate_model(V, R, weights, folds_text: str, *, offset: bool = True,
     arguments = (jnp.asarray(penalty_weight, V.dtype), jnp.asarray(shrinkage, V.dtype), _penalty_root(penalty, V.dtype), sensitivity)
     return Candidate(
         result, functools.partial(_model_fit_jit, V, R, jnp.ones(V.shape[0], V.dtype), *arguments),
-        lambda weights: _model_fit_folds(V, R, weights, *arguments),
+        lambda weights: _model_fit_folds(V, R, weights, *arguments), estimates[k],
     )
 
 
@@ -286,5 +303,6 @@ __all__ = [
     "estimate_system",
     "fold_labels",
     "fold_weights",
+    "random_fold_labels",
     "rank_candidates",
 ]

@@ -57,10 +57,8 @@ from .estimator import _HIGHEST, CrossValidation, WienerEstimator
 #: multiply-adds), the accuracy with it up to the full regression (m = n). Measured on the four
 #: Kubelka-Munk families (`kubelka_munk.km_family_responses`, 200 targets, 200 other recipes held
 #: out, spherejax's default k-means folds), held-out spectral rms against the affine estimator's:
-#: m = 32 0.83-0.89, m = 64 0.61-0.80, m = 200 (every target) 0.51-0.61 (one-off runs); on the
-#: other three families 0.97-1.05 times the affine one's at m = 64 (`benchmarks/bench_wiener.py`,
-#: above 1.02 on one pair of twelve). 64 keeps most of the gain at a third of the full
-#: regression's cost per pixel.
+#: m = 32 0.83-0.89, m = 64 0.61-0.80, m = 200 (every target) 0.51-0.61 (one-off runs, k-means
+#: folds). 64 keeps most of the gain at a third of the full regression's cost per pixel.
 INDUCING_POINTS = 64
 
 #: The rank of the residual's weights A (31, m): the fit keeps the best approximation of this rank
@@ -73,8 +71,15 @@ INDUCING_POINTS = 64
 RESIDUAL_RANK = 8
 
 #: Candidate lengthscales l of (E10), in whitened response units (1 = one standard deviation of
-#: the training responses along each principal direction).
-KERNEL_LENGTHSCALE_GRID = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+#: the training responses along each principal direction). None beyond 4: two targets lie about
+#: sqrt(2 B) = 5.7 apart in these units (B = 16), so a lengthscale of 8 or 16 makes the kernel
+#: nearly flat over the whole family, a global smooth fit that no longer falls back to the affine
+#: mean away from the targets, which is what keeps the estimator from harming other materials.
+#: Measured (Kubelka-Munk families, float64, where such fits are well conditioned; float32 mostly
+#: refused them as ill-conditioned): cross-validation chose 16 on two families, which then made
+#: the other families' spectral rms up to 1.31x the affine estimator's; capped at 4, at most
+#: 1.021x, with the same gain within the family to within 0.04 (benchmarks/bench_wiener.py).
+KERNEL_LENGTHSCALE_GRID = (0.5, 1.0, 2.0, 4.0)
 
 #: Candidate ridges lambda of (E11), relative to the kernel's unit variance.
 KERNEL_RIDGE_GRID = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
@@ -227,7 +232,8 @@ def _final_fit(V, R, W, r0, U, Z, ridge):
 def _kernel_cv(V, R, U, Z, weights, W, r0, lengthscales, ridges):
     """Held-out estimates (L, K, n, 31) for each lengthscale (L,) and ridge (K,) over the folds
     `weights` (F, n): each target estimated by the fit of the fold that held it out, on the
-    affine mean of that fold, W (F, 31, B) and r0 (F, 31)."""
+    affine mean of that fold, W (F, 31, B) and r0 (F, 31); and the mean's own held-out
+    estimates (n, 31)."""
     affine = jnp.einsum("fwb,nb->fnw", W, V, precision=_HIGHEST) + r0[:, None, :]  # (F, n, 31)
     residuals = R[None] - affine
     held_out = 1.0 - weights
@@ -239,17 +245,20 @@ def _kernel_cv(V, R, U, Z, weights, W, r0, lengthscales, ridges):
         estimates = affine + jnp.einsum("fwm,nm->fnw", A, K_nm, precision=_HIGHEST)
         return jnp.sum(held_out[..., None] * estimates, axis=0)
 
-    return jax.vmap(lambda l: jax.vmap(lambda k: at(l, k))(ridges))(lengthscales)
+    grid = jax.vmap(lambda l: jax.vmap(lambda k: at(l, k))(ridges))(lengthscales)
+    return grid, jnp.sum(held_out[..., None] * affine, axis=0)
 
 
 def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_points: int = INDUCING_POINTS):
     """The residual kernel estimator on the affine `Candidate` `affine` (its mean), at the
     lengthscale and ridge of the grids with the least held-out spectral rms over the folds
     `weights` (F, n); returns a `cross_validation.Candidate` whose `fit()` gives the estimator's
-    arrays (W, r0, mu, S / l, z / l, A) on all the targets.
+    arrays (W, r0, mu, S / l, z / l, A) on all the targets and whose report's settings hold, with
+    the mean, lengthscale, ridge and m, the mean's own held-out spectral rms on the same folds
+    ("mean_spectral_rms") and the kernel's gain over it and paired z (`kernel_gain`).
 
     The affine mean is refitted in each fold (`affine.fit_folds`), so the held-out errors are
-    those of the whole estimator.
+    those of the whole estimator, and the mean's on the same folds are what the gain is over.
     """
     from .cross_validation import Candidate, _best, _delta_e_d65
 
@@ -259,18 +268,22 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
     Z = inducing_points_of(U, inducing_points)
     weights = jnp.asarray(weights, dtype)
     W_folds, r0_folds = affine.fit_folds(weights)
-    estimates = np.asarray(_kernel_cv(
+    estimates, mean_held_out = (np.asarray(x, np.float64) for x in _kernel_cv(
         V, R, jnp.asarray(U, dtype), jnp.asarray(Z, dtype), weights, W_folds, r0_folds,
         jnp.asarray(KERNEL_LENGTHSCALE_GRID, dtype), jnp.asarray(KERNEL_RIDGE_GRID, dtype),
-    ), np.float64)
+    ))
     grid = estimates.reshape(-1, *estimates.shape[2:])
     k, rms = _best(grid, R)
     lengthscale = KERNEL_LENGTHSCALE_GRID[k // len(KERNEL_RIDGE_GRID)]
     ridge = KERNEL_RIDGE_GRID[k % len(KERNEL_RIDGE_GRID)]
+    gain, z = kernel_gain(mean_held_out, grid[k], R)
+    R64 = np.asarray(R, np.float64)
     result = CrossValidation(
         method="kernel", spectral_rms=rms, delta_e_d65=_delta_e_d65(grid[k], R),
         settings=(("mean", affine.cross_validation.method), ("lengthscale", lengthscale), ("ridge", ridge),
-                  ("inducing_points", int(len(Z)))),
+                  ("inducing_points", int(len(Z))),
+                  ("mean_spectral_rms", float(np.sqrt(np.mean((mean_held_out - R64) ** 2)))),
+                  ("gain", gain), ("paired_z", z)),
         folds=folds_text,
     )
 
@@ -280,7 +293,28 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
         A = _final_fit(V, R, W, r0, U_l, Z_l, jnp.asarray(ridge, dtype))
         return W, r0, jnp.asarray(mu, dtype), jnp.asarray(S / lengthscale, dtype), Z_l, A
 
-    return Candidate(result, fit)
+    return Candidate(result, fit, held_out=grid[k])
+
+
+#: `kernel_gain`'s z is kept within +-this (a report's JSON holds no infinity).
+_Z_LIMIT = 1e6
+
+
+def kernel_gain(mean_held_out, kernel_held_out, reflectances) -> tuple[float, float]:
+    """(gain, z) of the kernel estimator over its affine mean from their held-out estimates
+    (n, 31) of the targets' reflectances (n, 31): gain = 1 - rms_kernel / rms_mean (spectral rms
+    over targets and wavelengths), z = the mean of the per-target differences of mean squared
+    error (mean - kernel) over its standard error (sample standard deviation / sqrt(n)), within
+    +-1e6: 1e6 when every difference is the same positive number, 0 when none differs."""
+    R = np.asarray(reflectances, np.float64)
+    mean = np.mean((np.asarray(mean_held_out, np.float64) - R) ** 2, axis=1)
+    kernel = np.mean((np.asarray(kernel_held_out, np.float64) - R) ** 2, axis=1)
+    gain = 1.0 - np.sqrt(kernel.mean() / mean.mean()) if mean.mean() > 0 else 0.0
+    difference = mean - kernel
+    spread = np.std(difference, ddof=1) / np.sqrt(len(difference)) if len(difference) > 1 else 0.0
+    average = difference.mean()
+    z = np.clip(average / spread, -_Z_LIMIT, _Z_LIMIT) if spread > 0 else (_Z_LIMIT if average > 0 else 0.0)
+    return float(gain), float(z)
 
 
 __all__ = [
@@ -292,6 +326,7 @@ __all__ = [
     "ResidualKernelEstimator",
     "cross_validate_kernel",
     "inducing_points_of",
+    "kernel_gain",
     "kernel_features",
     "whitening_of",
 ]
