@@ -356,6 +356,10 @@ def load_reference_calibration(path) -> dict:
     from them once per batch: the colorimetric constants and the pixels without a flat field."""
     with h5py.File(path, "r") as stored:
         arrays = {name: stored[name][()] for name in ("dark", "white", "patch", "coeffs", "wiener", "wiener_offset")}
+        # The estimator's kernel residual, where "auto" chose one (format 5; m = 0 rows: affine).
+        arrays["residual"] = tuple(
+            stored[f"wiener_residual_{part}"][()].astype(np.float32) for part in ("centre", "whitening", "inducing", "weights")
+        ) if "wiener_residual_weights" in stored else None
         header = json.loads(stored.attrs["header"])
     # reference_correct is written for a D65, 14-bit calibration (reference.py's constants).
     if header["illuminant"] != "D65" or header["saturation"] != SATURATION:
@@ -373,7 +377,7 @@ def reference_outputs(raw: np.ndarray, calibration: dict) -> dict:
     result = reference_correct(
         raw, calibration["dark"], calibration["white"], calibration["patch"], calibration["coeffs"],
         calibration["wiener"], calibration["xyz_weights"], calibration["whitepoint_xy"],
-        calibration["wiener_offset"],
+        calibration["wiener_offset"], calibration["residual"],
     )
     quality = np.where(np.any(raw >= SATURATION, axis=-1), QUALITY_SATURATED, 0).astype(np.uint8)
     quality[calibration["no_flat_field"]] |= QUALITY_WHITE_NOT_ABOVE_DARK

@@ -138,10 +138,29 @@ def make_calibration(inputs: dict, coeffs: np.ndarray, wiener: np.ndarray, wiene
 # The reference: numpy + colour-science
 
 
-def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whitepoint_xy, wiener_offset=None) -> dict:
+def kernel_residual(v_tilde, centre, whitening, inducing, weights, rows: int = 1 << 16) -> np.ndarray:
+    """The kernel residual A k(v) (..., 31) of an estimator that has one (E9-E10 of
+    spherejax/estimation/kernel_residual.py), written out in numpy float32:
+    k_j(v) = exp(-|S (v - mu) - z_j|^2 / 2), the squared distance taken directly (not expanded),
+    in chunks of `rows` pixels so that the (pixels, m) kernel stays small. NaN v gives NaN."""
+    v = np.asarray(v_tilde, np.float32)
+    flat = v.reshape(-1, v.shape[-1])
+    out = np.empty((len(flat), weights.shape[0]), np.float32)
+    for start in range(0, len(flat), rows):
+        u = (flat[start:start + rows] - centre) @ whitening.T  # (rows, d)
+        squared = np.sum((u[:, None, :] - inducing[None]) ** 2, axis=2)  # (rows, m)
+        out[start:start + rows] = np.exp(-0.5 * squared) @ weights.T
+    return out.reshape(*v.shape[:-1], weights.shape[0])
+
+
+def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whitepoint_xy, wiener_offset=None,
+                      residual=None) -> dict:
     """The `correct` path in numpy, float32 throughout except inside colour-science.
 
     wiener_offset: the estimator's offset r0 (31,), None = zeros.
+    residual: the estimator's kernel residual as (centre (B,), whitening (d, B), inducing (m, d),
+      weights (31, m)) float32 (a calibration's "wiener_residual_*" arrays), None or m = 0 for an
+      affine estimator.
 
     Returns a dict with reflectance (H, W, 31), lab (H, W, 3) and valid (H, W) bool. Bad pixels
     (saturated, non-finite, white <= dark) and every pixel of an image whose patch ratio is not
@@ -173,6 +192,8 @@ def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whit
     reflectance = v_tilde @ wiener.T  # (H, W, 31)
     if wiener_offset is not None:
         reflectance += wiener_offset  # the affine estimate W v + r0; NaN rows stay NaN
+    if residual is not None and residual[2].shape[0] > 0:
+        reflectance += kernel_residual(v_tilde, *residual)
     xyz = reflectance @ xyz_weights  # ASTM E308, Y = 100 for the perfect diffuser
     # colour-science works in float64 internally (its default float dtype); that is how a user
     # would call it, so it is left that way and only the result is cast back.

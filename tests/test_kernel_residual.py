@@ -189,14 +189,20 @@ def test_held_out_targets_of_a_kubelka_munk_family_are_estimated_better_than_by_
     """What it is for (the issue's validation): the default estimator ("auto"), trained on one
     family's targets, takes the kernel estimator, and on other recipes of that family (a second
     draw) its spectral rms is at most 0.8x the affine estimator's (its mean, what "auto" took
-    before) on every family."""
+    before) on every family. On the other three families it stays within 2 % of the affine
+    estimator on at least 11 of the 12 pairs and within 3 % on all (measured: 0.97-1.021, the
+    one above 2 % polyester disperse -> wool acid)."""
     train = kubelka_munk.km_family_responses(seed=0, n=200)
     test = kubelka_munk.km_family_responses(seed=1, n=200)
-    ratios = {}
-    for name, (V, R, _) in train.items():
-        chosen = estimation.fit_wiener(V, R)
-        assert chosen.method == "kernel", (name, chosen.cross_validation[0])
-        Vt, Rt, _ = test[name]
-        rms = lambda e: float(np.sqrt(np.mean((np.asarray(estimation.wiener(Vt, e)) - Rt) ** 2)))  # noqa: E731
-        ratios[name] = rms(chosen) / rms(chosen.affine)
+
+    def rms(estimator, family):
+        Vt, Rt, _ = test[family]
+        return float(np.sqrt(np.mean((np.asarray(estimation.wiener(Vt, estimator)) - Rt) ** 2)))
+
+    chosen = {name: estimation.fit_wiener(V, R) for name, (V, R, _) in train.items()}
+    for name, estimator in chosen.items():
+        assert estimator.method == "kernel", (name, estimator.cross_validation[0])
+    ratios = {name: rms(e, name) / rms(e.affine, name) for name, e in chosen.items()}
     assert max(ratios.values()) <= 0.8, ratios
+    across = {(a, b): rms(chosen[a], b) / rms(chosen[a].affine, b) for a in train for b in train if a != b}
+    assert sum(r <= 1.02 for r in across.values()) >= 11 and max(across.values()) < 1.03, across

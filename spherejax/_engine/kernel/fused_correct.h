@@ -204,23 +204,31 @@ SPHEREJAX_INLINE Vec load_vec(const float* from) {
   return x;
 }
 
+// acc[q] += sum_b tilde[b][first + lane] m[q * q_stride + b * b_stride] for q < N and the 16
+// pixels from `first`, one a lane: N rows (or columns) of a matrix against the pixels' v_tilde,
+// each band's vector loaded once for the N multiply-adds held in registers (residual_of_16).
+template <int N>
+SPHEREJAX_INLINE void add_band_products(const float (*tilde)[kBlock], int64_t first, int64_t B, const float* m,
+                                        int64_t q_stride, int64_t b_stride, Vec* acc) {
+  for (int64_t b = 0; b < B; ++b) {
+    const Vec t = load_vec(tilde[b] + first);
+#pragma GCC unroll 8
+    for (int q = 0; q < N; ++q) acc[q] += t * m[q * q_stride + b * b_stride];
+  }
+}
+
 // N outputs o0 .. o0 + N - 1 of [reflectance | XYZ] for 16 pixels, one a lane (residual_of_16):
 // bias + v_tilde . projection (the affine estimate, as correct_block computes it pixel by pixel)
 // + g . basis (the kernel residual P G k(v)), into out[o][first + lane].
 template <int N>
 SPHEREJAX_INLINE void outputs_of_16(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
                                     const Vec* g, int64_t o0, float (*out)[kBlock]) {
-  const float* projection = reinterpret_cast<const float*>(pr.projection) + o0;
   const float* basis = reinterpret_cast<const float*>(pr.basis) + o0;
   const float* bias = reinterpret_cast<const float*>(pr.bias) + o0;
   Vec acc[N];
 #pragma GCC unroll 8
   for (int q = 0; q < N; ++q) acc[q] = Vec{} + bias[q];
-  for (int64_t b = 0; b < B; ++b) {
-    const Vec t = load_vec(tilde[b] + first);
-#pragma GCC unroll 8
-    for (int q = 0; q < N; ++q) acc[q] += t * projection[b * kPadded + q];
-  }
+  add_band_products<N>(tilde, first, B, reinterpret_cast<const float*>(pr.projection) + o0, 1, kPadded, acc);
 #pragma GCC unroll 8
   for (int64_t r = 0; r < kResidualRank; ++r) {
 #pragma GCC unroll 8
@@ -258,11 +266,7 @@ SPHEREJAX_INLINE void residual_of_16(const Problem& pr, int64_t B, const float (
     Vec u[8];
 #pragma GCC unroll 8
     for (int q = 0; q < 8; ++q) u[q] = Vec{} + row[q * width + B];
-    for (int64_t b = 0; b < B; ++b) {
-      const Vec t = load_vec(tilde[b] + first);
-#pragma GCC unroll 8
-      for (int q = 0; q < 8; ++q) u[q] += t * row[q * width + b];
-    }
+    add_band_products<8>(tilde, first, B, row, width, 1, u);
 #pragma GCC unroll 8
     for (int q = 0; q < 8; ++q) squared += u[q] * u[q];
   }
@@ -273,11 +277,7 @@ SPHEREJAX_INLINE void residual_of_16(const Problem& pr, int64_t B, const float (
     Vec s[kInducingStep];
 #pragma GCC unroll 8
     for (int q = 0; q < kInducingStep; ++q) s[q] = y[q * width + B] - half;
-    for (int64_t b = 0; b < B; ++b) {
-      const Vec t = load_vec(tilde[b] + first);
-#pragma GCC unroll 8
-      for (int q = 0; q < kInducingStep; ++q) s[q] += t * y[q * width + b];
-    }
+    add_band_products<kInducingStep>(tilde, first, B, y, width, 1, s);
 #pragma GCC unroll 8
     for (int q = 0; q < kInducingStep; ++q) {
       const Vec k = Stage2::kernel_exp(s[q]);
