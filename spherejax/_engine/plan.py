@@ -437,8 +437,9 @@ def _kernel_mode(asked, raw_dtype, compute_dtype, bands: int, device) -> str | N
 
 def _kernel_applies_residual(kernel_mode, calibration) -> bool:
     """True if the per-pixel kernel `kernel_mode` applies the calibration's kernel residual (E8)
-    exactly: the fused CPU kernel's AVX-512 and generic code do (`fused.residual_fits`: rank 16 or
-    less, which the fit keeps, and at most 256 inducing points), for a concrete calibration.
+    exactly: the fused CPU kernel's AVX-512 and generic code do, for a concrete calibration whose
+    residual weights have rank `fused.RESIDUAL_RANK` or less, as the fit keeps them
+    (`fused.residual_fits`).
     Elsewhere the jax.numpy path applies it, the documented fallback: the GPU kernel (affine
     estimators only), the AVX2 variant (its block has no residual; the generic code compiled for
     AVX2 spills its vectors to the stack, fused.py), a traced calibration (its rank cannot be

@@ -210,16 +210,14 @@ _model_fit_folds = jax.jit(jax.vmap(_model_fit, in_axes=(None, None, 0, None, No
 
 class Candidate(NamedTuple):
     """One method at its chosen regularisers: `cross_validation` its held-out errors, `fit()`
-    its (W (31, B), r0 (31,)) on all the targets (computed only when called), for an affine
-    method `fit_folds(weights)` the same fit at the same regularisers on each row of fold
+    its (W (31, B), r0 (31,)) on all the targets (computed only when called), and, for an affine
+    method, `fit_folds(weights)` the same fit at the same regularisers on each row of fold
     weights (F, n): (W (F, 31, B), r0 (F, 31)), the folds of an estimator built on it
-    (`kernel_residual`), and `held_out` its held-out estimates (n, 31) float64, each target's by
-    the fit of the fold that held it out (what "auto" compares target by target)."""
+    (`kernel_residual`)."""
 
     cross_validation: CrossValidation
     fit: Callable[[], tuple]
     fit_folds: Callable[[jax.Array], tuple[jax.Array, jax.Array]] | None = None
-    held_out: np.ndarray | None = None
 
 
 def cross_validate_training(V, R, weights, folds_text: str, *, offset: bool = True, sensitivity=None) -> Candidate:
@@ -237,7 +235,7 @@ def cross_validate_training(V, R, weights, folds_text: str, *, offset: bool = Tr
     sigma2 = jnp.asarray(candidates[k])
     return Candidate(
         result, functools.partial(_training_fit_jit, V, R, jnp.ones(V.shape[0], V.dtype), sigma2, offset),
-        lambda weights: _training_fit_folds(V, R, weights, sigma2, offset), estimates[k],
+        lambda weights: _training_fit_folds(V, R, weights, sigma2, offset),
     )
 
 
@@ -265,7 +263,7 @@ def cross_validate_model(V, R, weights, folds_text: str, *, offset: bool = True,
     arguments = (jnp.asarray(penalty_weight, V.dtype), jnp.asarray(shrinkage, V.dtype), _penalty_root(penalty, V.dtype), sensitivity)
     return Candidate(
         result, functools.partial(_model_fit_jit, V, R, jnp.ones(V.shape[0], V.dtype), *arguments),
-        lambda weights: _model_fit_folds(V, R, weights, *arguments), estimates[k],
+        lambda weights: _model_fit_folds(V, R, weights, *arguments),
     )
 
 

@@ -293,7 +293,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
         A = _final_fit(V, R, W, r0, U_l, Z_l, jnp.asarray(ridge, dtype))
         return W, r0, jnp.asarray(mu, dtype), jnp.asarray(S / lengthscale, dtype), Z_l, A
 
-    return Candidate(result, fit, held_out=grid[k])
+    return Candidate(result, fit)
 
 
 #: `kernel_gain`'s z is kept within +-this (a report's JSON holds no infinity).
