@@ -254,3 +254,26 @@ def test_a_residual_that_is_not_a_kernel_residual_is_refused(calibrations):
     affine, kernel, _ = calibrations
     with pytest.raises(ValueError, match=r"wiener_residual: expected an estimation.KernelResidual or None, got dict"):
         dataclasses.replace(affine, wiener_residual={"weights": kernel.wiener_residual.weights})
+
+
+def test_the_kernel_refuses_a_residual_without_whitening_and_shapes_that_do_not_match(near_the_frame):
+    """Both entries check the residual below the Python one: the CPython entry refuses inducing
+    rows without whitening rows, the XLA handler residual arrays of the wrong shape."""
+    _, _, cut, raw = near_the_frame
+    arrays = _direct_arrays(cut, raw)
+    whitening, inducing, factor, basis = arrays["residual"]
+    pixels = arrays["pixels"]
+    out = (np.empty((1, pixels, 31), np.float32), np.empty((1, pixels, 3), np.float32), np.empty((1, pixels), np.uint8))
+    inputs = (arrays["raw"], True, arrays["dark"], arrays["white"], arrays["p"], arrays["coeffs"], arrays["projection"],
+              arrays["bias"], arrays["white_xyz"])
+    with pytest.raises(ValueError, match="^residual: inducing points without a whitening$"):
+        fused._fused_correct.correct_arrays(*inputs, whitening[:0], inducing, factor, basis, 1, pixels, B, 0,
+                                            inducing.shape[0], float("nan"), 0, 1, *out)
+    assert fused._register()
+    out_types = (jax.ShapeDtypeStruct((1, pixels, 31), jnp.float32), jax.ShapeDtypeStruct((1, pixels, 3), jnp.float32),
+                 jax.ShapeDtypeStruct((1, pixels), jnp.uint8))
+    ffi = jax.ffi.ffi_call(fused.TARGET, out_types)
+    with pytest.raises(Exception, match=r"residual: shapes do not match raw \(N, P, B\)"):
+        jax.block_until_ready(ffi(arrays["raw"], *inputs[2:], whitening, inducing, factor[:, :4], basis,
+                                  saturation=np.float32(np.nan), variant=np.int32(0)))
+
