@@ -433,7 +433,7 @@ def raw_floor(inputs: list, out: pathlib.Path, outputs: dict[str, bytes], direct
     """The raw floor: for each input, read its bytes (a plain read, no decoding) and write
     `outputs` (kind -> the bytes of one input's outputs as spherejax wrote them in the agreement
     check, precomputed) as plain files under the same fsync policy as spherejax's
-    (`spherejax.io.atomic`): each file written under a temporary name, fsynced, renamed into
+    (`spherejax.atomic_files`): each file written under a temporary name, fsynced, renamed into
     place, and its folder fsynced. No decoding, correction or encoding: what the disk and the
     kernel alone cost. With `direct`, each file is written past the page cache where the disk
     takes it, as spherejax writes its EXR and ENVI outputs (`spherejax.io.direct_io`): what the

@@ -121,7 +121,7 @@ def acquire(
         moved), or a fault stopped the run (what was captured stays in SESSION.partial for
         --resume).
     """
-    from spherejax.io import atomic
+    from spherejax import atomic_files
 
     settings = settings or Settings()
     if through_gige and (not emulate or real_camera):
@@ -163,7 +163,7 @@ def acquire(
         _layout(profile, instrument.camera)
         partial.mkdir(parents=True, exist_ok=True)
         # Atomic: a kill while writing it must not leave a folder --resume refuses to read.
-        atomic.write_atomic(partial / "profile.json", json.dumps(_profile_identity(profile), sort_keys=True))
+        atomic_files.write_atomic(partial / "profile.json", json.dumps(_profile_identity(profile), sort_keys=True))
         journal = Journal(partial)
         if emulate:
             # An emulated lamp is switched on when the run starts and needs no waiting.

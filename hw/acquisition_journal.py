@@ -168,13 +168,13 @@ def _check_ownership(profile: Profile, out: pathlib.Path, partial: pathlib.Path,
 def _is_work_folder(partial: pathlib.Path) -> bool:
     """True if `partial` is a folder an acquisition made (it holds its profile.json, or only the
     temporary name of one): what `acquire` may remove."""
-    from spherejax.io import atomic
+    from spherejax import atomic_files
 
     if partial.is_symlink() or not partial.is_dir():
         return False
     if (partial / "profile.json").is_file():
         return True
-    return all(atomic.is_temp_sibling(entry.name, "profile.json") for entry in partial.iterdir())
+    return all(atomic_files.is_temp_sibling(entry.name, "profile.json") for entry in partial.iterdir())
 
 
 __all__ = ["JOURNAL_NAME", "PARTIAL_SUFFIX", "Journal"]

@@ -31,7 +31,7 @@ import pathlib
 from typing import Annotated, Callable, Literal
 
 from spherejax import jsontext
-from spherejax.io import atomic
+from spherejax import atomic_files
 from spherejax.io.plain_files import read_small
 from spherejax.io.documents import AwareTime, Document, Expect, check_document, integer, number
 
@@ -141,7 +141,7 @@ class Lamp:
             "warmups": state["warmups"][-MAX_WARMUPS:],
         }
         text = json.dumps(record, indent=2) + "\n"
-        atomic.write_atomic(self.state_file, text)
+        atomic_files.write_atomic(self.state_file, text)
 
     # --- records -------------------------------------------------------------------------------
 

@@ -20,19 +20,19 @@ Layers. Each module imports only modules of its own layer or of the layers below
    consistency, markov, angles, _engine (private: the prepared plan and its routes, the jitted
    steps, the fused CPU kernel, buffers, allocator), grid, spectra, jsontext (a parser of text it is
    given), number_text (numbers in the shortest text of their precision, JSON values and CSV
-   tables as text), labelled (the xarray names of the outputs), _checks.
+   tables as text), labelled (the xarray names of the outputs), _checks, atomic_files (the one
+   way every writer puts a file in place, the engine's cache and io's writers alike).
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
    a path they open): calibrate, evaluate, study, simulate (the physical simulator and the
    paper's experiment on it, a module per job: simulated_instrument, simulated_layout,
    simulated_rendering), stripwise, measurement, monte_carlo, simulated_targets, kubelka_munk, figures.
-3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.atomic, the one way
-   every writer puts a file in place; io.journal, the fsynced JSON-lines journal of a batch's
-   manifest and an acquisition; io.hashing, the one file hash), measurement_files, archive (batch
-   correction, a module per job: discovery, inputs, outputs, manifest, lock, batch), cluster,
-   interrupt, console (the command line's messages and progress), cli and __main__ (`python -m
-   spherejax`); and the instrument, hw/ (installed as spherejax_hw), which uses spherejax and
-   which spherejax never imports: it adds `spherejax acquire` to cli through the
-   "spherejax.commands" entry points.
+3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.journal, the
+   fsynced JSON-lines journal of a batch's manifest and an acquisition; io.hashing, the one file
+   hash), measurement_files, archive (batch correction, a module per job: discovery, inputs,
+   outputs, manifest, lock, batch), cluster, interrupt, console (the command line's messages and
+   progress), cli and __main__ (`python -m spherejax`); and the instrument, hw/ (installed as
+   spherejax_hw), which uses spherejax and which spherejax never imports: it adds `spherejax
+   acquire` to cli through the "spherejax.commands" entry points.
 """
 
 from ._engine.allocator import keep_freed_memory as keep_freed_memory

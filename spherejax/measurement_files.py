@@ -107,7 +107,7 @@ import numpy as np
 
 from .colorimetry import OBSERVERS
 from .grid import N_WAVELENGTHS
-from .io import atomic
+from . import atomic_files
 from .io.cgats import cgats_text as _cgats_table
 from .io.documents import _readable_json
 from .io.errors import SpherejaxFileError
@@ -466,10 +466,10 @@ def check_output_base(base) -> None:
 
 
 def write_files(files: Mapping[pathlib.Path, bytes]) -> None:
-    """Write every path -> bytes as one set (`spherejax.io.atomic.write_together`: all the
+    """Write every path -> bytes as one set (`spherejax.atomic_files.write_together`: all the
     temporary files first, then the renames); SpherejaxFileError naming the file on a failure."""
     try:
-        atomic.write_together(files)
+        atomic_files.write_together(files)
     except OSError as error:
         raise SpherejaxFileError(error.filename, f"could not be written: {error.strerror or error}") from None
 

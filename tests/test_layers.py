@@ -1,10 +1,14 @@
-"""The layering of the package docstring (spherejax/__init__.py), enforced on the source.
+"""The layering of the package docstring (spherejax/__init__.py), enforced on the source, and the
+structure rules beside it: no import cycle, no module over `MAX_LINES` lines.
 
 Every import in spherejax/ and hw/ is read from the syntax tree, those inside functions included
 (a lazy import is still a dependency); only imports under `if TYPE_CHECKING:` are left out, since
-they never run. A module may import modules of its own layer or of the layers below it. hw/, the
-instrument package, installs as `spherejax_hw` and uses spherejax; spherejax never imports it (its
-`acquire` command reaches the command line through an entry point).
+they never run. A module may import modules of its own layer or of the layers below it, and no
+chain of imports may lead from a module back to itself, within a layer too: a cycle leaves each of
+its modules half-initialised while another runs (hidden today by a lazy import, broken by the next
+top-level one), and none can be read, tested or moved without the others. hw/, the instrument
+package, installs as `spherejax_hw` and uses spherejax; spherejax never imports it (its `acquire`
+command reaches the command line through an entry point).
 """
 
 import ast
@@ -21,7 +25,7 @@ LAYERS = {
     **dict.fromkeys(
         ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "pipeline", "uncertainty", "consistency",
          "markov", "angles", "_engine", "pixel_constants", "correction_result", "grid", "spectra", "jsontext", "noise_document",
-         "number_text", "labelled", "_checks"], KERNELS),
+         "noise_bands", "number_text", "labelled", "_checks", "atomic_files"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
          "simulated_targets", "kubelka_munk", "simulated_instrument", "simulated_layout", "simulated_rendering", "figures"], WORKFLOWS),
@@ -80,6 +84,124 @@ def layer_of(name: str) -> tuple[str, int] | None:
     if parts[0] != "spherejax" or len(parts) == 1:
         return None
     return parts[1], LAYERS.get(parts[1], 0)
+
+
+def import_graph() -> dict[str, set[str]]:
+    """module -> the modules of spherejax and hw it imports (`sources`), each import taken to the
+    longest dotted prefix that is a module (`from .estimation import wiener` is an edge to the
+    package spherejax.estimation; `from .io import atomic`, to spherejax.io.atomic). The facade,
+    spherejax/__init__.py, is no node: `from . import _checks` runs it, but it is the re-export of
+    every layer, not a dependency of the module importing its sibling."""
+    found = dict(sources())
+    graph = {}
+    for module, file in found.items():
+        edges = set()
+        for name in imported_modules(module, file):
+            while name and name not in found:
+                name = name.rpartition(".")[0]
+            if name and name != module:
+                edges.add(name)
+        graph[module] = edges
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The cycles of `graph` (node -> the nodes it imports): its strongly connected components
+    of more than one node, and any node that imports itself, each sorted, in sorted order.
+    Tarjan's algorithm, written without recursion (the graph has a few hundred nodes, chains of
+    imports as deep as the package)."""
+    index, low, on_stack, stack, cycles = {}, {}, set(), [], []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.get(root, ()))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, successors = work[-1]
+            successor = next(successors, None)
+            if successor is not None:
+                if successor not in index:
+                    index[successor] = low[successor] = len(index)
+                    stack.append(successor)
+                    on_stack.add(successor)
+                    work.append((successor, iter(sorted(graph.get(successor, ())))))
+                elif successor in on_stack:
+                    low[node] = min(low[node], index[successor])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1 or node in graph.get(node, ()):
+                    cycles.append(sorted(component))
+    return sorted(cycles)
+
+
+#: No source of spherejax or hw, Python or the fused kernel's C++, may be longer: a file longer
+#: than this has more than one job (split it by job) or is a changelog in comments.
+MAX_LINES = 700
+#: The sources `MAX_LINES` applies to, by the end of their names, under spherejax/ and hw/.
+LIMITED_SOURCES = (".py", ".cc", ".cpp", ".h", ".hpp")
+
+
+def over_long(files) -> list[str]:
+    """"path: N lines" of each of `files` longer than `MAX_LINES` lines."""
+    found = []
+    for file in files:
+        with open(file, encoding="utf-8") as text:
+            lines = sum(1 for _ in text)
+        if lines > MAX_LINES:
+            found.append(f"{file.relative_to(ROOT) if file.is_relative_to(ROOT) else file}: {lines} lines")
+    return found
+
+
+def test_the_import_graph_has_no_cycle():
+    cycles = import_cycles(import_graph())
+    assert cycles == [], "import cycles (each a set of modules that import each other, through lazy imports too): " + "; ".join(
+        " <-> ".join(cycle) for cycle in cycles)
+
+
+def test_the_cycle_finder_finds_what_it_must():
+    """The check above can fail: a two-module cycle, a longer one, a module importing itself,
+    and no cycle where imports only point one way."""
+    graph = {"a": {"b"}, "b": {"a", "c"}, "c": {"d"}, "d": {"e"}, "e": {"c"}, "f": {"f"}, "g": {"a", "c"}}
+    assert import_cycles(graph) == [["a", "b"], ["c", "d", "e"], ["f"]]
+    assert import_cycles({"a": {"b", "c"}, "b": {"c"}, "c": set()}) == []
+    deep = {f"m{i}": {f"m{i + 1}"} for i in range(5000)} | {"m5000": {"m0"}}  # no recursion limit
+    assert import_cycles(deep) == [sorted(deep)]
+
+
+def test_the_graph_holds_the_imports():
+    """Edges go to the module a name lies in, lazy imports included; the facade is no node."""
+    graph = import_graph()
+    assert "spherejax" not in graph and "spherejax.estimation.estimator" in graph
+    assert "spherejax.estimation.estimator" in graph["spherejax.estimation.kernel_residual"]
+    assert "spherejax.estimation" in graph["spherejax.uncertainty"]  # `from .estimation import EstimatorCovariance`
+    assert all(not edge.startswith("spherejax_hw") for module, edges in graph.items()
+               if module.startswith("spherejax.") for edge in edges)
+
+
+def test_no_source_is_over_the_line_limit():
+    files = sorted(file for root in ("spherejax", "hw") for file in (ROOT / root).rglob("*")
+                   if file.is_file() and file.name.endswith(LIMITED_SOURCES))
+    assert any(file.suffix == ".cc" for file in files) and any(file.suffix == ".py" for file in files)
+    long = over_long(files)
+    assert long == [], f"over {MAX_LINES} lines (split by job): {long}"
+
+
+def test_the_line_limit_can_fail(tmp_path):
+    (tmp_path / "long.py").write_text("x = 1\n" * (MAX_LINES + 1))
+    (tmp_path / "at.cc").write_text("int x;\n" * MAX_LINES)
+    assert over_long(sorted(tmp_path.iterdir())) == [f"{tmp_path / 'long.py'}: {MAX_LINES + 1} lines"]
 
 
 def test_every_module_has_a_layer():

@@ -13,9 +13,9 @@ Where: `$SPHEREJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/spherejax`, else `~/.cache/
 `fused-kernel-variants.json`, holding one entry per machine key (the CPU's identity as
 /proc/cpuinfo gives it, the variants it runs and the spherejax version). The file is spherejax's:
 it is replaced only when its first key says it is one spherejax wrote (`FORMAT`), never through a
-link, and written whole (a temporary file renamed over it). The measurement runs under an
-exclusive lock on a lock file beside it, so that processes starting together (dask workers, a
-test run's workers) wait for one measurement instead of making their own.
+link, and written whole (`spherejax.atomic_files`: a temporary file renamed over it). The
+measurement runs under an exclusive lock on a lock file beside it, so that processes starting
+together (dask workers, a test run's workers) wait for one measurement instead of making their own.
 
 Where the folder cannot be used (read-only, a foreign file in the way, no home), nothing is
 measured: the widest variant the CPU runs is taken, which is the same in every process. Say why
@@ -24,14 +24,14 @@ once, at DEBUG.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
 import pathlib
 import stat
-import tempfile
 from collections.abc import Callable, Mapping
+
+from ..atomic_files import write_atomic
 
 #: The file's first key and value: what makes it a file spherejax wrote.
 FORMAT = "spherejax fused kernel variant timings"
@@ -94,19 +94,9 @@ def _read(path: pathlib.Path) -> dict | None:
 
 
 def _write(path: pathlib.Path, machines: dict) -> None:
-    """The whole file, through a temporary file in its folder renamed over it."""
+    """The whole file, through a temporary file in its folder renamed over it (`atomic_files`)."""
     text = json.dumps({"format": FORMAT, "machines": machines}, indent=1, sort_keys=True)
-    descriptor, temporary = tempfile.mkstemp(prefix=".fused-kernel-variants-", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(descriptor, "w", encoding="utf-8") as out:
-            out.write(text + "\n")
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(temporary)
-        raise
+    write_atomic(path, text + "\n")
 
 
 def _valid(times) -> bool:

@@ -94,7 +94,7 @@ def srgb_preview(reflectance: np.ndarray) -> np.ndarray:
 
 class OutputWriter(Protocol):
     """What writes one output of an input, in any format: rows in order, under temporary names,
-    put in place by `commit` (the `io.atomic` rules); leaving the `with` block uncommitted leaves
+    put in place by `commit` (the `atomic_files` rules); leaving the `with` block uncommitted leaves
     nothing."""
 
     def write_rows(self, row0: int, pixels: np.ndarray) -> None: ...

@@ -20,15 +20,15 @@ WIENER_METHODS = ("auto", "training", "model", "kernel")
 
 
 def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
-    """Write name -> bytes into out_dir as one set (`spherejax.io.atomic.write_together`: all
+    """Write name -> bytes into out_dir as one set (`spherejax.atomic_files.write_together`: all
     the temporary files first, then the renames). When one cannot be written (a full disk), none
     of the files is changed and a folder this call created is removed."""
-    from ..io import atomic  # here, not at the top: --help imports nothing of JAX
+    from .. import atomic_files  # here, not at the top: --help imports nothing of JAX
 
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        atomic.write_together({out_dir / name: payload for name, payload in files.items()})
+        atomic_files.write_together({out_dir / name: payload for name, payload in files.items()})
     except BaseException:
         if created:
             with contextlib.suppress(OSError):

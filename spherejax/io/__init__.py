@@ -5,13 +5,13 @@ never import them. Every failure raises a `SpherejaxFileError` (a ValueError) wh
 line, "PATH: problem (expected ...)", naming the file, the value found and what was expected. No
 format uses pickle. Every writer is atomic: it writes under a temporary name in the destination's
 folder and renames into place only when complete, so a failure leaves nothing new on disk
-(`spherejax.io.atomic`: the steps, and the one rule for temporary names that cleanup recognises).
+(`spherejax.atomic_files`, below the engine so that its cache uses it too: the steps, and the one
+rule for temporary names that cleanup recognises).
 
 The package's modules, one job each (their names are all available here, as before the split):
 
     errors             SpherejaxFileError and its kinds, the one-line messages
     library_messages   what OpenImageIO and HDF5 say of a damaged file, in plain words
-    atomic             the one way every writer puts a file in place; temporary names
     hashing            `sha256_file`, the one way a file is hashed (in blocks, each a safe point)
     journal            append-only fsynced JSON-lines files: a batch's manifest, an acquisition's
                        journal
@@ -164,7 +164,7 @@ header's "arrays" and in the checksum; it is read with r0 = 0, which is what it 
 from __future__ import annotations
 
 from .errors import CalibrationFileError, SessionError, SpherejaxFileError
-from .atomic import is_temp_sibling, temp_sibling
+from ..atomic_files import is_temp_sibling, temp_sibling
 from .ownership import refuse_overlaps
 from .plain_files import file_kind, open_regular, read_lines, read_small
 from .frames import (

@@ -20,7 +20,7 @@ import h5py
 import numpy as np
 
 from .. import interrupt
-from .atomic import atomic_file
+from ..atomic_files import atomic_file
 from .calibration_checks import CALIBRATION_ARRAYS, _calibration_arrays
 from .documents import _canonical_json, _readable_json
 from .errors import CalibrationFileError, SpherejaxFileError, _show

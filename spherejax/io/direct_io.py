@@ -1,6 +1,6 @@
 """Writing a large new file past the page cache (O_DIRECT), where the system allows it.
 
-Why. Every output spherejax writes is fsynced before it is renamed into place (`io.atomic`), so
+Why. Every output spherejax writes is fsynced before it is renamed into place (`atomic_files`), so
 the page cache buys it nothing: the bytes must reach the disk before the commit anyway. What a
 buffered write costs instead is the kernel's copy of every byte into the page cache, which on
 the 2-core VM spherejax is measured on took 0.22-0.27 s of system time for the 130 MB of one

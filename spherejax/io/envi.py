@@ -22,7 +22,7 @@ What `spherejax correct --format envi` writes for each output (reflectance, Lab)
                                        control characters as spaces, braces as parentheses: ENVI
                                        headers have no escapes)
 
-Both files are written under temporary names (`spherejax.io.atomic`) and renamed into place
+Both files are written under temporary names (`spherejax.atomic_files`) and renamed into place
 together, the data first and the header last, once every row is written. The pixels are written
 past the page cache where the system allows it (`io.direct_io`: they are fsynced before the
 rename anyway, and the kernel's copy into the cache was most of this writer's time).
@@ -42,7 +42,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .atomic import create_exclusive, fsync_folder, open_exclusive, temp_sibling
+from ..atomic_files import create_exclusive, fsync_folder, open_exclusive, temp_sibling
 from .direct_io import DirectFile
 from .errors import SpherejaxFileError
 from .hashing import sha256_file

@@ -14,7 +14,7 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import OpenImageIO as oiio
 
-from .atomic import create_exclusive, fsync_folder, temp_sibling
+from ..atomic_files import create_exclusive, fsync_folder, temp_sibling
 from .errors import SpherejaxFileError, _show
 from .hashing import sha256_file
 from .library_messages import complete_image, image_open_problem, image_read_problem, image_write_problem, write_limit
@@ -287,7 +287,7 @@ class AtomicImageWriter:
         self._temp = temp_sibling(self.path)
         self._output = None
         try:
-            create_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
+            create_exclusive(self._temp)  # `spherejax.atomic_files`: the rules every writer follows
         except OSError as error:
             raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
         # The format is named, not guessed from the temporary file's extension.

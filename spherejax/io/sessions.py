@@ -17,7 +17,7 @@ import pydantic
 
 from .. import jsontext
 from ..grid import N_WAVELENGTHS
-from .atomic import atomic_file, fsync_folder, temp_sibling
+from ..atomic_files import atomic_file, fsync_folder, temp_sibling
 from .documents import (
     BandCentres, Document, Expect, ImageRectangle, JsonObject, NonEmptyStr, PositiveNumber, RelativePath, Timestamp,
     _check_format, _json_value, _readable_json, _utc_now, check_document, choice, integer, located, numbers, refuse,

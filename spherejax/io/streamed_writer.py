@@ -1,7 +1,7 @@
 """An image file that spherejax encodes itself, written strip by strip: what every such writer shares.
 
 The quality PNG (`quality_png`) and the uncompressed EXR (`exr_uncompressed`) are encoded here, not
-by OpenImageIO, and both follow the rules of `io.atomic` as `frames.AtomicImageWriter` does:
+by OpenImageIO, and both follow the rules of `atomic_files` as `frames.AtomicImageWriter` does:
 
 - the file is written under a temporary name beside `path`, created with O_EXCL (never an
   existing file, nor a link to one elsewhere);
@@ -27,7 +27,7 @@ import hashlib
 import os
 import pathlib
 
-from .atomic import fsync_folder, open_exclusive, temp_sibling
+from ..atomic_files import fsync_folder, open_exclusive, temp_sibling
 from .direct_io import DirectFile
 from .errors import SpherejaxFileError
 from .library_messages import write_limit
@@ -46,7 +46,7 @@ class StreamedImageWriter(abc.ABC):
         self._file = None
         self._direct: DirectFile | None = None
         try:
-            self._file = open_exclusive(self._temp)  # `spherejax.io.atomic`: the rules every writer follows
+            self._file = open_exclusive(self._temp)  # `spherejax.atomic_files`: the rules every writer follows
             # Every byte goes through `_direct`; the file object's own buffer stays empty.
             self._direct = DirectFile(self._file.fileno())
         except OSError as error:

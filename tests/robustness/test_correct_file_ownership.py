@@ -287,9 +287,9 @@ def test_a_sparse_manifest_is_read_by_its_data_and_stops_on_a_signal(tmp_path):
 _SIGTERM_WHILE_WRITING = """
 import os, signal, sys, time
 from spherejax import cli
-from spherejax.io import atomic
+from spherejax import atomic_files
 
-opened = atomic.open_exclusive
+opened = atomic_files.open_exclusive
 
 def open_then_terminated(path, *args, **kwargs):
     handle = opened(path, *args, **kwargs)
@@ -297,7 +297,7 @@ def open_then_terminated(path, *args, **kwargs):
     time.sleep(0.5)
     return handle
 
-atomic.open_exclusive = open_then_terminated
+atomic_files.open_exclusive = open_then_terminated
 sys.exit(cli.main(sys.argv[1:]))
 """
 

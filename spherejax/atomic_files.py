@@ -1,6 +1,8 @@
 """Writing files so that a reader, a crash or a kill sees the old file or the new one, never half.
 
-Every writer in spherejax and hw/ goes through here, with one rule for temporary names:
+Every writer in spherejax and hw/ goes through here, the engine's cache of kernel timings
+(`_engine.variant_cache`) included: this module imports nothing of spherejax, so that it stands
+below every layer (io is above the engine, which may not import it). One rule for temporary names:
 ``.<target name>.<12 hex digits>.tmp`` in the target's own folder (`temp_sibling`), which
 `is_temp_sibling` recognises, so that whatever a killed run leaves is found and removed by the
 next one (`spherejax.archive`'s resume, `hw.acquire`'s).

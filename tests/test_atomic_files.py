@@ -1,4 +1,4 @@
-"""`spherejax.io.atomic`: the one way spherejax and hw/ write a file, and its one rule for
+"""`spherejax.atomic_files`: the one way spherejax and hw/ write a file, and its one rule for
 temporary names.
 
 Checked by what the steps are for: the target holds the old bytes or the new ones and nothing
@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import cli, io, measurement_files
-from spherejax.io import atomic
+from spherejax import atomic_files, cli, io, measurement_files
 from spherejax_hw.lamp import Lamp
 
 
@@ -28,9 +27,9 @@ def leftovers(folder: pathlib.Path) -> list[str]:
 def test_bytes_and_text_replace_the_target(tmp_path):
     target = tmp_path / "state.json"
     target.write_text("old")
-    atomic.write_atomic(target, "new ünïcode\n")
+    atomic_files.write_atomic(target, "new ünïcode\n")
     assert target.read_text(encoding="utf-8") == "new ünïcode\n"
-    atomic.write_atomic(target, b"\x00\x01bytes")
+    atomic_files.write_atomic(target, b"\x00\x01bytes")
     assert target.read_bytes() == b"\x00\x01bytes"
     assert leftovers(tmp_path) == []
 
@@ -39,7 +38,7 @@ def test_bytes_and_text_replace_the_target(tmp_path):
 def test_a_new_file_gets_the_mode_the_umask_gives(tmp_path, umask):
     previous = os.umask(umask)
     try:
-        atomic.write_atomic(tmp_path / "out.csv", b"a,b\n")
+        atomic_files.write_atomic(tmp_path / "out.csv", b"a,b\n")
         plain = tmp_path / "plain.csv"
         plain.write_bytes(b"a,b\n")  # what open() gives a new file under the same umask
     finally:
@@ -52,7 +51,7 @@ def test_an_error_in_the_block_leaves_the_old_file_and_no_temporary(tmp_path):
     target = tmp_path / "calibration.h5"
     target.write_bytes(b"the old calibration")
     with pytest.raises(RuntimeError, match="disk full"):
-        with atomic.atomic_file(target) as handle:
+        with atomic_files.atomic_file(target) as handle:
             handle.write(b"half of the new")
             raise RuntimeError("disk full")
     assert target.read_bytes() == b"the old calibration"
@@ -73,7 +72,7 @@ def test_the_file_and_then_its_folder_are_fsynced_before_and_after_the_rename(tm
 
     monkeypatch.setattr(os, "fsync", fsync)
     monkeypatch.setattr(os, "replace", replace)
-    atomic.write_atomic(tmp_path / "a.json", "{}")
+    atomic_files.write_atomic(tmp_path / "a.json", "{}")
     assert events == ["fsync file", "rename", "fsync folder"]
 
 
@@ -83,21 +82,21 @@ def test_the_temporary_name_is_created_exclusively(tmp_path, monkeypatch):
     monkeypatch.setattr(uuid, "uuid4", lambda: fixed)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.write_bytes(b"not to be touched")
-    planted = atomic.temp_sibling(tmp_path / "out.json")
+    planted = atomic_files.temp_sibling(tmp_path / "out.json")
     planted.symlink_to(elsewhere)
     with pytest.raises(FileExistsError):
-        atomic.write_atomic(tmp_path / "out.json", b"new")
+        atomic_files.write_atomic(tmp_path / "out.json", b"new")
     assert elsewhere.read_bytes() == b"not to be touched"
     assert not (tmp_path / "out.json").exists()
 
 
 def test_the_name_rule():
-    name = atomic.temp_sibling(pathlib.Path("/x/frames/dark.tif")).name
-    assert atomic.is_temp_sibling(name) and atomic.is_temp_sibling(name, "dark.tif")
-    assert not atomic.is_temp_sibling(name, "white.tif")
+    name = atomic_files.temp_sibling(pathlib.Path("/x/frames/dark.tif")).name
+    assert atomic_files.is_temp_sibling(name) and atomic_files.is_temp_sibling(name, "dark.tif")
+    assert not atomic_files.is_temp_sibling(name, "white.tif")
     for other in (".dark.tif.tmp", ".dark.tif.tmp-1234", "dark.tif", ".dark.tif.0123456789AB.tmp"):
-        assert not atomic.is_temp_sibling(other)
-    assert io.temp_sibling is atomic.temp_sibling and io.is_temp_sibling is atomic.is_temp_sibling
+        assert not atomic_files.is_temp_sibling(other)
+    assert io.temp_sibling is atomic_files.temp_sibling and io.is_temp_sibling is atomic_files.is_temp_sibling
 
 
 def small_calibration():
@@ -139,14 +138,14 @@ def test_every_writer_renames_from_a_name_cleanup_recognises(tmp_path, monkeypat
     assert target.is_file(), what
     assert renamed and renamed[-1][1] == target, what
     source = renamed[-1][0]
-    assert source.parent == target.parent and atomic.is_temp_sibling(source.name, target.name), (what, source.name)
+    assert source.parent == target.parent and atomic_files.is_temp_sibling(source.name, target.name), (what, source.name)
     assert leftovers(target.parent) == [], what
 
 
 def test_a_set_of_files_is_written_together(tmp_path):
     old = tmp_path / "tables.txt"
     old.write_bytes(b"old tables")
-    atomic.write_together({old: b"new tables", tmp_path / "figure.png": b"\x89PNG"})
+    atomic_files.write_together({old: b"new tables", tmp_path / "figure.png": b"\x89PNG"})
     assert old.read_bytes() == b"new tables" and (tmp_path / "figure.png").read_bytes() == b"\x89PNG"
     assert leftovers(tmp_path) == []
 
@@ -166,7 +165,7 @@ def test_a_full_disk_changes_none_of_the_set(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "fsync", fsync)
     with pytest.raises(OSError) as raised:
-        atomic.write_together({old: b"new", tmp_path / "b.json": b"{}"})
+        atomic_files.write_together({old: b"new", tmp_path / "b.json": b"{}"})
     assert raised.value.filename == str(tmp_path / "b.json")
     assert old.read_bytes() == b"old" and sorted(os.listdir(tmp_path)) == ["a.csv"]
 
@@ -179,7 +178,7 @@ def test_a_failed_rename_removes_what_the_set_created(tmp_path, monkeypatch):
     blocked.mkdir()
     (blocked / "inside").write_bytes(b"x")  # a non-empty folder: os.replace of a file onto it fails
     with pytest.raises(OSError) as raised:
-        atomic.write_together({replaced: b"new a", created: b"new b", blocked: b"new c"})
+        atomic_files.write_together({replaced: b"new a", created: b"new b", blocked: b"new c"})
     assert raised.value.filename == str(blocked)
     assert replaced.read_bytes() == b"new a" and not created.exists() and blocked.is_dir()
     assert sorted(os.listdir(tmp_path)) == ["a.csv", "c.csv"]
