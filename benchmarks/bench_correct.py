@@ -30,8 +30,8 @@ Then each implementation is timed again back to back: `--repeats` calls in a pla
 own, as a script that corrects a folder runs it. The two orders differ for XLA's programs: taking
 turns, each jax.numpy call comes after 0.2 s of the reference on one core, and XLA's threads,
 idle that long, join its steps late (on virtual machines, whose idle CPUs sleep deeper the
-longer they wait: benchmarks/README.md, seventh speed session). Both are reported, with their
-ratios to the reference timed the same way.
+longer they wait: benchmarks/README.md, "a Zen 5 machine, the jax.numpy path back to back").
+Both are reported, with their ratios to the reference timed the same way.
 
 Run:
     python benchmarks/bench_correct.py [--size 1024] [--repeats 7] [--allocator reuse|default]

@@ -87,7 +87,7 @@ def copy_bandwidth_stats(nbytes: int, threads: int, repeats: int = 7) -> dict:
     spread to compare runs by), all_bytes_per_s (every copy, in order), and buffer_bytes, threads,
     repeats (buffer_bytes: the size of the buffer copied, half the bytes counted).
 
-    Why a median of 7 and not the best of 5, as before: the best copy of a few is the one no other
+    Why a median of 7 and not the best of 5: the best copy of a few is the one no other
     process disturbed, and on a shared 2-core machine whether one such copy happens varies from
     run to run, so the floor (and every "% of the floor" figure) moved with it; the median of 7
     moves less, and the quartiles say how much it can. One untimed copy first: np.zeros_like

@@ -12,7 +12,7 @@ passes through the scheduler. The client keeps the lock and the manifest (`archi
   the system has one, else the machine's count), checked before anything starts (ValueError, a
   one-line exit status 2 on the command line). No overcommit: a second worker pinned to a core
   only time-slices it with the first, while adding a process, its JAX runtime, its compilation
-  and its inputs' buffers to memory -- slower, never faster. An unbounded N (100000) used to
+  and its inputs' buffers to memory -- slower, never faster. An unbounded N (100000) would
   start no worker at all and grow the client's memory until the machine gave out.
 - Scratch space: a LocalCluster's scheduler and workers keep their scratch files (dask's
   `dask-scratch-space/scheduler-*`, `worker-*`) in a folder spherejax creates and owns,

@@ -8,7 +8,7 @@ notes and the one error line. `configured()` gives them two destinations:
 - the terminal (stderr), one handler, at INFO by default, WARNING with -q/--quiet, DEBUG with
   -v/--verbose. The command line's own lines (logger "spherejax.cli" and its children, and every
   line logged through `say`) are written as they are, so that the one-line error contract
-  ("spherejax: error: PATH: problem (expected ...)") reads exactly as before; a record of any
+  ("spherejax: error: PATH: problem (expected ...)") reads exactly as the contract says; a record of any
   other module gets "spherejax: warning: " (or "error", "debug: NAME") in front, so a line never
   appears without saying whose it is. While a tqdm bar is drawn, lines go through `tqdm.write` and
   never break it.

@@ -133,7 +133,7 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
         over-fits the grey training patches (on the demo session its held-out accuracy against
         the known reflectances fell from 0.29 to 2.7 ΔE00). The default 0.01 was picked from
         {0, 0.01, 0.1, 1} on the demo session's test set, so the held-out gain reported for it
-        there is optimistic; the README says so.
+        there is optimistic; docs/results.md says so.
       reference: the reference background; None picks `calibrate.reference_background`.
       max_steps: BFGS iterations.
       training: measurements of the training captures, if already taken (they depend only on

@@ -393,8 +393,8 @@ def test_the_direct_kernel_refuses_what_it_cannot_read():
 
 def test_numpy_and_jax_frames_of_two_shapes_in_turn_all_reuse_memory(calibration):
     """NumPy output memory (the direct path) and XLA's outputs count their shapes apart: a loop
-    over a NumPy frame, the same frame as a jax.Array and a NumPy stack of two used to keep three
-    shapes in a pool of two, each evicting another, so that no call reused anything."""
+    over a NumPy frame, the same frame as a jax.Array and a NumPy stack of two would otherwise
+    keep three shapes in a pool of two, each evicting another, so that no call reused anything."""
     frames = _frames(2, seed=13)
     single, as_jax, stack = frames[0], jax.numpy.asarray(frames[1]), np.stack(frames)
     pointers = {"single": [], "jax": [], "stack": []}

@@ -164,7 +164,8 @@ class TestCommands:
         assert (tmp_path / "demo" / "evaluation" / "table6.csv").exists()
 
     def test_an_undocumented_kernel_switch_is_refused(self, workspace, tmp_path, capsys, monkeypatch):
-        """SPHEREJAX_FUSED=off used to leave the fused kernel on, silently."""
+        """SPHEREJAX_FUSED=off is not a documented value: taken as "on", it would leave the fused
+        kernel on, silently."""
         monkeypatch.setenv("SPHEREJAX_FUSED", "off")
         before = snapshot(tmp_path)
         status, _, err = run(["correct", "-c", str(workspace / "cal.h5"), str(workspace / "session"), "-o", str(tmp_path / "out")], capsys)
@@ -226,7 +227,7 @@ class TestBadSessions:
 
     def test_training_samples_that_cannot_determine_stage2(self, broken, tmp_path, capsys):
         """One training capture (3 patches on one background): 3 samples for 4 coefficients.
-        The closed form used to write NaN coefficients into the calibration."""
+        The closed form would write NaN coefficients into the calibration."""
         def one_capture(manifest):
             training = [f for f in manifest["frames"] if f.get("set") == "training"]
             manifest["frames"] = [f for f in manifest["frames"] if f.get("set") != "training" or f is training[0]]
@@ -237,7 +238,8 @@ class TestBadSessions:
     def test_training_captures_saturated_but_one(self, broken, tmp_path, capsys):
         """The manifest is fine, the pixels are not: every training capture but one saturated in
         a band, so that no patch has a usable Stage I target on the reference background (the
-        check after the pixels are read; the fit's error used to name no file)."""
+        check after the pixels are read, so that the message names the file, which the fit's
+        own error cannot)."""
         manifest = json.loads((broken / "manifest.json").read_text())
         training = [f for f in manifest["frames"] if f.get("set") == "training"]
         for frame_info in training[1:]:

@@ -147,7 +147,7 @@ def test_the_legend_covers_no_panel(drawn):
 
 
 def test_the_checks_can_fail():
-    """A legend inside a panel (as before), cut labels and two series alike are all found."""
+    """A legend inside a panel, cut labels and two series alike are all found."""
     figure, axis = matplotlib.pyplot.subplots(figsize=(3, 2))
     axis.plot([0, 1], [0, 1], color="tab:blue", marker="o", label="x" * 60)
     axis.plot([0, 1], [1, 0], color="tab:blue", marker="o", label="y")

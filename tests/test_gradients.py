@@ -232,7 +232,7 @@ class TestGradients:
 
     def test_gradient_of_a_zero_weight(self, scene, derivatives):
         """d/d(weight) of a pixel outside the patch, at weight 0, is not 0: p would change if
-        the pixel were let in. (Masking zero weights out of p used to make it 0.)"""
+        the pixel were let in. (Masking zero weights out of p would make it 0.)"""
         args = scene["args"]
         outside = (6, 12)  # background, not patch; not in any region either
         assert args[2][outside] == 0.0

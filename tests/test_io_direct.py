@@ -1,5 +1,6 @@
 """spherejax.io.direct_io: large outputs written past the page cache where the system allows it,
-the same bytes through the page cache where it does not, and a full disk reported as before."""
+the same bytes through the page cache where it does not, and a full disk reported as for any
+write."""
 
 from __future__ import annotations
 

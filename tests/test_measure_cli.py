@@ -484,11 +484,11 @@ def test_cgats_names_the_observer_by_its_angle_whatever_its_alias():
 
 
 def test_names_readers_would_merge_or_run_stay_apart_and_inert(files, tmp_path):
-    """Regions "red wool" and "red cotton" came back from colour-science's X-Rite reader as one
-    spectrum named '"red' (a measurement lost), and a region named "+SUM(A1)" or "@SUM(A1)" went into
-    OUT.csv as a formula a spreadsheet would run (a number-like name is quoted in CGATS, so
-    colour-science keeps its quotes: still one spectrum each). Now: one token each in CGATS, unique; a leading
-    quote in the CSV (OWASP); the exact names in the JSON."""
+    """Written as given, regions "red wool" and "red cotton" come back from colour-science's X-Rite
+    reader as one spectrum named '"red' (a measurement lost), and a region named "+SUM(A1)" or
+    "@SUM(A1)" goes into OUT.csv as a formula a spreadsheet would run (a number-like name is quoted
+    in CGATS, so colour-science keeps its quotes: still one spectrum each). So: one token each in
+    CGATS, unique; a leading quote in the CSV (OWASP); the exact names in the JSON."""
     import colour
 
     names = {"red wool": (6, 12, 2, 10), "red cotton": (6, 12, 12, 20), "red_wool": (14, 18, 4, 12),

@@ -103,7 +103,7 @@ class TestFitStage2:
     @pytest.mark.parametrize("loss", ["l2", "huber", "cauchy", "tukey"])
     def test_one_background_is_refused_not_nan(self, loss):
         """A constant p (one background) makes the columns (pv, v) and (p, 1) collinear: the
-        closed form used to return NaN coefficients silently."""
+        closed form would return NaN coefficients silently."""
         v, p = training_set()
         p = p.copy()
         p[:, 4] = 1.1

@@ -31,7 +31,7 @@ that is not a symbolic link and skipped under the others. Each folder not follow
 skipped gets one line, "spherejax: warning: ...", naming it and what it repeats. These are no
 failures: every input found is corrected once, so they leave the exit status alone (0 if nothing
 failed) and nothing about them goes into the manifest. Links to folders elsewhere (neither
-searched already nor above the folder searched) are followed as before.
+searched already nor above the folder searched) are followed like any folder.
 
 Output names
 ------------

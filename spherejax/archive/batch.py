@@ -307,9 +307,10 @@ def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_pa
 
     Memory: at most `in_flight` inputs are read, corrected and written at once, each bounded by
     its strips (`stripwise`), and a finished input's result waits for the ones before it.
-    Order: results come in the order of `pending`, so the manifest's lines are in input order
-    as before. Every input is still corrected by `correct_input`, whole, in one thread: its
-    outputs' atomic commits, its clean-up on failure and its safe points are unchanged.
+    Order: results come in the order of `pending`, so the manifest's lines are in input order,
+    as with one input at a time. Every input is corrected by `correct_input`, whole, in one
+    thread: its outputs' atomic commits, its clean-up on failure and its safe points are those
+    of a single input.
 
     Stopping: before each input is started, and inside every input at its own safe points, a
     stop that was asked for raises `interrupt.Interrupted` (`interrupt.check` reads a flag the

@@ -86,9 +86,9 @@ def check_unchanged(spec: InputSpec, states: tuple[Identity, ...]) -> None:
     """Raise unless each of the input's files is still the file `hash_input` hashed.
 
     The hash is taken through one open and the pixels are read through OpenImageIO's own: an
-    input replaced (os.replace) or rewritten in between gave outputs of the new pixels recorded
-    under the old file's hash, which --resume then trusted. Checked once the pixels are read and
-    before the outputs go into place, so such an input fails and leaves nothing.
+    input replaced (os.replace) or rewritten in between would give outputs of the new pixels
+    recorded under the old file's hash, which --resume would then trust. Checked once the pixels
+    are read and before the outputs go into place, so such an input fails and leaves nothing.
     """
     for file, state in zip(spec.files, states, strict=True):
         try:

@@ -303,8 +303,9 @@ captures (Table 6 format). OUT gets study.txt, study.csv, study.json and study-c
                        description="""
 Correct every cube found in the INPUTs with one calibration: Stage I, Stage II, the reflectance
 estimator and CIELAB, per pixel. For each input N, OUT gets N.reflectance.exr (31 bands, the
-spectral OpenEXR layout of Fichet et al. 2021) or ENVI files, N.lab, N.quality.png (flags; key
-in the README) and N.preview.png, and a manifest.jsonl recording each input's hash and outputs.
+spectral OpenEXR layout of Fichet et al. 2021) or ENVI files, N.lab, N.quality.png (flags; the
+PNG's description states the key) and N.preview.png, and a manifest.jsonl recording each input's
+hash and outputs.
 Bad inputs are reported and skipped; --resume continues an interrupted batch; Ctrl-C stops
 cleanly. --workers or --scheduler spreads the batch over dask.distributed.""",
                        examples="""

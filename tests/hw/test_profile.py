@@ -499,7 +499,7 @@ def test_cli_refuses_a_bad_profile_before_anything_is_created(tmp_path, folder, 
 )
 def test_cli_refuses_a_camera_option_before_any_device_is_opened(tmp_path, folder, capsys, monkeypatch, emulate, camera, key, expected):
     """A [camera] option the backend does not take: one line naming the key, exit status 2,
-    nothing opened or written (it used to end in a TypeError traceback from the constructor)."""
+    nothing opened or written (not a TypeError traceback from the backend's constructor)."""
     from spherejax_hw import acquire
     from spherejax import cli
 

@@ -1,1 +1,1 @@
-"""Reliability: bad inputs, injected faults, properties and security, each asserted (README, "Reliability")."""
+"""Reliability: bad inputs, injected faults, properties and security, each asserted (docs/reliability.md)."""

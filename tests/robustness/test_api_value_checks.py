@@ -1,7 +1,7 @@
-"""The catalogue of bad inputs, round three (the issue "Reliability, round three"): values the
-Python API took and silently changed, each refused now with a ValueError naming the argument.
+"""Values the Python API would take and silently change, each refused with a ValueError naming
+the argument (docs/reliability.md, section 1).
 
-The round's file reproducers live beside the code they test: `measure` outputs that are inputs,
+The related file cases live beside the code they test: `measure` outputs that are inputs,
 CGATS names readers merge and CSV formulas in tests/test_measure_cli.py, damaged ENVI headers in
 tests/test_io_envi.py, the ownership check itself in tests/test_io_ownership.py.
 """
@@ -106,9 +106,9 @@ def test_a_calibration_with_a_parameter_not_finite_is_refused(field, shape, inde
 
 @pytest.mark.parametrize("planted", [".spherejax.lock", "manifest.jsonl"])
 def test_a_fifo_in_place_of_the_lock_or_the_manifest_is_refused_at_once(cal, tmp_path, planted):
-    """`mkfifo OUT/.spherejax.lock` made `correct` wait forever (a read of the lock), and
-    `mkfifo OUT/manifest.jsonl` made `--resume` wait forever (an open for appending). Now one
-    line naming the file and what it is, at once; the FIFO is left as it was."""
+    """`mkfifo OUT/.spherejax.lock` would make `correct` wait forever (a read of the lock), and
+    `mkfifo OUT/manifest.jsonl` `--resume` (an open for appending). One line naming the file and
+    what it is, at once; the FIFO is left as it was."""
     from spherejax import io
     from tests.batch_support import NAMES, frame
 

@@ -1,4 +1,4 @@
-"""The catalogue of bad inputs (README, "Reliability"): every command and the Python API, each case
+"""The catalogue of bad inputs (docs/reliability.md, section 1): every command and the Python API, each case
 refused with one line that names the input and the problem, a non-zero exit status, no traceback,
 nothing new or partial on disk and earlier outputs untouched.
 

@@ -1,12 +1,12 @@
-"""The issue "Reliability, round three", reproducers 8 and 9 ("Limits before work"): a calibration
+"""Limits before work (docs/reliability.md, section 1): a calibration
 file's declared sizes are checked against what the file really stores before anything long is
 done with it, and verifying a calibration stops when asked to.
 
 A 48 kB HDF5 calibration declaring 100000 x 100000 x 16 frames, allocated and never written (a
-sparse file of 1.3 TB), kept `spherejax correct` checksumming for over ten minutes, and SIGINT /
-SIGTERM did not stop it: a stop request is honoured only at the safe points of
-`spherejax.interrupt`, and the verification had none. Now such a file is refused with one line
-before any of its data is read, and the verification reads in bounded blocks, each a safe point.
+sparse file of 1.3 TB), would keep `spherejax correct` checksumming for over ten minutes, and a
+stop request is honoured only at the safe points of `spherejax.interrupt`. So such a file is
+refused with one line before any of its data is read, and the verification reads in bounded
+blocks, each a safe point.
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def _correct(calibration: pathlib.Path, tmp_path: pathlib.Path, capsys) -> tuple
     "chunks", [None, (1, SPARSE_SHAPE[1], SPARSE_SHAPE[2])], ids=["contiguous", "chunked-by-rows"]
 )
 def test_a_calibration_declaring_frames_never_written_is_refused_before_any_read(cal, tmp_path, chunks):
-    """Reproducer 8: 1.28 TB declared, a few kB (contiguous) or MB (the chunk index) stored."""
+    """1.28 TB declared, a few kB (contiguous) or MB (the chunk index) stored."""
     path = _declaring(cal, tmp_path / "sparse.h5", SPARSE_SHAPE, _allocated_never_written(SPARSE_SHAPE, chunks))
     stat = os.stat(path)
     assert stat.st_size > 10**12 and stat.st_blocks * 512 < 64 << 20  # what the test is about: a sparse file
@@ -133,8 +133,8 @@ def test_a_calibration_declaring_frames_never_written_is_refused_before_any_read
 
 
 def test_correct_refuses_a_calibration_declaring_frames_never_written(cal, tmp_path, capsys):
-    """The reproducer as it was met: `spherejax correct` checksummed for over ten minutes. Now one
-    line naming the file, a failure status, and OUT never created."""
+    """Through the command line, where checksumming it would take over ten minutes: one line
+    naming the file, a failure status, and OUT never created."""
     path = _declaring(cal, tmp_path / "sparse.h5", SPARSE_SHAPE, _allocated_never_written(SPARSE_SHAPE))
     with _within(60):
         status, err, out = _correct(path, tmp_path, capsys)
@@ -175,8 +175,8 @@ def _cut_short(cal: pathlib.Path, path: pathlib.Path) -> pathlib.Path:
 
 
 def test_a_calibration_whose_data_run_past_its_end_is_refused_before_any_read(cal, tmp_path):
-    """Reproducer 9: was refused only by the read that reached the end ("addr overflow"), after
-    every byte before it was read, in words that name no dataset."""
+    """Unchecked, such a file is refused only by the read that reaches the end ("addr overflow"),
+    after every byte before it was read, in words that name no dataset."""
     path = _cut_short(cal, tmp_path / "cut.h5")
     with pytest.raises(io.CalibrationFileError) as refused:
         io.open_calibration(path)

@@ -1,9 +1,9 @@
-"""Round three, reproducer 6: cube channels that cannot be mapped to bands unambiguously.
+"""Cube channels that cannot be mapped to bands unambiguously.
 
 OpenEXR keeps a file's channels sorted by name, not in the order they were written. A cube whose
-channels are named c0..c15 or B1..B16 read back as c0, c1, c10..c15, c2..c9 and was corrected
-scrambled (reflectance off by up to 0.34); a cube written with "400nm" twice holds "channel1" in
-place of the second (OpenImageIO's rename), and was scrambled the same way. Such layouts are now
+channels are named c0..c15 or B1..B16 reads back as c0, c1, c10..c15, c2..c9, which taken in
+order corrects scrambled (reflectance off by up to 0.34); a cube written with "400nm" twice holds
+"channel1" in place of the second (OpenImageIO's rename), scrambled the same way. Such layouts are
 refused in one line naming the file and the channel names found; the layouts that do name every
 band's wavelength ("400nm", "400 nm", the spectral layout's "T.400nm") are read in band order,
 whatever their order in the file.

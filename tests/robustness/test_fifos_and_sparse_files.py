@@ -1,11 +1,8 @@
-"""The catalogue, round three: the reproducers' root causes at other paths (the issue
-"Reliability, round three", "6. ... the variants you can think of for each root cause").
-
-FIFOs and sparse files where `correct`'s lock and manifest had them (reproducers 10, 11, 13),
-now in every other file a command reads whole or opens: a session's manifest and frames, the
-cube `measure` reads, the files `measure` writes, an instrument profile and the lamp's state.
-Each was waited on, read whole (a 3 GB sparse manifest.json into memory; a 5 GB sparse cube took
-OpenImageIO minutes), or replaced (a FIFO at `measure -o`'s name, exit 0).
+"""FIFOs and sparse files (docs/reliability.md, section 5) beyond `correct`'s lock and manifest:
+in every other file a command reads whole or opens: a session's manifest and frames, the cube
+`measure` reads, the files `measure` writes, an instrument profile and the lamp's state.
+Unchecked, each would be waited on, read whole (a 3 GB sparse manifest.json into memory; a 5 GB
+sparse cube takes OpenImageIO minutes), or replaced (a FIFO at `measure -o`'s name, exit 0).
 """
 
 from __future__ import annotations
@@ -56,7 +53,7 @@ def test_a_fifo_as_a_sessions_frame_is_refused_by_what_it_is(session, tmp_path, 
 
 
 def test_a_sparse_sessions_manifest_is_refused_before_it_is_read(session, tmp_path, capsys):
-    """`truncate -s 3G manifest.json`: read whole into memory before; refused by its size now."""
+    """`truncate -s 3G manifest.json`: refused by its size, not read whole into memory."""
     os.truncate(session / "manifest.json", 3 << 30)
     status, err = _run(["calibrate", session, "-o", tmp_path / "cal.h5"], capsys)
     assert status == 2
@@ -84,7 +81,7 @@ def test_measure_refuses_a_fifo_or_a_sparse_file_as_its_cube(workspace, tmp_path
 
 @pytest.mark.parametrize("option", ["-o", "--cgats"])
 def test_measure_never_replaces_a_fifo_at_an_outputs_name(workspace, tmp_path, capsys, option):
-    """The FIFO was replaced by the new file, exit 0; now it is in the way."""
+    """A FIFO at an output's name is in the way, not replaced by the new file."""
     cube = workspace / "session" / "frames" / "targets.tif"
     fifo = _fifo(tmp_path / "out.csv")
     value = tmp_path / "out" if option == "-o" else fifo

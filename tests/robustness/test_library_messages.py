@@ -1,5 +1,4 @@
-"""Library messages in spherejax's words (the issue "A command line and files a lab can rely on",
-item 2): what OpenImageIO (libtiff, OpenEXR, libpng), h5py (HDF5) and pyserial say about a damaged
+"""Library messages in spherejax's words: what OpenImageIO (libtiff, OpenEXR, libpng), h5py (HDF5) and pyserial say about a damaged
 file or a bad port reaches the user as one line that names the file, says what is wrong in plain
 words and what was expected, never as the library's jargon ("Read error at scanline 4294967295",
 "EXR_ERR_READ_IO", "Unable to synchronously open file", "[Errno 2]"). And a `correct` batch whose

@@ -1,4 +1,4 @@
-"""The catalogue of bad inputs, round two: kinds `test_bad_inputs.py` does not have.
+"""More of the catalogue of bad inputs: kinds `test_bad_inputs.py` does not have.
 
 - concurrency: two `correct` runs on one OUT, a `--resume` while a run holds the lock, two
   `calibrate` runs writing the same file;
@@ -193,8 +193,8 @@ def _nan_offset(header, arrays):
 
 
 def _nan_coefficient(header, arrays):
-    """Round three, reproducer 5: one Stage II coefficient NaN made every reflectance NaN while
-    correct said "done", exit 0, every quality flag 0."""
+    """One Stage II coefficient NaN: accepted, it makes every reflectance NaN while correct says
+    "done", exit 0, every quality flag 0."""
     arrays["coeffs"] = arrays["coeffs"].copy()
     arrays["coeffs"][5, 0] = np.nan
 
@@ -376,9 +376,9 @@ def test_a_leading_dash_given_as_dot_slash_is_a_file_not_an_option(cal, referenc
 
 
 def test_a_good_cube_whose_name_is_not_utf8_is_refused_in_one_line(cal, reference, tmp_path, capsys):
-    """OpenImageIO takes UTF-8 paths only. The whole batch used to be refused with "'utf-8' codec
-    can't encode character", naming no file (the manifest line could not be written); now that
-    input fails in one line naming it and the rest of the batch is corrected."""
+    """OpenImageIO takes UTF-8 paths only, and a manifest line that cannot be encoded would refuse
+    the whole batch with "'utf-8' codec can't encode character", naming no file. That input fails
+    in one line naming it and the rest of the batch is corrected."""
     raw, _ = reference
     (tmp_path / "in").mkdir()
     io.write_frame(tmp_path / "in" / "good.tif", raw, channel_names=NAMES)
@@ -470,8 +470,9 @@ def test_a_folder_named_cube_tif(cal, reference, tmp_path, capsys):
 
 
 def test_a_sparse_file_claiming_a_terabyte_is_refused_at_once(cal, tmp_path):
-    """A cube followed by a hole of a terabyte (no disk used): its checksum read it all (hours);
-    now refused by its size before any read. A child process with a timeout: it could hang."""
+    """A cube followed by a hole of a terabyte (no disk used): checksummed, it would be read whole
+    (hours); it is refused by its size before any read. A child process with a timeout: it could
+    hang."""
     path = _sparse_terabyte(Folder(tmp_path, tmp_path, tmp_path))
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "spherejax.cli", "-q", "correct", "-c", str(cal), str(path), "-o",

@@ -1,4 +1,4 @@
-"""Round three, ownership (the issue "Reliability, round three"): spherejax writes and deletes only
+"""Ownership (docs/reliability.md, section 3): spherejax writes and deletes only
 what it created. Every output path of calibrate, evaluate, study, simulate, demo and acquire is
 checked against every input, the calibration and every other output before any work, by resolved
 path and by (st_dev, st_ino), so that links and `..` cannot hide an overlap; what already lies at
@@ -6,8 +6,8 @@ an output's name is replaced only when spherejax wrote it (`spherejax.io.ownersh
 
 Each refusal: exit status 2, one line "spherejax: error: PATH: problem (expected ...)" naming the
 output, no traceback, and every file under the case's folder as it was (bytes, links, nothing new).
-The reproducers marked "before:" lost or changed a file the user had, or failed only after the
-work, before this round's change (each checked against the code before it).
+A case's docstring starting "unchecked:" says what happens without the check: a file the user
+had lost or changed, or a failure only after all the work.
 """
 
 from __future__ import annotations
@@ -67,29 +67,29 @@ def refused_unchanged(root: pathlib.Path, argv, capsys, named, *fragments: str) 
 
 
 def _link_dot_dot_manifest(root):
-    """before: the calibration replaced the session's manifest (exit 0)."""
+    """unchecked: the calibration replaced the session's manifest (exit 0)."""
     (root / "link").symlink_to("session")
     return root / "link" / "frames" / ".." / "manifest.json", "the session's manifest"
 
 
 def _frame(root):
-    """before: the calibration replaced a frame of the session (exit 0)."""
+    """unchecked: the calibration replaced a frame of the session (exit 0)."""
     return root / "session" / "frames" / "white.tif", "the session's frame 'white'"
 
 
 def _session_folder(root):
-    """before: all the work, then "Is a directory" at the rename."""
+    """unchecked: all the work, then "Is a directory" at the rename."""
     return root / "session", "the session folder"
 
 
 def _users_file(root):
-    """before: the user's file replaced by the calibration (exit 0)."""
+    """unchecked: the user's file replaced by the calibration (exit 0)."""
     (root / "notes.h5").write_text("my notes, not a calibration\n")
     return root / "notes.h5", "is in the way: a file that is not a spherejax calibration"
 
 
 def _link_to_users_file(root):
-    """before: the link replaced by the calibration (exit 0)."""
+    """unchecked: the link replaced by the calibration (exit 0)."""
     (root / "mine.txt").write_text("mine\n")
     (root / "out.h5").symlink_to("mine.txt")
     return root / "out.h5", "is in the way: a symbolic link (to mine.txt)"
@@ -124,20 +124,20 @@ def test_calibrate_may_replace_a_calibration_in_the_session_folder(root, capsys)
 
 
 def test_evaluate_into_the_session_folder_is_refused(root, capsys):
-    """before: tables and figures written among the session's files (exit 0)."""
+    """unchecked: tables and figures written among the session's files (exit 0)."""
     refused_unchanged(root, ["evaluate", root / "session", "-c", root / "cal.h5", "--out", root / "session"], capsys,
                       root / "session", "--out DIR holds the session's manifest")
 
 
 def test_evaluate_into_the_frames_folder_through_a_link_is_refused(root, capsys):
-    """before: tables and figures written beside the frames (exit 0)."""
+    """unchecked: tables and figures written beside the frames (exit 0)."""
     (root / "frames-link").symlink_to(root / "session" / "frames")
     refused_unchanged(root, ["evaluate", root / "session", "-c", root / "cal.h5", "--out", root / "frames-link"], capsys,
                       root / "frames-link", "--out DIR holds the session's frame")
 
 
 def test_evaluate_does_not_replace_the_users_figure(root, capsys):
-    """before: the user's figure5.png replaced by the evaluation's (exit 0)."""
+    """unchecked: the user's figure5.png replaced by the evaluation's (exit 0)."""
     (root / "paper").mkdir()
     (root / "paper" / "figure5.png").write_bytes(b"the figure of my paper")
     refused_unchanged(root, ["evaluate", root / "session", "-c", root / "cal.h5", "--out", root / "paper"], capsys,
@@ -170,7 +170,7 @@ def test_evaluate_again_replaces_its_own_tables_and_nothing_else(root, capsys):
 
 
 def test_study_does_not_replace_its_starting_calibration(root, capsys):
-    """before: -c OUT/study-calibration.h5, the calibration an earlier study wrote, was replaced by
+    """unchecked: -c OUT/study-calibration.h5, the calibration an earlier study wrote, was replaced by
     the new study's (exit 0)."""
     (root / "s").mkdir()
     shutil.copyfile(root / "cal.h5", root / "s" / "study-calibration.h5")
@@ -180,7 +180,7 @@ def test_study_does_not_replace_its_starting_calibration(root, capsys):
 
 
 def test_study_into_the_session_folder_is_refused(root, capsys):
-    """before: the study's files written among the session's (exit 0)."""
+    """unchecked: the study's files written among the session's (exit 0)."""
     refused_unchanged(root, ["study", root / "session", "-c", root / "cal.h5", "--out", root / "session",
                              "--max-steps", "1"], capsys, root / "session", "--out DIR holds the session's manifest")
 
@@ -212,7 +212,7 @@ def small_design(monkeypatch):
 
 
 def test_simulate_into_a_link_to_an_empty_folder_is_refused_before_the_work(tmp_path, capsys, small_design):
-    """before: the whole simulation, then "could not be written: Not a directory" at the rename."""
+    """unchecked: the whole simulation, then "could not be written: Not a directory" at the rename."""
     (tmp_path / "empty").mkdir()
     (tmp_path / "out").symlink_to("empty")
     refused_unchanged(tmp_path, ["simulate", tmp_path / "out"], capsys, tmp_path / "out", "is a symbolic link (to empty)")
@@ -231,7 +231,7 @@ def test_simulate_into_a_link_to_a_folder_with_files_is_refused(tmp_path, capsys
 
 
 def test_simulate_into_dot_dot_is_refused(tmp_path, capsys, small_design):
-    """before: the whole simulation, the folder `new` left behind, then a failed rename."""
+    """unchecked: the whole simulation, the folder `new` left behind, then a failed rename."""
     (tmp_path / "keep.txt").write_text("mine")
     refused_unchanged(tmp_path, ["simulate", tmp_path / "new" / ".."], capsys, tmp_path / "new" / "..", "through '..'")
 
@@ -255,14 +255,14 @@ def demo_out(root, monkeypatch) -> pathlib.Path:
 
 
 def test_demo_does_not_replace_a_users_file_named_calibration_h5(root, demo_out, capsys):
-    """before: the user's file replaced by the demo's calibration (exit 0)."""
+    """unchecked: the user's file replaced by the demo's calibration (exit 0)."""
     (demo_out / "calibration.h5").write_text("my notes\n")
     refused_unchanged(root, ["demo", "--out", demo_out, "--seed", "5"], capsys, demo_out / "calibration.h5",
                       "OUT/calibration.h5 is in the way: a file that is not a spherejax calibration")
 
 
 def test_demo_does_not_replace_the_users_tables(root, demo_out, capsys):
-    """before: the user's tables.txt replaced by the demo's (exit 0)."""
+    """unchecked: the user's tables.txt replaced by the demo's (exit 0)."""
     (demo_out / "evaluation").mkdir()
     (demo_out / "evaluation" / "tables.txt").write_text("my tables\n")
     refused_unchanged(root, ["demo", "--out", demo_out, "--seed", "5"], capsys, demo_out / "evaluation" / "tables.txt",
@@ -276,7 +276,7 @@ def test_demo_evaluation_folder_linked_to_its_session_is_refused(root, demo_out,
 
 
 def test_demo_refuses_a_session_folder_of_other_files_before_simulating(tmp_path, capsys, small_design):
-    """before: refused too, but after the whole simulation."""
+    """unchecked: refused too, but after the whole simulation."""
     (tmp_path / "demo" / "session").mkdir(parents=True)
     (tmp_path / "demo" / "session" / "keep.txt").write_text("mine")
     refused_unchanged(tmp_path, ["demo", "--out", tmp_path / "demo"], capsys, tmp_path / "demo" / "session",
@@ -305,7 +305,7 @@ def test_demo_again_replaces_what_an_earlier_demo_wrote(root, demo_out, capsys):
 
 
 def test_acquire_resume_does_not_remove_a_work_folder_holding_its_profile(root, capsys):
-    """before: S complete, its profile in S.partial: --resume removed S.partial, profile and all
+    """unchecked: S complete, its profile in S.partial: --resume removed S.partial, profile and all
     (exit 0)."""
     shutil.copytree(root / "session", root / "S")
     (root / "S.partial").mkdir()
@@ -315,7 +315,7 @@ def test_acquire_resume_does_not_remove_a_work_folder_holding_its_profile(root, 
 
 
 def test_acquire_resume_leaves_a_folder_it_did_not_make(root, capsys):
-    """before: S complete, S.partial a folder of the user's: --resume removed it (exit 0)."""
+    """unchecked: S complete, S.partial a folder of the user's: --resume removed it (exit 0)."""
     shutil.copytree(root / "session", root / "S")
     (root / "S.partial").mkdir()
     (root / "S.partial" / "keep.txt").write_text("mine")
@@ -336,7 +336,7 @@ def test_acquire_work_folder_holding_the_lamp_state_file_is_refused(tmp_path, ca
 
 
 def test_acquire_into_a_link_is_refused_before_anything_is_opened(tmp_path, capsys, monkeypatch):
-    """before: the whole acquisition, then a failed rename of the session onto the link."""
+    """unchecked: the whole acquisition, then a failed rename of the session onto the link."""
     monkeypatch.setattr(sys, "stdin", open(os.devnull))
     profile = write_profile(tmp_path, samples=("train-bg00-g0",))
     (tmp_path / "empty").mkdir()

@@ -1,4 +1,4 @@
-"""Property-based robustness tests (README, "Reliability", "Properties"), with hypothesis.
+"""Property-based robustness tests (docs/reliability.md, "Properties"), with hypothesis.
 
 Loaders: every file spherejax reads (batch manifest and lock file, session manifest, calibration
 .npz, instrument profile TOML, camera frames and cubes), fed arbitrary bytes, byte-level damage
@@ -367,9 +367,10 @@ def test_session_manifest_with_edited_values(session_folder, data):
     ids=["number-beyond-float", "exposure-beyond-float", "5000-digit-integer", "nested-100000-deep", "nul-in-file-name"],
 )
 def test_session_manifest_regressions(session_folder, old, new):
-    """Found by the properties above. Before the fixes: OverflowError (math.isfinite of an
-    integer beyond float range), ValueError naming no file (int() refuses 4300+ digits),
-    RecursionError (json), ValueError "embedded null byte" (resolving the frame path)."""
+    """Cases the properties above found, each pinned: unchecked, they escape as OverflowError
+    (math.isfinite of an integer beyond float range), ValueError naming no file (int() refuses
+    4300+ digits), RecursionError (json), ValueError "embedded null byte" (resolving the frame
+    path)."""
     manifest = session_folder.content.decode()
     assert old in manifest
     result = load_session_checked(session_folder.path, manifest.replace(old, new, 1).encode())
@@ -661,7 +662,7 @@ def test_calibration_regressions(scratch, valid_calibration, valid_old_calibrati
 @pytest.mark.parametrize("dtype", ["V4", "S1", "c8"])
 def test_calibration_of_non_numbers_is_refused(scratch, valid_calibration, dtype):
     """A checksummed file whose dark frame holds raw bytes, strings or complex numbers: JAX's
-    TypeError (naming no file) before the fix."""
+    TypeError (naming no file) unless the dtype is checked first."""
     header, arrays = _valid_entries(valid_calibration)
     arrays["dark"] = np.zeros(arrays["dark"].shape, dtype)
     header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in arrays.items()}
@@ -672,7 +673,8 @@ def test_calibration_of_non_numbers_is_refused(scratch, valid_calibration, dtype
 
 
 def test_calibration_in_big_endian_byte_order_loads(scratch, valid_calibration):
-    """">f4" arrays (a big-endian writer): JAX's TypeError before the fix; now the same values."""
+    """">f4" arrays (a big-endian writer) load as the same values (JAX alone refuses them with a
+    TypeError)."""
     header, arrays = _valid_entries(valid_calibration)
     swapped = {name: array.astype(array.dtype.newbyteorder(">")) for name, array in arrays.items()}
     header["arrays"] = {name: io.calibration_files._array_entry(name, array) for name, array in swapped.items()}
@@ -813,9 +815,9 @@ def test_profile_with_edited_values(scratch, data):
     ids=["number-beyond-float", "5000-digit-integer", "nested-100000-deep", "nul-in-file-name"],
 )
 def test_profile_regressions(scratch, old, new):
-    """Found by the properties above. Before the fixes: OverflowError (float() of the
-    integer), ValueError naming no file (int() refuses 4300+ digits), RecursionError
-    (tomllib), ValueError "embedded null byte" (resolving the path)."""
+    """Cases the properties above found, each pinned: unchecked, they escape as OverflowError
+    (float() of the integer), ValueError naming no file (int() refuses 4300+ digits),
+    RecursionError (tomllib), ValueError "embedded null byte" (resolving the path)."""
     assert old in PROFILE
     path = scratch / "regression.toml"
     assert isinstance(load_profile_checked(path, PROFILE.replace(old, new, 1).encode()), ProfileError)
@@ -893,8 +895,8 @@ def _tiff_with_description(path: pathlib.Path, description: str) -> None:
 
 @pytest.mark.parametrize("description", ['{"channel_names": ["a", "b", "c"], "attributes": [1]}', "[" * 100_000])
 def test_frame_description_that_is_not_write_frames_json(scratch, description):
-    """read_frame_metadata falls back to OpenImageIO's names (TypeError from dict([1]) and
-    RecursionError from json before the fix); the cube reader ignores it (RecursionError)."""
+    """read_frame_metadata falls back to OpenImageIO's names (unchecked: TypeError from dict([1])
+    and RecursionError from json); the cube reader ignores it (RecursionError)."""
     path = scratch / "described.tif"
     _tiff_with_description(path, description)
     assert io.read_frame_metadata(path)["attributes"] == {}

@@ -1,4 +1,4 @@
-"""Security (README, "Reliability", "Security"): nothing read is unpickled or evaluated, paths from manifests and
+"""Security (docs/reliability.md, "Nothing read is run"): nothing read is unpickled or evaluated, paths from manifests and
 profiles stay in their folders, and the lock, the manifest and temporary files cannot be turned
 into writes outside OUT."""
 

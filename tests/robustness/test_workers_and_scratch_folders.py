@@ -1,12 +1,12 @@
-"""Reliability, round three, reproducer 12: `spherejax correct --workers N` bounded by the machine,
-and the temporary dask folders removed on every exit path.
+"""`spherejax correct --workers N` bounded by the machine, and the temporary dask folders removed
+on every exit path.
 
-`--workers 100000` on a 2-core machine was taken as given: no worker ever started while the
-client's memory grew by about 15 MB/s, and a run killed meanwhile left
-`dask-scratch-space/scheduler-*` in the temporary folder. Now N must lie in 1..the cores this
-process may use (refused before any work, one line, exit status 2), and a LocalCluster's scratch
-space is a `spherejax-dask-*` folder of spherejax's own, removed when the run ends, normally or by
-SIGTERM; a folder a killed run left is removed by the next run, and nothing else is touched.
+`--workers 100000` on a 2-core machine, taken as given, starts no worker while the client's
+memory grows by about 15 MB/s, and a run killed meanwhile leaves `dask-scratch-space/scheduler-*`
+in the temporary folder. So N must lie in 1..the cores this process may use (refused before any
+work, one line, exit status 2), and a LocalCluster's scratch space is a `spherejax-dask-*` folder
+of spherejax's own, removed when the run ends, normally or by SIGTERM; a folder a killed run left
+is removed by the next run, and nothing else is touched.
 
 The runs that start a real cluster run the command line in a child process with TMPDIR pointed
 at a folder of the test's, so that what dask and spherejax leave in "the temporary folder" can be
