@@ -1,6 +1,6 @@
 """The calibration's arrays as the per-pixel step reads them: one named structure.
 
-`correct`'s per-pixel step (`pipeline._pixel_outputs`), its fused CPU kernel
+`correct`'s per-pixel step (`equations.pixel_outputs`), its fused CPU kernel
 (`spherejax._engine.fused`), the propagated uncertainty (`uncertainty.pixel_uncertainty`) and a
 region's statistics (`measurement`) all read the same six arrays. They used to travel as eight
 positional arguments in three different orders, one of which called pixel weights (H, W)

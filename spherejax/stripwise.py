@@ -15,13 +15,13 @@ calibration's patch mask (H x W bytes) and what the process holds anyway.
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .pipeline import Calibration, correct, patch_ratio
+from .pipeline import correct, patch_ratio
 
 if TYPE_CHECKING:  # for the annotations only: a workflow takes the readers it is given
     from . import io
@@ -67,17 +67,12 @@ def _padded(rows: np.ndarray, height: int) -> np.ndarray:
     return np.concatenate([rows, pad])
 
 
-def _rows_of(calibration: io.CalibrationFile, row0: int, row1: int, height: int) -> Calibration:
-    """The calibration of rows row0:row1, padded to `height` rows with dark = white = 0 (pixels
-    flagged white <= dark: the padding computes nothing that could fail and is discarded)."""
-    rows = calibration.rows(row0, row1)
-    if row1 - row0 == height:
-        return rows
-    # replace, not a new Calibration: every other field (coeffs, the Wiener matrix and offset,
-    # illuminant, ...) carries over, including any a later version adds.
-    return dataclasses.replace(
-        rows, dark=_padded(np.asarray(rows.dark), height), white=_padded(np.asarray(rows.white), height)
-    )
+def _correct_rows(cube: io.CubeReader, calibration: io.CalibrationFile, row0: int, row1: int, height: int, p):
+    """Rows row0:row1 of the image corrected with the whole image's p, padded to `height` rows
+    (every strip one shape: one plan, one compilation). The calibration file keeps the rows'
+    `Calibration` (`io.CalibrationFile.rows`), and with it the plan, for the next input."""
+    raw = _padded(cube.read_rows(row0, row1), height)
+    return correct(raw, calibration.rows(row0, row1, padded_to=height), p=p)
 
 
 def image_patch_ratio(cube: io.CubeReader, calibration: io.CalibrationFile):
@@ -114,11 +109,19 @@ def correct_strips(
     if step < 1:
         raise ValueError(f"rows_per_strip: expected at least 1, got {step}")
     step = min(step, height)
-    p = image_patch_ratio(cube, calibration)
-    for row0 in range(0, height, step):
-        row1 = min(row0 + step, height)
-        raw = _padded(cube.read_rows(row0, row1), step)
-        result = correct(raw, _rows_of(calibration, row0, row1, step), p=p)
+    if step == height and calibration.in_memory:
+        # One strip of a calibration held in memory: the whole-frame call, which the fused kernel
+        # runs on the frame where it lies (the plan's direct route), p from the patch's box as
+        # `image_patch_ratio` takes it, so the same numbers.
+        strips = [(0, height, lambda: correct(cube.read_rows(0, height), calibration.calibration()))]
+    else:
+        p = image_patch_ratio(cube, calibration)
+        strips = [
+            (row0, min(row0 + step, height), functools.partial(_correct_rows, cube, calibration, row0, min(row0 + step, height), step, p))
+            for row0 in range(0, height, step)
+        ]
+    for row0, row1, correct_strip in strips:
+        result = correct_strip()
         rows = row1 - row0
         yield row0, {
             "reflectance": np.asarray(result.reflectance[:rows], dtype=np.float32),

@@ -284,17 +284,18 @@ def image_program(raw, calibration, kernel_mode, intermediates=False):
     kept. What the routes of a plan are compared against, bit for bit."""
     import jax.numpy as jnp
 
-    from spherejax import pipeline
-    from spherejax._engine import steps
+    from spherejax import calibration as calibration_module
+    from spherejax._engine import kernels, steps
     from spherejax.pixel_constants import PatchConstants, PixelConstants
 
-    dtype = pipeline._compute_dtype(raw, calibration)
+    dtype = calibration_module.compute_dtype(raw, calibration)
     height, width = calibration.image_shape
     box = calibration.patch_box or (0, height, 0, width)
     return steps.image_step(
         jnp.asarray(raw), PixelConstants.of(calibration, dtype), PatchConstants.of(calibration, dtype, box),
         np.array([box[0], box[2]], np.int32), box_shape=(box[1] - box[0], box[3] - box[2]),
-        saturation=pipeline._saturation_level(raw, calibration), intermediates=intermediates, kernel_mode=kernel_mode,
+        saturation=calibration_module.saturation_level(raw, calibration), intermediates=intermediates,
+        kernel=kernels.of_mode(kernel_mode),
     )
 
 

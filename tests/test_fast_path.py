@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import colorimetry, pipeline
+from spherejax import colorimetry, equations, pipeline
 from spherejax._engine import allocator, fused, gpu_kernel, steps
 from spherejax.flatfield import white_signal_usable
 from spherejax.pixel_constants import PixelConstants
@@ -43,7 +43,7 @@ class TestProjectGoodPixels:
         v = jnp.where(good, v, 0.0)  # the safe-where convention of the caller
         matrix = jnp.asarray(rng.normal(size=(16, 31)) if matrix_kind == "random" else np.zeros((16, 31)), dtype)
         bias = jnp.asarray(rng.normal(size=31) if bias_kind == "random" else np.zeros(31), dtype)
-        fast = np.asarray(pipeline._project_good_pixels(good, v, matrix, bias))
+        fast = np.asarray(equations.project_good_pixels(good, v, matrix, bias))
         plain = np.asarray(plain_projection(good, v, matrix, bias))
         assert np.isnan(fast[~np.asarray(good)[..., 0]]).all()  # NaN in every channel, even x 0
         np.testing.assert_array_equal(np.isnan(fast), np.isnan(plain))
@@ -66,7 +66,7 @@ class TestProjectGoodPixels:
             out = projection(good, v, matrix, bias)
             return jnp.sum(jnp.where(good, out, 0.0) * weights)
 
-        fast = jax.grad(lambda *a: loss(pipeline._project_good_pixels, *a), argnums=(0, 1, 2))(v, matrix, bias)
+        fast = jax.grad(lambda *a: loss(equations.project_good_pixels, *a), argnums=(0, 1, 2))(v, matrix, bias)
         plain = jax.grad(lambda *a: loss(plain_projection, *a), argnums=(0, 1, 2))(v, matrix, bias)
         for f, p in zip(fast, plain):
             assert np.isfinite(np.asarray(f)).all()
@@ -110,7 +110,7 @@ class TestNoFlatField:
         # NaN in the first, a middle and the last band: a vectorised minimum may drop NaN
         # depending on where it sits (YNNPACK's does).
         white[[7, 8, 10], [0, 15, 9]] = np.nan
-        fast = np.asarray(pipeline._no_flat_field(jnp.asarray(dark), jnp.asarray(white)))
+        fast = np.asarray(equations.flat_field_unusable(jnp.asarray(dark), jnp.asarray(white)))
         plain = np.asarray(jnp.any(~white_signal_usable(jnp.asarray(dark), jnp.asarray(white)), axis=-1))
         np.testing.assert_array_equal(fast, plain)
         assert 0 < fast.sum() < 64
@@ -293,8 +293,8 @@ def test_the_jax_numpy_path_does_not_page_fault_image_sized_temporaries(dtype_na
 
 
 def outputs(raw, dark, white, p, coeffs, wiener, offset, weights, **options):
-    """`pipeline._pixel_outputs` with its constants given one by one."""
-    return pipeline._pixel_outputs(raw, p, PixelConstants(dark, white, coeffs, wiener, offset, weights), **options)
+    """`equations.pixel_outputs` with its constants given one by one."""
+    return equations.pixel_outputs(raw, p, PixelConstants(dark, white, coeffs, wiener, offset, weights), **options)
 
 
 def blocks(raw, dark, white, p, coeffs, wiener, offset, weights, **options):

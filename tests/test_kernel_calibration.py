@@ -114,8 +114,8 @@ def test_the_fused_kernel_applies_the_residual_as_the_jax_numpy_path_does(near_t
 
 def test_a_residual_the_kernel_does_not_fit_takes_the_jax_numpy_path(near_the_frame, monkeypatch):
     """Weights of rank 24 (a calibration file not made by the fit, which keeps RESIDUAL_RANK) are not
-    cut: the plan takes the jax.numpy path, which applies them whole. So do the AVX2 variant (its
-    block has no residual) and the GPU kernel."""
+    cut: the plan takes the jax.numpy path, which applies them whole. The AVX2 variant applies a
+    residual the kernel fits, as the other variants do (the kernel contract)."""
     _, full, cut, raw = near_the_frame
     assert not fused.residual_fits(full.wiener_residual) and fused.residual_fits(cut.wiener_residual)
     assert sj.plan(full, raw.shape, dtype=raw.dtype).kernel_mode is None
@@ -124,8 +124,12 @@ def test_a_residual_the_kernel_does_not_fit_takes_the_jax_numpy_path(near_the_fr
     np.testing.assert_allclose(np.asarray(sj.correct(raw, full).reflectance, np.float64)[good], expected[good], atol=1e-5)
     if fused.AVX2 in fused.supported_variants():
         monkeypatch.setenv(fused.SWITCH, fused.AVX2)
-        assert sj.plan(cut, raw.shape, dtype=raw.dtype).kernel_mode is None
-        assert sj.plan(cut.rows(0, 8), (8, *raw.shape[1:]), dtype=raw.dtype).kernel_mode is None
+        assert sj.plan(cut, raw.shape, dtype=raw.dtype).kernel_mode == fused.AVX2
+        assert sj.plan(cut.rows(0, 8), (8, *raw.shape[1:]), dtype=raw.dtype).kernel_mode == fused.AVX2
+        assert sj.plan(full, raw.shape, dtype=raw.dtype).kernel_mode is None
+        got = sj.correct(raw, cut)
+        expected = _numpy_estimate(np.asarray(sj.correct(raw, cut, intermediates=True).v_stage2, np.float64), cut)
+        np.testing.assert_allclose(np.asarray(got.reflectance, np.float64)[good], expected[good], atol=1e-5)
 
 
 def test_the_kernel_called_as_avx2_with_a_residual_runs_the_generic_code(near_the_frame):
@@ -269,7 +273,7 @@ def test_the_kernel_refuses_a_residual_without_whitening_and_shapes_that_do_not_
     with pytest.raises(ValueError, match="^residual: inducing points without a whitening$"):
         fused._fused_correct.correct_arrays(*inputs, whitening[:0], inducing, factor, basis, 1, pixels, B, 0,
                                             inducing.shape[0], float("nan"), 0, 1, *out)
-    assert fused._register()
+    assert fused.register()
     out_types = (jax.ShapeDtypeStruct((1, pixels, 31), jnp.float32), jax.ShapeDtypeStruct((1, pixels, 3), jnp.float32),
                  jax.ShapeDtypeStruct((1, pixels), jnp.uint8))
     ffi = jax.ffi.ffi_call(fused.TARGET, out_types)

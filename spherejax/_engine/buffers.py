@@ -19,7 +19,7 @@ XLA's input-output aliasing). A plain loop,
 then faults its output pages in the first two calls only. An output the user still holds, or
 any view of it (`numpy.asarray(result.lab)` refers to the array too), is never touched.
 
-NumPy frames whose outputs the kernel writes directly (`pipeline._correct_directly`) get their
+NumPy frames whose outputs the kernel writes directly (`plan.Plan._correct_directly`) get their
 output memory here too, as NumPy blocks handed to XLA without a copy (`take_host`): the same
 reuse rule, keyed ("host", shape).
 

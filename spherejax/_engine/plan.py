@@ -6,19 +6,22 @@
   tristimulus weights of its illuminant and observer;
 - `patch` and `box_origin`/`box_shape`: the white patch's bounding box of those arrays
   (`PatchConstants`), the only pixels the white-patch ratio reads;
-- `saturation`, `kernel_mode`: the saturation level and the kernel its per-pixel step runs, static:
-  the fused CPU kernel's variant on CPU, the Pallas kernel on an NVIDIA GPU (compiled when the
-  plan is made, the jax.numpy path if that fails), or None for the jax.numpy path;
+- `saturation`, `kernel`: the saturation level and the per-pixel kernel, both static: chosen once
+  here (`kernels.choose`: the fused CPU kernel's variant on CPU, the Pallas kernel on an NVIDIA GPU,
+  compiled when the plan is made and given up for the definition if that fails, else the jax.numpy
+  definition), with `kernel_refusal` saying why a faster kernel was not taken;
 - `no_flat_field`: the (H, W) mask of pixels without a flat field, read by the jax.numpy path on
   CPU instead of a reduction over both frames on every call;
 - the route its whole-frame calls take (`route`) and, for the routes that need it, the compiled
-  executable and the NumPy views the fused kernel reads (`_direct`).
+  executable and the NumPy views the fused kernel reads (`_direct`). The route is decided here,
+  when the plan is made, and nowhere else: `correct` only checks its arguments.
 
 `correct(raw, calibration)` looks the plan up on the calibration (`plan_for`): a calibration keeps
 the plans of the frame shapes it has corrected, and they go with it; nothing is remembered by
-object identity in a process-wide table. Strips of an image (`Plan.rows`), the archive, the
-uncertainty and measurement paths, calibrate, evaluate, study and dask workers all reach the
-per-pixel step through `correct` and so through a plan.
+object identity in a process-wide table. Strips of an image (rows of a calibration kept by the
+calibration file, `io.CalibrationFile.rows`), the archive, the uncertainty and measurement paths,
+calibrate, evaluate, study and dask workers all reach the per-pixel step through `correct` and so
+through a plan: one per input shape, reused strip after strip and input after input.
 
 A traced calibration (`jax.grad` with respect to it, `jax.vmap` over calibrations) gets a plan
 built inside the trace: the same steps, with the casts part of the derivative, nothing compiled
@@ -41,10 +44,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _checks, colorimetry, pipeline
+from .. import _checks, colorimetry, equations
+from ..calibration import Calibration, compute_dtype, saturation_level
+from ..correction_result import CorrectionResult
 from ..grid import N_WAVELENGTHS
 from ..pixel_constants import PatchConstants, PixelConstants
-from . import buffers, fused, gpu_kernel, steps
+from . import buffers, fused, gpu_kernel, kernels, steps
 
 _log = logging.getLogger(__name__)
 
@@ -125,7 +130,7 @@ def _prepare_on_device(calibration, dtype, box, with_mask):
     """`_prepare` as one program on the calibration's device (a GPU's)."""
     constants = PixelConstants.of(calibration, dtype)
     patch = None if box is None else PatchConstants.of(calibration, dtype, box)
-    mask = pipeline._no_flat_field(constants.dark, constants.white) if with_mask else None
+    mask = equations.flat_field_unusable(constants.dark, constants.white) if with_mask else None
     return constants, patch, mask
 
 
@@ -136,29 +141,34 @@ class Plan:
       calibration: a `spherejax.Calibration` (whole, or rows of one: then every call needs p).
       shape: the frames' shape (..., H, W, B) with the calibration's H, W, B.
       dtype: the frames' dtype (uint16 counts, float32 or float64).
-      kernel_mode: `fused.mode` of the frames (`plan_for` works it out; the default AUTO asks
-        for the kernel wherever it applies).
+      kernel_mode: the kernel asked for (`kernels.choose`): the default fused.AUTO takes the
+        fastest that applies; None the jax.numpy definition; a fused variant or a
+        `gpu_kernel.MODES` value that kernel where it applies (the tests').
 
     Call it as `correct` (`plan(raw, p=..., intermediates=..., noise=..., p_u=...)`) with frames
     of that shape and dtype; `spherejax.plan` is the public way to make one. Immutable after
     construction apart from the lazily compiled executable, so threads may share it.
     """
 
-    def __init__(self, calibration: pipeline.Calibration, shape: tuple[int, ...], dtype, kernel_mode=fused.AUTO):
+    def __init__(self, calibration: Calibration, shape: tuple[int, ...], dtype, kernel_mode=fused.AUTO):
         self.shape = tuple(int(n) for n in shape)
         self.dtype = np.dtype(dtype)
         raw_type = jax.ShapeDtypeStruct(self.shape, self.dtype)
-        self.compute_dtype = np.dtype(pipeline._compute_dtype(raw_type, calibration))
-        self.saturation = pipeline._saturation_level(raw_type, calibration)
+        self.compute_dtype = np.dtype(compute_dtype(raw_type, calibration))
+        self.saturation = saturation_level(raw_type, calibration)
         self.concrete = _concrete(calibration)
         # A kept plan refers to its calibration weakly: the calibration keeps its plans, and a
         # cycle would hold both frames until a full garbage collection.
         self._calibration = weakref.ref(calibration) if self.concrete else (lambda: calibration)
         self.device = _device_of(calibration) if self.concrete else None
         on_cpu = self.device is not None and self.device.platform == "cpu"
-        self.kernel_mode = _kernel_mode(kernel_mode, self.dtype, self.compute_dtype, calibration.bands, self.device)
-        if calibration.wiener_residual is not None and not _kernel_applies_residual(self.kernel_mode, calibration):
-            self.kernel_mode = None
+        self.kernel, self.kernel_refusal = kernels.choose(
+            kernel_mode, self.dtype, self.compute_dtype, calibration.bands, calibration.wiener_residual,
+            self.concrete, self.device,
+        )
+        if self.kernel_refusal is not None:
+            _log.debug("plan for %s %s frames: the jax.numpy path, because %s", self.shape, self.dtype,
+                       self.kernel_refusal)
         box = calibration.patch_box if calibration.patch is not None else None
         if calibration.patch is not None and box is None:  # a traced patch: the whole frame
             box = (0, self.shape[-3], 0, self.shape[-2])
@@ -174,29 +184,33 @@ class Plan:
             self.box_origin = jax.device_put(self.box_origin, self.device)
         # The jax.numpy path reads the (H, W) mask of pixels without a flat field instead of
         # reducing over both frames at every call (on CPU a fifth of its time).
-        with_mask = self.concrete and self.kernel_mode is None
+        with_mask = self.concrete and self.kernel.reads_flat_field_mask
         self.constants, self.patch, self.no_flat_field = _prepare(calibration, self.compute_dtype, box, with_mask)
         pixels = int(np.prod(self.shape[:-1], dtype=np.int64))
         large = pixels * _OUTPUT_BYTES_PER_PIXEL >= buffers.MIN_BYTES
         whole = box is not None and self.shape[-3:] == (*calibration.image_shape, calibration.bands)
         self._whole_frames = whole
+        # The fused kernel reads NumPy frames where they lie (`fused.correct_arrays`): whole frames
+        # (p from the patch's box) and rows of an image given p alike, so that the strips of the
+        # command line take the route of the API's whole-frame call.
+        self.reads_numpy = on_cpu and self.concrete and self.kernel.direct and self.dtype in fused.RAW_DTYPES
         if not (self.concrete and whole):
             self.route = PROGRAM
-        elif on_cpu and self.kernel_mode in fused.VARIANTS and large and self.dtype in fused.RAW_DTYPES:
+        elif self.reads_numpy and large:
             self.route = DIRECT
         elif on_cpu and large:
             self.route = RECYCLING
         else:
             self.route = PROGRAM
-        self._direct = self._kernel_arrays() if self.route == DIRECT else None
+        self._direct = self._kernel_arrays() if self.reads_numpy else None
         self._into = None
         self._lock = threading.Lock()
-        if self.kernel_mode == gpu_kernel.GPU and self.concrete:
+        if self.kernel == kernels.PallasGpu(gpu_kernel.GPU) and self.concrete:
             self._compile_gpu_kernel()
 
     def _compile_gpu_kernel(self) -> None:
         """Compile the whole-frame program with the GPU kernel now, by correcting zero frames of
-        this plan's shape, and fall back to the jax.numpy path (kernel_mode None) if that fails:
+        this plan's shape, and fall back to the jax.numpy definition if that fails:
         a JAX whose Pallas has lost its Triton backend or lowers the kernel differently must not
         fail every `correct`. The compiled program stays in jit's cache for the calls that follow; whatever
         went wrong is logged at DEBUG (the module's logger)."""
@@ -211,17 +225,17 @@ class Plan:
         except Exception as error:  # noqa: BLE001 - any failure of a kernel we can do without
             _log.debug("the GPU kernel did not compile for %s frames of %s (%s: %s); using the jax.numpy path",
                        self.shape, self.dtype, type(error).__name__, error)
-            self.kernel_mode = None
+            self.kernel, self.kernel_refusal = kernels.DEFINITION, f"the GPU kernel did not compile ({error})"
             # The mask the jax.numpy path's plans read (`_prepare`).
             self.no_flat_field = _no_flat_field(self.constants.dark, self.constants.white)
         finally:
             del zeros
 
-    def _pixels(self, raw) -> pipeline.CorrectionResult:
+    def _pixels(self, raw) -> CorrectionResult:
         """The per-pixel step of frames with p = 1 (a plan without a patch box: `_compile_gpu_kernel`)."""
         p = jnp.ones((*raw.shape[:-3], raw.shape[-1]), self.compute_dtype)
         return steps.pixels_step(raw, p, self.constants, saturation=self.saturation, intermediates=False,
-                                 kernel_mode=self.kernel_mode)
+                                 kernel=self.kernel)
 
     # ---------------------------------------------------------------------------------------
     # What the routes read
@@ -246,7 +260,7 @@ class Plan:
             leaves, structure = jax.tree_util.tree_flatten((self.constants, self.patch, self.no_flat_field))
             signature = (
                 self.shape, self.dtype.name, structure, tuple((x.shape, x.dtype.name) for x in leaves),
-                self.box_shape, self.saturation, self.kernel_mode,
+                self.box_shape, self.saturation, self.kernel,
             )
             outputs = self.shape[:-1]
             with _into_lock:
@@ -260,56 +274,66 @@ class Plan:
                     executable = steps.image_step_into.lower(
                         jax.ShapeDtypeStruct(self.shape, self.dtype), self.constants, self.patch, self.box_origin,
                         *out_types, self.no_flat_field, box_shape=self.box_shape, saturation=self.saturation,
-                        kernel_mode=self.kernel_mode,
+                        kernel=self.kernel,
                     ).compile()
                     _into_executables[signature] = executable
             self._into = executable
         return self._into
 
     def _statics(self) -> dict:
-        return {"box_shape": self.box_shape, "saturation": self.saturation, "kernel_mode": self.kernel_mode}
+        return {"box_shape": self.box_shape, "saturation": self.saturation, "kernel": self.kernel}
+
+    @property
+    def kernel_mode(self) -> str | None:
+        """The kernel's name (`kernels.PixelKernel.mode`): None for the jax.numpy definition."""
+        return self.kernel.mode
 
     # ---------------------------------------------------------------------------------------
     # Calls
 
     def patch_ratio(self, raw) -> jax.Array:
-        """p (..., B) of whole frames (`pipeline.patch_ratio`)."""
+        """p (..., B) of whole frames (`spherejax.pipeline.patch_ratio`)."""
         return steps.patch_ratio_step(
             raw, self.patch, self.box_origin, box_shape=self.box_shape, saturation=self.saturation
         )
 
     def patch_ratio_u(self, raw, noise) -> jax.Array:
-        """u(p) (..., B) of whole frames under a `NoiseModel` (`pipeline.patch_ratio_u`)."""
+        """u(p) (..., B) of whole frames under a `NoiseModel` (`spherejax.pipeline.patch_ratio_u`)."""
         return steps.patch_ratio_std_step(
             raw, self.patch, noise, self.box_origin, box_shape=self.box_shape, saturation=self.saturation
         )
 
-    def __call__(self, raw, *, p=None, intermediates: bool = False, noise=None, p_u=None) -> pipeline.CorrectionResult:
+    def __call__(self, raw, *, p=None, intermediates: bool = False, noise=None, p_u=None) -> CorrectionResult:
         """`correct(raw, calibration, ...)` of frames of this plan's shape and dtype, checked by
-        the caller (`pipeline.correct`)."""
+        the caller (`spherejax.pipeline.correct`)."""
+        direct = (self.reads_numpy and noise is None and not intermediates and isinstance(raw, np.ndarray)
+                  and raw.flags.c_contiguous)
         if p is not None:
+            if direct:
+                return self._correct_directly(raw, p)
             return steps.pixels_step(
                 raw, p, self.constants, saturation=self.saturation, intermediates=intermediates,
-                kernel_mode=self.kernel_mode, noise=noise, p_u=p_u,
+                kernel=self.kernel, noise=noise, p_u=p_u,
             )
         if noise is not None or intermediates:
             return steps.image_step(raw, self.constants, self.patch, self.box_origin, intermediates=intermediates,
                                     noise=noise, **self._statics())
-        if self.route == DIRECT and isinstance(raw, np.ndarray) and raw.flags.c_contiguous:
+        if self.route == DIRECT and direct:
             return self._correct_directly(raw)
-        if isinstance(raw, np.ndarray) and buffers.stageable(raw):
-            raw = buffers.stage(raw)  # into reused, aligned memory (`buffers`)
+        if isinstance(raw, np.ndarray):
+            # into reused, aligned memory (`buffers`), or at least onto the plan's device
+            raw = buffers.stage(raw) if buffers.stageable(raw) else jax.device_put(raw, self.device)
         if not _checks.is_concrete(raw):
             return self._correct_mappable(raw)
         if self.route in (DIRECT, RECYCLING) and _on_device(raw, self.device):
             return self._correct_recycling(raw)
         return self._whole(raw)
 
-    def _whole(self, raw, out=None) -> pipeline.CorrectionResult:
+    def _whole(self, raw, out=None) -> CorrectionResult:
         return steps.image_step(raw, self.constants, self.patch, self.box_origin, intermediates=False,
                                 no_flat_field=self.no_flat_field, out=out, **self._statics())
 
-    def _correct_recycling(self, raw) -> pipeline.CorrectionResult:
+    def _correct_recycling(self, raw) -> CorrectionResult:
         """Whole frames on CPU, reusing the memory of outputs the caller has dropped
         (`buffers`); the same numbers bit for bit as `_whole` (tested)."""
         executable = self._into_executable()
@@ -322,18 +346,23 @@ class Plan:
         buffers.give(key, (result.reflectance, result.lab, result.quality))
         return result
 
-    def _correct_directly(self, raw: np.ndarray) -> pipeline.CorrectionResult:
+    def _correct_directly(self, raw: np.ndarray, p=None) -> CorrectionResult:
         """NumPy frames by the fused kernel called directly (`fused.correct_arrays`), without
         XLA: the same numbers as `_whole` bit for bit (tested), but the kernel reads the frames
         where they lie, where XLA needs them copied into its own memory first (32 MB a megapixel
         of uint16). The outputs are written into reused NumPy memory (`buffers.take_host`) and
-        handed to JAX without a copy. p comes from `steps.patch_ratio_step` on the patch's box of
-        the frames (a small copy): the program `_whole` traces into its own."""
-        (r0, c0), (h, w) = self.box_origin_host, self.box_shape
-        p = steps.patch_ratio_step(
-            raw[..., r0:r0 + h, c0:c0 + w, :], self.patch, self.box_origin, box_shape=self.box_shape,
-            saturation=self.saturation, raw_is_box=True,
-        )
+        handed to JAX without a copy. p: given (rows of an image, `correct(rows, calibration_rows,
+        p=p)`: the same kernel and constants as `steps.pixels_step`, so the same bits), or None for
+        whole frames: from `steps.patch_ratio_step` on the patch's box of the frames (a small
+        copy), the program `_whole` traces into its own."""
+        if p is None:
+            (r0, c0), (h, w) = self.box_origin_host, self.box_shape
+            p = steps.patch_ratio_step(
+                raw[..., r0:r0 + h, c0:c0 + w, :], self.patch, self.box_origin, box_shape=self.box_shape,
+                saturation=self.saturation, raw_is_box=True,
+            )
+        else:
+            p = jax.device_put(np.asarray(p, self.compute_dtype), self.device)
         *batch, height, width, bands = raw.shape
         images, pixels = int(np.prod(batch, dtype=np.int64)), height * width
         pairs = buffers.take_host(
@@ -345,7 +374,7 @@ class Plan:
         k = self._direct
         fused.correct_arrays(
             raw.reshape(images, pixels, bands), k["dark"], k["white"], np.asarray(p).reshape(images, bands),
-            k["coeffs"], k["projection"], k["bias"], k["white_xyz"], self.saturation, self.kernel_mode,
+            k["coeffs"], k["projection"], k["bias"], k["white_xyz"], self.saturation, self.kernel.variant,
             (reflectance.reshape(images, pixels, N_WAVELENGTHS), lab.reshape(images, pixels, 3),
              quality.reshape(images, pixels)),
             threads=buffers.cpus(), residual=k["residual"],
@@ -353,9 +382,9 @@ class Plan:
         outputs = tuple(jax.device_put(view, self.device, may_alias=True) for view, _ in pairs)
         del reflectance, lab, quality  # only the pool and the jax.Arrays refer to the memory now
         buffers.give(("host", tuple(raw.shape[:-1])), pairs)
-        return pipeline.CorrectionResult(*outputs, p)
+        return CorrectionResult(*outputs, p)
 
-    def _correct_mappable(self, raw) -> pipeline.CorrectionResult:
+    def _correct_mappable(self, raw) -> CorrectionResult:
         """`_whole` of traced frames, so that `jax.vmap` over the frames reuses dropped outputs'
         memory as `correct` on the stack does.
 
@@ -399,7 +428,7 @@ class Plan:
 
         return differentiable(raw)
 
-    def _stack(self, frames) -> pipeline.CorrectionResult:
+    def _stack(self, frames) -> CorrectionResult:
         """Frames mapped with `jax.vmap`, stacked (N, ..., H, W, B): the plan of the stack's shape."""
         calibration = self._calibration()
         if not _checks.is_concrete(frames) or calibration is None:
@@ -412,43 +441,7 @@ class Plan:
         return self._calibration()
 
 
-_no_flat_field = jax.jit(pipeline._no_flat_field)
-
-
-def _kernel_mode(asked, raw_dtype, compute_dtype, bands: int, device) -> str | None:
-    """The kernel a plan runs its per-pixel step with (its static `kernel_mode`): None for the
-    jax.numpy path; on CPU the fused kernel's variant (`fused.mode`); on an NVIDIA GPU the Pallas
-    kernel (`gpu_kernel.mode`). `asked`: None (the jax.numpy path), fused.AUTO (whatever applies),
-    or a mode to take where the frames allow it (a variant; gpu_kernel.INTERPRET in the tests)."""
-    if asked is None:
-        return None
-    if asked in gpu_kernel.MODES:
-        return asked if gpu_kernel.supports(raw_dtype, compute_dtype, bands) else None
-    if device is not None and device.platform != "cpu":
-        # The fused kernel runs on CPU only: a plan elsewhere traces the GPU kernel or the
-        # jax.numpy path alone, without the fused kernel's custom JVP and platform switch. Its
-        # switch is still read, so that a mistyped value is refused here as on the CPU (on an
-        # H100 SPHEREJAX_FUSED=off was taken silently: tests/test_gpu_kernel.py).
-        fused.switch()
-        return gpu_kernel.mode(raw_dtype, compute_dtype, bands, device)
-    usable = fused.mode(raw_dtype, compute_dtype, bands)
-    return None if usable is None else usable if asked == fused.AUTO else asked
-
-
-def _kernel_applies_residual(kernel_mode, calibration) -> bool:
-    """True if the per-pixel kernel `kernel_mode` applies the calibration's kernel residual (E8)
-    exactly: the fused CPU kernel's AVX-512 and generic code do, for a concrete calibration whose
-    residual weights have rank `fused.RESIDUAL_RANK` or less, as the fit keeps them
-    (`fused.residual_fits`).
-    Elsewhere the jax.numpy path applies it, the documented fallback: the GPU kernel (affine
-    estimators only), the AVX2 variant (its block has no residual; the generic code compiled for
-    AVX2 spills its vectors to the stack, fused.py), a traced calibration (its rank cannot be
-    checked) and a residual the kernel does not fit."""
-    return (
-        kernel_mode in (fused.AVX512, fused.GENERIC)
-        and _concrete(calibration)
-        and fused.residual_fits(calibration.wiener_residual)
-    )
+_no_flat_field = jax.jit(equations.flat_field_unusable)
 
 
 def _on_device(raw, device) -> bool:
@@ -459,7 +452,7 @@ def _on_device(raw, device) -> bool:
         return False
 
 
-def plan_for(calibration: pipeline.Calibration, shape, dtype) -> Plan:
+def plan_for(calibration: Calibration, shape, dtype) -> Plan:
     """The calibration's plan for frames of `shape` and `dtype`: the one it keeps if it is
     concrete (built at the first call), else a plan built now inside the trace.
 
@@ -478,7 +471,4 @@ def plan_for(calibration: pipeline.Calibration, shape, dtype) -> Plan:
         return plan
     if not _concrete(calibration):
         return Plan(calibration, shape, dtype)
-    compute_dtype = pipeline._compute_dtype(jax.ShapeDtypeStruct(shape, dtype), calibration)
-    device = _device_of(calibration)
-    kernel_mode = _kernel_mode(fused.AUTO, dtype, compute_dtype, calibration.bands, device)
-    return calibration._plan(key, lambda: Plan(calibration, shape, dtype, kernel_mode))
+    return calibration._plan(key, lambda: Plan(calibration, shape, dtype))

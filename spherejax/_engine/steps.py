@@ -8,9 +8,9 @@ dtypes, the patch box's shape and the static options), whichever calibration it 
     image_step         both, traced together: one dispatch, no wait between them
     image_step_into    image_step writing into the memory of donated outputs (CPU, `buffers`)
 
-The equations are `spherejax.pipeline`'s (`_pixel_outputs`, `_patch_ratio_of_box`); how they run
-(the fused CPU kernel, the GPU kernel, cache-sized blocks of the jax.numpy path on CPU) is decided
-here, at trace time, by `kernel_mode` and `jax.lax.platform_dependent`.
+The equations are `spherejax.equations`'s (`pixel_outputs`, `patch_ratio_of_box`); which kernel
+runs the per-pixel part is the plan's choice (`kernels.choose`), passed in as the static `kernel`
+(a `kernels.PixelKernel`), so that each kernel compiles its own program.
 
 jax.jit rather than eqx.filter_jit: every array is a leaf and everything else static, so plain
 jit applies, and its C++ dispatch saves about 0.3 ms a call (6 % of a 256 x 256 correction).
@@ -25,10 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import pipeline, uncertainty
+from .. import equations, uncertainty
+from ..correction_result import CorrectionResult
 from ..grid import N_WAVELENGTHS
 from ..pixel_constants import PatchConstants, PixelConstants
-from . import fused, gpu_kernel
+from . import kernels
 
 #: Pixels per block of the jax.numpy path on CPU (`pixel_outputs_in_blocks`): a block's
 #: intermediates (16 + 34 channels of float32, about 3.5 MB) stay in the L2/L3 caches.
@@ -53,19 +54,19 @@ def patch_ratio_step(raw, patch: PatchConstants, box_origin, *, box_shape, satur
     `patch_ratio` returns, bit for bit (strips rely on it). raw_is_box: raw is already the box of
     the frames, (..., h, w, B) (the fused kernel's direct route)."""
     raw_box = raw if raw_is_box else box_of_frames(raw, box_origin, box_shape)
-    return pipeline._patch_ratio_of_box(raw_box, patch, saturation)
+    return equations.patch_ratio_of_box(raw_box, patch, saturation)
 
 
 @functools.partial(jax.jit, static_argnames=("box_shape", "saturation"))
 def patch_ratio_std_step(raw, patch: PatchConstants, noise, box_origin, *, box_shape, saturation):
     """u(p) (..., B) over the same pixels as `patch_ratio_step` (`uncertainty.patch_ratio_std`)."""
-    raw_f, weights = pipeline._patch_box_inputs(box_of_frames(raw, box_origin, box_shape), patch, saturation)
+    raw_f, weights = equations.patch_box_inputs(box_of_frames(raw, box_origin, box_shape), patch, saturation)
     return uncertainty.patch_ratio_std(raw_f, patch.dark, patch.white, weights, noise)
 
 
 def pixel_outputs_in_blocks(raw, p, constants: PixelConstants, *, saturation, out=None,
                             block_pixels=CPU_BLOCK_PIXELS, no_flat_field=None):
-    """`pipeline._pixel_outputs` (without intermediates) over blocks of `CPU_BLOCK_PIXELS` pixels
+    """`equations.pixel_outputs` (without intermediates) over blocks of `CPU_BLOCK_PIXELS` pixels
     in one XLA loop: the jax.numpy path as it runs on CPU.
 
     Why. XLA on CPU does not fuse the Wiener projection (a matmul) with the elementwise steps
@@ -82,7 +83,7 @@ def pixel_outputs_in_blocks(raw, p, constants: PixelConstants, *, saturation, ou
     the outputs' shapes and dtypes whose memory the outputs take (donated; their values are
     never read). Without them the outputs start as zeros (one write pass). block_pixels: pixels
     per block, over all images of a batch (each block takes the same rows of every image).
-    no_flat_field: None, or the (H, W) bool `pipeline._no_flat_field` of the constants' frames.
+    no_flat_field: None, or the (H, W) bool `equations.flat_field_unusable` of the constants' frames.
 
     Returns (reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W)).
     """
@@ -90,7 +91,7 @@ def pixel_outputs_in_blocks(raw, p, constants: PixelConstants, *, saturation, ou
     pixels = height * width
     images = int(np.prod(batch, dtype=np.int64))
     block = max(1, block_pixels // max(images, 1))
-    plain = functools.partial(pipeline._pixel_outputs, saturation=saturation, intermediates=False)
+    plain = functools.partial(equations.pixel_outputs, saturation=saturation, intermediates=False)
     if block >= pixels or images == 0:
         return plain(raw, p, constants, no_flat_field=no_flat_field)
     dtype = constants.dtype
@@ -148,63 +149,32 @@ def pixel_outputs_in_blocks(raw, p, constants: PixelConstants, *, saturation, ou
     )
 
 
-def _fused_plain(saturation):
-    """`pipeline._pixel_outputs` in the positional form `fused.correct_pixels` calls its jax.numpy
-    definition with (raw, dark, white, p, coeffs, wiener, wiener_offset, tristimulus weights, kernel
-    residual)."""
-    def plain(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, residual):
-        constants = PixelConstants(dark, white, coeffs, wiener, wiener_offset, weights, residual)
-        return pipeline._pixel_outputs(raw, p, constants, saturation=saturation, intermediates=False)
-
-    return plain
-
-
-def _pixels_plain(raw, p, constants: PixelConstants, *, saturation, intermediates, kernel_mode, out=None,
-                  no_flat_field=None) -> pipeline.CorrectionResult:
-    """`pixels_step` without uncertainties (traced inside it)."""
+def _pixels_plain(raw, p, constants: PixelConstants, *, saturation, intermediates, kernel, out=None,
+                  no_flat_field=None) -> CorrectionResult:
+    """`pixels_step` without uncertainties (traced inside it): the plan's kernel, and with
+    `intermediates` the cubes it never forms (v, v_stage1, v_stage2) from the definition, whose
+    own reflectance and Lab XLA drops as unused. The main outputs stay the kernel's whatever else
+    is asked for."""
     p = p.astype(constants.dtype)
-    plain = functools.partial(
-        pipeline._pixel_outputs, saturation=saturation, intermediates=intermediates, no_flat_field=no_flat_field
-    )
-    if kernel_mode in gpu_kernel.MODES:  # the GPU kernel, chosen by the plan for its device
-        reflectance, lab, quality = gpu_kernel.pixel_outputs(
-            raw, p, constants, saturation=saturation, kernel_mode=kernel_mode
-        )
-        cubes = ()
-        if intermediates:  # as for the fused CPU kernel below
-            _, _, _, *cubes = plain(raw, p, constants)
-        return pipeline.CorrectionResult(reflectance, lab, quality, p, *cubes)
-    if kernel_mode is not None:
-        c = constants
-        reflectance, lab, quality = fused.correct_pixels(
-            _fused_plain(saturation), raw, c.dark, c.white, p, c.coeffs, c.wiener, c.wiener_offset,
-            c.tristimulus_weights, saturation=saturation, kernel_mode=kernel_mode, residual=c.wiener_residual,
-        )
-        cubes = ()
-        if intermediates:
-            # The main outputs stay the kernel's whatever else is asked for; the cubes it never
-            # forms come from the jax.numpy path, whose reflectance and Lab XLA drops as unused.
-            _, _, _, *cubes = plain(raw, p, constants)
-        return pipeline.CorrectionResult(reflectance, lab, quality, p, *cubes)
     if intermediates:
-        reflectance, lab, quality, *cubes = plain(raw, p, constants)
-        return pipeline.CorrectionResult(reflectance, lab, quality, p, *cubes)
+        reflectance, lab, quality, *cubes = equations.pixel_outputs(
+            raw, p, constants, saturation=saturation, intermediates=True, no_flat_field=no_flat_field
+        )
+        if kernel != kernels.DEFINITION:
+            reflectance, lab, quality = kernel.pixel_outputs(raw, p, constants, saturation=saturation)
+        return CorrectionResult(reflectance, lab, quality, p, *cubes)
+    reflectance, lab, quality = kernel.pixel_outputs(
+        raw, p, constants, saturation=saturation, out=out, no_flat_field=no_flat_field
+    )
+    return CorrectionResult(reflectance, lab, quality, p)
 
-    def on_cpu(raw, p, constants):
-        return pixel_outputs_in_blocks(raw, p, constants, saturation=saturation, out=out, no_flat_field=no_flat_field)
 
-    reflectance, lab, quality = jax.lax.platform_dependent(raw, p, constants, cpu=on_cpu, default=plain)
-    return pipeline.CorrectionResult(reflectance, lab, quality, p)
-
-
-@functools.partial(jax.jit, static_argnames=("saturation", "intermediates", "kernel_mode"))
-def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates: bool, kernel_mode: str | None,
-                noise=None, p_u=None, out=None, no_flat_field=None) -> pipeline.CorrectionResult:
+@functools.partial(jax.jit, static_argnames=("saturation", "intermediates", "kernel"))
+def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates: bool, kernel: kernels.PixelKernel,
+                noise=None, p_u=None, out=None, no_flat_field=None) -> CorrectionResult:
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
-    `kernel_mode` (static; `fused.mode` or `gpu_kernel.mode`, decided by the caller so that the
-    environment switch is part of the cache key): None for the jax.numpy path, else the fused CPU
-    kernel's mode or the GPU kernel's (`gpu_kernel.MODES`). With a
+    `kernel` (static): the per-pixel kernel the plan chose (`kernels.choose`). With a
     `NoiseModel` (and p's uncertainty p_u (..., B)) the result also carries the uncertainties
     (`uncertainty.pixel_uncertainty`); None traces none of that. `out`: None, or donated arrays
     of the three outputs' shapes whose memory the jax.numpy path's outputs take on CPU
@@ -213,7 +183,7 @@ def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates:
     then reads instead of working it out from dark and white again.
     """
     result = _pixels_plain(
-        raw, p, constants, saturation=saturation, intermediates=intermediates, kernel_mode=kernel_mode, out=out,
+        raw, p, constants, saturation=saturation, intermediates=intermediates, kernel=kernel, out=out,
         no_flat_field=no_flat_field,
     )
     if noise is None:
@@ -229,10 +199,10 @@ def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates:
     )
 
 
-@functools.partial(jax.jit, static_argnames=("box_shape", "saturation", "intermediates", "kernel_mode"))
+@functools.partial(jax.jit, static_argnames=("box_shape", "saturation", "intermediates", "kernel"))
 def image_step(raw, constants: PixelConstants, patch: PatchConstants, box_origin, *, box_shape, saturation,
-               intermediates: bool, kernel_mode: str | None, noise=None, out=None,
-               no_flat_field=None) -> pipeline.CorrectionResult:
+               intermediates: bool, kernel: kernels.PixelKernel, noise=None, out=None,
+               no_flat_field=None) -> CorrectionResult:
     """`correct` of whole frames as one program: p over the patch's box, then every pixel.
 
     The same two steps as `patch_ratio_step` then `pixels_step`, traced together: one dispatch
@@ -243,7 +213,7 @@ def image_step(raw, constants: PixelConstants, patch: PatchConstants, box_origin
     if noise is not None:
         p_u = patch_ratio_std_step(raw, patch, noise, box_origin, box_shape=box_shape, saturation=saturation)
     return pixels_step(
-        raw, p, constants, saturation=saturation, intermediates=intermediates, kernel_mode=kernel_mode, noise=noise,
+        raw, p, constants, saturation=saturation, intermediates=intermediates, kernel=kernel, noise=noise,
         p_u=p_u, out=out, no_flat_field=no_flat_field,
     )
 
@@ -251,11 +221,11 @@ def image_step(raw, constants: PixelConstants, patch: PatchConstants, box_origin
 # keep_unused: jit would otherwise drop the unused donated arguments from the program, and their
 # memory with them.
 @functools.partial(
-    jax.jit, static_argnames=("box_shape", "saturation", "kernel_mode"),
+    jax.jit, static_argnames=("box_shape", "saturation", "kernel"),
     donate_argnames=("out_reflectance", "out_lab", "out_quality"), keep_unused=True,
 )
 def image_step_into(raw, constants: PixelConstants, patch: PatchConstants, box_origin, out_reflectance, out_lab,
-                    out_quality, no_flat_field=None, *, box_shape, saturation, kernel_mode: str | None):
+                    out_quality, no_flat_field=None, *, box_shape, saturation, kernel: kernels.PixelKernel):
     """`image_step` with the memory of three donated arrays of the outputs' shapes and dtypes
     (dropped outputs of earlier calls, `spherejax._engine.buffers`): their values are not read,
     and their memory becomes the outputs' (XLA's buffer assignment gives it to the kernel's
@@ -264,5 +234,5 @@ def image_step_into(raw, constants: PixelConstants, patch: PatchConstants, box_o
     out = (out_reflectance, out_lab, out_quality)
     return image_step(
         raw, constants, patch, box_origin, box_shape=box_shape, saturation=saturation, intermediates=False,
-        kernel_mode=kernel_mode, out=out, no_flat_field=no_flat_field,
+        kernel=kernel, out=out, no_flat_field=no_flat_field,
     )

@@ -11,6 +11,7 @@ blocks, the checksum) and `calibration_npz` (the .npz of format versions 1 to 3,
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import pathlib
 from collections.abc import Iterator
@@ -21,7 +22,7 @@ import numpy as np
 
 from ..grid import N_WAVELENGTHS
 from .._checks import require_finite
-from ..pipeline import PARAMETERS, Calibration
+from ..calibration import PARAMETERS, Calibration, patch_bounding_box
 from ..uncertainty import NoiseModel
 # The functions here look their helpers up in this module: tests patch `_require_usable_patch`,
 # `_utc_now` and `IN_MEMORY_BYTES` here. The block sizes `_READ_BLOCK` and `_CHUNK_BYTES` are read
@@ -43,6 +44,11 @@ from .errors import CalibrationFileError, SpherejaxFileError
 #: Arrays up to this size are read into memory when a calibration file is opened; larger ones
 #: (the dark frame and white standard of a big sensor) are read by rows when needed.
 IN_MEMORY_BYTES = 256 << 20
+
+#: The most bytes of dark and white rows a `CalibrationFile` keeps as `Calibration`s of strips
+#: (`CalibrationFile.rows`): the strips of an image of IN_MEMORY_BYTES, with room for a second
+#: strip height.
+ROWS_KEPT_BYTES = 2 * IN_MEMORY_BYTES
 
 
 def save_calibration(
@@ -172,8 +178,6 @@ class CalibrationFile:
                 # Small arrays read whole: a NaN or infinity there makes every reflectance NaN.
                 # The check Calibration makes when built, here before any frame is read.
                 require_finite(name, self._value(name))
-            from ..pipeline import patch_bounding_box
-
             self.patch_box = patch_bounding_box(self._value("patch"))
             if self.patch_box is None:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
@@ -223,23 +227,50 @@ class CalibrationFile:
         patch_calibration)` is the white-patch ratio of the whole image."""
         return self._patch_calibration
 
-    def rows(self, row0: int, row1: int) -> Calibration:
+    def rows(self, row0: int, row1: int, *, padded_to: int | None = None) -> Calibration:
         """The calibration of image rows row0:row1 without the patch (`Calibration.rows`), read
-        from disk for a large file."""
+        from disk for a large file; padded_to: that many rows, the rows beyond row1 with dark =
+        white = 0 (pixels flagged white <= dark: a strip's padding computes nothing that could
+        fail, `stripwise`).
+
+        The same rows give the same `Calibration` object while it is kept (`ROWS_KEPT_BYTES`):
+        a calibration keeps its plans (`spherejax._engine.plan`), so every input of a batch
+        corrected strip by strip reuses one plan a strip shape instead of preparing it again."""
         height = self.image_shape[0]
         if not 0 <= row0 < row1 <= height:
             raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
-        return Calibration(
-            dark=self._rows("dark", row0, row1), white=self._rows("white", row0, row1), patch=None,
-            **self._small_arrays(), **self._calibration_fields,
-        )
+        if padded_to is not None and padded_to < row1 - row0:
+            raise ValueError(f"padded_to: expected at least the {row1 - row0} rows asked for, got {padded_to}")
+        key = (row0, row1, padded_to)
+        kept = self.__dict__.setdefault("_kept_rows", collections.OrderedDict())
+        rows = kept.get(key)
+        if rows is not None:
+            kept.move_to_end(key)
+            return rows
+        dark, white = self._rows("dark", row0, row1), self._rows("white", row0, row1)
+        if padded_to is not None and padded_to > row1 - row0:
+            dark, white = (np.concatenate([x, np.zeros((padded_to - len(x), *x.shape[1:]), x.dtype)]) for x in (dark, white))
+        rows = Calibration(dark=dark, white=white, patch=None, **self._small_arrays(), **self._calibration_fields)
+        kept[key] = rows
+        while len(kept) > 1 and sum(r.dark.nbytes + r.white.nbytes for r in kept.values()) > ROWS_KEPT_BYTES:
+            kept.popitem(last=False)
+        return rows
 
     def calibration(self) -> Calibration:
-        """The whole `Calibration` in memory."""
-        return Calibration(
-            **{name: self._value(name) for name in ("dark", "white", "patch")}, **self._small_arrays(),
-            **self._calibration_fields,
-        )
+        """The whole `Calibration` in memory (one object per open file, so that it keeps its plans)."""
+        whole = self.__dict__.get("_whole")
+        if whole is None:
+            whole = Calibration(
+                **{name: self._value(name) for name in ("dark", "white", "patch")}, **self._small_arrays(),
+                **self._calibration_fields,
+            )
+            self.__dict__["_whole"] = whole
+        return whole
+
+    @property
+    def in_memory(self) -> bool:
+        """True when the dark frame and white standard are held in memory (not read by rows)."""
+        return not isinstance(self._arrays["dark"], _StoredArray)
 
     def close(self) -> None:
         file, self._file = getattr(self, "_file", None), None
@@ -251,7 +282,8 @@ class CalibrationFile:
 
     def __getstate__(self) -> dict:
         if self._file is None:
-            return self.__dict__  # everything in memory
+            # everything in memory; the kept calibrations hold plans (compiled programs): not sent
+            return {name: value for name, value in self.__dict__.items() if name not in ("_kept_rows", "_whole")}
         # An open HDF5 file does not pickle (and a descriptor means nothing in another process).
         return {"reopen": (self.path, self._calibration_fields["illuminant"], self.header["checksum"])}
 
