@@ -14,11 +14,15 @@ Layers. Each module imports only modules of its own layer or of the layers below
 
 1. Kernels, pure JAX and numpy, no files: colorimetry, flatfield, polynomial, estimation (a
    module per reflectance estimator, and their cross-validation) and wiener_estimation (its old
-   name, kept for existing imports), pipeline (the types, the equations, `correct` and `plan`),
+   name, kept for existing imports), quality (the quality bits, one IntFlag), calibration (the
+   `Calibration` pytree), equations (the per-pixel equations in jax.numpy, the definition every
+   kernel is tested against), pipeline (the public functions `correct`, `plan`, `patch_ratio`),
    pixel_constants (the calibration's arrays as the per-pixel step reads them),
    correction_result, uncertainty, noise_document (a NoiseModel's JSON as a document),
-   consistency, markov, angles, _engine (private: the prepared plan and its routes, the jitted
-   steps, the fused CPU kernel, buffers, allocator), grid, spectra, jsontext (a parser of text it is
+   noise_bands (the rule for a noise model's per-band values that both check against),
+   consistency, markov, angles, _engine
+   (private: the kernel contract and its kernels, the prepared plan and its routes, the jitted
+   steps, buffers, allocator; its package docstring says which module does what), grid, spectra, jsontext (a parser of text it is
    given), number_text (numbers in the shortest text of their precision, JSON values and CSV
    tables as text), labelled (the xarray names of the outputs), _checks, atomic_files (the one
    way every writer puts a file in place, the engine's cache and io's writers alike).
@@ -58,6 +62,7 @@ from .pipeline import (
     BELOW_DARK_LIMIT as BELOW_DARK_LIMIT,
     QUALITY_SATURATED as QUALITY_SATURATED,
     QUALITY_WHITE_NOT_ABOVE_DARK as QUALITY_WHITE_NOT_ABOVE_DARK,
+    Quality as Quality,
     Calibration as Calibration,
     CorrectionResult as CorrectionResult,
     correct as correct,

@@ -52,7 +52,7 @@ class Calibration(eqx.Module):
         of an integer raw dtype (65535 for uint16) and no check for float raw.
       wiener_offset: the estimator's offset r0 (31,), reflectance (dimensionless, 400..700 nm
         step 10): the estimate is r = W v_tilde + r0 (`wiener.fit_wiener`). Default zeros, the
-        plain linear Wiener estimate, which gives the same numbers as before the offset existed.
+        plain linear Wiener estimate r = W v_tilde.
       wiener_residual: the estimator's kernel residual (`estimation.KernelResidual`, from
         `estimation.fit_kernel_estimator`): the estimate is then r = W v_tilde + r0 + A k(v_tilde)
         (E8). None (default): the affine estimator. Every kernel applies it (the kernel

@@ -134,7 +134,7 @@ def project_good_pixels(good, v, matrix, bias):
     about 15 ms a megapixel on 2 cores (70 -> 85 ms). Folding the bias into the product as a
     row of the matrix against a column of ones costs nothing, but changes the product's
     rounding for most band counts (XLA picks another dot kernel for K + 1), so a zero offset
-    would no longer give the numbers it gave before the offset existed. The CPU kernel of
+    would no longer give the bits of the plain linear estimate W v_tilde. The CPU kernel of
     `spherejax._engine.fused`, the default path in float32, starts its accumulators at the bias instead,
     for free.
     """

@@ -2,10 +2,9 @@
 
 `correct`'s per-pixel step (`equations.pixel_outputs`), its fused CPU kernel
 (`spherejax._engine.fused`), the propagated uncertainty (`uncertainty.pixel_uncertainty`) and a
-region's statistics (`measurement`) all read the same six arrays. They used to travel as eight
-positional arguments in three different orders, one of which called pixel weights (H, W)
-"weights" where the others meant tristimulus weights (31, 3). Here each has one name, its shape
-and its unit, and they are cast to one compute dtype in one place (`PixelConstants.of`).
+region's statistics (`measurement`) all read the same arrays. As positional arguments they are easy to pass in the
+wrong order, and "weights" could mean pixel weights (H, W) or tristimulus weights (31, 3). Here
+each has one name, its shape and its unit, and they are cast to one compute dtype in one place (`PixelConstants.of`).
 """
 
 from __future__ import annotations

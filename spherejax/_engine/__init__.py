@@ -1,14 +1,22 @@
-"""How `spherejax.correct` runs, as opposed to what it computes (`spherejax.pipeline`).
+"""How `spherejax.correct` runs, as opposed to what it computes (`spherejax.equations`).
 
 Private: nothing here is public API, and names may move between releases.
 
+- `kernels`: the kernel contract. What a per-pixel kernel computes and supports, its three
+  implementations (the jax.numpy definition, the fused CPU kernel, the Pallas GPU kernel), and
+  `choose`, the one place a kernel is picked, when a plan is made.
 - `plan`: the prepared correction of one calibration and frame shape (`spherejax.plan` is its
-  public face): constants cast once, on the device the computation runs on, and the compiled
-  executables of each route.
-- `routes`: the ways through the per-pixel step (the fused CPU kernel called by XLA or directly
-  on NumPy frames, the jax.numpy path in cache-sized blocks on CPU, whole images elsewhere,
-  frames mapped with `jax.vmap`), each a function of a plan.
-- `fused`: the Python side of the fused CPU kernel (`kernel/`, C++), and when it is used.
+  public face): constants cast once on the device the computation runs on, the kernel, the route
+  its calls take (decided when it is made), and the compiled executables.
+- `steps`: the jitted steps (the patch ratio, the per-pixel step with the plan's kernel, both as
+  one program, and that program writing into donated outputs).
+- `fused`: the fused CPU kernel's calls, from XLA (custom call, batching rule, JVP) and directly
+  on NumPy frames; `fused_extension`: loading the compiled extension (sources in `kernel/`, whose
+  `fused_correct.h` says which file does what) and registering it with XLA; `fused_variants`:
+  which instruction-set variant runs (SPHEREJAX_FUSED and the measured choice); `variant_cache`:
+  that measurement kept per machine; `fused_constants`: the calibration's arrays as the kernel
+  takes them.
+- `gpu_kernel`: the Pallas (Triton) kernel for NVIDIA GPUs; `gpu_residual`: its kernel residual.
 - `buffers`: reuse of dropped outputs' and staged inputs' memory on CPU.
 - `allocator`: glibc settings that keep freed memory for the next image.
 """

@@ -29,7 +29,7 @@ the same code and give the same bits.
 SPHEREJAX_FUSED takes "auto" (the default, as when unset) or "1": the kernel, its variant
 measured as above; "portable": the same measurement without the AVX-512 intrinsics code, so that
 the code CPUs without AVX-512 run can be tested and timed on a machine that has it (the generic
-code's target_clones still take the CPU's widest level, as before); "avx512", "avx2" or
+code's target_clones still take the CPU's widest level); "avx512", "avx2" or
 "generic": that variant, without measuring (refused with a ValueError where the CPU does not run
 it, rather than run something else under its name); "0": the jax.numpy path. Any other value is
 refused (`switch`), so that a typo such as "off" cannot leave the kernel on.

@@ -397,8 +397,8 @@ class Plan:
         `jit` they are traced and XLA owns the memory.
 
         Derivatives: `custom_vmap` has no transpose, so the whole sits in a `custom_jvp` whose
-        JVP is `_whole`'s: `jax.grad` and `jax.jvp` with respect to raw see what they saw
-        before. Without a mapping the value is `_whole`'s, traced as before.
+        JVP is `_whole`'s: `jax.grad` and `jax.jvp` with respect to raw see the derivative of
+        the unmapped program. Without a mapping the value is `_whole`'s, traced as any call is.
         """
         if not self.concrete:  # a traced calibration: nothing to map over one calibration
             return self._whole(raw)

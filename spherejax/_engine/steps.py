@@ -128,8 +128,8 @@ def pixel_outputs_in_blocks(raw, p, constants: PixelConstants, *, saturation, ou
     # whole. With one block a turn the second thread joined only inside each step (a matmul's
     # or a fusion's parallel parts), hundreds of times a call, and after a pause of 0.1 s or
     # more (a frame read from disk) it joined late for most of them: on 2 Zen 5 cores the first
-    # call after a pause took 47-51 ms a megapixel, now 35-39, and back to back 34, now 32
-    # (benchmarks/README.md, seventh speed session). The blocks are the same, so the numbers are.
+    # call after a pause took 47-51 ms a megapixel that way against 35-39 this way, and back to
+    # back 34 against 32 (benchmarks/README.md). The blocks are the same, so the numbers are.
     whole_blocks, rest = divmod(pixels, block)
     per_half = whole_blocks // 2
 
