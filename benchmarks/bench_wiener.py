@@ -59,7 +59,7 @@ from harness import machine_info, time_first_call, time_interleaved, write_recor
 
 import spherejax  # noqa: E402
 from spherejax import estimation as we, simulated_targets  # noqa: E402
-from spherejax.estimation._first_release import select_wiener_noise_variance  # noqa: E402
+from spherejax.estimation._offset_free import select_wiener_noise_variance  # noqa: E402
 
 TOLERANCE = 1e-6
 

@@ -14,7 +14,7 @@ and written as one (`.tolist()` of a float64 array), so it reads back as the sam
 model of float32 values reads back as the same float32 values (a float32's float64 is exact). With
 the number of bands (`check(..., bands=B)`, the validation context), the per-band values are also
 checked against B, by the rule `NoiseModel.check_bands` applies in memory
-(`spherejax.uncertainty.band_problem`).
+(`spherejax.noise_bands.band_problem`).
 
 This is a kernel module (tests/test_layers.py), as is `spherejax.uncertainty`, whose model it
 describes, so that a NoiseModel is read and written without spherejax.io. spherejax.io's
@@ -47,7 +47,7 @@ import pydantic
 from pydantic import AfterValidator, ConfigDict, Field, PlainSerializer, ValidationInfo, model_validator
 from pydantic_core import PydanticCustomError
 
-from .uncertainty import band_problem
+from .noise_bands import band_problem
 
 # validate_default: the defaults (1 frame, 0 uncertainty) become float64 arrays like the values read.
 _CONFIG = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False, frozen=True, validate_default=True)

@@ -54,6 +54,7 @@ from .colorimetry import xyz_to_lab
 from .flatfield import flat_field_unchecked, patch_ratio_weighted
 from .polynomial import stage2_unchecked
 from .estimation import EstimatorCovariance
+from .noise_bands import band_problem
 
 _HIGHEST = jax.lax.Precision.HIGHEST
 
@@ -206,34 +207,6 @@ class NoiseModel(eqx.Module):
                 gram=estimator.gram, residual=estimator.residual,
             ),
         )
-
-
-def band_problem(
-    shapes: Mapping[str, tuple[int, ...] | None], bands: int, *, keys: Mapping[str, str] | None = None,
-) -> str | None:
-    """The first per-band field of a noise model that does not fit `bands` bands, in words, or
-    None: the one rule of `NoiseModel.check_bands` (a model in memory) and of its JSON document
-    (`spherejax.noise_document`, whose keys differ from the field names by `keys`).
-
-    Args:
-      shapes: field -> its shape (None for an absent covariance), for "gain", "read_noise",
-        "white_reflectance_u", "coeffs_covariance" and "estimator_covariance.gram".
-      bands: the number of bands B.
-      keys: field -> the name it goes by where the shapes come from, named beside the field's.
-    """
-    keys = keys or {}
-    for name in ("gain", "read_noise", "white_reflectance_u"):
-        shape = tuple(shapes[name])
-        if len(shape) == 1 and shape[0] != bands:
-            where = f" in {keys[name]}" if name in keys else ""
-            return f"{name} has {shape[0]} values{where}, expected one or {bands} (one per band)"
-    coeffs = shapes["coeffs_covariance"]
-    if coeffs is not None and tuple(coeffs)[0] != bands:
-        return f"coeffs_covariance has shape {tuple(coeffs)}, expected ({bands}, 4, 4)"
-    gram = shapes["estimator_covariance.gram"]
-    if gram is not None and tuple(gram) != (bands + 1, bands + 1):
-        return f"estimator_covariance.gram has shape {tuple(gram)}, expected ({bands + 1}, {bands + 1})"
-    return None
 
 
 def check_noise(noise, bands: int) -> NoiseModel | None:

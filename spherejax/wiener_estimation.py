@@ -1,13 +1,12 @@
-"""Kept for existing imports: the estimators now live in `spherejax.estimation`, a module per
-method (`regression`, `haneishi2000`), `cross_validation`, `covariance` and `METHODS`.
+"""An alias module: the names of `spherejax.estimation` under `spherejax.wiener_estimation`,
+for code that imports them from here. No code of its own; new code imports from
+`spherejax.estimation` (or `spherejax`).
 
-Everything this module held is re-exported under its old name, so that
-`spherejax.wiener_estimation.X` keeps working; new code imports from `spherejax.estimation` (or
-`spherejax`). Two differences of meaning: `METHODS` here is still the tuple of accepted method
-names (`spherejax.estimation.METHOD_NAMES`; `spherejax.estimation.METHODS` is the mapping from
-name to fit), and the first release's `wiener_loo_errors`, `select_wiener_noise_variance` and
-`wiener_from_sensitivity`, kept only to reproduce its results, are no longer public
-(`spherejax.estimation._first_release`) but still importable from here.
+Two names differ from the package's: `METHODS` here is the tuple of accepted method names
+(`spherejax.estimation.METHOD_NAMES`; `spherejax.estimation.METHODS` is the mapping from name to
+fit), and `wiener_loo_errors`, `select_wiener_noise_variance` and `wiener_from_sensitivity`, the
+offset-free baseline estimators (`spherejax.estimation._offset_free`), are importable from here
+though not among the package's names.
 """
 
 from __future__ import annotations
@@ -35,7 +34,7 @@ from .estimation import (  # DEFAULT_FOLDS, MARKOV_PRIOR_CORRELATION: names it h
     wiener,
     wiener_from_system,
 )
-from .estimation._first_release import select_wiener_noise_variance, wiener_from_sensitivity, wiener_loo_errors
+from .estimation._offset_free import select_wiener_noise_variance, wiener_from_sensitivity, wiener_loo_errors
 
 __all__ = [
     "RELATIVE_NOISE_GRID",

@@ -23,7 +23,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 KERNELS, WORKFLOWS, FILES = 1, 2, 3
 LAYERS = {
     **dict.fromkeys(
-        ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "pipeline", "uncertainty", "consistency",
+        ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "quality", "calibration", "equations",
+         "pipeline", "uncertainty", "consistency",
          "markov", "angles", "_engine", "pixel_constants", "correction_result", "grid", "spectra", "jsontext", "noise_document",
          "noise_bands", "number_text", "labelled", "_checks", "atomic_files"], KERNELS),
     **dict.fromkeys(

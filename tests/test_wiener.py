@@ -9,7 +9,7 @@ import pytest
 
 import spherejax as sj
 from spherejax import estimation, simulated_targets, spectra, wiener_estimation
-from spherejax.estimation import _first_release
+from spherejax.estimation import _offset_free
 
 from .helpers import gaussian_sensitivity
 
@@ -127,7 +127,7 @@ class TestTrainingBased:
         for seed in range(5):
             V_train = respond(train, M, 0.02, seed=seed)
             V_test = respond(held_out, M, 0.02, seed=100 + seed)
-            chosen, candidates, _ = _first_release.select_wiener_noise_variance(V_train, train)
+            chosen, candidates, _ = _offset_free.select_wiener_noise_variance(V_train, train)
             held_out_error = [rms(sj.wiener(V_test, fit(V_train, train, c)), held_out) for c in np.asarray(candidates)]
             error_chosen = rms(sj.wiener(V_test, fit(V_train, train, chosen)), held_out)
             assert error_chosen <= 1.05 * min(held_out_error)
@@ -200,13 +200,13 @@ class TestModelBased:
         """The first release's wiener_from_sensitivity, kept: uncentred, no offset."""
         train = np.concatenate([v for k, v in sets.items() if k.startswith("ColorChecker")])
         M = gaussian_sensitivity()
-        W_model = np.asarray(_first_release.wiener_from_sensitivity(M, train, noise_variance=0.0))
+        W_model = np.asarray(_offset_free.wiener_from_sensitivity(M, train, noise_variance=0.0))
         W_train = np.asarray(sj.fit_wiener(train @ M.T, train, noise_variance=0.0, offset=False).matrix)
         np.testing.assert_allclose(W_model, W_train, rtol=1e-6, atol=1e-8)
 
     def test_markov_prior_without_examples(self, held_out):
         M = gaussian_sensitivity()
-        W = _first_release.wiener_from_sensitivity(M, None, noise_variance=0.002**2)
+        W = _offset_free.wiener_from_sensitivity(M, None, noise_variance=0.002**2)
         estimate = np.asarray(sj.wiener(respond(held_out, M, 0.002, seed=8), W))
         assert rms(estimate, held_out) < 0.01
 
@@ -288,7 +288,7 @@ def held_out_family_table(families):
         R = np.concatenate([data[f][1] for f in data if f != family])
         V_test, R_test = data[family]
         auto = sj.fit_wiener(V, R)
-        first_release = sj.fit_wiener(V, R, _first_release.select_wiener_noise_variance(V, R)[0], offset=False)
+        first_release = sj.fit_wiener(V, R, _offset_free.select_wiener_noise_variance(V, R)[0], offset=False)
         oracle = sj.wiener_from_system(
             truth.sensitivity, truth.offset, truth.noise_variance(R), R.mean(0), np.cov(R.T, bias=True)
         )
@@ -316,7 +316,7 @@ class TestAcrossMaterials:
         for train in data:
             V, R = data[train]
             auto = sj.fit_wiener(V, R)
-            first_release = sj.fit_wiener(V, R, _first_release.select_wiener_noise_variance(V, R)[0], offset=False)
+            first_release = sj.fit_wiener(V, R, _offset_free.select_wiener_noise_variance(V, R)[0], offset=False)
             oracle = sj.wiener_from_system(truth.sensitivity, truth.offset, truth.noise_variance(R), R.mean(0), np.cov(R.T, bias=True))
             for test in data:
                 V_test, R_test = data[test]
@@ -459,7 +459,7 @@ class TestBadInput:
 
     def test_sensitivity_shape(self):
         with pytest.raises(ValueError, match=r"sensitivity: expected shape \(B, 31\).*got \(31, 16\)"):
-            _first_release.wiener_from_sensitivity(np.ones((31, 16)))
+            _offset_free.wiener_from_sensitivity(np.ones((31, 16)))
         with pytest.raises(ValueError, match=r"sensitivity: expected shape \(16, 31\).*got \(16, 30\)"):
             sj.model_estimator(np.eye(16), np.ones((16, 31)), sensitivity=np.ones((16, 30)))
 
@@ -477,4 +477,4 @@ class TestBadInput:
 
     def test_empty_candidate_grid(self):
         with pytest.raises(ValueError, match="noise_variances: expected a non-empty 1-D array"):
-            _first_release.select_wiener_noise_variance(np.eye(16), np.ones((16, 31)), np.array([]))
+            _offset_free.select_wiener_noise_variance(np.eye(16), np.ones((16, 31)), np.array([]))

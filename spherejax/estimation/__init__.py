@@ -7,27 +7,40 @@ affine in the response, r = W v + r0 (E1), or that plus a kernel regression of w
 Real responses carry an offset (a residual dark level, stray light) and noise that differs by
 band, and a lab's targets never match its samples exactly; both methods model that. As
 colour-science's `colour.recovery` does, one module per method, named after its reference where
-the code cites one, and a mapping from the method's name to its function:
+the code cites one, and a mapping from the method's name to its function.
 
-  estimator         `WienerEstimator` (E1), `wiener` (apply it), `CrossValidation` (a report).
+The modules, each importing only those listed above it:
+
+  estimator         what a fit returns and how it is applied, with no fitting: `WienerEstimator`
+                    (E1), `KernelResidual` and `ResidualKernelEstimator` (E8-E10),
+                    `CrossValidation` (one method's held-out errors, the report an estimator
+                    carries), `wiener` (applies any of them). The pipeline, the engine and
+                    calibration files need only this module.
+  _targets          the checks of the colour targets a fit takes (responses (n, B), reflectances
+                    (n, 31)) and their weighted means, shared by the fits.
   regression        "training": a ridge regression on the targets, no knowledge of the system
                     (E2), `training_estimator`.
   haneishi2000      "model": the system (sensitivity, offset, per-band noise) estimated from the
                     targets and the linear minimum mean-square-error estimator through it
                     (Haneishi et al. 2000; Shen & Xin 2006) (E3-E7), `model_estimator`,
                     `wiener_from_system`.
-  cross_validation  the folds (groups held out in turn, or k-means clusters of spectrally alike
-                    targets), each method's regularisers chosen on them, the "auto" choice,
-                    `estimate_system`.
-  covariance        the sampling covariance of an estimator from its training set (C1).
-  kernel_residual   "kernel": an affine estimator plus a kernel regression of its residuals
-                    on targets of the material measured (E8-E12), `fit_kernel_estimator`; "auto"
-                    takes it where cross-validation shows a real gain (`fit_estimator`).
+  cross_validation  the folds (groups held out in turn, k-means clusters of spectrally alike
+                    targets, or targets drawn at random), each affine method's regularisers
+                    chosen on them (`Candidate`), their ranking, `estimate_system`.
+  kernel_residual   "kernel": the fit of the residual kernel estimator on an affine mean, its
+                    lengthscale and ridge cross-validated (E9-E12), `kernel_gain`.
+  covariance        the sampling covariance of an affine estimator from its training set (C1).
+  _offset_free      the offset-free baseline estimators (no r0): the training form's sigma^2 by
+                    leave-one-out and the uncentred model-based matrix of a known system; not
+                    among this package's names (`spherejax.wiener_estimation` re-exports them).
 
-`fit_estimator(responses, reflectances, method=...)` (also `fit_wiener`, its name since the first
-release) fits one: `METHODS` maps each affine method's name to its cross-validated fit,
-`METHOD_NAMES` ("auto" and the names of `METHODS`) are the affine choices and `ESTIMATOR_NAMES`
-those and "kernel", checked by `validate_method`.
+This package's own module chooses and fits: `fit_estimator(responses, reflectances, method=...)`
+(also `fit_wiener`, the paper's name, Wiener estimation) cross-validates the affine methods and,
+where the targets show a real gain (`KERNEL_MIN_GAIN`, `KERNEL_MIN_Z`, from
+`KERNEL_MIN_TARGETS` targets), takes the kernel estimator on the best of them;
+`fit_kernel_estimator` fits the kernel estimator whatever its gain. `METHODS` maps each affine
+method's name to its cross-validated fit, `METHOD_NAMES` ("auto" and the names of `METHODS`) are
+the affine choices and `ESTIMATOR_NAMES` those and "kernel", checked by `validate_method`.
 """
 
 from __future__ import annotations
@@ -52,13 +65,12 @@ from .cross_validation import (
     rank_candidates,
     _weights_of,
 )
+from ._targets import _check_determined, _check_noise_variance, _check_sensitivity, _check_training
 from .estimator import (
     CrossValidation,
+    KernelResidual,
+    ResidualKernelEstimator,
     WienerEstimator,
-    _check_determined,
-    _check_noise_variance,
-    _check_sensitivity,
-    _check_training,
     as_estimator,
     wiener,
 )
@@ -75,8 +87,6 @@ from .kernel_residual import (
     INDUCING_POINTS,
     KERNEL_LENGTHSCALE_GRID,
     KERNEL_RIDGE_GRID,
-    KernelResidual,
-    ResidualKernelEstimator,
     cross_validate_kernel,
     kernel_gain,
 )
@@ -151,7 +161,7 @@ def fit_estimator(
         paper; Stage II responses in the full method).
       reflectances: their measured reflectances, shape (n, 31), 400..700 nm step 10.
       noise_variance: sigma^2 of the training form (>= 0, response units squared); given, it
-        fixes the method to "training" with no cross-validation (the first release's call).
+        fixes the method to "training" with no cross-validation.
       method: "auto" (default): every affine method at its cross-validated regularisers, the one
         with the least held-out spectral rms kept, and, from `KERNEL_MIN_TARGETS` targets on,
         the kernel estimator on it, taken only where its held-out spectral rms is at least
@@ -163,7 +173,7 @@ def fit_estimator(
       folds: the number of folds without groups.
       sensitivity: a known sensitivity M (B, 31) for the model form (with "auto" the model form
         uses it; only b and K_n are then estimated).
-      offset: False fits the training form without r0 (the first release's form; affine only).
+      offset: False fits the training form without r0 (affine only).
       inducing_points: m of the kernel estimator (`INDUCING_POINTS`).
 
     Returns:
@@ -213,7 +223,7 @@ def fit_estimator(
     return WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=affine_reports)
 
 
-#: `fit_estimator` under the name of the first releases (the paper's Wiener estimation; docs/design.md).
+#: `fit_estimator` under the paper's name (Wiener estimation; docs/design.md).
 fit_wiener = fit_estimator
 
 

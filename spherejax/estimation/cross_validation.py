@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..number_text import json_ready
-from .estimator import _HIGHEST, CrossValidation, _check_determined, _check_training
+from ._targets import _check_determined, _check_training
+from .estimator import _HIGHEST, CrossValidation
 from .haneishi2000 import (
     PRIOR_SHRINKAGE_GRID,
     SENSITIVITY_PENALTIES,

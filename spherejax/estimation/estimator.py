@@ -1,9 +1,20 @@
-"""The affine reflectance estimator that every method fits, applying it, and the checks and
-weighted moments the methods share.
+"""The reflectance estimators as a calibration holds and applies them, whatever fitted them:
+pytrees (equinox) and `wiener`, which applies any of them. Nothing here fits; the fitting modules
+of this package build these types, and everything that only applies an estimator (the pipeline,
+the engine, calibration files) needs no more than this module.
 
-Every estimator is affine in the response, so that `correct` stays one matrix product per pixel:
+The affine estimator, which every method fits (`WienerEstimator`):
 
     r = W v + r0,      W (31, B), r0 (31,)                                         (E1)
+
+and the residual kernel estimator (`ResidualKernelEstimator`, fitted by
+`spherejax.estimation.kernel_residual`, which has the whole model E8-E12): the affine one plus a
+kernel regression of what it leaves,
+
+    r = W v + r0 + A k(v),  k_j(v) = exp(-|S'(v - mu) - z'_j|^2 / 2)              (E8-E10)
+
+with the lengthscale folded into S' = S / l and z'_j = z_j / l (`KernelResidual`).
+`CrossValidation` is the report of one method's held-out errors that an estimator carries.
 
 Apply with `wiener(v, estimator)` (or a plain (31, B) matrix): reflectance (..., 31).
 """
@@ -15,7 +26,6 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .. import _checks
 from ..grid import N_WAVELENGTHS
@@ -28,7 +38,7 @@ class CrossValidation:
     """Cross-validated errors of one method at its chosen regularisers (hashable: it rides in
     the estimator's static part).
 
-    method: "training" or "model". spectral_rms: rms over held-out targets and wavelengths of
+    method: "training", "model" or "kernel". spectral_rms: rms over held-out targets and wavelengths of
     r - r_hat. delta_e_d65: mean CIEDE2000 (D65, 2°) of the held-out targets. settings: the
     chosen regularisers as (name, value) pairs. folds: how the targets were split.
     """
@@ -69,6 +79,84 @@ class WienerEstimator(eqx.Module):
         return wiener(v, self)
 
 
+class KernelResidual(eqx.Module):
+    """The residual term A k(v) of (E8-E10), a pytree: what a calibration adds to its affine
+    estimator (`spherejax.Calibration.wiener_residual`).
+
+    centre: mu (B,). whitening: S / l (B, B), rows applied to v - mu. inducing: z / l (m, B).
+    weights: A (31, m). Called on responses (..., B): the residual (..., 31).
+    """
+
+    centre: jax.Array
+    whitening: jax.Array
+    inducing: jax.Array
+    weights: jax.Array
+
+    def __check_init__(self):
+        if self.centre.ndim != 1:
+            raise ValueError(f"centre: expected shape (B,), one value per band, got {tuple(self.centre.shape)}")
+        bands = self.centre.shape[0]
+        _checks.require_shape("whitening", self.whitening, (bands, bands), "bands x bands")
+        if self.inducing.ndim != 2 or self.inducing.shape[1] != bands:
+            raise ValueError(f"inducing: expected shape (m, {bands}), got {tuple(self.inducing.shape)}")
+        _checks.require_shape("weights", self.weights, (N_WAVELENGTHS, self.inducing.shape[0]), "31 x inducing points")
+
+    @property
+    def bands(self) -> int:
+        return int(self.centre.shape[0])
+
+    def astype(self, dtype) -> KernelResidual:
+        return KernelResidual(*(x.astype(dtype) for x in (self.centre, self.whitening, self.inducing, self.weights)))
+
+    def __call__(self, v):
+        """A k(v) (..., 31) for responses v (..., B), in v's float dtype."""
+        dtype = v.dtype
+        k = kernel_features(v, self.centre.astype(dtype), self.whitening.astype(dtype), self.inducing.astype(dtype))
+        return jnp.matmul(k, self.weights.astype(dtype).T, precision=_HIGHEST)
+
+
+class ResidualKernelEstimator(eqx.Module):
+    """r = W v + r0 + A k(v) (E8-E10), a pytree: `affine` (a `WienerEstimator`, W (31, B) and
+    r0 (31,)) and `kernel` (its `KernelResidual`).
+
+    method: "kernel" (static). cross_validation: every method tried, the chosen one first
+    (static), as `WienerEstimator.cross_validation`.
+    """
+
+    affine: WienerEstimator
+    kernel: KernelResidual
+    method: str = eqx.field(static=True, default="kernel")
+    cross_validation: tuple[CrossValidation, ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        bands = self.affine.matrix.shape[1]
+        if self.kernel.bands != bands:
+            raise ValueError(f"kernel: expected a residual of the affine estimator's {bands} bands, got {self.kernel.bands}")
+
+    @property
+    def matrix(self) -> jax.Array:
+        """The affine mean's W (31, B)."""
+        return self.affine.matrix
+
+    @property
+    def offset(self) -> jax.Array:
+        """The affine mean's r0 (31,)."""
+        return self.affine.offset
+
+    def __call__(self, v):
+        return wiener(v, self)
+
+
+def kernel_features(v, centre, whitening, inducing):
+    """k(v) (..., m) of (E9-E10) with the lengthscale folded into `whitening` and `inducing`:
+    exp(-|S'(v - mu) - z'_j|^2 / 2), |a - b|^2 expanded as |a|^2 - 2 a.b + |b|^2 (matrix products)
+    and clipped at 0 against round-off."""
+    u = jnp.matmul(v - centre, whitening.T, precision=_HIGHEST)
+    squared = (jnp.sum(u * u, axis=-1, keepdims=True) - 2.0 * jnp.matmul(u, inducing.T, precision=_HIGHEST)
+               + jnp.sum(inducing * inducing, axis=-1))
+    return jnp.exp(-0.5 * jnp.maximum(squared, 0.0))
+
+
 def as_estimator(estimator) -> WienerEstimator:
     """A WienerEstimator, or a plain (31, B) matrix taken as one with a zero offset."""
     if isinstance(estimator, WienerEstimator):
@@ -85,13 +173,11 @@ def wiener(v, W):
     Args:
       v: corrected responses, shape (..., B).
       W: a `WienerEstimator` (from `fit_wiener`), a plain matrix (31, B) (r0 = 0), or a
-        `kernel_residual.ResidualKernelEstimator` (its affine mean plus its residual, E8).
+        `ResidualKernelEstimator` (its affine mean plus its residual, E8).
 
     Returns:
       reflectance, shape (..., 31), 400..700 nm step 10.
     """
-    from .kernel_residual import ResidualKernelEstimator  # it builds on this module
-
     v = _checks.band_array("v", v)
     if isinstance(W, ResidualKernelEstimator):
         dtype = _checks.float_dtype(v, W.matrix)
@@ -103,85 +189,12 @@ def wiener(v, W):
     return jnp.matmul(v.astype(dtype), W.astype(dtype).T, precision=_HIGHEST) + estimator.offset.astype(dtype)
 
 
-# ---------------------------------------------------------------------------------------------
-# Argument checks
-
-
-def _check_training(responses, reflectances):
-    responses = _checks.as_array("responses", responses)
-    reflectances = _checks.as_array("reflectances", reflectances)
-    if responses.ndim != 2:
-        raise ValueError(
-            f"responses: expected shape (n, B) (targets, bands), got {tuple(responses.shape)}"
-        )
-    _checks.require_shape(
-        "reflectances",
-        reflectances,
-        (responses.shape[0], N_WAVELENGTHS),
-        "one 400..700 nm spectrum per target, same n as responses",
-    )
-    if responses.shape[0] < 2:
-        raise ValueError(
-            f"responses: {responses.shape[0]} target(s) cannot train a Wiener matrix; expected "
-            "at least 2 (the paper uses 144)"
-        )
-    dtype = _checks.float_dtype(responses, reflectances)
-    return responses.astype(dtype), reflectances.astype(dtype)
-
-
-def _check_sensitivity(sensitivity, V):
-    """A known sensitivity M as an array (B, 31) in V's dtype, for responses V (n, B)."""
-    M = _checks.as_array("sensitivity", sensitivity)
-    _checks.require_shape("sensitivity", M, (V.shape[1], N_WAVELENGTHS), "bands of responses x 31 wavelengths")
-    return M.astype(V.dtype)
-
-
-def _check_noise_variance(noise_variance):
-    if _checks.is_concrete(noise_variance) and not float(noise_variance) >= 0:
-        raise ValueError(f"noise_variance: expected a value >= 0, got {noise_variance!r}")
-
-
-def _check_determined(V, R, what: str) -> None:
-    """Refuse targets that cannot determine an estimator (concrete data only): non-finite
-    values, or responses or reflectances that do not vary."""
-    if not (_checks.is_concrete(V) and _checks.is_concrete(R)):
-        return
-    V_np, R_np = np.asarray(V), np.asarray(R)
-    for name, x in (("responses", V_np), ("reflectances", R_np)):
-        bad = ~np.isfinite(x)
-        if bad.any():
-            row = int(np.argwhere(bad)[0][0])
-            raise ValueError(f"{name}: target {row} has a non-finite value; expected finite {what} data")
-    if not np.any(np.ptp(V_np, axis=0) > 0):
-        raise ValueError(
-            f"responses: all {V_np.shape[0]} targets give the same response; expected targets of "
-            f"different colours to fit {what}"
-        )
-    if not np.any(np.ptp(R_np, axis=0) > 0):
-        raise ValueError(
-            f"reflectances: all {R_np.shape[0]} targets have the same reflectance; expected targets "
-            f"of different colours to fit {what}"
-        )
-
-
-# ---------------------------------------------------------------------------------------------
-# Weighted moments: every fit takes per-target weights w (n,) in {0, 1}, so that the folds of a
-# cross-validation are the same computation with other weights (vmapped, one compilation).
-
-
-def _weighted_centre(X, w):
-    """(mean (d,), centred rows scaled by sqrt(w) (n, d)) of X (n, d) under weights w (n,)."""
-    mean = jnp.sum(w[:, None] * X, axis=0) / jnp.sum(w)
-    return mean, (X - mean) * jnp.sqrt(w)[:, None]
-
-
-def _symmetric_solve(A, B):
-    """A^-1 B for a symmetric positive (semi-)definite A (k, k), through its eigendecomposition
-    so that a (numerically) singular direction gets a zero weight instead of a blow-up."""
-    eigenvalues, Q = jnp.linalg.eigh(A)
-    floor = jnp.max(eigenvalues) * jnp.finfo(A.dtype).eps * A.shape[0]
-    inverse = jnp.where(eigenvalues > floor, 1.0 / jnp.where(eigenvalues > floor, eigenvalues, 1.0), 0.0)
-    return jnp.matmul(Q * inverse, jnp.matmul(Q.T, B, precision=_HIGHEST), precision=_HIGHEST)
-
-
-__all__ = ["CrossValidation", "WienerEstimator", "as_estimator", "wiener"]
+__all__ = [
+    "CrossValidation",
+    "KernelResidual",
+    "ResidualKernelEstimator",
+    "WienerEstimator",
+    "as_estimator",
+    "kernel_features",
+    "wiener",
+]

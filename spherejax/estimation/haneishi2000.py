@@ -41,14 +41,8 @@ import numpy as np
 
 from .. import _checks
 from ..grid import N_WAVELENGTHS
-from .estimator import (
-    _HIGHEST,
-    WienerEstimator,
-    _check_sensitivity,
-    _check_training,
-    _symmetric_solve,
-    _weighted_centre,
-)
+from ._targets import _check_sensitivity, _check_training, _weighted_centre
+from .estimator import _HIGHEST, WienerEstimator
 
 #: Correlation between neighbouring 10 nm samples of the Markov smoothness prior (E5); natural
 #: reflectances are smooth on that scale.
@@ -145,6 +139,15 @@ def _system_wiener(M, b, K_n, r_mean, K_r):
     K_vv = jnp.matmul(M, K_r_M_t, precision=_HIGHEST) + K_n  # (B, B), M K_r M^T + K_n
     W = _symmetric_solve(K_vv, K_r_M_t.T).T
     return W, r_mean - jnp.matmul(W, jnp.matmul(M, r_mean, precision=_HIGHEST) + b, precision=_HIGHEST)
+
+
+def _symmetric_solve(A, B):
+    """A^-1 B for a symmetric positive (semi-)definite A (k, k), through its eigendecomposition
+    so that a (numerically) singular direction gets a zero weight instead of a blow-up."""
+    eigenvalues, Q = jnp.linalg.eigh(A)
+    floor = jnp.max(eigenvalues) * jnp.finfo(A.dtype).eps * A.shape[0]
+    inverse = jnp.where(eigenvalues > floor, 1.0 / jnp.where(eigenvalues > floor, eigenvalues, 1.0), 0.0)
+    return jnp.matmul(Q * inverse, jnp.matmul(Q.T, B, precision=_HIGHEST), precision=_HIGHEST)
 
 
 def _prior_covariance(Rc, w, shrinkage):

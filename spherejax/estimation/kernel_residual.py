@@ -39,19 +39,23 @@ z_j / l), so that applying it is two matrix products and an exponential per pixe
 B m + 8 m + 8 x 34 + B^2 multiply-adds and m exponentials (the fused CPU kernel,
 spherejax._engine.fused.residual_constants), against the affine 34 B.
 
-`ResidualKernelEstimator` is a pytree (equinox), applied by `estimation.wiener` like any other.
+This module fits it: the whitening (E9), the inducing points, the weights (E11-E12) and the
+lengthscale and ridge by cross-validation (`cross_validate_kernel`, over the folds of
+`spherejax.estimation.cross_validation`). What it fits, `ResidualKernelEstimator` (the affine
+`WienerEstimator` and its `KernelResidual`) and `kernel_features` (E9-E10), live in
+`spherejax.estimation.estimator` beside the affine estimator, since applying an estimator
+(`estimation.wiener`, the pipeline, calibration files) needs no fitting; they are re-exported
+here.
 """
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _checks
-from ..grid import N_WAVELENGTHS
-from .estimator import _HIGHEST, CrossValidation, WienerEstimator
+from .cross_validation import Candidate, _best, _delta_e_d65, _kmeans_labels
+from .estimator import _HIGHEST, CrossValidation, KernelResidual, ResidualKernelEstimator, kernel_features
 
 #: Inducing points m of the residual (E10). The per-pixel cost grows with m (3 B m + 31 m
 #: multiply-adds), the accuracy with it up to the full regression (m = n). Measured on the four
@@ -90,86 +94,6 @@ KERNEL_RIDGE_GRID = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
 _WHITENING_FLOOR = 1e-8
 
 
-class KernelResidual(eqx.Module):
-    """The residual term A k(v) of (E8-E10), a pytree: what a calibration adds to its affine
-    estimator (`spherejax.Calibration.wiener_residual`).
-
-    centre: mu (B,). whitening: S / l (B, B), rows applied to v - mu. inducing: z / l (m, B).
-    weights: A (31, m). Called on responses (..., B): the residual (..., 31).
-    """
-
-    centre: jax.Array
-    whitening: jax.Array
-    inducing: jax.Array
-    weights: jax.Array
-
-    def __check_init__(self):
-        if self.centre.ndim != 1:
-            raise ValueError(f"centre: expected shape (B,), one value per band, got {tuple(self.centre.shape)}")
-        bands = self.centre.shape[0]
-        _checks.require_shape("whitening", self.whitening, (bands, bands), "bands x bands")
-        if self.inducing.ndim != 2 or self.inducing.shape[1] != bands:
-            raise ValueError(f"inducing: expected shape (m, {bands}), got {tuple(self.inducing.shape)}")
-        _checks.require_shape("weights", self.weights, (N_WAVELENGTHS, self.inducing.shape[0]), "31 x inducing points")
-
-    @property
-    def bands(self) -> int:
-        return int(self.centre.shape[0])
-
-    def astype(self, dtype) -> KernelResidual:
-        return KernelResidual(*(x.astype(dtype) for x in (self.centre, self.whitening, self.inducing, self.weights)))
-
-    def __call__(self, v):
-        """A k(v) (..., 31) for responses v (..., B), in v's float dtype."""
-        dtype = v.dtype
-        k = kernel_features(v, self.centre.astype(dtype), self.whitening.astype(dtype), self.inducing.astype(dtype))
-        return jnp.matmul(k, self.weights.astype(dtype).T, precision=_HIGHEST)
-
-
-class ResidualKernelEstimator(eqx.Module):
-    """r = W v + r0 + A k(v) (E8-E10), a pytree: `affine` (a `WienerEstimator`, W (31, B) and
-    r0 (31,)) and `kernel` (its `KernelResidual`).
-
-    method: "kernel" (static). cross_validation: every method tried, the chosen one first
-    (static), as `WienerEstimator.cross_validation`.
-    """
-
-    affine: WienerEstimator
-    kernel: KernelResidual
-    method: str = eqx.field(static=True, default="kernel")
-    cross_validation: tuple[CrossValidation, ...] = eqx.field(static=True, default=())
-
-    def __check_init__(self):
-        bands = self.affine.matrix.shape[1]
-        if self.kernel.bands != bands:
-            raise ValueError(f"kernel: expected a residual of the affine estimator's {bands} bands, got {self.kernel.bands}")
-
-    @property
-    def matrix(self) -> jax.Array:
-        """The affine mean's W (31, B)."""
-        return self.affine.matrix
-
-    @property
-    def offset(self) -> jax.Array:
-        """The affine mean's r0 (31,)."""
-        return self.affine.offset
-
-    def __call__(self, v):
-        from .estimator import wiener
-
-        return wiener(v, self)
-
-
-def kernel_features(v, centre, whitening, inducing):
-    """k(v) (..., m) of (E9-E10) with the lengthscale folded into `whitening` and `inducing`:
-    exp(-|S'(v - mu) - z'_j|^2 / 2), |a - b|^2 expanded as |a|^2 - 2 a.b + |b|^2 (matrix products)
-    and clipped at 0 against round-off."""
-    u = jnp.matmul(v - centre, whitening.T, precision=_HIGHEST)
-    squared = (jnp.sum(u * u, axis=-1, keepdims=True) - 2.0 * jnp.matmul(u, inducing.T, precision=_HIGHEST)
-               + jnp.sum(inducing * inducing, axis=-1))
-    return jnp.exp(-0.5 * jnp.maximum(squared, 0.0))
-
-
 # ---------------------------------------------------------------------------------------------
 # The fit
 
@@ -190,8 +114,6 @@ def whitening_of(V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def inducing_points_of(U: np.ndarray, m: int) -> np.ndarray:
     """m inducing points (m, B) for whitened responses U (n, B): all of them when n <= m, else the
     centres of a deterministic k-means (`cross_validation._kmeans_labels`) of U."""
-    from .cross_validation import _kmeans_labels
-
     U = np.asarray(U, np.float64)
     if len(U) <= m:
         return U.copy()
@@ -260,8 +182,6 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
     The affine mean is refitted in each fold (`affine.fit_folds`), so the held-out errors are
     those of the whole estimator, and the mean's on the same folds are what the gain is over.
     """
-    from .cross_validation import Candidate, _best, _delta_e_d65
-
     dtype = V.dtype
     mu, S = whitening_of(V)
     U = (np.asarray(V, np.float64) - mu) @ S.T

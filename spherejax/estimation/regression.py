@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .estimator import _HIGHEST, WienerEstimator, _check_noise_variance, _check_training, _weighted_centre
+from ._targets import _check_noise_variance, _check_training, _weighted_centre
+from .estimator import _HIGHEST, WienerEstimator
 
 #: Candidate noise variances of the training form, relative to the mean response variance
 #: tr(K_vv) / B: from effectively unregularised to a very smooth estimate.
@@ -55,7 +56,7 @@ def training_estimator(responses, reflectances, noise_variance, *, offset: bool 
       responses: (n, B). reflectances: (n, 31).
       noise_variance: sigma^2 >= 0, in response units squared.
       offset: fit r0 too (an unpenalised intercept, i.e. on [v, 1]); False is the offset-free
-        form W = R^T V (V^T V + n sigma^2 I)^-1 of the first release.
+        form W = R^T V (V^T V + n sigma^2 I)^-1 (r0 = 0).
     """
     V, R = _check_training(responses, reflectances)
     _check_noise_variance(noise_variance)

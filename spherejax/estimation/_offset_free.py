@@ -1,9 +1,18 @@
-"""The first release's estimation functions, kept only to reproduce its results (the "first
-release" rows of the benchmarks and of the held-out family tests): the offset-free training
-form's sigma^2 chosen by leave-one-out, and the uncentred, offset-free model-based matrix of a
-known system. Not part of the public API (`spherejax.estimation.fit_wiener` replaces them:
-`fit_wiener(V, R, select_wiener_noise_variance(V, R)[0], offset=False)` is the first release's
-estimator); `spherejax.wiener_estimation` still re-exports them for existing imports.
+"""The offset-free estimators, outside the default family (`fit_estimator`): no r0, so they
+serve as the baseline the affine estimators are measured against.
+
+  wiener_loo_errors             the leave-one-out spectral rms of the offset-free training form
+                                W = R^T V (V^T V + n sigma^2 I)^-1 (E2 with r0 = 0) for each
+                                candidate sigma^2, exact, without refitting
+  select_wiener_noise_variance  the sigma^2 of least leave-one-out error among candidates
+  wiener_from_sensitivity       the model-based matrix W = K_r M^T (M K_r M^T + sigma^2 I)^-1 of
+                                a known system with no offset, K_r the uncentred R^T R / n or the
+                                Markov prior (E6 without b or centring)
+
+`fit_wiener(V, R, select_wiener_noise_variance(V, R)[0], offset=False)` is the offset-free
+training estimator at its leave-one-out sigma^2: the baseline rows of benchmarks/bench_wiener.py
+and of tests/test_wiener.py. Not among `spherejax.estimation`'s names; `spherejax.wiener_estimation`
+re-exports them under these names.
 """
 
 from __future__ import annotations
@@ -12,7 +21,8 @@ import jax.numpy as jnp
 
 from .. import _checks
 from ..grid import N_WAVELENGTHS
-from .estimator import _HIGHEST, _check_noise_variance, _check_training
+from ._targets import _check_noise_variance, _check_training
+from .estimator import _HIGHEST
 from .haneishi2000 import markov_correlation
 from .regression import RELATIVE_NOISE_GRID
 
@@ -68,7 +78,7 @@ def select_wiener_noise_variance(responses, reflectances, noise_variances=None):
 def wiener_from_sensitivity(sensitivity, reflectances=None, noise_variance=0.0):
     """Model-based Wiener matrix W = K_r M^T (M K_r M^T + sigma^2 I)^-1 for a known system with
     no offset and K_r the (uncentred) autocorrelation R^T R / n of example spectra, or the
-    Markov prior `markov_correlation()` when `reflectances` is None (the first release's form).
+    Markov prior `markov_correlation()` when `reflectances` is None.
 
     Returns:
       W, shape (31, B).
