@@ -20,7 +20,10 @@ What it measures
        and "on device, streamed": STREAMED_CALLS device-resident calls queued and waited for
        once at the end (`streamed`), reported a call: "on device" waits for every call, so the
        host's work for a call adds to the GPU's, where a loop that leaves its outputs on the
-       device overlaps them;
+       device overlaps them; and at the largest size, `correct` on the device with a kernel-
+       estimator calibration (a residual of --kernel-points inducing points, default 64, on the
+       frame's responses: bench_gpu_kernel.residual_for) against its affine twin, back to back,
+       as a ratio (target on a GPU: at most 2x at 4096^2), naming each plan's per-pixel step;
     3. a stack of --stack (default 8) frames of --stack-size (default 1024) in one `correct`
        call, both ways, and `jax.jit(jax.vmap(lambda r: correct(r, calibration)))` over it on
        the device, each first checked against the frames corrected one by one;
@@ -88,11 +91,13 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import harness  # noqa: E402
 import reference  # noqa: E402  (sets the colour-science warning filter first)
 from bench_batch import frames_of  # noqa: E402
+from bench_gpu_kernel import residual_for  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import spherejax  # noqa: E402
 from spherejax._engine.plan import Plan, plan_for  # noqa: E402
+from spherejax.pixel_constants import PixelConstants  # noqa: E402
 
 #: Spec-sheet HBM bandwidth in GB/s by a substring of `device_kind` (case-insensitive, first
 #: match wins). jax names an H100 SXM "NVIDIA H100 80GB HBM3"; other H100 variants (NVL) are
@@ -243,14 +248,14 @@ def row(name: str, timing: dict, first_call_s: float, pixels: int, *, hbm_bytes:
 
 
 def print_rows(rows: list[dict]) -> None:
-    header = (f"{'':34}{'MP':>7}{'first s':>9}{'median ms':>11}{'min ms':>9}{'ms/MP':>9}"
+    header = (f"{'':44}{'MP':>7}{'first s':>9}{'median ms':>11}{'min ms':>9}{'ms/MP':>9}"
               f"{'HBM floor %':>13}{'link floor %':>14}")
     print(header)
     print("-" * len(header))
     for r in rows:
         hbm = f"{100 * r['hbm_floor_fraction']:.1f}" if "hbm_floor_fraction" in r else "-"
         link = f"{100 * r['link_floor_fraction']:.1f}" if "link_floor_fraction" in r else "-"
-        print(f"{r['name']:34}{r['megapixels']:7.2f}{r['first_call_s']:9.2f}{1e3 * r['median_s']:11.2f}"
+        print(f"{r['name']:44}{r['megapixels']:7.2f}{r['first_call_s']:9.2f}{1e3 * r['median_s']:11.2f}"
               f"{1e3 * r['min_s']:9.2f}{r['ms_per_mp']:9.2f}{hbm:>13}{link:>14}")
     print("-" * len(header))
 
@@ -403,6 +408,35 @@ def time_sizes(sizes, inputs_of, calibration_of, copies, hbm_bytes_per_s, repeat
     return rows
 
 
+def time_kernel_estimator(inputs: dict, calibration, points: int, hbm_bytes_per_s, repeats) -> tuple[list, dict]:
+    """Rows for `correct` of a device-resident frame with its affine `calibration` and with its
+    kernel-estimator twin (a residual of `points` inducing points, `residual_for`), back to back,
+    and their ratio; the twin's plan is first checked against the jax.numpy path (and that timed
+    too) where it runs a kernel (`jax_numpy_way`)."""
+    raw = jax.block_until_ready(jax.device_put(inputs["raw"]))
+    p = spherejax.patch_ratio(raw, calibration)
+    residual = residual_for(raw, p, PixelConstants.of(calibration, np.float32), reference.SATURATION, points)
+    name, kernel = f"kernel estimator m={points}", dataclasses.replace(calibration, wiener_residual=residual)
+    twins, first, ways = {"affine twin": calibration, name: kernel}, {}, {}
+    for way, c in twins.items():  # the kernel estimator last: `result` is its outputs
+        first[way], result = harness.time_first_call(lambda c=c: on_device(raw, c))
+        ways[way] = lambda c=c: on_device(raw, c)
+    if (way := jax_numpy_way(raw, kernel, result)) is not None:
+        first[f"{name}, jax.numpy"], _ = harness.time_first_call(way)
+        ways[f"{name}, jax.numpy"] = way
+    hbm_bytes = moved_bytes(raw, calibration, result)
+    del result
+    timings = time_each_back_to_back(ways, repeats)
+    size = raw.shape[0]
+    rows = [row(f"{size}^2 on device, {way}", timings[way], first[way], size * size, hbm_bytes=hbm_bytes,
+                hbm_bytes_per_s=hbm_bytes_per_s) for way in ways]
+    steps = {way: plan_for(c, raw.shape, raw.dtype).kernel_mode or "the jax.numpy path" for way, c in twins.items()}
+    check = {"size": size, "inducing_points": points, "per_pixel_step": steps,
+             "ratio": timings[name]["median_s"] / timings["affine twin"]["median_s"]}
+    log(f"timed the kernel estimator at {size} x {size}: {check['ratio']:.2f}x its affine twin; {steps}")
+    return rows, check
+
+
 def time_stack(inputs: dict, calibration, frames: int, copies, hbm_bytes_per_s, repeats) -> tuple[list[dict], dict]:
     """Rows for a stack of `frames` frames in one call (numpy in/out, on device) and under
     jit(vmap) on the device, after checking both against the frames corrected one by one (the
@@ -520,6 +554,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "(default 1024, or the largest of --sizes if that is smaller)")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per way")
     parser.add_argument("--copy-mib", type=int, default=256, help="buffer of the copy-speed tests, MiB")
+    parser.add_argument("--kernel-points", type=int, default=64, help="inducing points of the kernel estimator (0: skip)")
     parser.add_argument("--hbm-gbs", type=float, default=None,
                         help="HBM bandwidth for the floor, GB/s (default: the card's spec sheet, "
                              "else the measured device copy)")
@@ -601,6 +636,12 @@ def main(argv=None) -> int:
             rows = time_sizes(
                 args.sizes, inputs_of, calibration_of, copies, hbm_bytes_per_s, args.repeats, {smallest: first_calls}
             )
+            kernel_check = None
+            if args.kernel_points > 0:
+                kernel_rows, kernel_check = time_kernel_estimator(
+                    inputs_of(args.sizes[-1]), calibration_of(args.sizes[-1]), args.kernel_points, hbm_bytes_per_s,
+                    args.repeats)
+                rows += kernel_rows
             stack_calibration = calibration_of(args.stack_size)
             stack_rows, stack_checks = time_stack(
                 inputs_of(args.stack_size), stack_calibration, args.stack, copies, hbm_bytes_per_s, args.repeats
@@ -619,6 +660,10 @@ def main(argv=None) -> int:
     print(f"mean ΔE00 (Table 2 Stage II against Stage I only) {grad_check['mean_delta_e00']:.3f}; gradient "
           f"{tuple(grad_check['gradient_shape'])} finite, max |d/dc| {grad_check['gradient_max_abs']:.3g}; "
           f"value_and_grad / loss {grad_check['grad_over_loss']:.2f}x")
+    if kernel_check is not None:
+        print(f"kernel estimator (m = {kernel_check['inducing_points']}) against its affine twin at "
+              f"{kernel_check['size']}^2 on the device: {kernel_check['ratio']:.2f}x (target <= 2x); per-pixel step "
+              f"{kernel_check['per_pixel_step']}")
     bytes_per_pixel = next(r["bytes_per_pixel"] for r in rows if "bytes_per_pixel" in r)
     print(f"bytes moved per pixel of one frame: {bytes_per_pixel:.0f} (from the arrays' nbytes; "
           f"reference.BYTES_PER_PIXEL = {reference.BYTES_PER_PIXEL})")
@@ -640,7 +685,7 @@ def main(argv=None) -> int:
             "copy_mib": args.copy_mib, "bands": reference.BANDS,
             "hbm_gb_per_s": hbm_gbs, "hbm_source": hbm_source,
             "device_copy_gb_per_s": device_copy / 1e9, "host_device_copy": copies,
-            "rows": rows, "stack_checks": stack_checks, "gradient": grad_check,
+            "rows": rows, "stack_checks": stack_checks, "gradient": grad_check, "kernel_estimator": kernel_check,
             "other_processes_cpu_fraction": other_load.fraction,
             "total_s": time.perf_counter() - _START,
             "machine": info, "argv": sys.argv,

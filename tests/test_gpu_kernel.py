@@ -1,5 +1,5 @@
 """The Pallas prototype of the per-pixel step (spherejax/_engine/gpu_kernel.py) against the
-jax.numpy path it would replace on GPUs (`pipeline._pixel_outputs`).
+jax.numpy path it would replace on GPUs (`equations.pixel_outputs`).
 
 Run in Pallas's interpret mode, so on the CPU, on small frames: the kernel's indexing, masks,
 flags and arithmetic are the ones a GPU runs, its compilation by Triton and its speed are not
@@ -11,6 +11,7 @@ kernel to Triton IR for an H100 without a GPU, which checks what the Triton lowe
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 
@@ -21,11 +22,12 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import pipeline
-from spherejax._engine import fused, gpu_kernel
-from spherejax._engine import plan as plan_module
+from spherejax import equations, pipeline
+from spherejax._engine import fused, gpu_kernel, gpu_residual
+from spherejax._engine import kernels
 from spherejax._engine.gpu_kernel import pixel_outputs_pallas
 from spherejax._engine.plan import Plan
+from spherejax.estimation import kernel_residual
 from spherejax.pixel_constants import PixelConstants
 from spherejax.polynomial import PAPER_TABLE_2
 
@@ -103,7 +105,7 @@ def test_uint16_batch_equals_the_jax_numpy_path():
     64 (the grid's two axes, no partial block)."""
     raw, p, constants = make_case(24, 40, raw_dtype=np.uint16, images=(2,))
     got = pixel_outputs_pallas(raw, p, constants, saturation=SATURATION, block_pixels=64, interpret=True)
-    want = pipeline._pixel_outputs(raw, p, constants, saturation=SATURATION)
+    want = equations.pixel_outputs(raw, p, constants, saturation=SATURATION)
     assert_agree(got, want)
     quality = np.asarray(want[2])
     assert quality[0, 3, 4] == sj.QUALITY_SATURATED
@@ -118,9 +120,9 @@ def test_float32_frame_with_the_flat_field_mask_equals_the_jax_numpy_path():
     below dark; the (H, W) no-flat-field mask given as the plan gives it; blocks of 128, so that
     the last of the 960 pixels' blocks is partial (masked loads and stores)."""
     raw, p, constants = make_case(24, 40, raw_dtype=np.float32)
-    mask = pipeline._no_flat_field(constants.dark, constants.white)
+    mask = equations.flat_field_unusable(constants.dark, constants.white)
     got = pixel_outputs_pallas(raw, p, constants, saturation=SATURATION, no_flat_field=mask, interpret=True)
-    want = pipeline._pixel_outputs(raw, p, constants, saturation=SATURATION, no_flat_field=mask)
+    want = equations.pixel_outputs(raw, p, constants, saturation=SATURATION, no_flat_field=mask)
     assert_agree(got, want)
     quality = np.asarray(want[2])
     assert quality[6, 7] == quality[8, 9] == quality[18, 19] == quality[5, 30] == sj.QUALITY_NONFINITE
@@ -134,7 +136,7 @@ def test_no_saturation_level():
     an ordinary value, as in the jax.numpy path."""
     raw, p, constants = make_case(24, 40, raw_dtype=np.uint16)
     got = pixel_outputs_pallas(raw, p, constants, saturation=None, block_pixels=256, interpret=True)
-    want = pipeline._pixel_outputs(raw, p, constants, saturation=None)
+    want = equations.pixel_outputs(raw, p, constants, saturation=None)
     assert_agree(got, want)
     assert not np.any(np.asarray(want[2]) & sj.QUALITY_SATURATED)
 
@@ -156,15 +158,19 @@ def test_refuses_what_it_does_not_take(change, error):
         pixel_outputs_pallas(raw, p[..., :raw.shape[-1]], constants, saturation=SATURATION, interpret=True)
 
 
-def test_lowers_to_triton_for_an_h100():
+@pytest.mark.parametrize("points", [None, 64, 200], ids=["affine", "residual of 64 points", "residual of 200 points"])
+def test_lowers_to_triton_for_an_h100(points):
     """The kernel as a GPU would compile it (interpret=False), lowered to Triton IR for an
     abstract H100 on this machine: every array the kernel loads or stores has a power-of-two size
-    and every operation has a Triton lowering rule. What Triton then makes of the IR (PTX) needs a
-    GPU. jax 0.11.2 and 0.12 warn at this lowering that the Pallas Triton backend is deprecated
-    (in favour of Mosaic GPU): expected here, not an error."""
+    and every operation has a Triton lowering rule; with a kernel residual of one chunk of
+    inducing points and of four (the chunks' loop, `gpu_residual`). What Triton then makes of the
+    IR (PTX) needs a GPU. jax 0.11.2 and 0.12 warn at this lowering that the Pallas Triton backend
+    is deprecated (in favour of Mosaic GPU): expected here, not an error."""
     from jax.sharding import AbstractDevice, AbstractMesh
 
     raw, p, constants = make_case(24, 40, raw_dtype=np.uint16, images=(2,))
+    if points is not None:
+        constants = with_residual(raw, p, constants, points)
     mesh = AbstractMesh(
         (1,), ("x",), abstract_device=AbstractDevice(device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu")
     )
@@ -173,6 +179,190 @@ def test_lowers_to_triton_for_an_h100():
         warnings.filterwarnings("ignore", "The Pallas Triton backend is deprecated", DeprecationWarning)
         text = program.trace(raw, p, constants).lower(lowering_platforms=("cuda",)).as_text()
     assert "__gpu$xla.gpu.triton" in text
+
+
+# -------------------------------------------------------------------------------------------------
+# The kernel residual (E8-E10, `gpu_residual`) against the jax.numpy path and float64 numpy.
+
+
+def with_residual(raw, p, constants, points, *, seed=1, lengthscale=2.0):
+    """`constants` with a kernel residual of `points` inducing points that matters on these frames
+    (full-rank weights, as a file may hold them): whitened on the frames' good Stage II responses
+    (`kernel_residual.whitening_of`), inducing points at `points` of them, the lengthscale folded
+    in, weights A (31, m) drawn from N(0, 0.05^2)."""
+    rng = np.random.default_rng(seed)
+    *_, quality, _, _, v_tilde = equations.pixel_outputs(raw, p, constants, saturation=SATURATION, intermediates=True)
+    v = np.asarray(v_tilde, np.float64)[np.asarray(quality) == 0]
+    mu, S = kernel_residual.whitening_of(v)
+    S = S / lengthscale
+    Z = (v[rng.choice(len(v), points, replace=False)] - mu) @ S.T
+    A = rng.normal(scale=0.05, size=(31, points))
+    residual = kernel_residual.KernelResidual(*(jnp.asarray(x, jnp.float32) for x in (mu, S, Z, A)))
+    return residual_of(constants, residual)
+
+
+def residual_of(constants, residual):
+    """`constants` with `residual` as their kernel residual (None: affine)."""
+    c = constants
+    return PixelConstants(c.dark, c.white, c.coeffs, c.wiener, c.wiener_offset, c.tristimulus_weights, residual)
+
+
+def numpy_estimate(v_tilde, constants):
+    """W v + r0 + A k(v) in float64 numpy, E9-E10 written out (the distance taken directly)."""
+    k = constants.wiener_residual
+    as64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    u = (v_tilde - as64(k.centre)) @ as64(k.whitening).T
+    features = np.exp(-0.5 * np.sum((u[..., None, :] - as64(k.inducing)) ** 2, axis=-1))
+    return v_tilde @ as64(constants.wiener).T + as64(constants.wiener_offset) + features @ as64(k.weights).T
+
+
+@pytest.mark.parametrize(
+    ("raw_dtype", "images", "points", "block_pixels", "mask"),
+    [
+        (np.uint16, (2,), 64, 64, False),
+        (np.float32, (), 8, 128, True),
+        (np.uint16, (), 200, 128, False),
+        (np.float32, (2,), 200, 64, False),
+    ],
+    ids=["uint16, 64 points", "float32 with the mask, 8 points, partial block", "uint16, 200 points, partial block",
+         "float32, 200 points"],
+)
+def test_a_kernel_residual_equals_the_jax_numpy_path(raw_dtype, images, points, block_pixels, mask):
+    """The kernel with a residual that moves reflectance by more than 0.02: quality bit for bit,
+    NaN on the same pixels, reflectance and Lab to float32 rounding of the jax.numpy path, and
+    reflectance within 1e-5 of float64 numpy. 8 points are one chunk of 16 (8 padding points), 64
+    one chunk, 200 four chunks of 64 (the loop; 56 padding points); 960 pixels in blocks of 128
+    leave a partial last block."""
+    raw, p, affine = make_case(24, 40, raw_dtype=raw_dtype, images=images)
+    constants = with_residual(raw, p, affine, points)
+    no_flat_field = equations.flat_field_unusable(affine.dark, affine.white) if mask else None
+    got = pixel_outputs_pallas(raw, p, constants, saturation=SATURATION, no_flat_field=no_flat_field,
+                               block_pixels=block_pixels, interpret=True)
+    *want, _, _, v_tilde = equations.pixel_outputs(raw, p, constants, saturation=SATURATION, intermediates=True,
+                                                   no_flat_field=no_flat_field)
+    assert_agree(got, want)
+    good = np.asarray(want[2]) == 0
+    assert good.sum() > 900  # the flagged pixels are few: nearly every pixel is compared
+    affine_reflectance = np.asarray(equations.pixel_outputs(raw, p, affine, saturation=SATURATION)[0])
+    assert np.abs(np.asarray(want[0]) - affine_reflectance)[good].max() > 0.02
+    expected = numpy_estimate(np.asarray(v_tilde, np.float64), constants)
+    np.testing.assert_allclose(np.asarray(got[0], np.float64)[good], expected[good], atol=1e-5)
+
+
+def test_an_inducing_point_of_zero_weight_adds_exactly_nothing():
+    """What the padding of the inducing points rests on: 8 more points, anywhere, with zero
+    weights leave every output bit for bit as it was (both 16 points in one chunk)."""
+    raw, p, affine = make_case(24, 40, raw_dtype=np.uint16)
+    constants = with_residual(raw, p, affine, 8)
+    k = constants.wiener_residual
+    more = kernel_residual.KernelResidual(
+        k.centre, k.whitening, jnp.concatenate([k.inducing, k.inducing[::-1] * 0.5 + 0.25]),
+        jnp.concatenate([k.weights, jnp.zeros((31, 8), jnp.float32)], axis=1),
+    )
+    got = pixel_outputs_pallas(raw, p, residual_of(affine, more), saturation=SATURATION, interpret=True)
+    want = pixel_outputs_pallas(raw, p, constants, saturation=SATURATION, interpret=True)
+    for name, x, y in zip(("reflectance", "lab", "quality"), got, want):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=name)
+
+
+def test_the_residual_constants_are_padded_chunks():
+    """`gpu_residual.residual_constants` of 200 points: 4 chunks of 64, the 56 padding points
+    z = 0, |z|^2 = 0 with zero weights, A^T's 32nd column 0; the values are the residual's."""
+    rng = np.random.default_rng(3)
+    mu, S, Z, A = rng.normal(size=16), rng.normal(size=(16, 16)), rng.normal(size=(200, 16)), rng.normal(size=(31, 200))
+    weights = rng.uniform(size=(31, 3))
+    residual = kernel_residual.KernelResidual(*(jnp.asarray(x, jnp.float32) for x in (mu, S, Z, A)))
+    c = gpu_residual.residual_constants(residual, jnp.asarray(weights, jnp.float32))
+    assert c.inducing.shape == (4, 16, 64) and c.inducing_squared.shape == (4, 64) and c.weights.shape == (4, 64, 32)
+    assert c.centre.shape == (16,) and c.whitening.shape == (16, 16) and c.tristimulus.shape == (4, 32)
+    inducing = np.asarray(c.inducing).transpose(0, 2, 1).reshape(256, 16)
+    np.testing.assert_array_equal(inducing[:200], Z.astype(np.float32))
+    np.testing.assert_array_equal(inducing[200:], 0.0)
+    np.testing.assert_allclose(np.asarray(c.inducing_squared).reshape(256)[:200], np.sum(Z**2, axis=1), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(c.inducing_squared).reshape(256)[200:], 0.0)
+    transposed = np.asarray(c.weights).reshape(256, 32)
+    np.testing.assert_array_equal(transposed[:200, :31], A.T.astype(np.float32))
+    np.testing.assert_array_equal(transposed[200:], 0.0)
+    np.testing.assert_array_equal(transposed[:, 31], 0.0)
+    np.testing.assert_array_equal(np.asarray(c.whitening), S.T.astype(np.float32))
+    np.testing.assert_array_equal(np.asarray(c.tristimulus)[:3, :31], weights.T.astype(np.float32))
+    assert not np.any(np.asarray(c.tristimulus)[3]) and not np.any(np.asarray(c.tristimulus)[:, 31])
+
+
+@pytest.mark.parametrize(("points", "chunk", "expected"),
+                         [(0, 64, 16), (8, 64, 16), (17, 64, 32), (64, 64, 64), (200, 64, 64), (200, 256, 256),
+                          (1024, 16, 16)])
+def test_chunk_sizes(points, chunk, expected):
+    assert gpu_residual.chunk_of(points, chunk) == expected
+
+
+def test_which_residuals_the_kernel_applies():
+    """Up to MAX_INDUCING_POINTS (1024) inducing points of B a power of two >= 16, weights of any
+    rank; more points are refused by the kernel; chunks that are not powers of two >= 16 too."""
+    def residual(bands, points):
+        return kernel_residual.KernelResidual(jnp.zeros(bands), jnp.eye(bands), jnp.zeros((points, bands)),
+                                              jnp.zeros((31, points)))
+
+    assert gpu_kernel.MAX_INDUCING_POINTS == 1024
+    assert gpu_kernel.applies_residual(None) and gpu_kernel.applies_residual(residual(16, 1024))
+    assert gpu_kernel.applies_residual(residual(32, 1)) and not gpu_kernel.applies_residual(residual(16, 1025))
+    assert not gpu_kernel.applies_residual(residual(8, 8)) and not gpu_kernel.applies_residual(residual(24, 8))
+    raw, p, affine = make_case(24, 40, raw_dtype=np.uint16)
+    with pytest.raises(NotImplementedError, match="at most 1024 inducing points, got 1025"):
+        pixel_outputs_pallas(raw, p, residual_of(affine, residual(16, 1025)), saturation=SATURATION, interpret=True)
+    with pytest.raises(ValueError, match="inducing chunk: expected a power of two >= 16, got 48"):
+        gpu_residual.chunk_of(8, 48)
+    with pytest.raises(ValueError, match="prepared: expected prepare"):
+        pixel_outputs_pallas(raw, p, residual_of(affine, residual(16, 8)), saturation=SATURATION, interpret=True,
+                             prepared=gpu_kernel.prepare(affine))
+
+
+def test_a_residual_through_pixel_outputs_prepared_mapped_and_differentiated():
+    """`gpu_kernel.pixel_outputs` (how steps call the kernel) with a residual: with `prepare`'s
+    constants made once, as without; frames mapped with jax.vmap; and the JVP with respect to raw
+    and the derivative with respect to the residual's weights those of the jax.numpy path."""
+    raw, p, affine = make_case(24, 40, raw_dtype=np.float32, images=(2,))
+    raw = jnp.where(jnp.isfinite(raw), raw, 500.0)  # finite frames: a derivative everywhere
+    constants = with_residual(raw, p, affine, 64)
+
+    def kernel(raw, p, constants, prepared=None):
+        return gpu_kernel.pixel_outputs(raw, p, constants, saturation=SATURATION, kernel_mode=gpu_kernel.INTERPRET,
+                                        prepared=prepared)
+
+    def reference(raw, p, constants):
+        return equations.pixel_outputs(raw, p, constants, saturation=SATURATION)
+
+    want = reference(raw, p, constants)
+    assert_agree(kernel(raw, p, constants), want)
+    # The prepared constants are what the kernel reads (jit rounds their folds as it fuses them, so
+    # the outputs agree to float32 rounding with those of constants made in the call).
+    prepared = jax.jit(gpu_kernel.prepare)(constants)
+    got = kernel(raw, p, constants, prepared)
+    direct = pixel_outputs_pallas(raw, p, constants, saturation=SATURATION, interpret=True, prepared=prepared)
+    for x, y in zip(got, direct):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert_agree(got, want)
+    assert_agree(jax.vmap(kernel, in_axes=(0, 0, None, None))(raw, p, constants, prepared), want)
+
+    tangent = jnp.ones_like(raw)
+    _, got_tangents = jax.jvp(lambda r: kernel(r, p, constants, prepared)[:2], (raw,), (tangent,))
+    _, want_tangents = jax.jvp(lambda r: reference(r, p, constants)[:2], (raw,), (tangent,))
+    for got_t, want_t in zip(got_tangents, want_tangents):
+        np.testing.assert_array_equal(np.asarray(got_t), np.asarray(want_t))
+
+    def loss(function):
+        # The first frame, whose patch is usable: a NaN p makes the jax.numpy path's derivative
+        # with respect to the residual NaN (its k(v_tilde) is NaN on every pixel of that frame).
+        def of(weights):
+            c = residual_of(constants, dataclasses.replace(constants.wiener_residual, weights=weights))
+            reflectance, lab, _ = function(raw[0], p[0], c)
+            return jnp.nansum(reflectance) + 1e-3 * jnp.nansum(lab)
+        return of
+
+    weights = constants.wiener_residual.weights
+    got_grad, want_grad = jax.grad(loss(kernel))(weights), jax.grad(loss(reference))(weights)
+    assert np.all(np.isfinite(np.asarray(got_grad))) and np.count_nonzero(np.asarray(got_grad)) > weights.size // 2
+    np.testing.assert_allclose(np.asarray(got_grad), np.asarray(want_grad), rtol=1e-5)
 
 
 # -------------------------------------------------------------------------------------------------
@@ -225,7 +415,7 @@ def test_mapped_frames_are_images_of_one_kernel_call():
         return gpu_kernel.pixel_outputs(raw, p, constants, saturation=SATURATION, kernel_mode=gpu_kernel.INTERPRET)
 
     def reference(raw, p, constants):
-        return pipeline._pixel_outputs(raw, p, constants, saturation=SATURATION)
+        return equations.pixel_outputs(raw, p, constants, saturation=SATURATION)
 
     original = gpu_kernel.pixel_outputs_pallas
 
@@ -278,9 +468,40 @@ def test_gradients_through_a_plan_with_the_kernel_are_the_jax_numpy_paths():
         )[:2],
         (raw,), (tangent,))
     (_, want_tangents) = jax.jvp(
-        lambda r: pipeline._pixel_outputs(r, p, constants, saturation=SATURATION)[:2], (raw,), (tangent,))
+        lambda r: equations.pixel_outputs(r, p, constants, saturation=SATURATION)[:2], (raw,), (tangent,))
     for got_t, want_t in zip(got_tangents, want_tangents):
         np.testing.assert_array_equal(np.asarray(got_t), np.asarray(want_t))
+
+
+def test_a_plan_takes_the_kernel_for_a_kernel_estimator_calibration():
+    """A calibration with a kernel residual of 64 points: the plan runs the kernel
+    (`gpu_kernel.applies_residual`), whose outputs and derivatives with respect to raw are the
+    jax.numpy path's; one of 1025 points it leaves to the jax.numpy path, saying why."""
+    raw, p, affine = make_calibration_case(24, 40, raw_dtype=np.float32)
+    raw = jnp.where(jnp.isfinite(raw), raw, 500.0)  # finite frames: a derivative everywhere
+    residual = with_residual(raw, p, PixelConstants.of(affine, np.float32), 64).wiener_residual
+    calibration = dataclasses.replace(affine, wiener_residual=residual)
+    kernel, reference = plans(raw, calibration)
+    got, want = kernel(raw), reference(raw)
+    assert_agree(outputs(got), outputs(want))
+    good = np.asarray(want.quality) == 0
+    affine_reflectance = np.asarray(Plan(affine, raw.shape, raw.dtype, kernel_mode=None)(raw).reflectance)
+    assert np.abs(np.asarray(want.reflectance) - affine_reflectance)[good].max() > 0.02
+
+    def loss(plan):
+        def of(r):
+            result = plan(r)
+            return jnp.nansum(result.reflectance) + 1e-3 * jnp.nansum(result.lab)
+        return of
+
+    got_grad, want_grad = jax.grad(loss(kernel))(raw), jax.grad(loss(reference))(raw)
+    assert np.all(np.isfinite(np.asarray(got_grad))) and np.count_nonzero(np.asarray(got_grad)) > raw.size // 2
+    np.testing.assert_allclose(np.asarray(got_grad), np.asarray(want_grad), rtol=1e-5, atol=1e-9)
+
+    many = kernel_residual.KernelResidual(residual.centre, residual.whitening, jnp.zeros((1025, BANDS), jnp.float32),
+                                          jnp.zeros((31, 1025), jnp.float32))
+    plan = Plan(dataclasses.replace(affine, wiener_residual=many), raw.shape, raw.dtype, kernel_mode=gpu_kernel.INTERPRET)
+    assert plan.kernel_mode is None and "applies_residual" in plan.kernel_refusal
 
 
 class _Client:
@@ -330,9 +551,10 @@ def test_a_mistyped_cpu_kernel_switch_is_refused_on_a_gpu_too(monkeypatch, value
     H100 took SPHEREJAX_FUSED=off silently, since only the CPU's plans read it."""
     monkeypatch.setenv(fused.SWITCH, value)
     with pytest.raises(ValueError, match=rf"SPHEREJAX_FUSED: expected one of .* or unset, got '{value}'"):
-        plan_module._kernel_mode(fused.AUTO, np.uint16, np.float32, 16, CUDA)
+        kernels.choose(fused.AUTO, np.uint16, np.float32, 16, None, True, CUDA)
     monkeypatch.setenv(fused.SWITCH, "0")
-    assert plan_module._kernel_mode(fused.AUTO, np.uint16, np.float32, 16, CUDA) == gpu_kernel.GPU
+    assert kernels.choose(fused.AUTO, np.uint16, np.float32, 16, None, True, CUDA) == (
+        kernels.PallasGpu(gpu_kernel.GPU), None)
 
 
 def test_a_mistyped_switch_is_refused(monkeypatch):

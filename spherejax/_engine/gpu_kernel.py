@@ -4,7 +4,7 @@ it is used.
 On an NVIDIA GPU (CUDA), a plan (`spherejax._engine.plan`) whose frames are uint16 or float32 counts
 of a power-of-two number of bands >= 16 (the instrument's 16), computed in float32, runs its
 per-pixel step as this kernel (`pixel_outputs`) instead of the jax.numpy path
-(`pipeline._pixel_outputs`), which stays the definition it is tested against
+(`equations.pixel_outputs`), which stays the definition it is tested against
 (tests/test_gpu_kernel.py, in Pallas's interpret mode on the CPU) and what runs everywhere else:
 in float64, on other GPUs (ROCm) and backends, for other band counts, and where the plan's first
 compilation of the kernel fails (`mode`, `plan.Plan`: the plan then falls back to the jax.numpy
@@ -48,7 +48,7 @@ Block shapes (what the installed Pallas does; jax 0.11.2 and 0.12 alike)
     (`_pad_values_to_avoid_dynamic_slice_oob_shift`), so the same code runs on the CPU.
 
 Arithmetic (float32 only; B a power of two >= 16 bands, else NotImplementedError)
-    Per pixel, as `pipeline._pixel_outputs` computes it: the flags (saturated among finite raw,
+    Per pixel, as `equations.pixel_outputs` computes it: the flags (saturated among finite raw,
     non-finite raw, no flat field, below dark, patch unusable) with the same reductions, so that
     the quality mask is the same bit for bit; v = (raw - dark) / (white - dark) (Eq. 10), with an
     IEEE-rounded division (PTX div.rn.f32 through inline assembly: Triton's `/` on float32 is
@@ -61,6 +61,14 @@ Arithmetic (float32 only; B a power of two >= 16 bands, else NotImplementedError
     jax.numpy path), cheaper than a second, 3/16-used product; Lab from XYZ with
     `colorimetry._lab_f`; NaN in every output channel of a flagged pixel. Sums run in another
     order than XLA's products, so reflectance and Lab agree to float32 rounding, not bit for bit.
+
+Kernel residual (E8-E10, `Calibration.wiener_residual`)
+    A calibration whose estimator has one adds A k(v_tilde) to the reflectance and its XYZ inside
+    the same program (`spherejax._engine.gpu_residual`: three more products per block, the
+    inducing points in chunks of at most 64, m up to `MAX_INDUCING_POINTS`; `applies_residual`
+    says which residuals). A static branch: an affine calibration compiles the program above,
+    unchanged. A plan makes the constants the kernel reads once (`prepare`) and passes them to
+    every call (`pixel_outputs(prepared=...)`); without them each call makes them in its program.
 
 Measured (benchmarks/bench_gpu_kernel.py, one H100 80GB HBM3, jax 0.11.2, make_inputs frames, 4096 x 4096
 tiled from 1024 x 1024): quality equal bit for bit and NaN in the same places at both sizes,
@@ -87,10 +95,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from typing import NamedTuple
+
 from .. import colorimetry
 from ..grid import N_WAVELENGTHS
-from .. import pipeline
-from ..pipeline import (
+from .. import equations
+from ..quality import (
     BELOW_DARK_LIMIT,
     QUALITY_BELOW_DARK,
     QUALITY_NONFINITE,
@@ -99,13 +109,15 @@ from ..pipeline import (
     QUALITY_WHITE_NOT_ABOVE_DARK,
 )
 from ..pixel_constants import PixelConstants
+from . import gpu_residual
+from .gpu_residual import INDUCING_CHUNK, MAX_INDUCING_POINTS, ResidualConstants, applies_residual
 
 #: Pixels a program corrects by default: 128 rows of 16 bands are 4 KiB of uint16 raw and 8 KiB
 #: each of dark and white, and a (128, 32) float32 product of 16 KiB in registers with 4 warps.
 DEFAULT_BLOCK_PIXELS = 128
 
 #: Reflectance channels padded to a power of two (the product's and the store's width).
-_REFLECTANCE_PAD = 32
+_REFLECTANCE_PAD = gpu_residual.REFLECTANCE_PAD
 #: Lab channels padded to a power of two (the store's width).
 _LAB_PAD = 4
 
@@ -202,19 +214,21 @@ def _any(condition, axis):
     return jnp.max(condition.astype(jnp.int32), axis=axis)
 
 
-def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_mask, exact_division):
-    """The kernel for one configuration (everything static is closed over)."""
+def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_mask, exact_division,
+                 has_residual=False, residual_precision=jax.lax.Precision.HIGHEST):
+    """The kernel for one configuration (everything static is closed over). Its refs: the frames
+    and the affine constants (`KernelConstants`' first five), the six `ResidualConstants` if
+    `has_residual`, the flat-field mask if `has_mask`, then the three outputs."""
     pl, plt = _pallas()
     below_dark_limit = -BELOW_DARK_LIMIT
+    residual_count = len(ResidualConstants._fields) if has_residual else 0
 
     def kernel(*refs):
-        if has_mask:
-            (raw_ref, dark_ref, white_ref, p_ref, coeffs_ref, projection_ref, bias_ref, xyz_rows_ref,
-             xyz_scalars_ref, mask_ref, reflectance_ref, lab_ref, quality_ref) = refs
-        else:
-            (raw_ref, dark_ref, white_ref, p_ref, coeffs_ref, projection_ref, bias_ref, xyz_rows_ref,
-             xyz_scalars_ref, reflectance_ref, lab_ref, quality_ref) = refs
-            mask_ref = None
+        (raw_ref, dark_ref, white_ref, p_ref, coeffs_ref, projection_ref, bias_ref, xyz_rows_ref,
+         xyz_scalars_ref) = refs[:9]
+        residual_refs = ResidualConstants(*refs[9:9 + residual_count]) if has_residual else None
+        mask_ref = refs[9 + residual_count] if has_mask else None
+        reflectance_ref, lab_ref, quality_ref = refs[-3:]
         block = pl.program_id(0)
         image = pl.program_id(1)
         start = block * block_pixels
@@ -243,7 +257,7 @@ def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_m
         quotient = _divide_ieee(raw_f - dark, jnp.where(usable, white_signal, 1.0), exact_division)
         v = jnp.where(usable, quotient, jnp.nan)
 
-        # The flags, as pipeline._pixel_flags and _quality compute them.
+        # The flags, as equations.pixel_flags and _quality compute them.
         if raw_is_float:
             raw_finite = jnp.isfinite(raw_f)
             nonfinite = _any(~raw_finite, axis=1)
@@ -281,7 +295,12 @@ def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_m
         product = jax.lax.dot(
             v_tilde, projection_ref[...], precision=jax.lax.Precision.HIGHEST, preferred_element_type=jnp.float32
         )
-        reflectance = jnp.where(good[:, None], product + bias_ref[...][None, :], jnp.nan)
+        good_rows = good[:, None]
+        estimate = product + bias_ref[...][None, :]
+        if has_residual:  # + A k(v_tilde) (E8), and its XYZ below
+            residual, residual_xyz = gpu_residual.residual_of_block(v_tilde, residual_refs, precision=residual_precision)
+            estimate = estimate + residual
+        reflectance = jnp.where(good_rows, estimate, jnp.nan)
         channel = jax.lax.broadcasted_iota(jnp.int32, (block_pixels, _REFLECTANCE_PAD), 1)
         plt.store(
             reflectance_ref.at[image, rows, pl.ds(channel0, _REFLECTANCE_PAD)],
@@ -294,6 +313,8 @@ def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_m
         f = []
         for k in range(3):
             xyz = jnp.sum(v_tilde * xyz_rows_ref[k, :][None, :], axis=1) + xyz_scalars_ref[k]
+            if has_residual:
+                xyz = xyz + residual_xyz[k]
             white_xyz = jnp.broadcast_to(xyz_scalars_ref[_LAB_PAD + k], xyz.shape)
             f.append(colorimetry._lab_f(_divide_ieee(xyz, white_xyz, exact_division)))
         f_x, f_y, f_z = f
@@ -316,8 +337,7 @@ def kernel_constants(constants: PixelConstants):
     path's own fold) as rows, and a zero row; xyz_scalars (8,): r0 weights, 0, then the white's
     XYZ (`PixelConstants.white_xyz`), 1.
 
-    A few small XLA operations on (B, 34)-sized arrays; a caller that corrects many frames with one
-    calibration (a plan) could make them once.
+    A few small XLA operations on (B, 34)-sized arrays; a plan makes them once (`prepare`).
     """
     bands = constants.bands
     f32 = jnp.float32
@@ -332,6 +352,29 @@ def kernel_constants(constants: PixelConstants):
     return constants.coeffs.T.astype(f32), projection, bias, xyz_rows, xyz_scalars
 
 
+class KernelConstants(NamedTuple):
+    """Everything the kernel reads of a calibration besides the frames (a pytree): the five arrays
+    of `kernel_constants` and the kernel residual's `ResidualConstants` (None for an affine
+    estimator)."""
+
+    coeffs: jax.Array
+    projection: jax.Array
+    bias: jax.Array
+    xyz_rows: jax.Array
+    xyz_scalars: jax.Array
+    residual: ResidualConstants | None = None
+
+
+def prepare(constants: PixelConstants, *, inducing_chunk: int = INDUCING_CHUNK) -> KernelConstants:
+    """The `KernelConstants` of float32 `PixelConstants` (traceable): what a plan makes once, with
+    `jax.jit(prepare)(constants)`, and hands to every `pixel_outputs` call. `inducing_chunk`:
+    inducing points per chunk at most (`gpu_residual.chunk_of`)."""
+    residual = constants.wiener_residual
+    if residual is not None:
+        residual = gpu_residual.residual_constants(residual, constants.tristimulus_weights, chunk=inducing_chunk)
+    return KernelConstants(*kernel_constants(constants), residual=residual)
+
+
 def pixel_outputs_pallas(
     raw,
     p,
@@ -343,8 +386,11 @@ def pixel_outputs_pallas(
     interpret: bool = False,
     num_warps: int | None = None,
     exact_division: bool | None = None,
+    prepared: KernelConstants | None = None,
+    inducing_chunk: int = INDUCING_CHUNK,
+    residual_precision=jax.lax.Precision.HIGHEST,
 ):
-    """`pipeline._pixel_outputs(raw, p, constants, saturation=..., no_flat_field=...)` as one Pallas
+    """`equations.pixel_outputs(raw, p, constants, saturation=..., no_flat_field=...)` as one Pallas
     kernel: (reflectance (..., H, W, 31) float32, lab (..., H, W, 3) float32, quality (..., H, W)
     uint8).
 
@@ -352,21 +398,25 @@ def pixel_outputs_pallas(
       raw: (..., H, W, B) uint16 or float32 frames; B a power of two >= 16 (the instrument's 16).
       p: (..., B) white-patch ratios, one per frame (broadcast to raw's leading axes).
       constants: the calibration's `PixelConstants` in float32, H and W those of raw.
-      saturation: the saturation level (`pipeline._saturation_level`), or None for no check.
+      saturation: the saturation level (`calibration_module.saturation_level`), or None for no check.
       no_flat_field: None (worked out in the kernel from dark and white), or the (H, W) bool
-        `pipeline._no_flat_field(dark, white)` (converted to uint8 here: one small pass).
+        `equations.flat_field_unusable(dark, white)` (converted to uint8 here: one small pass).
       block_pixels: pixels per program, a power of two >= 16 (the product's smallest tile).
       interpret: run the kernel in Pallas's interpreter (any backend; how the tests run it).
       num_warps: Triton warps per program (None: Pallas's default, 4).
       exact_division: IEEE division through PTX inline assembly (see `_divide_ieee`); None = True
         unless `interpret`. False on a GPU gives Triton's division, within 2 ulp, whose quality
         bits may then differ from the jax.numpy path's at the below-dark threshold.
+      prepared: `prepare(constants)` made once by the caller, or None to make it here.
+      inducing_chunk: inducing points per chunk at most, when `prepared` is None.
+      residual_precision: the kernel residual's products' precision (`gpu_residual`).
 
     Raises:
       NotImplementedError: a compute dtype other than float32, a raw dtype other than uint16 or
-        float32, or a band count that is not a power of two >= 16.
-      ValueError: shapes that do not fit together, or a block_pixels that is not a power of two
-        >= 16.
+        float32, a band count that is not a power of two >= 16, or a kernel residual of more than
+        `MAX_INDUCING_POINTS` inducing points (`applies_residual`).
+      ValueError: shapes that do not fit together, a block_pixels that is not a power of two
+        >= 16, or `prepared` with a residual where the constants have none or the other way round.
     """
     raw = jnp.asarray(raw)
     p = jnp.asarray(p)
@@ -384,6 +434,16 @@ def pixel_outputs_pallas(
         raise NotImplementedError(f"pixel_outputs_pallas: B a power of two >= 16 bands, got {bands}")
     if not (_is_power_of_two(block_pixels) and block_pixels >= 16):
         raise ValueError(f"block_pixels: expected a power of two >= 16, got {block_pixels}")
+    residual = constants.wiener_residual
+    if not applies_residual(residual):
+        raise NotImplementedError(
+            f"pixel_outputs_pallas: a kernel residual of at most {MAX_INDUCING_POINTS} inducing points, "
+            f"got {residual.inducing.shape[0]}"
+        )
+    if prepared is None:
+        prepared = prepare(constants, inducing_chunk=inducing_chunk)
+    if (prepared.residual is None) != (residual is None):
+        raise ValueError("prepared: expected prepare(constants) of these constants (a kernel residual in both or neither)")
     if exact_division is None:
         exact_division = not interpret
     images = math.prod(lead)
@@ -393,15 +453,14 @@ def pixel_outputs_pallas(
     p_flat = jnp.broadcast_to(p.astype(jnp.float32), (*lead, bands)).reshape(images, bands)
     dark = constants.dark.reshape(pixels, bands)
     white = constants.white.reshape(pixels, bands)
-    coeffs, projection, bias, xyz_rows, xyz_scalars = kernel_constants(constants)
-    inputs = [raw_flat, dark, white, p_flat, coeffs, projection, bias, xyz_rows, xyz_scalars]
+    inputs = [raw_flat, dark, white, p_flat, *prepared[:5], *(prepared.residual or ())]
     if no_flat_field is not None:
         inputs.append(jnp.asarray(no_flat_field).reshape(pixels).astype(jnp.uint8))
 
     kernel = _make_kernel(
         block_pixels=block_pixels, pixels=pixels, bands=bands, raw_is_float=raw.dtype == np.float32,
         saturation=None if saturation is None else float(saturation), has_mask=no_flat_field is not None,
-        exact_division=bool(exact_division),
+        exact_division=bool(exact_division), has_residual=residual is not None, residual_precision=residual_precision,
     )
     out_shape = (
         jax.ShapeDtypeStruct((images, pixels, N_WAVELENGTHS), jnp.float32),
@@ -425,33 +484,40 @@ def pixel_outputs_pallas(
     )
 
 
-def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, kernel_mode: str):
+def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, kernel_mode: str,
+                  prepared: KernelConstants | None = None):
     """(reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W)) of
-    `pipeline._pixel_outputs(raw, p, constants, saturation=...)` by the kernel, as `correct`'s
+    `equations.pixel_outputs(raw, p, constants, saturation=...)` by the kernel, as `correct`'s
     steps call it (`steps.pixels_step`), with the jax.numpy path's JVP and a mapping rule.
 
     Args:
-      raw: (..., H, W, B) uint16 or float32; p: (..., B); constants: float32 (`supports`).
+      raw: (..., H, W, B) uint16 or float32; p: (..., B); constants: float32 (`supports`), with
+        a kernel residual or none (`applies_residual`).
       saturation: the saturation level, or None for no check.
       kernel_mode: GPU (Triton) or INTERPRET (Pallas's interpreter).
+      prepared: `prepare(constants)`, made once by a plan; None makes it in this call's program.
 
     Derivatives: the outputs carry the JVP of the jax.numpy path (`jax.grad` through `correct`
-    gives what it gives without the kernel), the primal outputs stay the kernel's.
+    gives what it gives without the kernel), the primal outputs stay the kernel's; `prepared`'s
+    tangents are not read (it is a function of `constants`, whose tangents are).
     Mappings (`jax.vmap`): frames and ratios mapped over one calibration are more images of one
-    kernel call, which takes leading image axes; a mapped calibration maps the jax.numpy path.
+    kernel call, which takes leading image axes; a mapped calibration (or mapped `prepared`) maps
+    the jax.numpy path.
     """
-    plain = functools.partial(pipeline._pixel_outputs, saturation=saturation, intermediates=False)
+    plain = functools.partial(equations.pixel_outputs, saturation=saturation, intermediates=False)
     kernel = functools.partial(pixel_outputs_pallas, saturation=saturation, interpret=kernel_mode == INTERPRET)
+    if prepared is None:
+        prepared = prepare(constants)
 
     @jax.custom_batching.custom_vmap
-    def mappable(raw, p, constants):
-        return kernel(raw, p, constants)
+    def mappable(raw, p, constants, prepared):
+        return kernel(raw, p, constants, prepared=prepared)
 
     @mappable.def_vmap
-    def over_frames(axis_size, in_batched, raw, p, constants):
-        raw_batched, p_batched, constants_batched = in_batched
-        if any(jax.tree_util.tree_leaves(constants_batched)):  # a mapped calibration
-            axes = jax.tree_util.tree_map(lambda batched: 0 if batched else None, in_batched)
+    def over_frames(axis_size, in_batched, raw, p, constants, prepared):
+        raw_batched, p_batched, constants_batched, prepared_batched = in_batched
+        if any(jax.tree_util.tree_leaves((constants_batched, prepared_batched))):  # a mapped calibration
+            axes = jax.tree_util.tree_map(lambda batched: 0 if batched else None, in_batched[:3])
             return jax.vmap(plain, in_axes=axes)(raw, p, constants), (True, True, True)
         if not raw_batched:
             raw = jnp.broadcast_to(raw, (axis_size, *raw.shape))
@@ -459,17 +525,17 @@ def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, kernel_mode:
         if p_batched:  # (axis_size, ...p's, B): p's own axes align with raw's from the right
             p = p.reshape(axis_size, *(1,) * (len(lead) - (p.ndim - 1)), *p.shape[1:])
         p = jnp.broadcast_to(p, (*lead, p.shape[-1]))
-        return mappable(raw, p, constants), (True, True, True)
+        return mappable(raw, p, constants, prepared), (True, True, True)
 
     @jax.custom_jvp
-    def outputs(raw, p, constants):
-        return mappable(raw, p, constants)
+    def outputs(raw, p, constants, prepared):
+        return mappable(raw, p, constants, prepared)
 
     @functools.partial(outputs.defjvp, symbolic_zeros=True)
     def outputs_jvp(primals, tangents):
-        return outputs(*primals), _jvp_of_inputs_with_tangents(plain, primals, tangents)
+        return outputs(*primals), _jvp_of_inputs_with_tangents(plain, primals[:3], tangents[:3])
 
-    return outputs(raw, p, constants)
+    return outputs(raw, p, constants, prepared)
 
 
 def _jvp_of_inputs_with_tangents(function, primals, tangents):
@@ -499,14 +565,19 @@ def _jvp_of_inputs_with_tangents(function, primals, tangents):
 __all__ = [
     "DEFAULT_BLOCK_PIXELS",
     "GPU",
+    "INDUCING_CHUNK",
     "INTERPRET",
+    "KernelConstants",
+    "MAX_INDUCING_POINTS",
     "MODES",
     "SWITCH",
     "SWITCH_VALUES",
+    "applies_residual",
     "kernel_constants",
     "mode",
     "pixel_outputs",
     "pixel_outputs_pallas",
+    "prepare",
     "supports",
     "switch",
 ]
