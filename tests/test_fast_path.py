@@ -20,7 +20,7 @@ import pytest
 
 import spherejax as sj
 from spherejax import colorimetry, equations, pipeline
-from spherejax._engine import allocator, fused, gpu_kernel, steps
+from spherejax._engine import allocator, cpu_blocks, fused, gpu_kernel, steps
 from spherejax.flatfield import white_signal_usable
 from spherejax.pixel_constants import PixelConstants
 
@@ -288,7 +288,7 @@ def test_the_jax_numpy_path_does_not_page_fault_image_sized_temporaries(dtype_na
     out = subprocess.run([sys.executable, "-c", script, "default", "keep"], capture_output=True, text=True, check=True, env=env)
     applied, count = out.stdout.split()
     assert applied == "False"
-    one_block_pages = steps.CPU_BLOCK_PIXELS * 100 * np.dtype(dtype_name).itemsize // 4096
+    one_block_pages = cpu_blocks.CPU_BLOCK_PIXELS * 100 * np.dtype(dtype_name).itemsize // 4096
     assert int(count) <= 2 * one_block_pages, (count, one_block_pages)
 
 
@@ -298,8 +298,8 @@ def outputs(raw, dark, white, p, coeffs, wiener, offset, weights, **options):
 
 
 def blocks(raw, dark, white, p, coeffs, wiener, offset, weights, **options):
-    """`steps.pixel_outputs_in_blocks` with its constants given one by one."""
-    return steps.pixel_outputs_in_blocks(raw, p, PixelConstants(dark, white, coeffs, wiener, offset, weights), **options)
+    """`cpu_blocks.pixel_outputs_in_blocks` with its constants given one by one."""
+    return cpu_blocks.pixel_outputs_in_blocks(raw, p, PixelConstants(dark, white, coeffs, wiener, offset, weights), **options)
 
 
 def test_keep_freed_memory_is_idempotent():
@@ -308,7 +308,7 @@ def test_keep_freed_memory_is_idempotent():
 
 
 class TestBlocks:
-    """`steps.pixel_outputs_in_blocks`, the jax.numpy path as it runs on CPU, against the
+    """`cpu_blocks.pixel_outputs_in_blocks`, the jax.numpy path as it runs on CPU, against the
     whole-image `_pixel_outputs` it loops over: every pixel, a last block shorter than the
     others, batches, bad pixels of every kind, donated outputs, and derivatives."""
 
@@ -402,7 +402,7 @@ class TestBlocks:
         """An image above CPU_BLOCK_PIXELS through `correct` with the kernel off, against the kernel."""
         rng = np.random.default_rng(4)
         height, width, bands = 288, 128, 16  # 36 864 pixels: two whole blocks (one loop turn) and a short one
-        assert height * width > 2 * steps.CPU_BLOCK_PIXELS
+        assert height * width > 2 * cpu_blocks.CPU_BLOCK_PIXELS
         dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
         white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
         raw = np.rint(dark + (white - dark) * rng.uniform(0.05, 0.95, (height, width, bands))).astype(np.uint16)

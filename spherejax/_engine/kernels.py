@@ -8,7 +8,7 @@ every method, and the kernel residual A k(v) of E8-E10 where the calibration has
 Three implementations:
 
     JaxNumpy    the definition in jax.numpy (`spherejax.equations`): every platform, every dtype,
-                traced calibrations; on CPU in cache-sized blocks (`steps.pixel_outputs_in_blocks`).
+                traced calibrations; on CPU in cache-sized blocks (`cpu_blocks.pixel_outputs_in_blocks`).
                 What the others are tested against (tests/test_fused.py, tests/test_gpu_kernel.py).
     FusedCpu    the fused C++ kernel (`fused`, sources in kernel/): float32, uint16 or float32
                 raw, up to `fused.MAX_BANDS` bands, the kernel residual at the rank the extension
@@ -36,6 +36,7 @@ import numpy as np
 from .. import equations
 from ..pixel_constants import PixelConstants
 from . import fused, gpu_kernel
+from .cpu_blocks import pixel_outputs_in_blocks
 
 
 class PixelKernel:
@@ -78,8 +79,6 @@ class JaxNumpy(PixelKernel):
         return None
 
     def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None):
-        from .steps import pixel_outputs_in_blocks  # steps imports this module for its kernels
-
         def plain(raw, p, constants):
             return equations.pixel_outputs(raw, p, constants, saturation=saturation, no_flat_field=no_flat_field)
 
@@ -88,7 +87,7 @@ class JaxNumpy(PixelKernel):
                                            no_flat_field=no_flat_field)
 
         # The same equations either way: blocks only on CPU, where XLA does not fuse the
-        # projection with the elementwise steps (`steps.pixel_outputs_in_blocks`).
+        # projection with the elementwise steps (`cpu_blocks.pixel_outputs_in_blocks`).
         return jax.lax.platform_dependent(raw, p, constants, cpu=on_cpu, default=plain)
 
 
