@@ -17,7 +17,15 @@ The package's modules, one job each (their names are all available here, as befo
                        journal
     documents          canonical and readable JSON; documents declared as pydantic models and
                        checked into one-line messages (`check_document`)
-    frames             camera frames (TIFF) and `AtomicImageWriter`
+    plain_files        files spherejax keeps for itself, opened so that nothing planted there
+                       makes it wait or read without end
+    ownership          outputs that are not inputs: the check before any work
+    atomic_writer      `AtomicWriter`, the one state machine of every image writer: rows into
+                       temporary files, put in place by `commit`, removed by `abort`
+    direct_io          large new files written past the page cache (O_DIRECT) where allowed
+    frames             camera frames (TIFF) and `AtomicImageWriter` (through OpenImageIO)
+    streamed_writer    `StreamedImageWriter`: the images spherejax encodes itself, strip by strip
+    exr_uncompressed   uncompressed scanline OpenEXR, OpenImageIO's bytes written faster
     cubes              cubes read by rows (`CubeReader`), OpenEXR and PNG outputs
     spectral_layout    the reflectance EXR's spectral layout (Fichet et al. 2021): channel names
     cgats              CGATS.17 text (ISO 28178), as colour quality-control software exchanges it

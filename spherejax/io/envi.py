@@ -34,16 +34,13 @@ strip, because its `create_image` writes in place through a memory map, with no 
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import os
 import pathlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..atomic_files import create_exclusive, fsync_folder, open_exclusive, temp_sibling
-from .direct_io import DirectFile
+from .atomic_writer import AtomicWriter
 from .errors import SpherejaxFileError
 from .hashing import sha256_file
 
@@ -80,9 +77,11 @@ def data_path(header_path) -> pathlib.Path:
     return pathlib.Path(header_path).with_suffix(".img")
 
 
-class EnviWriter:
+class EnviWriter(AtomicWriter):
     """One float32 ENVI image (BIP) written in row strips: N.img and N.hdr under temporary names,
-    both renamed into place by `commit` once every row is written (as `AtomicImageWriter`)."""
+    both renamed into place by `commit` once every row is written, the data first
+    (`atomic_writer.AtomicWriter`, as `AtomicImageWriter`). Errors name N.hdr (`path`), a failed
+    write of the pixels N.img."""
 
     def __init__(self, header_path, shape: Sequence[int], *, description: str, band_names: Sequence[str],
                  wavelengths_nm: Sequence[float] | None = None, attributes: Mapping[str, str] | None = None):
@@ -91,7 +90,7 @@ class EnviWriter:
         height, width, channels = (int(n) for n in shape)
         if len(band_names) != channels:
             raise ValueError(f"band_names: {len(band_names)} names for {channels} channels")
-        self.height, self.width, self.channels = height, width, channels
+        self.width, self.channels = width, channels
         self.header = {
             "description": _header_value(description),
             "samples": width, "lines": height, "bands": channels, "header offset": 0,
@@ -105,29 +104,16 @@ class EnviWriter:
         self.header["data ignore value"] = IGNORE_VALUE
         for name, value in (attributes or {}).items():
             self.header[_header_key(name)] = _header_value(str(value))
-        self._next_row = 0
-        self._digest = hashlib.sha256()
-        self._temps = {self.data_path: temp_sibling(self.data_path), self.header_path: temp_sibling(self.header_path)}
-        self._data = None
-        self._direct: DirectFile | None = None
         self._scratch: np.ndarray | None = None  # the last strip's rows with NaN replaced, reused
-        try:
-            create_exclusive(self._temps[self.header_path])
-            self._data = open_exclusive(self._temps[self.data_path])
-            # Every byte goes through `_direct` (the file object's own buffer stays empty): past
-            # the page cache where the system allows it.
-            self._direct = DirectFile(self._data.fileno())
-        except OSError as error:
-            self.abort()
-            raise SpherejaxFileError(self.header_path, f"could not be written: {error.strerror or error}") from None
+        super().__init__(self.header_path, height, targets=[self.data_path, self.header_path])
 
-    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
-        """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows; NaN becomes the
-        data ignore value."""
-        if self._data is None:
-            raise SpherejaxFileError(self.header_path, "is no longer open for writing")
-        if row0 != self._next_row:
-            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
+    def _open(self) -> None:
+        self._create(self.header_path)
+        # Past the page cache where the system allows it (`AtomicWriter._open_stream`).
+        self._open_stream(self.data_path)
+
+    def _write_rows(self, row0: int, pixels: np.ndarray) -> None:
+        """Rows row0:row0 + len(pixels), (rows, W, C); NaN becomes the data ignore value."""
         pixels = np.asarray(pixels, dtype="<f4")
         if pixels.shape[1:] != (self.width, self.channels):
             raise ValueError(f"pixels: expected (rows, {self.width}, {self.channels}), got {pixels.shape}")
@@ -139,61 +125,23 @@ class EnviWriter:
         values = self._scratch
         np.copyto(values, pixels)
         np.copyto(values, np.float32(IGNORE_VALUE), where=np.isnan(pixels))
-        block = memoryview(values).cast("B")
-        try:
-            self._direct.write(block)
-        except OSError as error:
-            self.abort()
-            raise SpherejaxFileError(self.data_path, f"could not be written: {error.strerror or error}") from None
-        self._digest.update(block)
-        self._next_row = row0 + len(pixels)
+        self._write(values)
 
-    def commit(self) -> dict[pathlib.Path, str]:
-        """Finish both files, fsync, rename the data then the header into place; return
-        {path: SHA-256 (hex)} of N.img and N.hdr."""
+    def _complete(self) -> dict[pathlib.Path, str]:
+        """Both files finished and fsynced; {path: SHA-256 (hex)} of N.img and N.hdr."""
         from spectral.io.envi import write_envi_header
 
-        if self._data is None:
-            raise SpherejaxFileError(self.header_path, "is no longer open for writing")
-        if self._next_row != self.height:
-            self.abort()
-            raise SpherejaxFileError(self.header_path, f"has {self._next_row} of its {self.height} rows", "every row written")
-        try:
-            self._direct.finish()  # the last bytes written, fsynced
-            data, self._data = self._data, None
-            data.close()
-            header_temp = self._temps[self.header_path]
-            write_envi_header(str(header_temp), self.header)
-            with open(header_temp, "rb") as handle:
-                header_digest = sha256_file(handle, check=None)  # past the last safe point
-                os.fsync(handle.fileno())
-            os.replace(self._temps[self.data_path], self.data_path)
-            os.replace(header_temp, self.header_path)
-            fsync_folder(self.header_path.parent)
-        except OSError as error:
-            raise SpherejaxFileError(self.header_path, f"could not be written: {error.strerror or error}") from None
-        finally:
-            self.abort()
-        return {self.data_path: self._digest.hexdigest(), self.header_path: header_digest}
+        data_digest = self._close_stream()
+        header_temp = self._temps[self.header_path]
+        write_envi_header(str(header_temp), self.header)
+        with open(header_temp, "rb") as handle:
+            header_digest = sha256_file(handle, check=None)  # past the last safe point
+            os.fsync(handle.fileno())
+        return {self.data_path: data_digest, self.header_path: header_digest}
 
-    def abort(self) -> None:
-        """Drop what was written: the temporary files go, the targets are untouched."""
-        data, self._data = self._data, None
-        if self._direct is not None:
-            self._direct.release()
+    def _release(self) -> None:
         self._scratch = None
-        if data is not None:
-            with contextlib.suppress(OSError):
-                data.close()
-        for temporary in self._temps.values():
-            with contextlib.suppress(OSError):
-                temporary.unlink(missing_ok=True)
-
-    def __enter__(self) -> EnviWriter:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.abort()
+        super()._release()
 
 
 def _check_header_against_data(header_path: pathlib.Path, image, kind: str) -> None:

@@ -114,7 +114,7 @@ class UncompressedExrWriter(StreamedImageWriter):
         self._write(header)
         self._write(offsets)
 
-    def _encode_rows(self, row0: int, pixels) -> None:
+    def _write_rows(self, row0: int, pixels) -> None:
         rows = len(pixels)
         if self._blocks is None or len(self._blocks) != rows:
             self._blocks = np.empty(rows, self._block)
@@ -130,9 +130,9 @@ class UncompressedExrWriter(StreamedImageWriter):
             np.copyto(blocks["rows"], pixels.transpose(0, 2, 1), casting="same_kind")
         self._write(blocks)
 
-    def abort(self) -> None:
+    def _release(self) -> None:
         self._blocks = None
-        super().abort()
+        super()._release()
 
 
 __all__ = ["UncompressedExrWriter", "takes_attributes"]

@@ -14,7 +14,7 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import OpenImageIO as oiio
 
-from ..atomic_files import create_exclusive, fsync_folder, temp_sibling
+from .atomic_writer import AtomicWriter
 from .errors import SpherejaxFileError, _show
 from .hashing import sha256_file
 from .library_messages import complete_image, image_open_problem, image_read_problem, image_write_problem, write_limit
@@ -268,9 +268,10 @@ def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
 _PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
-class AtomicImageWriter:
+class AtomicImageWriter(AtomicWriter):
     """One image written through OpenImageIO in row strips under a temporary name beside `path`,
-    made the file by `commit` (fsync, then rename) only once every row is written.
+    made the file by `commit` (fsync, then rename) only once every row is written
+    (`atomic_writer.AtomicWriter`: the state machine every image writer shares).
 
     The temporary name is first created with O_EXCL, so it can never be an existing file or a
     link to one elsewhere; OpenImageIO then rewrites that fresh, empty file. Leaving the `with`
@@ -280,83 +281,51 @@ class AtomicImageWriter:
     """
 
     def __init__(self, path, spec: oiio.ImageSpec, format_name: str):
-        self.path = pathlib.Path(path)
-        self.height = spec.height
+        self._spec = spec
         self._format = format_name
-        self._next_row = 0
-        self._temp = temp_sibling(self.path)
         self._output = None
-        try:
-            create_exclusive(self._temp)  # `spherejax.atomic_files`: the rules every writer follows
-        except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
+        super().__init__(path, spec.height)
+
+    def _open(self) -> None:
+        self._create(self.path)
         # The format is named, not guessed from the temporary file's extension.
-        output = oiio.ImageOutput.create(format_name)
-        if output is None or not output.open(str(self._temp), spec):
+        output = oiio.ImageOutput.create(self._format)
+        if output is None or not output.open(str(self._temp), self._spec):
             detail = output.geterror() if output is not None else oiio.geterror()
-            problem = image_write_problem(self.path, self._temp, detail, format_name)
+            problem = image_write_problem(self.path, self._temp, detail, self._format)
             self.abort()
             raise SpherejaxFileError(self.path, problem)
         self._output = output
 
-    def write_rows(self, row0: int, pixels: np.ndarray) -> None:
-        """Write rows row0:row0 + len(pixels), (rows, W, C), the next rows of the image."""
-        if self._output is None:
-            raise SpherejaxFileError(self.path, "is no longer open for writing")
-        if row0 != self._next_row:
-            raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
-        row1 = row0 + len(pixels)
-        if not self._output.write_scanlines(row0, row1, 0, np.ascontiguousarray(pixels)):
+    def _write_rows(self, row0: int, pixels: np.ndarray) -> None:
+        """Rows row0:row0 + len(pixels), (rows, W, C)."""
+        if not self._output.write_scanlines(row0, row0 + len(pixels), 0, np.ascontiguousarray(pixels)):
             problem = image_write_problem(self.path, self._temp, self._output.geterror(), self._format)
             self.abort()
             raise SpherejaxFileError(self.path, problem)
-        self._next_row = row1
 
-    def commit(self) -> str:
-        """Finish the file, fsync it, rename it into place; return its SHA-256 (hex)."""
-        if self._output is None:
-            raise SpherejaxFileError(self.path, "is no longer open for writing")
-        if self._next_row != self.height:
-            self.abort()
-            raise SpherejaxFileError(
-                self.path, f"has {self._next_row} of its {self.height} rows", "every row written"
-            )
+    def _complete(self) -> str:
+        """Close the image, hash it and fsync it; return its SHA-256 (hex)."""
         output, self._output = self._output, None
-        try:
-            if not output.close():
-                raise SpherejaxFileError(self.path, image_write_problem(self.path, self._temp, output.geterror(), self._format))
-            with open(self._temp, "rb") as file:
-                digest = sha256_file(file, check=None)  # past the last safe point: never stopped here
-                file.seek(max(file.tell() - len(_PNG_END), 0))
-                tail = file.read()
-                os.fsync(file.fileno())  # on disk before the rename makes it the file
-            if self._format == "png" and tail != _PNG_END:
-                # OpenImageIO's PNG writer reports no failed write (a full disk, a file-size
-                # limit): the file is known whole only by ending in libpng's IEND chunk.
-                cause = write_limit(self._temp) or "it stops short of its end (OpenImageIO reported no error)"
-                raise SpherejaxFileError(self.path, f"could not be written: {cause}")
-            os.replace(self._temp, self.path)
-            fsync_folder(self.path.parent)  # and the rename on disk too
-        except OSError as error:
-            raise SpherejaxFileError(self.path, f"could not be written: {error.strerror or error}") from None
-        finally:
-            self.abort()
+        if not output.close():
+            raise SpherejaxFileError(self.path, image_write_problem(self.path, self._temp, output.geterror(), self._format))
+        with open(self._temp, "rb") as file:
+            digest = sha256_file(file, check=None)  # past the last safe point: never stopped here
+            file.seek(max(file.tell() - len(_PNG_END), 0))
+            tail = file.read()
+            os.fsync(file.fileno())  # on disk before the rename makes it the file
+        if self._format == "png" and tail != _PNG_END:
+            # OpenImageIO's PNG writer reports no failed write (a full disk, a file-size
+            # limit): the file is known whole only by ending in libpng's IEND chunk.
+            cause = write_limit(self._temp) or "it stops short of its end (OpenImageIO reported no error)"
+            raise SpherejaxFileError(self.path, f"could not be written: {cause}")
         return digest
 
-    def abort(self) -> None:
-        """Drop what was written: the temporary file goes, `path` is untouched."""
+    def _release(self) -> None:
         output, self._output = self._output, None
         if output is not None:
             output.close()
-        # Best effort: the folder itself may be what failed (gone, or a file in its place).
-        with contextlib.suppress(OSError):
-            self._temp.unlink(missing_ok=True)
-
-    def __enter__(self) -> AtomicImageWriter:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.abort()
+        super()._release()
 
 
 def _write_image_atomic(path: pathlib.Path, spec, array: np.ndarray, format_name: str) -> str:

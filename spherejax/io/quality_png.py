@@ -99,7 +99,7 @@ class QualityPngWriter(StreamedImageWriter):
             pending, self._pending = self._pending, b""
             self._write(_chunk(b"IDAT", pending))
 
-    def _encode_rows(self, row0: int, pixels) -> None:
+    def _write_rows(self, row0: int, pixels) -> None:
         """Rows row0:row0 + len(pixels), (rows, W) or (rows, W, 1) uint8."""
         pixels = np.asarray(pixels)
         if pixels.ndim == 3 and pixels.shape[-1] == 1:
