@@ -199,8 +199,10 @@ def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, intermediate
     reflectance = project_good_pixels(good, v_stage2_safe, constants.wiener.T, constants.wiener_offset)
     xyz = project_good_pixels(good, v_stage2_safe, *constants.xyz_projection())
     if constants.wiener_residual is not None:
-        # The kernel residual (E8) of every pixel (NaN stays NaN on the bad ones), and its XYZ.
-        residual = constants.wiener_residual(v_stage2_safe)
+        # The kernel residual (E8) of every good pixel, and its XYZ; the bad ones stay NaN through
+        # the affine part. Safe-where on both sides: v_stage2_safe is NaN on every pixel of an image
+        # whose p is not finite, and a NaN inside the kernel would make d(output)/d(weights) NaN.
+        residual = jnp.where(good, constants.wiener_residual(jnp.where(good, v_stage2_safe, 0.0)), 0.0)
         reflectance = reflectance + residual
         xyz = xyz + jnp.matmul(residual, constants.tristimulus_weights, precision=_HIGHEST)
     lab = xyz_to_lab(xyz, constants.white_xyz())

@@ -189,6 +189,27 @@ def test_gradients_with_respect_to_the_residual_are_finite(calibrations):
     assert np.isfinite(weights).all() and np.abs(weights).max() > 0
 
 
+def test_gradients_with_respect_to_the_residual_are_finite_beside_an_unusable_image(calibrations):
+    """A stack of two frames, the second's patch saturated (p NaN: every pixel flagged 8): the
+    gradient with respect to the residual's weights is finite and is the first frame's alone (the
+    kernel of NaN responses made it NaN before the safe-where in equations.pixel_outputs)."""
+    _, kernel, raw = calibrations
+    box = kernel.patch_box
+    unusable = np.array(raw)
+    unusable[box[0]:box[1], box[2]:box[3]] = 65535
+    stack = np.stack([np.asarray(raw), unusable])
+
+    def loss(calibration, frames):
+        return jnp.nansum(sj.correct(frames, calibration).reflectance)
+
+    result = sj.correct(stack, kernel)
+    assert (np.asarray(result.quality[1]) & sj.Quality.PATCH_UNUSABLE).all()
+    both = np.asarray(eqx.filter_grad(loss)(kernel, stack).wiener_residual.weights)
+    first = np.asarray(eqx.filter_grad(loss)(kernel, stack[:1]).wiener_residual.weights)
+    assert np.isfinite(both).all() and np.abs(first).max() > 0
+    np.testing.assert_allclose(both, first, rtol=1e-5, atol=1e-6)
+
+
 def test_the_propagated_uncertainty_goes_through_the_residual(calibrations):
     """reflectance_u at a few pixels against the first order written out: the Jacobian of the
     whole estimate (jax.jacfwd of W v + r0 + A k(v)) and each band's variance, the latter taken
