@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from spherejax._engine import fused, variant_cache
+from spherejax._engine import fused, fused_variants, variant_cache
 
 SUPPORTED = ("avx512", "avx2", "generic")
 
@@ -114,7 +114,7 @@ def test_the_kernel_reads_the_kept_timings_in_a_new_process(folder, monkeypatch)
 
     kept = {name: 1.0 for name in fused.supported_variants()}
     kept["generic"] = 0.5  # clearly fastest: chosen wherever it is kept
-    key = variant_cache.machine_key(fused.supported_variants(), fused._spherejax_version())
+    key = variant_cache.machine_key(fused.supported_variants(), fused_variants._spherejax_version())
     folder.mkdir(parents=True)
     (folder / variant_cache.FILE_NAME).write_text(json.dumps({"format": variant_cache.FORMAT, "machines": {key: kept}}))
     code = ("from spherejax._engine import fused\n"
