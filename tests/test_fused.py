@@ -21,8 +21,9 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax._engine import fused, variant_cache
-from spherejax.pipeline import _compute_dtype, patch_ratio
+from spherejax._engine import fused, fused_extension, fused_variants, variant_cache
+from spherejax.calibration import compute_dtype as _compute_dtype
+from spherejax.pipeline import patch_ratio
 from spherejax.polynomial import PAPER_TABLE_2
 
 from .helpers import cpu_only, image_program
@@ -466,7 +467,7 @@ def test_a_kernel_the_running_jaxlib_refuses_runs_the_plain_path(monkeypatch, ca
         raise RuntimeError(xla_refusal)
 
     with caplog.at_level("WARNING", logger="spherejax._engine.fused"):
-        reason = fused._try_register(refuse)
+        reason = fused_extension._try_register(refuse)
     assert caplog.messages == [reason]  # said once, on the log, when it happens
     major, minor = fused._fused_correct.ffi_api_version()
     assert reason.startswith(f"the fused kernel (XLA FFI API {major}.{minor}) was refused by jaxlib ")
@@ -475,7 +476,9 @@ def test_a_kernel_the_running_jaxlib_refuses_runs_the_plain_path(monkeypatch, ca
     assert "pip install --no-build-isolation --force-reinstall --no-deps" in reason
 
     monkeypatch.delenv(fused.SWITCH, raising=False)
-    monkeypatch.setattr(fused, "_registration", lambda: reason)
+    # Both the registration (fused_extension.register) and the reason given (unavailable_reason) read it.
+    monkeypatch.setattr(fused_extension, "registration_refusal", lambda: reason)
+    monkeypatch.setattr(fused_variants, "registration_refusal", lambda: reason)
     assert not fused.enabled()
     assert fused.unavailable_reason() == reason
     assert fused.mode(np.uint16, np.dtype(np.float32), 16) is None
@@ -508,7 +511,7 @@ def test_a_process_without_the_cpu_backend_is_told_why_not_an_error(monkeypatch,
 
     monkeypatch.setattr(jax, "devices", no_cpu)
     with caplog.at_level("WARNING", logger="spherejax._engine.fused"):
-        reason = fused._try_register(lambda *args, **kwargs: pytest.fail("registered without a CPU backend"))
+        reason = fused_extension._try_register(lambda *args, **kwargs: pytest.fail("registered without a CPU backend"))
     assert caplog.messages == []  # expected there: nothing to warn about
     assert reason == ("the fused kernel runs on XLA's CPU backend, which this process does not have "
                       "(Unknown backend cpu. Available: ['cuda'])")
@@ -580,21 +583,23 @@ def test_measure_variants_times_every_supported_variant():
     times = fused.measure_variants(pixels=4096, repeats=2)
     assert tuple(times) == fused.supported_variants()
     assert all(0.0 < t < 1.0 for t in times.values()), times
-    per_slice = fused.PROBE_PIXELS * fused._BYTES_PER_PIXEL
-    slices = fused._probe_slices(fused.PROBE_PIXELS)
+    per_slice = fused.PROBE_PIXELS * fused_variants._BYTES_PER_PIXEL
+    slices = fused_variants._probe_slices(fused.PROBE_PIXELS)
     # Between two turns of one slice the others pass through: 1.5 x the cache, or the cap.
-    assert (slices - 1) * per_slice >= min(1.5 * fused._last_level_cache_bytes(), fused._MAX_PROBE_BYTES - 2 * per_slice)
-    assert 3 <= slices and slices * per_slice <= fused._MAX_PROBE_BYTES
+    assert (slices - 1) * per_slice >= min(1.5 * fused_variants._last_level_cache_bytes(),
+                                           fused_variants._MAX_PROBE_BYTES - 2 * per_slice)
+    assert 3 <= slices and slices * per_slice <= fused_variants._MAX_PROBE_BYTES
 
 
 def test_the_probe_goes_round_enough_memory_to_leave_the_cache(monkeypatch):
     """_probe_slices from made-up cache sizes: one and a half times the cache between two turns
     of a slice, at least 3 slices, at most _MAX_PROBE_BYTES in all."""
-    per_slice = fused.PROBE_PIXELS * fused._BYTES_PER_PIXEL  # 9.7 MB
-    for cache, expected in ((32 << 20, 7), (1 << 20, 3), (96 << 20, 17), (1 << 30, fused._MAX_PROBE_BYTES // per_slice)):
-        monkeypatch.setattr(fused, "_last_level_cache_bytes", lambda cache=cache: cache)
-        assert fused._probe_slices(fused.PROBE_PIXELS) == expected, cache
-    assert fused._MAX_PROBE_BYTES // per_slice == 27
+    per_slice = fused.PROBE_PIXELS * fused_variants._BYTES_PER_PIXEL  # 9.7 MB
+    cap = fused_variants._MAX_PROBE_BYTES
+    for cache, expected in ((32 << 20, 7), (1 << 20, 3), (96 << 20, 17), (1 << 30, cap // per_slice)):
+        monkeypatch.setattr(fused_variants, "_last_level_cache_bytes", lambda cache=cache: cache)
+        assert fused_variants._probe_slices(fused.PROBE_PIXELS) == expected, cache
+    assert cap // per_slice == 27
 
 
 @pytestmark_kernel
@@ -621,9 +626,9 @@ def test_the_choice_is_measured_once_and_cached(monkeypatch, caplog, tmp_path):
         calls.append(variants)
         return dict(made_up)
 
-    monkeypatch.setattr(fused, "measure_variants", fake_measure)
+    monkeypatch.setattr(fused_variants, "measure_variants", fake_measure)
     monkeypatch.setenv(variant_cache.CACHE_DIR, str(tmp_path))  # nothing kept yet: measured
-    fused._measured.cache_clear()
+    fused_variants._measured.cache_clear()
     try:
         with caplog.at_level("DEBUG", logger="spherejax._engine.fused"):
             assert fused.mode(np.uint16, np.float32, 16) == supported[-1]
@@ -640,9 +645,9 @@ def test_the_choice_is_measured_once_and_cached(monkeypatch, caplog, tmp_path):
         assert len(calls) == 1  # measured once
     finally:
         # Put the process's real choice back, as other tests' traced programs assume it.
-        monkeypatch.setattr(fused, "measure_variants", lambda variants=None, **kwargs: dict(real.times_s))
+        monkeypatch.setattr(fused_variants, "measure_variants", lambda variants=None, **kwargs: dict(real.times_s))
         monkeypatch.setenv(variant_cache.CACHE_DIR, str(tmp_path / "real"))
-        fused._measured.cache_clear()
+        fused_variants._measured.cache_clear()
         assert fused.measurement().auto == real.auto
 
 
@@ -703,7 +708,9 @@ def test_a_variant_the_cpu_does_not_run_is_refused(monkeypatch):
     rather than run something else under its name (or die of an illegal instruction): by
     `switch` (so by `correct` and up front by the command line), by `correct_arrays`, and by the
     kernel itself (its own check, whichever entry is called) for a code it does not know."""
-    monkeypatch.setattr(fused, "supported_variants", lambda: (fused.AVX2, fused.GENERIC))  # a CPU without AVX-512
+    cpu_without_avx512 = lambda: (fused.AVX2, fused.GENERIC)  # noqa: E731
+    monkeypatch.setattr(fused_variants, "supported_variants", cpu_without_avx512)
+    monkeypatch.setattr(fused, "supported_variants", cpu_without_avx512)
     monkeypatch.setenv(fused.SWITCH, "avx512")
     message = ("SPHEREJAX_FUSED='avx512': this CPU does not run the fused kernel's avx512 code; "
                "it runs 'avx2', 'generic' ('auto' takes the fastest of them)")
@@ -739,7 +746,7 @@ def test_a_variant_the_cpu_does_not_run_is_refused(monkeypatch):
     out_types = (jax.ShapeDtypeStruct((images, pixels, 31), jnp.float32),
                  jax.ShapeDtypeStruct((images, pixels, 3), jnp.float32),
                  jax.ShapeDtypeStruct((images, pixels), jnp.uint8))
-    assert fused._register()
+    assert fused.register()
     ffi = jax.ffi.ffi_call(fused.TARGET, out_types)
     with pytest.raises(Exception, match=r"variant: expected 0 \(the widest this CPU runs\)"):
         jax.block_until_ready(ffi(*arrays, *no_residual, saturation=np.float32(np.nan), variant=np.int32(9)))

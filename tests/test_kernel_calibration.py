@@ -86,8 +86,9 @@ def near_the_frame():
     return affine, dataclasses.replace(affine, wiener_residual=full), dataclasses.replace(affine, wiener_residual=cut), raw
 
 
-#: The fused kernel's variants that apply a kernel residual, among those this CPU runs.
-RESIDUAL_VARIANTS = [name for name in (fused.AVX512, fused.GENERIC) if name in fused.supported_variants()]
+#: The fused kernel's variants that apply a kernel residual (all of them; tests/test_fused_residual.py
+#: covers each in depth), among those this CPU runs.
+RESIDUAL_VARIANTS = [name for name in (fused.AVX512, fused.AVX2, fused.GENERIC) if name in fused.supported_variants()]
 
 
 @pytest.mark.parametrize("variant", RESIDUAL_VARIANTS)
@@ -130,25 +131,6 @@ def test_a_residual_the_kernel_does_not_fit_takes_the_jax_numpy_path(near_the_fr
         got = sj.correct(raw, cut)
         expected = _numpy_estimate(np.asarray(sj.correct(raw, cut, intermediates=True).v_stage2, np.float64), cut)
         np.testing.assert_allclose(np.asarray(got.reflectance, np.float64)[good], expected[good], atol=1e-5)
-
-
-def test_the_kernel_called_as_avx2_with_a_residual_runs_the_generic_code(near_the_frame):
-    """correct_arrays asked for the AVX2 variant with a residual gives the generic code's bits
-    (call.cc: the AVX2 block has no residual), not the affine estimate."""
-    if fused.AVX2 not in fused.supported_variants():
-        pytest.skip("this CPU does not run AVX2")
-    _, _, cut, raw = near_the_frame
-    outputs = {}
-    for variant in (fused.AVX2, fused.GENERIC):
-        arrays = _direct_arrays(cut, raw)
-        out = (np.empty((1, arrays["pixels"], 31), np.float32), np.empty((1, arrays["pixels"], 3), np.float32),
-               np.empty((1, arrays["pixels"]), np.uint8))
-        fused.correct_arrays(arrays["raw"], arrays["dark"], arrays["white"], arrays["p"], arrays["coeffs"],
-                             arrays["projection"], arrays["bias"], arrays["white_xyz"], None, variant, out, 2,
-                             residual=arrays["residual"])
-        outputs[variant] = out
-    for got, want in zip(outputs[fused.AVX2], outputs[fused.GENERIC]):
-        np.testing.assert_array_equal(got, want)
 
 
 def _direct_arrays(calibration, raw):

@@ -1,10 +1,12 @@
 // The AVX2 + FMA variant of the kernel: 16 bands (the instrument's) on x86-64-v3 CPUs, written
-// with intrinsics, in a block shape of its own (correct_block_avx2_16). Why: the generic code
-// (fused_correct.h), compiled for this target, keeps its 16-float vectors as pairs of ymm
+// with intrinsics, in a block shape of its own (correct_block_avx2_16), and the kernel residual by
+// the shared template (fused_correct.h, residual_of) with a lane policy of 8 floats (Avx2Lanes).
+// Why: the generic code, compiled for this target, keeps its 16-float vectors as pairs of ymm
 // registers that GCC spills to the stack around every FMA (measured: 4x slower than the jax.numpy
 // path on a 2-core AVX2 EPYC). The same equations; the sums run in another order than the generic
-// code's (see correct_block_avx2_16), so its bits may differ from the other variants' in the last
-// place (spherejax._engine.fused keeps one variant per process for that reason).
+// code's (see affine_block_avx2_16) and its exponential rounds differently (Avx2Lanes::exp), so
+// its bits may differ from the other variants' in the last place (spherejax._engine.fused keeps
+// one variant per process for that reason).
 
 #include "fused_correct.h"
 
@@ -117,10 +119,134 @@ SPHEREJAX_AVX2_TARGET inline float lane7(__m256 v) {
   return _mm_cvtss_f32(_mm_permute_ps(_mm256_extractf128_ps(v, 1), 3));
 }
 
-// One block of 32 pixels in three passes: quality and v_tilde of every pixel; the projection,
-// two pixels at a time; Lab, sixteen at a time.
+// The 8 x 8 floats at rows[k * stride] (k < 8, each row 32-byte aligned) transposed into out[8]:
+// interleaves of 32 and 64 bits within 128-bit lanes, then 128-bit lane swaps (24 instructions).
+SPHEREJAX_AVX2_TARGET inline void transpose_8(const float* rows, int64_t stride, __m256* out) {
+  __m256 t[8], u[8];
+  for (int k = 0; k < 4; ++k) {
+    const __m256 a = _mm256_load_ps(rows + 2 * k * stride), b = _mm256_load_ps(rows + (2 * k + 1) * stride);
+    t[2 * k] = _mm256_unpacklo_ps(a, b);      // a0 b0 a1 b1 | a4 b4 a5 b5
+    t[2 * k + 1] = _mm256_unpackhi_ps(a, b);  // a2 b2 a3 b3 | a6 b6 a7 b7
+  }
+  for (int k = 0; k < 2; ++k) {
+    const __m256 lo0 = t[4 * k], hi0 = t[4 * k + 1], lo1 = t[4 * k + 2], hi1 = t[4 * k + 3];
+    u[4 * k + 0] = _mm256_shuffle_ps(lo0, lo1, _MM_SHUFFLE(1, 0, 1, 0));  // column 0 | 4 of rows 4k..4k+3
+    u[4 * k + 1] = _mm256_shuffle_ps(lo0, lo1, _MM_SHUFFLE(3, 2, 3, 2));  // column 1 | 5
+    u[4 * k + 2] = _mm256_shuffle_ps(hi0, hi1, _MM_SHUFFLE(1, 0, 1, 0));  // column 2 | 6
+    u[4 * k + 3] = _mm256_shuffle_ps(hi0, hi1, _MM_SHUFFLE(3, 2, 3, 2));  // column 3 | 7
+  }
+  for (int c = 0; c < 4; ++c) {
+    out[c] = _mm256_permute2f128_ps(u[c], u[4 + c], 0x20);
+    out[c + 4] = _mm256_permute2f128_ps(u[c], u[4 + c], 0x31);
+  }
+}
+
+// 16 floats as two ymm registers: the kernel residual's vector (Avx2Lanes). Each operation with
+// a scalar broadcasts it once for both halves. (GCC's own 16-float vector, Vec, compiled for AVX2
+// goes through the stack; written out as a pair of registers it does not.)
+struct Ymm2 {
+  __m256 lo, hi;
+};
+SPHEREJAX_AVX2_TARGET inline Ymm2 operator+(Ymm2 a, Ymm2 b) {
+  return {_mm256_add_ps(a.lo, b.lo), _mm256_add_ps(a.hi, b.hi)};
+}
+SPHEREJAX_AVX2_TARGET inline Ymm2 operator*(Ymm2 a, Ymm2 b) {
+  return {_mm256_mul_ps(a.lo, b.lo), _mm256_mul_ps(a.hi, b.hi)};
+}
+SPHEREJAX_AVX2_TARGET inline Ymm2 operator+(Ymm2 a, float b) {
+  const __m256 c = _mm256_set1_ps(b);
+  return {_mm256_add_ps(a.lo, c), _mm256_add_ps(a.hi, c)};
+}
+SPHEREJAX_AVX2_TARGET inline Ymm2 operator*(Ymm2 a, float b) {
+  const __m256 c = _mm256_set1_ps(b);
+  return {_mm256_mul_ps(a.lo, c), _mm256_mul_ps(a.hi, c)};
+}
+SPHEREJAX_AVX2_TARGET inline Ymm2 operator*(float a, Ymm2 b) { return b * a; }
+SPHEREJAX_AVX2_TARGET inline Ymm2 operator-(float a, Ymm2 b) {
+  const __m256 c = _mm256_set1_ps(a);
+  return {_mm256_sub_ps(c, b.lo), _mm256_sub_ps(c, b.hi)};
+}
+SPHEREJAX_AVX2_TARGET inline Ymm2& operator+=(Ymm2& a, Ymm2 b) { return a = a + b; }
+
+// e^min(x, 0) of 8 lanes, with as few multiply-adds as exp_nonpositive allows (they bound the
+// residual, whose time this was a sixth of, measured): x log2(e) = n + f, n floored at -125 so
+// that no result is subnormal, rounded to nearest by adding 1.5 x 2^23, which leaves n in the low
+// bits of the sum; 2^f by a polynomial of degree 5 fitted for the least relative error on
+// [-1/2, 1/2] (7.5e-8, 2.3e-7 evaluated in float32: as close as exp_nonpositive's Taylor
+// polynomial of degree 6); and 2^n added to its exponent bits as the integer n << 23, the sum's
+// low bits shifted up (the bits above them shift out). min and max take the NaN-carrying operand
+// second, which they return when either is NaN, and a NaN's shifted bits are 0: a NaN stays NaN.
+SPHEREJAX_AVX2_TARGET inline __m256 exp_nonpositive_avx2(__m256 x) {
+  const __m256 magic = _mm256_set1_ps(12582912.0f);
+  const __m256 t = _mm256_max_ps(_mm256_set1_ps(-125.0f), _mm256_mul_ps(_mm256_min_ps(_mm256_setzero_ps(), x),
+                                                                        _mm256_set1_ps(1.44269504088896341f)));
+  const __m256 shifted = _mm256_add_ps(t, magic);
+  const __m256 f = _mm256_sub_ps(t, _mm256_sub_ps(shifted, magic));
+  __m256 p = _mm256_set1_ps(1.327644451521337e-3f);
+  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(9.67553723603487e-3f));
+  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(5.550713464617729e-2f));
+  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(2.4022120237350464e-1f));
+  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(6.931469440460205e-1f));
+  p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(1.0000001192092896f));
+  const __m256i n_bits = _mm256_slli_epi32(_mm256_castps_si256(shifted), 23);
+  return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(p), n_bits));
+}
+
+// The lane policy of the kernel residual (fused_correct.h, residual_of) on AVX2: 16 pixels a
+// vector, as two ymm registers (Ymm2), so that every matrix element broadcast from memory feeds
+// two multiply-adds; with one ymm a vector, the broadcasts as many as the multiply-adds, the
+// residual took 15 % longer (measured on a Zen 4, 64 inducing points). Steps of 4: their 8
+// accumulators, the two registers of v_tilde and a broadcast fit AVX2's 16 registers.
+struct Avx2Lanes {
+  using V = Ymm2;
+  static constexpr int kWidth = 16;
+  static constexpr int kWhiteningStep = 4, kInducingStep = 4, kRankStep = 4, kOutputStep = 4;
+
+  SPHEREJAX_AVX2_TARGET static inline V load(const float* from) {
+    return V{_mm256_load_ps(from), _mm256_load_ps(from + 8)};
+  }
+  SPHEREJAX_AVX2_TARGET static inline void store(float* to, V x) {
+    _mm256_store_ps(to, x.lo), _mm256_store_ps(to + 8, x.hi);
+  }
+
+  SPHEREJAX_AVX2_TARGET static inline void exp(V* k, int64_t n) {
+    for (int64_t j = 0; j < n; ++j) k[j] = V{exp_nonpositive_avx2(k[j].lo), exp_nonpositive_avx2(k[j].hi)};
+  }
+
+  // columns (fused_correct.h) for 16 bands: 8 x 8 tiles of the block transposed in registers.
+  SPHEREJAX_AVX2_TARGET static inline void columns(const float (*rows)[kMaxBands], int64_t,
+                                                   float (*columns)[kBlock]) {
+    for (int64_t first = 0; first < kBlock; first += 8) {
+      for (int64_t band = 0; band < kLanes; band += 8) {
+        __m256 c[8];
+        transpose_8(rows[first] + band, kMaxBands, c);
+        for (int k = 0; k < 8; ++k) _mm256_store_ps(columns[band + k] + first, c[k]);
+      }
+    }
+  }
+
+  // write_rows (fused_correct.h) for all kBlock pixels (count is not read: `to` is a block's
+  // buffer with room for them and one float beyond): 8 x 8 tiles of outputs transposed in
+  // registers and stored as 8 floats per pixel. Tiles of outputs 24-31 write one float past
+  // their pixel's 31 (output 31, X, into the next pixel's output 0), so they go first and the
+  // tiles of outputs 0-7 overwrite those floats last.
+  SPHEREJAX_AVX2_TARGET static inline void write_rows(const float (*out)[kBlock], int64_t, float* to) {
+    for (int64_t o0 = 24; o0 >= 0; o0 -= 8) {
+      for (int64_t first = 0; first < kBlock; first += 8) {
+        __m256 c[8];
+        transpose_8(out[o0] + first, kBlock, c);
+        for (int k = 0; k < 8; ++k) _mm256_storeu_ps(to + (first + k) * kReflectance + o0, c[k]);
+      }
+    }
+  }
+};
+
+// The affine block in two passes: quality and v_tilde of every pixel, then the projection, two
+// pixels at a time, into the block's reflectance (a row of 31 floats per pixel) and XYZ
+// (xyz[c][pixel]).
 // (On a 2-core first-generation EPYC, whose ymm operations are two 128-bit halves: 83 -> 60-65
-// ns a pixel on one thread against the one-pixel loop with the Halley root, which this replaced.)
+// ns a pixel on one thread, with finish_block_avx2, against the one-pixel loop with the Halley
+// root, which this replaced.)
 //
 // The projection of a pixel is 16 broadcasts of its v_tilde times the matrix rows, into 34
 // accumulator lanes: four ymm (reflectance 0..30, X) and one xmm (Y, Z, padding), 9 register
@@ -130,22 +256,11 @@ SPHEREJAX_AVX2_TARGET inline float lane7(__m256 v) {
 // (the estimator's offset): a zero bias gives the bits of a zero start. The sums' order depends
 // only on the pixel, never on its partner or place in the block, so strips give the bits of the
 // whole image.
-//
-// Stores: a block's reflectance (32 pixels x 31 floats = 124 whole ymm), Lab (12 ymm) and
-// quality (one ymm) are contiguous and 32-byte aligned when the block starts at a multiple of 32
-// pixels of an aligned buffer, so they are written with non-temporal stores: the outputs are
-// written whole and never read back here, and ordinary stores would first read every cache line
-// they overwrite (a read of 136 bytes a pixel that the path does not need). Other blocks (the
-// last, partial one) take ordinary stores.
 template <typename Raw>
-SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64_t first, int64_t count) {
+SPHEREJAX_AVX2_TARGET inline void affine_block_avx2_16(const Problem& pr, int64_t first, int64_t count,
+                                                       float* reflectance, float (*xyz)[kBlock], uint8_t* quality) {
   constexpr int64_t B = kLanes;
-  // Room beyond the block (one float is needed): pixel i's 32-float store spills its X into pixel
-  // i + 1's first slot, which pixel i + 1 then overwrites; the last pixel's lands here.
-  alignas(32) float reflectance[kBlock * kReflectance + 8];
-  alignas(32) float xyz[3][kBlock];
   alignas(32) float tilde[kBlock][B];
-  alignas(32) uint8_t quality[kBlock];
   BlockPixels at(pr, first, count);
   for (int64_t i = 0; i < kBlock; ++i) {
     at.at(i);
@@ -186,6 +301,43 @@ SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64
     xyz[1][i] = _mm_cvtss_f32(a4), xyz[1][i + 1] = _mm_cvtss_f32(b4);
     xyz[2][i] = _mm_cvtss_f32(_mm_movehdup_ps(a4)), xyz[2][i + 1] = _mm_cvtss_f32(_mm_movehdup_ps(b4));
   }
+}
+
+// The block with the kernel residual: quality and v_tilde of every pixel, turned into columns
+// (Avx2Lanes::columns), then every output of 16 pixels at a time by the residual's template
+// (residual_of with Avx2Lanes: the affine estimate and the residual), the reflectance turned back
+// into rows (Avx2Lanes::write_rows). Its XYZ stay columns: out[31 + c].
+template <typename Raw>
+SPHEREJAX_AVX2_TARGET inline void residual_block_avx2_16(const Problem& pr, int64_t first, int64_t count,
+                                                         float* reflectance, float (*out)[kBlock],
+                                                         uint8_t* quality) {
+  alignas(32) float rows[kBlock][kMaxBands];
+  alignas(32) float tilde[kMaxBands][kBlock];
+  BlockPixels at(pr, first, count);
+  for (int64_t i = 0; i < kBlock; ++i) {
+    at.at(i);
+    quality[i] = stage2_at<Raw, Avx2Stage2>(pr, at, rows[i]);
+    at.next(pr, i);
+  }
+  Avx2Lanes::columns(rows, kLanes, tilde);
+  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Avx2Lanes::kWidth) {
+    residual_of<Avx2Lanes>(pr, kLanes, tilde, lane0, out);
+  }
+  Avx2Lanes::write_rows(out, kBlock, reflectance);
+}
+
+// Lab of a block's pixels from their XYZ (xyz[c][pixel]), sixteen at a time, and the block's
+// outputs written: its reflectance (a row of 31 floats per pixel), Lab and quality.
+//
+// Stores: a block's reflectance (32 pixels x 31 floats = 124 whole ymm), Lab (12 ymm) and
+// quality (one ymm) are contiguous and 32-byte aligned when the block starts at a multiple of 32
+// pixels of an aligned buffer, so they are written with non-temporal stores: the outputs are
+// written whole and never read back here, and ordinary stores would first read every cache line
+// they overwrite (a read of 136 bytes a pixel that the path does not need). Other blocks (the
+// last, partial one) take ordinary stores.
+SPHEREJAX_AVX2_TARGET inline void finish_block_avx2(const Problem& pr, int64_t first, int64_t count,
+                                                    const float* reflectance, const float (*xyz)[kBlock],
+                                                    const uint8_t* quality) {
   alignas(32) float lab[kBlock * 3];
   for (int64_t i = 0; i < kBlock; i += 16) {
     // f(X / Xn), f(Y / Yn), f(Z / Zn) of pixels i..i+7 and i+8..i+15, side by side.
@@ -234,6 +386,24 @@ SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64
     std::memcpy(reflectance_out, reflectance, count * kReflectance * sizeof(float));
     std::memcpy(lab_out, lab, count * 3 * sizeof(float));
     std::memcpy(quality_out, quality, count);
+  }
+}
+
+// One block of 32 pixels: the affine block or the residual's, then Lab and the stores.
+template <typename Raw>
+SPHEREJAX_AVX2_TARGET inline void correct_block_avx2_16(const Problem& pr, int64_t first, int64_t count) {
+  // Room beyond the block (one float is needed): pixel i's 32-float store spills its X into pixel
+  // i + 1's first slot, which pixel i + 1 then overwrites; the last pixel's lands here.
+  alignas(32) float reflectance[kBlock * kReflectance + 8];
+  alignas(32) uint8_t quality[kBlock];
+  if (pr.inducing_rows > 0) {
+    alignas(32) float out[kPadded][kBlock];
+    residual_block_avx2_16<Raw>(pr, first, count, reflectance, out, quality);
+    finish_block_avx2(pr, first, count, reflectance, out + kReflectance, quality);
+  } else {
+    alignas(32) float xyz[3][kBlock];
+    affine_block_avx2_16<Raw>(pr, first, count, reflectance, xyz, quality);
+    finish_block_avx2(pr, first, count, reflectance, xyz, quality);
   }
 }
 

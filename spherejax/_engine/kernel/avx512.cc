@@ -1,5 +1,6 @@
 // The AVX-512 variant of the kernel: 16 bands (the instrument's), the generic block of
-// fused_correct.h with a Stage II written with AVX-512 intrinsics.
+// fused_correct.h with a Stage II and a lane policy for the kernel residual written with AVX-512
+// intrinsics.
 
 #include "fused_correct.h"
 
@@ -48,54 +49,6 @@ SPHEREJAX_AVX512_TARGET static inline void transpose_16(const float* rows, int64
 struct Avx512Stage2 {
   static constexpr int64_t kBands = kLanes;
 
-  // e^min(x, 0) (fused_correct.h, residual_of_16) with AVX-512's own steps: x log2(e) = n + f
-  // rounded by vrndscaleps, 2^f by the Taylor polynomial of exp_nonpositive, and 2^n put in by
-  // vscalefps, which needs no bit arithmetic and no clip below (n floored at -125 all the same,
-  // so that no result is subnormal). 12 instructions against the generic code's 20 (measured: the
-  // exponential was a quarter of the residual's time).
-  SPHEREJAX_AVX512_TARGET static inline Vec kernel_exp(Vec x) {
-    const __m512 t = _mm512_max_ps(_mm512_mul_ps(_mm512_min_ps((__m512)x, _mm512_setzero_ps()),
-                                                 _mm512_set1_ps(1.44269504088896341f)),
-                                   _mm512_set1_ps(-125.0f));
-    const __m512 n = _mm512_roundscale_ps(t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    const __m512 f = _mm512_sub_ps(t, n);
-    __m512 p = _mm512_set1_ps(1.5403530393381609e-4f);
-    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.3333558146428443e-3f));
-    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(9.6181291076284772e-3f));
-    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(5.5504108664821580e-2f));
-    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(2.4022650695910071e-1f));
-    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(6.9314718055994531e-1f));
-    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.0f));
-    return (Vec)_mm512_scalef_ps(p, n);
-  }
-
-  // columns (fused_correct.h) for 16 bands: each 16 x 16 half of the block transposed in
-  // registers (transpose_16), where element by element took 32 loads and stores a pixel.
-  SPHEREJAX_AVX512_TARGET static inline void columns(const float (*rows)[kMaxBands], int64_t,
-                                                     float (*columns)[kBlock]) {
-    for (int64_t first = 0; first < kBlock; first += kLanes) {
-      __m512 c[16];
-      transpose_16(rows[first], kMaxBands, c);
-      for (int b = 0; b < 16; ++b) _mm512_store_ps(columns[b] + first, c[b]);
-    }
-  }
-
-  // write_rows (fused_correct.h): outputs 0-15 and 16-31 of each 16 pixels transposed in
-  // registers (transpose_16), then a pixel's 31 floats as one store and one masked store.
-  SPHEREJAX_AVX512_TARGET static inline void write_rows(const float (*out)[kBlock], int64_t count, float* to) {
-    for (int64_t first = 0; first < count; first += kLanes) {
-      __m512 low[16], high[16];
-      transpose_16(out[0] + first, kBlock, low);
-      transpose_16(out[kLanes] + first, kBlock, high);
-      const int64_t n = std::min<int64_t>(kLanes, count - first);
-      for (int64_t i = 0; i < n; ++i) {
-        float* row = to + (first + i) * kReflectance;
-        _mm512_storeu_ps(row, low[i]);
-        _mm512_mask_storeu_ps(row + kLanes, static_cast<__mmask16>((1u << (kReflectance - kLanes)) - 1), high[i]);
-      }
-    }
-  }
-
   template <typename Raw>
   SPHEREJAX_AVX512_TARGET static inline uint8_t run(const Problem& pr, const Raw* r, const float* d,
                                                     const float* w, const float* a, const float* c,
@@ -126,13 +79,70 @@ struct Avx512Stage2 {
   }
 };
 
+// The lane policy of the kernel residual (fused_correct.h, residual_of) on AVX-512: the generic
+// one's vector (16 floats, one zmm register) and steps, with the exponential and the transposes
+// written with AVX-512 intrinsics.
+struct Avx512Lanes : GenericLanes {
+  // e^min(x, 0) (fused_correct.h, residual_of) with AVX-512's own steps: x log2(e) = n + f
+  // rounded by vrndscaleps, 2^f by the Taylor polynomial of exp_nonpositive, and 2^n put in by
+  // vscalefps, which needs no bit arithmetic and no clip below (n floored at -125 all the same,
+  // so that no result is subnormal). 12 instructions against the generic code's 20 (measured: the
+  // exponential was a quarter of the residual's time).
+  SPHEREJAX_AVX512_TARGET static inline Vec exp_lanes(Vec x) {
+    const __m512 t = _mm512_max_ps(_mm512_mul_ps(_mm512_min_ps((__m512)x, _mm512_setzero_ps()),
+                                                 _mm512_set1_ps(1.44269504088896341f)),
+                                   _mm512_set1_ps(-125.0f));
+    const __m512 n = _mm512_roundscale_ps(t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m512 f = _mm512_sub_ps(t, n);
+    __m512 p = _mm512_set1_ps(1.5403530393381609e-4f);
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.3333558146428443e-3f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(9.6181291076284772e-3f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(5.5504108664821580e-2f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(2.4022650695910071e-1f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(6.9314718055994531e-1f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.0f));
+    return (Vec)_mm512_scalef_ps(p, n);
+  }
+
+  SPHEREJAX_AVX512_TARGET static inline void exp(Vec* k, int64_t n) {
+    for (int64_t j = 0; j < n; ++j) k[j] = exp_lanes(k[j]);
+  }
+
+  // columns (fused_correct.h) for 16 bands: each 16 x 16 half of the block transposed in
+  // registers (transpose_16), where element by element took 32 loads and stores a pixel.
+  SPHEREJAX_AVX512_TARGET static inline void columns(const float (*rows)[kMaxBands], int64_t,
+                                                     float (*columns)[kBlock]) {
+    for (int64_t first = 0; first < kBlock; first += kLanes) {
+      __m512 c[16];
+      transpose_16(rows[first], kMaxBands, c);
+      for (int b = 0; b < 16; ++b) _mm512_store_ps(columns[b] + first, c[b]);
+    }
+  }
+
+  // write_rows (fused_correct.h): outputs 0-15 and 16-31 of each 16 pixels transposed in
+  // registers (transpose_16), then a pixel's 31 floats as one store and one masked store.
+  SPHEREJAX_AVX512_TARGET static inline void write_rows(const float (*out)[kBlock], int64_t count, float* to) {
+    for (int64_t first = 0; first < count; first += kLanes) {
+      __m512 low[16], high[16];
+      transpose_16(out[0] + first, kBlock, low);
+      transpose_16(out[kLanes] + first, kBlock, high);
+      const int64_t n = std::min<int64_t>(kLanes, count - first);
+      for (int64_t i = 0; i < n; ++i) {
+        float* row = to + (first + i) * kReflectance;
+        _mm512_storeu_ps(row, low[i]);
+        _mm512_mask_storeu_ps(row + kLanes, static_cast<__mmask16>((1u << (kReflectance - kLanes)) - 1), high[i]);
+      }
+    }
+  }
+};
+
 }  // namespace
 
 // flatten: inline everything, Avx512Stage2::run included, which the always_inline chain cannot
 // (a default-target function may not inline an AVX-512 one).
 SPHEREJAX_AVX512_TARGET __attribute__((flatten)) void correct_range_avx512(const Problem& pr, int64_t first,
                                                                            int64_t last) {
-  correct_blocks<PixelByPixel<Avx512Stage2>>(pr, first, last);
+  correct_blocks<PixelByPixel<Avx512Stage2, Avx512Lanes>>(pr, first, last);
 }
 
 }  // namespace spherejax_fused

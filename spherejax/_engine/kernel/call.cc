@@ -57,11 +57,7 @@ void correct_range(const Problem& pr, int64_t first, int64_t last) {
 #if SPHEREJAX_X86
   // The variants' own code is for 16 bands only; resolve_variant has checked the CPU runs it.
   if (pr.bands == kLanes && pr.variant == Variant::kAvx512) return correct_range_avx512(pr, first, last);
-  // The AVX2 block has no kernel residual: a call with one runs the generic code (whose
-  // target_clones take AVX2 there; spherejax._engine.plan takes the jax.numpy path instead).
-  if (pr.bands == kLanes && pr.variant == Variant::kAvx2 && pr.inducing_rows == 0) {
-    return correct_range_avx2(pr, first, last);
-  }
+  if (pr.bands == kLanes && pr.variant == Variant::kAvx2) return correct_range_avx2(pr, first, last);
 #endif
   correct_range_generic(pr, first, last);
 }
@@ -91,7 +87,8 @@ std::unique_ptr<float[], FreeAligned> aligned_vectors(int64_t count) {
 }  // namespace
 
 const char* check_residual(const Residual& r) {
-  if (r.whitened_rows < 0 || r.whitened_rows % 8 != 0 || r.inducing_rows < 0 || r.inducing_rows % 8 != 0) {
+  if (r.whitened_rows < 0 || r.whitened_rows % kResidualRows != 0 || r.inducing_rows < 0 ||
+      r.inducing_rows % kResidualRows != 0) {
     return "residual: expected whitening and inducing rows in eights";
   }
   if (r.inducing_rows > 0 && r.whitened_rows == 0) return "residual: inducing points without a whitening";

@@ -64,7 +64,7 @@ struct Prepared {
   std::unique_ptr<float[], FreeAligned> basis;  // the kernel residual's, padded to whole vectors
 };
 
-// The kernel residual of a call (fused_correct.h, residual_of_16), as its caller passes it:
+// The kernel residual of a call (fused_correct.h, residual_of), as its caller passes it:
 // whitening (D, B + 1), inducing (M, B + 1), factor (M, kResidualRank) and basis (kResidualRank,
 // kOutputs), row-major floats; D and M multiples of 8, M = 0 for a call without one.
 struct Residual {

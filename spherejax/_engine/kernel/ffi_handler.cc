@@ -37,7 +37,7 @@ ffi::Error Correct(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F3
       white_xyz.element_count() != 3) {
     return ffi::Error::InvalidArgument("inputs: shapes do not match raw (N, P, B)");
   }
-  // The kernel residual: whitening (D, B + 1), inducing (M, B + 1), factor (M, 16), basis (16, 34).
+  // The kernel residual: whitening (D, B + 1), inducing (M, B + 1), factor (M, r), basis (r, 34), r = kResidualRank.
   Residual residual;
   const auto whitening_dims = whitening.dimensions(), inducing_dims = inducing.dimensions();
   if (whitening_dims.size() != 2 || inducing_dims.size() != 2 || whitening_dims[1] != bands + 1 ||

@@ -19,7 +19,7 @@
 //            weights: one (B, 34) product whose accumulators start at the (34,) bias)
 //   [reflectance | XYZ] += P G k(v_tilde)                              (the kernel residual A k(v) of
 //            an estimator with one, E8-E10 of spherejax/estimation/kernel_residual.py: see
-//            residual_of_16; absent when the call has no inducing points)
+//            residual_of; absent when the call has no inducing points)
 //   Lab      = CIE 1976 from XYZ / white_xyz                          (CIE 15:2004)
 // and NaN in reflectance and Lab wherever quality != 0. The tests compare it with the plain
 // path on every branch (tests/test_fused.py).
@@ -30,21 +30,23 @@
 // Layout: raw (N, P, B) uint16 or float32, dark and white (P, B), p (N, B), coeffs (B, 4),
 // projection (B, 34), bias (34,), white_xyz (3,), and the residual's whitening (D, B + 1), inducing
 // (M, B + 1), factor (M, 8) and basis (8, 34) (D and M multiples of 8, M = 0 for none; see
-// residual_of_16); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
+// residual_of); outputs reflectance (N, P, 31), Lab (N, P, 3), quality
 // (N, P) uint8. The work is split into chunks of pixels run on XLA's intra-op thread pool.
 //
 // The sources, by job (setup.py compiles them into one extension, spherejax._engine._fused_correct):
-//   fused_correct.h  this header: the types, the Problem of one call, the generic per-pixel code
-//                    and the block templates every instruction-set variant shares;
+//   fused_correct.h  this header: the types, the Problem of one call, the generic per-pixel code,
+//                    the kernel residual's template over a lane policy (residual_of) and the
+//                    block templates every instruction-set variant shares;
 //   generic.cc       the generic variant: the code below compiled for three x86-64 levels
 //                    (target_clones), what every band count but 16 runs;
-//   avx512.cc        16 bands with AVX-512 intrinsics;
-//   avx2.cc          16 bands with AVX2 + FMA intrinsics (its own block shape and sum order);
+//   avx512.cc        16 bands with AVX-512 intrinsics (its Stage II and lane policy);
+//   avx2.cc          16 bands with AVX2 + FMA intrinsics (its own block shape and sum order, and
+//                    its lane policy for the residual);
 //   call.h, call.cc  a call: which variants the CPU runs, the variant a call asked for, the
 //                    per-image constants, and the chunks shared out to threads;
 //   ffi_handler.cc   the XLA FFI handler (the custom call of spherejax._engine.fused);
 //   module.cc        the CPython module: handler(), correct_arrays(), supported_variants(),
-//                    ffi_api_version().
+//                    capabilities(), ffi_api_version().
 // No -march anywhere: each variant carries its instruction set as function attributes, and
 // which one runs is chosen per call (call.cc), so one build runs on any x86-64.
 
@@ -63,8 +65,8 @@ constexpr int64_t kOutputs = kReflectance + 3;  // reflectance then X, Y, Z
 constexpr int64_t kLanes = 16;                  // floats in one 512-bit vector
 constexpr int64_t kPadded = 48;                 // kOutputs rounded up to whole vectors
 constexpr int64_t kMaxBands = 64;
-constexpr int kInducingStep = 8;                // inducing points a step of residual_of_16 (M in eights)
-constexpr int64_t kResidualRank = 8;            // rank of its weights A = P G: 8 accumulators a lane
+constexpr int64_t kResidualRows = 8;            // whitening and inducing rows come in multiples of this
+constexpr int64_t kResidualRank = 8;            // rank of the residual's weights A = P G: 8 accumulators a lane
 constexpr int64_t kBlock = 32;                  // pixels whose XYZ are turned into Lab together
 constexpr int64_t kChunk = 8192;                // pixels per thread-pool task
 constexpr float kLabEpsilon = 216.0f / 24389.0f;
@@ -109,10 +111,10 @@ struct Problem {
   const Vec* projection;     // (bands, 3) vectors: the (B, 34) matrix padded to 48 columns
   const Vec* bias;           // 3 vectors: the (34,) bias [r0 | r0 @ weights] padded to 48
   float inverse_white[3];
-  // The kernel residual (residual_of_16), absent when inducing_rows is 0: whitening (whitened_rows,
+  // The kernel residual (residual_of), absent when inducing_rows is 0: whitening (whitened_rows,
   // B + 1), inducing (inducing_rows, B + 1), factor (inducing_rows, kResidualRank) floats, row-major;
   // basis kResidualRank x 3 Vecs (rows padded to 48 like the projection's). whitened_rows and
-  // inducing_rows multiples of 8.
+  // inducing_rows multiples of kResidualRows.
   int64_t whitened_rows, inducing_rows;
   const float* whitening;
   const float* inducing;
@@ -197,48 +199,70 @@ SPHEREJAX_INLINE Vec exp_nonpositive(Vec x) {
   return p * scale;
 }
 
-// A Vec of 16 floats from memory on a 64-byte boundary.
-SPHEREJAX_INLINE Vec load_vec(const float* from) {
-  Vec x;
-  std::memcpy(&x, from, sizeof x);
-  return x;
-}
+// A lane policy: how the kernel residual (residual_of) spreads a block's pixels over the vector
+// lanes of one instruction set. residual_of writes the equations once; each variant brings one
+// (GenericLanes below, Avx512Lanes in avx512.cc, Avx2Lanes in avx2.cc) with
+//   V                   the vector: kWidth floats, one pixel a lane, with +, * and += lane by lane
+//                       and with a float (V{} is zero);
+//   kWidth              floats in a V (divides kBlock);
+//   kWhiteningStep, kInducingStep, kRankStep, kOutputStep
+//                       whitening rows, inducing points, ranks of g and outputs whose sums are
+//                       held in registers at once (the first two divide kResidualRows, the third
+//                       kResidualRank);
+//   static V load(const float* from), static void store(float* to, V x)
+//                       kWidth floats from and to memory on a kWidth * 4-byte boundary;
+//   static void exp(V* k, int64_t n)
+//                       k[j] = e^min(k[j], 0) lane by lane for j < n, NaN kept (the kernel
+//                       values k(v), a chunk at a time);
+//   static void columns(const float (*rows)[kMaxBands], int64_t B, float (*columns)[kBlock])
+//                       a block's v_tilde, rows[pixel][band], as columns[band][pixel];
+//   static void write_rows(const float (*out)[kBlock], int64_t count, float* to)
+//                       a block's reflectance, out[o][pixel], as a row of 31 floats per pixel
+//                       at to + pixel * 31 (count pixels).
+// The steps are sized to the register file: the accumulators of a step, the v_tilde vector and a
+// broadcast matrix element must fit in it, or the compiler spills accumulators to the stack
+// around every multiply-add. Every lane sees the same operations in the same order whatever the
+// steps, so they change a policy's speed, never its results.
 
-// acc[q] += sum_b tilde[b][first + lane] m[q * q_stride + b * b_stride] for q < N and the 16
+// acc[q] += sum_b tilde[b][first + lane] m[q * q_stride + b * b_stride] for q < N and the kWidth
 // pixels from `first`, one a lane: N rows (or columns) of a matrix against the pixels' v_tilde,
-// each band's vector loaded once for the N multiply-adds held in registers (residual_of_16).
-template <int N>
+// each band's vector loaded once for the N multiply-adds held in registers (residual_of).
+template <int N, typename Lanes, typename V = typename Lanes::V>
 SPHEREJAX_INLINE void add_band_products(const float (*tilde)[kBlock], int64_t first, int64_t B, const float* m,
-                                        int64_t q_stride, int64_t b_stride, Vec* acc) {
+                                        int64_t q_stride, int64_t b_stride, V* acc) {
   for (int64_t b = 0; b < B; ++b) {
-    const Vec t = load_vec(tilde[b] + first);
+    const V t = Lanes::load(tilde[b] + first);
 #pragma GCC unroll 8
     for (int q = 0; q < N; ++q) acc[q] += t * m[q * q_stride + b * b_stride];
   }
 }
 
-// N outputs o0 .. o0 + N - 1 of [reflectance | XYZ] for 16 pixels, one a lane (residual_of_16):
+// N outputs o0 .. o0 + N - 1 of [reflectance | XYZ] for kWidth pixels, one a lane (residual_of):
 // bias + v_tilde . projection (the affine estimate, as correct_block computes it pixel by pixel)
 // + g . basis (the kernel residual P G k(v)), into out[o][first + lane].
-template <int N>
-SPHEREJAX_INLINE void outputs_of_16(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
-                                    const Vec* g, int64_t o0, float (*out)[kBlock]) {
+template <int N, typename Lanes, typename V = typename Lanes::V>
+SPHEREJAX_INLINE void outputs_of(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
+                                 const V* g, int64_t o0, float (*out)[kBlock]) {
   const float* basis = reinterpret_cast<const float*>(pr.basis) + o0;
   const float* bias = reinterpret_cast<const float*>(pr.bias) + o0;
-  Vec acc[N];
+  V acc[N];
 #pragma GCC unroll 8
-  for (int q = 0; q < N; ++q) acc[q] = Vec{} + bias[q];
-  add_band_products<N>(tilde, first, B, reinterpret_cast<const float*>(pr.projection) + o0, 1, kPadded, acc);
+  for (int q = 0; q < N; ++q) acc[q] = V{} + bias[q];
+  add_band_products<N, Lanes>(tilde, first, B, reinterpret_cast<const float*>(pr.projection) + o0, 1, kPadded, acc);
 #pragma GCC unroll 8
   for (int64_t r = 0; r < kResidualRank; ++r) {
 #pragma GCC unroll 8
     for (int q = 0; q < N; ++q) acc[q] += g[r] * basis[r * kPadded + q];
   }
 #pragma GCC unroll 8
-  for (int q = 0; q < N; ++q) std::memcpy(out[o0 + q] + first, &acc[q], sizeof(Vec));
+  for (int q = 0; q < N; ++q) Lanes::store(out[o0 + q] + first, acc[q]);
 }
 
-// The outputs [reflectance | XYZ] of 16 pixels with the kernel residual (E8-E10 of
+// Inducing points taken a chunk at a time by residual_of: their kernel values wait in a stack
+// buffer of this many vectors between its three passes.
+constexpr int64_t kInducingChunk = 32;
+
+// The outputs [reflectance | XYZ] of Lanes::kWidth pixels with the kernel residual (E8-E10 of
 // spherejax/estimation/kernel_residual.py), one pixel a lane: their v_tilde are
 // tilde[b][first + lane] (b < B), their outputs go to out[o][first + lane] (o < 34). With rows of
 // the Problem's arrays
@@ -252,43 +276,100 @@ SPHEREJAX_INLINE void outputs_of_16(const Problem& pr, int64_t B, const float (*
 //
 // Why lanes over pixels: one pixel's work is a chain of dependent sums (|u|^2 before every
 // k_j, every k_j before g), which one pixel at a time left the FMA units waiting (measured:
-// 560 cycles a pixel against 240 this way); 16 pixels a vector give every step 16 independent
-// lanes, each value loaded feeds 8 multiply-adds held in registers (D and M in eights), and the
-// 34 outputs take 34 x (B + 8) / 16 multiply-adds a pixel against 3 x (B + 8) for a pixel's
-// 48-float rows.
-template <typename Stage2>
-SPHEREJAX_INLINE void residual_of_16(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
-                                     float (*out)[kBlock]) {
+// 560 cycles a pixel against 240 this way); kWidth pixels a vector give every step kWidth
+// independent lanes, each value loaded feeds several multiply-adds held in registers, and the
+// 34 outputs take 34 x (B + 8) / kWidth multiply-adds a pixel.
+//
+// Why three passes over a chunk of inducing points (their sums, their exponentials, their
+// products with G) rather than one: the exponential of a sum is a chain of about 15 operations
+// and g's accumulators stay live across the whole loop; in one pass, a step's sums, the
+// exponentials in flight and g outgrow AVX2's 16 registers. Apart, each pass holds only its own
+// accumulators, and the exponentials of a chunk are independent of each other.
+template <typename Lanes>
+SPHEREJAX_INLINE void residual_of(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
+                                  float (*out)[kBlock]) {
+  using V = typename Lanes::V;
+  constexpr int kWhitening = Lanes::kWhiteningStep, kInducing = Lanes::kInducingStep;
+  constexpr int kRank = Lanes::kRankStep, kOut = Lanes::kOutputStep;
+  static_assert(kResidualRows % kWhitening == 0 && kResidualRows % kInducing == 0 &&
+                    kResidualRank % kRank == 0 && kInducingChunk % kResidualRows == 0,
+                "steps that divide the rows and the rank");
   const int64_t D = pr.whitened_rows, M = pr.inducing_rows, width = B + 1;
-  Vec squared = {};
-  for (int64_t i = 0; i < D; i += 8) {
+  V squared = {};
+  for (int64_t i = 0; i < D; i += kWhitening) {
     const float* row = pr.whitening + i * width;
-    Vec u[8];
+    V u[kWhitening];
 #pragma GCC unroll 8
-    for (int q = 0; q < 8; ++q) u[q] = Vec{} + row[q * width + B];
-    add_band_products<8>(tilde, first, B, row, width, 1, u);
+    for (int q = 0; q < kWhitening; ++q) u[q] = V{} + row[q * width + B];
+    add_band_products<kWhitening, Lanes>(tilde, first, B, row, width, 1, u);
 #pragma GCC unroll 8
-    for (int q = 0; q < 8; ++q) squared += u[q] * u[q];
+    for (int q = 0; q < kWhitening; ++q) squared += u[q] * u[q];
   }
-  const Vec half = 0.5f * squared;
-  Vec g[kResidualRank] = {};
-  for (int64_t j = 0; j < M; j += kInducingStep) {
-    const float* y = pr.inducing + j * width;
-    Vec s[kInducingStep];
+  const V half = 0.5f * squared;
+  V g[kResidualRank] = {};
+  for (int64_t j0 = 0; j0 < M; j0 += kInducingChunk) {
+    const int64_t n = std::min(kInducingChunk, M - j0);  // a multiple of kResidualRows
+    V k[kInducingChunk];
+    for (int64_t j = 0; j < n; j += kInducing) {
+      const float* y = pr.inducing + (j0 + j) * width;
+      V s[kInducing];
 #pragma GCC unroll 8
-    for (int q = 0; q < kInducingStep; ++q) s[q] = y[q * width + B] - half;
-    add_band_products<kInducingStep>(tilde, first, B, y, width, 1, s);
+      for (int q = 0; q < kInducing; ++q) s[q] = y[q * width + B] - half;
+      add_band_products<kInducing, Lanes>(tilde, first, B, y, width, 1, s);
 #pragma GCC unroll 8
-    for (int q = 0; q < kInducingStep; ++q) {
-      const Vec k = Stage2::kernel_exp(s[q]);
-      const float* f = pr.factor + (j + q) * kResidualRank;
+      for (int q = 0; q < kInducing; ++q) k[j + q] = s[q];
+    }
+    Lanes::exp(k, n);
+    for (int r0 = 0; r0 < kResidualRank; r0 += kRank) {
+      V acc[kRank];
 #pragma GCC unroll 8
-      for (int r = 0; r < kResidualRank; ++r) g[r] += k * f[r];
+      for (int r = 0; r < kRank; ++r) acc[r] = g[r0 + r];
+      for (int64_t j = 0; j < n; ++j) {
+        const float* f = pr.factor + (j0 + j) * kResidualRank + r0;
+#pragma GCC unroll 8
+        for (int r = 0; r < kRank; ++r) acc[r] += k[j] * f[r];
+      }
+#pragma GCC unroll 8
+      for (int r = 0; r < kRank; ++r) g[r0 + r] = acc[r];
     }
   }
-  for (int64_t o0 = 0; o0 + 8 <= kOutputs; o0 += 8) outputs_of_16<8>(pr, B, tilde, first, g, o0, out);
-  outputs_of_16<kOutputs % 8>(pr, B, tilde, first, g, kOutputs - kOutputs % 8, out);
+  for (int64_t o0 = 0; o0 + kOut <= kOutputs; o0 += kOut) outputs_of<kOut, Lanes>(pr, B, tilde, first, g, o0, out);
+  if constexpr (kOutputs % kOut != 0) {
+    outputs_of<kOutputs % kOut, Lanes>(pr, B, tilde, first, g, kOutputs - kOutputs % kOut, out);
+  }
 }
+
+// The lane policy (see above) of the generic variant and the AVX-512 one's base: 16 floats a
+// vector, one zmm register with AVX-512 (32 of them: 8 sums a step fit beside g), written in
+// plain C++ for any band count.
+struct GenericLanes {
+  using V = Vec;
+  static constexpr int kWidth = kLanes;
+  static constexpr int kWhiteningStep = 8, kInducingStep = 8, kRankStep = 8, kOutputStep = 8;
+
+  static SPHEREJAX_INLINE Vec load(const float* from) {
+    Vec x;
+    std::memcpy(&x, from, sizeof x);
+    return x;
+  }
+  static SPHEREJAX_INLINE void store(float* to, Vec x) { std::memcpy(to, &x, sizeof x); }
+
+  static SPHEREJAX_INLINE void exp(Vec* k, int64_t n) {
+    for (int64_t j = 0; j < n; ++j) k[j] = exp_nonpositive(clip_exponent(k[j]));
+  }
+
+  static SPHEREJAX_INLINE void write_rows(const float (*out)[kBlock], int64_t count, float* to) {
+    for (int64_t i = 0; i < count; ++i) {
+      for (int64_t o = 0; o < kReflectance; ++o) to[i * kReflectance + o] = out[o][i];
+    }
+  }
+
+  static SPHEREJAX_INLINE void columns(const float (*rows)[kMaxBands], int64_t B, float (*columns)[kBlock]) {
+    for (int64_t i = 0; i < kBlock; ++i) {
+      for (int64_t b = 0; b < B; ++b) columns[b][i] = rows[i][b];
+    }
+  }
+};
 
 // Quality bits and v_tilde (Eq. 10, 17, 23) of one pixel, any band count: the generic Stage II.
 // A Stage II is a type with kBands (its band count, 0: any, pr.bands) and
@@ -300,23 +381,6 @@ SPHEREJAX_INLINE void residual_of_16(const Problem& pr, int64_t B, const float (
 // each for 16 bands.
 struct GenericStage2 {
   static constexpr int64_t kBands = 0;
-
-  // e^min(x, 0) of the kernel residual (residual_of_16), lane by lane.
-  static SPHEREJAX_INLINE Vec kernel_exp(Vec x) { return exp_nonpositive(clip_exponent(x)); }
-
-  // A block's reflectance, out[o][pixel], written as a row of 31 per pixel to `to` (count pixels).
-  static SPHEREJAX_INLINE void write_rows(const float (*out)[kBlock], int64_t count, float* to) {
-    for (int64_t i = 0; i < count; ++i) {
-      for (int64_t o = 0; o < kReflectance; ++o) to[i * kReflectance + o] = out[o][i];
-    }
-  }
-
-  // A block's v_tilde, rows[pixel][band], as columns[band][pixel] (residual_of_16's layout).
-  static SPHEREJAX_INLINE void columns(const float (*rows)[kMaxBands], int64_t B, float (*columns)[kBlock]) {
-    for (int64_t i = 0; i < kBlock; ++i) {
-      for (int64_t b = 0; b < B; ++b) columns[b][i] = rows[i][b];
-    }
-  }
 
   template <typename Raw>
   static SPHEREJAX_INLINE uint8_t run(const Problem& pr, const Raw* r, const float* d, const float* w,
@@ -439,11 +503,11 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
   finish_block(pr, first, count, xyz, quality);
 }
 
-// correct_block for a call with a kernel residual: Stage II pixel by pixel, then the outputs 16
-// pixels at a time (residual_of_16: the affine estimate and the residual, band by band and output
-// by output), the reflectance turned back into a row per pixel (Stage2::write_rows), then Lab.
-// The block's pixels are consecutive in the outputs (flat index first + i).
-template <typename Raw, typename Stage2>
+// correct_block for a call with a kernel residual: Stage II pixel by pixel, then the outputs
+// Lanes::kWidth pixels at a time (residual_of: the affine estimate and the residual, band by band
+// and output by output), the reflectance turned back into a row per pixel (Lanes::write_rows),
+// then Lab. The block's pixels are consecutive in the outputs (flat index first + i).
+template <typename Raw, typename Stage2, typename Lanes>
 SPHEREJAX_INLINE void correct_block_with_residual(const Problem& pr, int64_t first, int64_t count) {
   const int64_t B = Stage2::kBands ? Stage2::kBands : pr.bands;
   alignas(64) float rows[kBlock][kMaxBands];
@@ -456,20 +520,20 @@ SPHEREJAX_INLINE void correct_block_with_residual(const Problem& pr, int64_t fir
     quality[i] = stage2_at<Raw, Stage2>(pr, at, rows[i]);
     at.next(pr, i);
   }
-  Stage2::columns(rows, B, tilde);
-  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += kLanes) residual_of_16<Stage2>(pr, B, tilde, lane0, out);
-  Stage2::write_rows(out, count, pr.reflectance + first * kReflectance);
+  Lanes::columns(rows, B, tilde);
+  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Lanes::kWidth) residual_of<Lanes>(pr, B, tilde, lane0, out);
+  Lanes::write_rows(out, count, pr.reflectance + first * kReflectance);
   finish_block(pr, first, count, out + kReflectance, quality);
 }
 
 // correct_block with the Stage II `Stage2`, as a Block type for correct_blocks; the residual's
-// block where the call has one.
-template <typename Stage2>
+// block, with the lane policy `Lanes`, where the call has one.
+template <typename Stage2, typename Lanes>
 struct PixelByPixel {
   template <typename Raw>
   static SPHEREJAX_INLINE void run(const Problem& pr, int64_t first, int64_t count) {
     if (pr.inducing_rows > 0) {
-      correct_block_with_residual<Raw, Stage2>(pr, first, count);
+      correct_block_with_residual<Raw, Stage2, Lanes>(pr, first, count);
     } else {
       correct_block<Raw, Stage2>(pr, first, count);
     }

@@ -10,7 +10,7 @@ namespace spherejax_fused {
 // Compiled for three x86-64 levels and picked at load time (target_clones): the compiler's own
 // vectorisation for AVX-512, AVX2 and baseline SSE2.
 SPHEREJAX_CLONES void correct_range_generic(const Problem& pr, int64_t first, int64_t last) {
-  correct_blocks<PixelByPixel<GenericStage2>>(pr, first, last);
+  correct_blocks<PixelByPixel<GenericStage2, GenericLanes>>(pr, first, last);
 }
 
 }  // namespace spherejax_fused

@@ -1,6 +1,7 @@
 // The CPython module spherejax._engine._fused_correct: the kernel's FFI handler as a capsule for
-// jax.ffi.register_ffi_target, the kernel on buffers without XLA, and what spherejax._engine.fused
-// needs to choose a variant (spherejax/_engine/fused.py).
+// jax.ffi.register_ffi_target, the kernel on buffers without XLA, what spherejax._engine.fused
+// needs to choose a variant (spherejax/_engine/fused.py), and what the kernel supports
+// (capabilities()).
 
 #include <Python.h>  // first, as Python asks
 
@@ -128,6 +129,30 @@ static PyObject* supported_variants(PyObject*, PyObject*) {
   return tuple;
 }
 
+// capabilities() -> dict: what the kernel computes, for spherejax._engine to read rather than
+// repeat (fused_correct.h says why each is what it is):
+//   "max_bands"          int: the most bands a call takes (kMaxBands, 64);
+//   "variant_bands"      int: the band count with code of its own per variant (16); every other
+//                        band count runs the generic code whichever variant is asked for;
+//   "raw_dtypes"         tuple of str: the raw dtypes taken ("uint16", "float32");
+//   "residual_rank"      int: the rank of the kernel residual's weights A = P G (factor (M, r),
+//                        basis (r, 34)) a call passes (kResidualRank, 8); a residual of lower rank
+//                        comes padded with zeros, one of higher rank is not the kernel's;
+//   "residual_rows"      int: whitening and inducing rows come in multiples of this (8), zero rows
+//                        appended (a padding inducing point has factor 0);
+//   "residual_variants"  tuple of str: the variants whose code applies the kernel residual
+//                        ("avx512", "avx2", "generic": all of them; which of them this CPU runs is
+//                        supported_variants()).
+static PyObject* capabilities(PyObject*, PyObject*) {
+  constexpr Variant kResidualVariants[] = {Variant::kAvx512, Variant::kAvx2, Variant::kGeneric};
+  const char* names[3];
+  for (int k = 0; k < 3; ++k) names[k] = variant_name(static_cast<int32_t>(kResidualVariants[k]));
+  return Py_BuildValue("{s:L,s:L,s:(ss),s:L,s:L,s:(sss)}", "max_bands", static_cast<long long>(kMaxBands),
+                       "variant_bands", static_cast<long long>(kLanes), "raw_dtypes", "uint16", "float32",
+                       "residual_rank", static_cast<long long>(kResidualRank), "residual_rows",
+                       static_cast<long long>(kResidualRows), "residual_variants", names[0], names[1], names[2]);
+}
+
 // ffi_api_version() -> (major, minor): the XLA FFI API version of the headers this was compiled
 // against, which XLA compares with its own when the handler is registered (setup.py).
 static PyObject* ffi_api_version(PyObject*, PyObject*) {
@@ -140,6 +165,17 @@ static PyMethodDef methods[] = {
     {"correct_arrays", correct_arrays, METH_VARARGS, "The fused correction on C-contiguous buffers, without XLA."},
     {"supported_variants", supported_variants, METH_NOARGS,
      "The instruction-set variants this build has and this CPU runs, widest first."},
+    {"capabilities", capabilities, METH_NOARGS,
+     "capabilities() -> dict: what the kernel computes.\n\n"
+     "max_bands (int): the most bands a call takes.\n"
+     "variant_bands (int): the band count with code of its own per variant; every other band count runs the "
+     "generic code whichever variant is asked for.\n"
+     "raw_dtypes (tuple of str): the raw dtypes taken.\n"
+     "residual_rank (int): the rank r of the kernel residual's weights A = P G a call passes (factor (M, r), "
+     "basis (r, 34)); lower ranks come padded with zeros.\n"
+     "residual_rows (int): whitening and inducing rows come in multiples of this, zero rows appended.\n"
+     "residual_variants (tuple of str): the variants whose code applies the kernel residual (which of them "
+     "this CPU runs: supported_variants())."},
     {nullptr, nullptr, 0, nullptr},
 };
 
