@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .pipeline import correct, patch_ratio
+from .pipeline import correct, patch_ratio, plan
 
 if TYPE_CHECKING:  # for the annotations only: a workflow takes the readers it is given
     from . import io
@@ -75,6 +75,13 @@ def _correct_rows(cube: io.CubeReader, calibration: io.CalibrationFile, row0: in
     return correct(raw, calibration.rows(row0, row1, padded_to=height), p=p)
 
 
+def _rows_by_the_whole_plan(cube: io.CubeReader, calibration: io.CalibrationFile, row0: int, row1: int, p):
+    """Rows row0:row1 corrected by the plan of the whole image (`spherejax._engine.plan.Plan.rows`):
+    one plan for every strip of every input of a calibration held in memory."""
+    raw = np.ascontiguousarray(cube.read_rows(row0, row1))
+    return plan(calibration.calibration(), (*calibration.image_shape, calibration.bands), dtype=raw.dtype).rows(raw, row0, p)
+
+
 def image_patch_ratio(cube: io.CubeReader, calibration: io.CalibrationFile):
     """The white-patch ratio p (B,) of a whole image, reading only the patch's rows."""
     r0, r1, c0, c1 = calibration.patch_box
@@ -114,6 +121,13 @@ def correct_strips(
         # runs on the frame where it lies (the plan's direct route), p from the patch's box as
         # `image_patch_ratio` takes it, so the same numbers.
         strips = [(0, height, lambda: correct(cube.read_rows(0, height), calibration.calibration()))]
+    elif calibration.in_memory:
+        # Every strip of every input through the whole calibration's one plan (`Plan.rows`).
+        p = image_patch_ratio(cube, calibration)
+        strips = [
+            (row0, min(row0 + step, height), functools.partial(_rows_by_the_whole_plan, cube, calibration, row0, min(row0 + step, height), p))
+            for row0 in range(0, height, step)
+        ]
     else:
         p = image_patch_ratio(cube, calibration)
         strips = [

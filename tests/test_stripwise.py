@@ -342,3 +342,90 @@ def test_archive_input_damaged_mid_image_leaves_nothing(tmp_path, rng, calibrati
     result = archive.correct_input(spec, out, path, rows_per_strip=16)
     assert result.status == "failed" and "cut.tif: is truncated or corrupted: rows" in result.reason
     assert list(out.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------ one plan per input
+
+
+def test_strips_of_every_input_reuse_the_plan_of_the_first(tmp_path, rng, calibration_path, monkeypatch):
+    """Three inputs of seven strips each, the calibration held in memory: the first input makes
+    every plan its strips need (with the fused kernel, one: the whole frame's, whose `Plan.rows`
+    slices dark and white for each strip and runs the kernel on the NumPy rows where they lie),
+    the others make none; the numbers are the whole-image call's."""
+    from spherejax._engine import fused
+    from spherejax._engine.plan import Plan
+
+    made, direct = [], []
+    plan_init, correct_directly = Plan.__init__, Plan._correct_directly
+
+    def counting_init(self, calibration, shape, *args, **kwargs):
+        made.append(tuple(shape))
+        plan_init(self, calibration, shape, *args, **kwargs)
+
+    def counting_direct(self, raw, p=None, rows=None):
+        direct.append(rows)
+        return correct_directly(self, raw, p, rows)
+
+    monkeypatch.setattr(Plan, "__init__", counting_init)
+    monkeypatch.setattr(Plan, "_correct_directly", counting_direct)
+    per_input = []
+    with io.open_calibration(calibration_path) as opened:
+        whole = opened.calibration()
+        for k in range(3):
+            raw = make_raw(np.random.default_rng(k))
+            io.write_frame(tmp_path / f"{k}.tif", raw)
+            with io.open_cube(tmp_path / f"{k}.tif", expected_shape=(H, W, B)) as cube:
+                assert_same_as_whole(strips_of(cube, opened, 7), spherejax.correct(raw, whole))
+            per_input.append(len(made))
+    assert per_input[1] == per_input[2] == per_input[0], made
+    strips = -(-H // 7)
+    if fused.enabled():
+        # The whole frame's plan and the patch box's, nothing a strip: every strip went direct.
+        assert sorted(made) == sorted([(H, W, B), (PATCH[1] - PATCH[0], PATCH[3] - PATCH[2], B)]), made
+        assert direct == [(r, min(r + 7, H)) for r in range(0, H, 7)] * 3
+    else:
+        assert len(made) == 2 + strips and direct == []
+
+
+def test_one_strip_of_an_in_memory_calibration_is_the_whole_frame_call(tmp_path, rng, calibration_path, monkeypatch):
+    """An image corrected in one strip with a calibration held in memory goes through
+    `correct(frame, calibration)` itself (the plan of the whole frame, p from the patch's box),
+    with the file's one Calibration object; the numbers are the strips'."""
+    calls = []
+    real = stripwise.correct
+
+    def spy(raw, calibration, **kwargs):
+        calls.append((raw.shape, calibration, sorted(kwargs)))
+        return real(raw, calibration, **kwargs)
+
+    monkeypatch.setattr(stripwise, "correct", spy)
+    raw = make_raw(rng)
+    io.write_frame(tmp_path / "a.tif", raw)
+    with io.open_calibration(calibration_path) as opened, io.open_cube(tmp_path / "a.tif", expected_shape=(H, W, B)) as cube:
+        assert opened.in_memory and opened.calibration() is opened.calibration()
+        one = strips_of(cube, opened, None)
+        assert calls == [((H, W, B), opened.calibration(), [])]
+        calls.clear()
+        assert_same_as_whole(strips_of(cube, opened, 4), spherejax.correct(raw, opened.calibration()))
+        assert calls == []  # several strips: the whole plan's rows (the test above)
+    assert_same_as_whole(one, spherejax.correct(raw, opened.calibration()))
+
+
+@pytest.mark.parametrize("switch", ["auto", "0"])
+def test_plan_rows_equal_correct_with_the_calibration_rows(rng, calibration, monkeypatch, switch):
+    """`Plan.rows` (the fused kernel on NumPy rows, or with SPHEREJAX_FUSED=0 the rows' own plan)
+    gives `correct(rows, calibration.rows(...), p=p)` bit for bit; rows outside the image or of
+    another width are refused naming the shape."""
+    monkeypatch.setenv("SPHEREJAX_FUSED", switch)
+    raw = make_raw(rng)
+    p = pipeline.patch_ratio(raw, calibration)
+    prepared = spherejax.plan(calibration, raw.shape, dtype=raw.dtype)
+    for row0, row1 in ((0, 7), (21, 45), (44, 45)):
+        got = prepared.rows(np.ascontiguousarray(raw[row0:row1]), row0, p)
+        want = spherejax.correct(raw[row0:row1], calibration.rows(row0, row1), p=p)
+        for key in ("reflectance", "lab", "quality"):
+            assert np.asarray(getattr(got, key)).tobytes() == np.asarray(getattr(want, key)).tobytes(), (row0, key)
+    with pytest.raises(ValueError, match=r"expected rows \(n, 38, 16\) of the image from row 40"):
+        prepared.rows(raw[:10], 40, p)  # rows 40:50 of a 45-row image
+    with pytest.raises(ValueError, match=r"got shape \(3, 37, 16\)"):
+        prepared.rows(raw[:3, :37], 0, p)

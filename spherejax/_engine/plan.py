@@ -346,7 +346,32 @@ class Plan:
         buffers.give(key, (result.reflectance, result.lab, result.quality))
         return result
 
-    def _correct_directly(self, raw: np.ndarray, p=None) -> CorrectionResult:
+    def rows(self, raw, row0: int, p) -> CorrectionResult:
+        """Rows row0:row0 + n of one image, raw (n, W, B), with the whole image's p (B,): what
+        `correct(raw, calibration.rows(row0, row0 + n), p=p)` returns, bit for bit, by this plan of
+        the whole frame, so that every strip of every input shares it (`spherejax.stripwise`).
+
+        The fused kernel reads NumPy rows where they lie with the rows' dark and white sliced from
+        the plan's own arrays (no Calibration, plan or constants made per strip); elsewhere (the
+        jax.numpy definition, the GPU) the calibration's rows, kept by this plan per row range, go
+        through their own plan."""
+        height, width, bands = self.shape[-3:]
+        raw_shape = tuple(getattr(raw, "shape", ()))
+        if len(raw_shape) != 3 or raw_shape[1:] != (width, bands) or not 0 <= row0 < row0 + raw_shape[0] <= height:
+            raise ValueError(f"raw: expected rows (n, {width}, {bands}) of the image from row {row0} within its "
+                             f"{height} rows, got shape {raw_shape}")
+        row1 = row0 + raw_shape[0]
+        if (self.reads_numpy and len(self.shape) == 3 and isinstance(raw, np.ndarray) and raw.flags.c_contiguous
+                and raw.dtype == self.dtype and _checks.is_concrete(p)):
+            return self._correct_directly(raw, p, rows=(row0, row1))
+        calibration = self._calibration()
+        kept = self.__dict__.setdefault("_row_calibrations", {})
+        rows = kept.get((row0, row1))
+        if rows is None:
+            rows = kept.setdefault((row0, row1), calibration.rows(row0, row1))
+        return plan_for(rows, raw_shape, raw.dtype)(raw, p=p)
+
+    def _correct_directly(self, raw: np.ndarray, p=None, rows: tuple[int, int] | None = None) -> CorrectionResult:
         """NumPy frames by the fused kernel called directly (`fused.correct_arrays`), without
         XLA: the same numbers as `_whole` bit for bit (tested), but the kernel reads the frames
         where they lie, where XLA needs them copied into its own memory first (32 MB a megapixel
@@ -354,7 +379,8 @@ class Plan:
         handed to JAX without a copy. p: given (rows of an image, `correct(rows, calibration_rows,
         p=p)`: the same kernel and constants as `steps.pixels_step`, so the same bits), or None for
         whole frames: from `steps.patch_ratio_step` on the patch's box of the frames (a small
-        copy), the program `_whole` traces into its own."""
+        copy), the program `_whole` traces into its own. rows: (row0, row1) when raw holds only
+        those rows of the frame (`rows`): the kernel reads their slice of dark and white."""
         if p is None:
             (r0, c0), (h, w) = self.box_origin_host, self.box_shape
             p = steps.patch_ratio_step(
@@ -372,8 +398,11 @@ class Plan:
         )
         (reflectance, _), (lab, _), (quality, _) = pairs
         k = self._direct
+        dark, white = k["dark"], k["white"]
+        if rows is not None:  # row-major pixels: rows row0:row1 are one contiguous slice
+            dark, white = (x[rows[0] * width:rows[1] * width] for x in (dark, white))
         fused.correct_arrays(
-            raw.reshape(images, pixels, bands), k["dark"], k["white"], np.asarray(p).reshape(images, bands),
+            raw.reshape(images, pixels, bands), dark, white, np.asarray(p).reshape(images, bands),
             k["coeffs"], k["projection"], k["bias"], k["white_xyz"], self.saturation, self.kernel.variant,
             (reflectance.reshape(images, pixels, N_WAVELENGTHS), lab.reshape(images, pixels, 3),
              quality.reshape(images, pixels)),
