@@ -482,6 +482,11 @@ def test_a_plan_takes_the_kernel_for_a_kernel_estimator_calibration():
     residual = with_residual(raw, p, PixelConstants.of(affine, np.float32), 64).wiener_residual
     calibration = dataclasses.replace(affine, wiener_residual=residual)
     kernel, reference = plans(raw, calibration)
+    # The kernel's constants are made once, by the plan, and are what every call reads.
+    expected = jax.jit(gpu_kernel.prepare)(kernel.constants)
+    assert reference.prepared is None and kernel.prepared is not None
+    for mine, theirs in zip(jax.tree_util.tree_leaves(kernel.prepared), jax.tree_util.tree_leaves(expected), strict=True):
+        np.testing.assert_array_equal(np.asarray(mine), np.asarray(theirs))
     got, want = kernel(raw), reference(raw)
     assert_agree(outputs(got), outputs(want))
     good = np.asarray(want.quality) == 0

@@ -48,11 +48,13 @@ class PixelKernel:
       direct: True if it also corrects NumPy frames without XLA (`fused.correct_arrays`).
       reads_flat_field_mask: True if it reads the plan's (H, W) mask of pixels without a flat
         field (`equations.flat_field_unusable`) instead of working it out from dark and white.
+      prepares: True if `prepare` derives constants the plan should make once.
     """
 
     mode: str | None = None
     direct: bool = False
     reads_flat_field_mask: bool = False
+    prepares: bool = False
 
     def refusal(self, raw_dtype, compute_dtype, bands: int, residual, concrete: bool) -> str | None:
         """None if this kernel computes frames of `raw_dtype` in `compute_dtype` with `bands`
@@ -60,12 +62,19 @@ class PixelKernel:
         concrete: the calibration's arrays are concrete (not traced)."""
         raise NotImplementedError
 
-    def pixel_outputs(self, raw, p, constants: PixelConstants, *, saturation, out=None, no_flat_field=None):
+    def prepare(self, constants: PixelConstants):
+        """What this kernel derives from the calibration's arrays once (a pytree of arrays, made by
+        the plan with `jax.jit` and passed to every `pixel_outputs`), or None for nothing."""
+        return None
+
+    def pixel_outputs(self, raw, p, constants: PixelConstants, *, saturation, out=None, no_flat_field=None,
+                      prepared=None):
         """(reflectance (..., H, W, 31), lab (..., H, W, 3), quality (..., H, W) uint8) of raw
         (..., H, W, B) with the white-patch ratio p (..., B), traced inside a jitted step.
 
         out: None, or donated arrays of the outputs' shapes whose memory the outputs may take
-        (`steps.image_step_into`). no_flat_field: None, or the plan's (H, W) mask."""
+        (`steps.image_step_into`). no_flat_field: None, or the plan's (H, W) mask. prepared:
+        `prepare(constants)` made once by the plan, or None (made in the call's program)."""
         raise NotImplementedError
 
 
@@ -78,7 +87,7 @@ class JaxNumpy(PixelKernel):
     def refusal(self, raw_dtype, compute_dtype, bands, residual, concrete):
         return None
 
-    def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None):
+    def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None, prepared=None):
         def plain(raw, p, constants):
             return equations.pixel_outputs(raw, p, constants, saturation=saturation, no_flat_field=no_flat_field)
 
@@ -117,7 +126,7 @@ class FusedCpu(PixelKernel):
                         "applies (a file not made by spherejax's fit)")
         return None
 
-    def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None):
+    def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None, prepared=None):
         c = constants
         return fused.correct_pixels(
             _positional_definition(saturation), raw, c.dark, c.white, p, c.coeffs, c.wiener, c.wiener_offset,
@@ -131,6 +140,7 @@ class PallasGpu(PixelKernel):
     backend: the tests')."""
 
     pallas_mode: str = gpu_kernel.GPU
+    prepares = True
 
     @property
     def mode(self) -> str:
@@ -144,8 +154,12 @@ class PallasGpu(PixelKernel):
             return "the GPU kernel does not apply this kernel residual (`gpu_kernel.applies_residual`)"
         return None
 
-    def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None):
-        return gpu_kernel.pixel_outputs(raw, p, constants, saturation=saturation, kernel_mode=self.pallas_mode)
+    def prepare(self, constants):
+        return gpu_kernel.prepare(constants)
+
+    def pixel_outputs(self, raw, p, constants, *, saturation, out=None, no_flat_field=None, prepared=None):
+        return gpu_kernel.pixel_outputs(raw, p, constants, saturation=saturation, kernel_mode=self.pallas_mode,
+                                        prepared=prepared)
 
 
 def _positional_definition(saturation):

@@ -203,6 +203,9 @@ class Plan:
         else:
             self.route = PROGRAM
         self._direct = self._kernel_arrays() if self.reads_numpy else None
+        # What the kernel derives from the constants (the GPU kernel's padded, folded arrays and its
+        # residual's), once here rather than in every call's program.
+        self.prepared = jax.jit(self.kernel.prepare)(self.constants) if self.concrete and self.kernel.prepares else None
         self._into = None
         self._lock = threading.Lock()
         if self.kernel == kernels.PallasGpu(gpu_kernel.GPU) and self.concrete:
@@ -226,6 +229,7 @@ class Plan:
             _log.debug("the GPU kernel did not compile for %s frames of %s (%s: %s); using the jax.numpy path",
                        self.shape, self.dtype, type(error).__name__, error)
             self.kernel, self.kernel_refusal = kernels.DEFINITION, f"the GPU kernel did not compile ({error})"
+            self.prepared = None
             # The mask the jax.numpy path's plans read (`_prepare`).
             self.no_flat_field = _no_flat_field(self.constants.dark, self.constants.white)
         finally:
@@ -235,7 +239,7 @@ class Plan:
         """The per-pixel step of frames with p = 1 (a plan without a patch box: `_compile_gpu_kernel`)."""
         p = jnp.ones((*raw.shape[:-3], raw.shape[-1]), self.compute_dtype)
         return steps.pixels_step(raw, p, self.constants, saturation=self.saturation, intermediates=False,
-                                 kernel=self.kernel)
+                                 kernel=self.kernel, prepared=self.prepared)
 
     # ---------------------------------------------------------------------------------------
     # What the routes read
@@ -313,11 +317,11 @@ class Plan:
                 return self._correct_directly(raw, p)
             return steps.pixels_step(
                 raw, p, self.constants, saturation=self.saturation, intermediates=intermediates,
-                kernel=self.kernel, noise=noise, p_u=p_u,
+                kernel=self.kernel, noise=noise, p_u=p_u, prepared=self.prepared,
             )
         if noise is not None or intermediates:
             return steps.image_step(raw, self.constants, self.patch, self.box_origin, intermediates=intermediates,
-                                    noise=noise, **self._statics())
+                                    noise=noise, prepared=self.prepared, **self._statics())
         if self.route == DIRECT and direct:
             return self._correct_directly(raw)
         if isinstance(raw, np.ndarray):
@@ -331,7 +335,7 @@ class Plan:
 
     def _whole(self, raw, out=None) -> CorrectionResult:
         return steps.image_step(raw, self.constants, self.patch, self.box_origin, intermediates=False,
-                                no_flat_field=self.no_flat_field, out=out, **self._statics())
+                                no_flat_field=self.no_flat_field, out=out, prepared=self.prepared, **self._statics())
 
     def _correct_recycling(self, raw) -> CorrectionResult:
         """Whole frames on CPU, reusing the memory of outputs the caller has dropped

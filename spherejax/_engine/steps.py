@@ -59,7 +59,7 @@ def patch_ratio_std_step(raw, patch: PatchConstants, noise, box_origin, *, box_s
 
 
 def _pixels_plain(raw, p, constants: PixelConstants, *, saturation, intermediates, kernel, out=None,
-                  no_flat_field=None) -> CorrectionResult:
+                  no_flat_field=None, prepared=None) -> CorrectionResult:
     """`pixels_step` without uncertainties (traced inside it): the plan's kernel, and with
     `intermediates` the cubes it never forms (v, v_stage1, v_stage2) from the definition, whose
     own reflectance and Lab XLA drops as unused. The main outputs stay the kernel's whatever else
@@ -70,17 +70,18 @@ def _pixels_plain(raw, p, constants: PixelConstants, *, saturation, intermediate
             raw, p, constants, saturation=saturation, intermediates=True, no_flat_field=no_flat_field
         )
         if kernel != kernels.DEFINITION:
-            reflectance, lab, quality = kernel.pixel_outputs(raw, p, constants, saturation=saturation)
+            reflectance, lab, quality = kernel.pixel_outputs(raw, p, constants, saturation=saturation,
+                                                             prepared=prepared)
         return CorrectionResult(reflectance, lab, quality, p, *cubes)
     reflectance, lab, quality = kernel.pixel_outputs(
-        raw, p, constants, saturation=saturation, out=out, no_flat_field=no_flat_field
+        raw, p, constants, saturation=saturation, out=out, no_flat_field=no_flat_field, prepared=prepared
     )
     return CorrectionResult(reflectance, lab, quality, p)
 
 
 @functools.partial(jax.jit, static_argnames=("saturation", "intermediates", "kernel"))
 def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates: bool, kernel: kernels.PixelKernel,
-                noise=None, p_u=None, out=None, no_flat_field=None) -> CorrectionResult:
+                noise=None, p_u=None, out=None, no_flat_field=None, prepared=None) -> CorrectionResult:
     """Every pixel of `raw` (..., H, W, B) given the white-patch ratio p (..., B).
 
     `kernel` (static): the per-pixel kernel the plan chose (`kernels.choose`). With a
@@ -89,11 +90,12 @@ def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates:
     of the three outputs' shapes whose memory the jax.numpy path's outputs take on CPU
     (`pixel_outputs_in_blocks`; the kernel's take it through XLA's buffer assignment).
     no_flat_field: None, or the constants' (H, W) `_no_flat_field` mask, which the jax.numpy path
-    then reads instead of working it out from dark and white again.
+    then reads instead of working it out from dark and white again. prepared: the kernel's
+    constants made once by the plan (`kernels.PixelKernel.prepare`), or None.
     """
     result = _pixels_plain(
         raw, p, constants, saturation=saturation, intermediates=intermediates, kernel=kernel, out=out,
-        no_flat_field=no_flat_field,
+        no_flat_field=no_flat_field, prepared=prepared,
     )
     if noise is None:
         return result
@@ -111,7 +113,7 @@ def pixels_step(raw, p, constants: PixelConstants, *, saturation, intermediates:
 @functools.partial(jax.jit, static_argnames=("box_shape", "saturation", "intermediates", "kernel"))
 def image_step(raw, constants: PixelConstants, patch: PatchConstants, box_origin, *, box_shape, saturation,
                intermediates: bool, kernel: kernels.PixelKernel, noise=None, out=None,
-               no_flat_field=None) -> CorrectionResult:
+               no_flat_field=None, prepared=None) -> CorrectionResult:
     """`correct` of whole frames as one program: p over the patch's box, then every pixel.
 
     The same two steps as `patch_ratio_step` then `pixels_step`, traced together: one dispatch
@@ -123,7 +125,7 @@ def image_step(raw, constants: PixelConstants, patch: PatchConstants, box_origin
         p_u = patch_ratio_std_step(raw, patch, noise, box_origin, box_shape=box_shape, saturation=saturation)
     return pixels_step(
         raw, p, constants, saturation=saturation, intermediates=intermediates, kernel=kernel, noise=noise,
-        p_u=p_u, out=out, no_flat_field=no_flat_field,
+        p_u=p_u, out=out, no_flat_field=no_flat_field, prepared=prepared,
     )
 
 
