@@ -284,3 +284,22 @@ def test_the_kernel_refuses_a_residual_without_whitening_and_shapes_that_do_not_
         jax.block_until_ready(ffi(arrays["raw"], *inputs[2:], whitening, inducing, factor[:, :4], basis,
                                   saturation=np.float32(np.nan), variant=np.int32(0)))
 
+
+
+def test_the_plan_reads_what_the_fused_kernel_declares(near_the_frame, monkeypatch):
+    """The kernel contract: the plan takes the fused kernel for a kernel calibration only where the
+    compiled kernel declares that its variant applies a residual (`fused.capabilities`), and says
+    why not otherwise."""
+    from spherejax._engine import kernels
+
+    _, _, cut, raw = near_the_frame
+    declared = fused.capabilities()
+    assert set(declared["residual_variants"]) == set(fused.VARIANTS) and declared["residual_rank"] == fused.RESIDUAL_RANK
+    variant = fused.mode(raw.dtype, np.float32, cut.bands)
+    assert sj.plan(cut, raw.shape, dtype=raw.dtype).kernel_mode == variant
+    without = {**declared, "residual_variants": tuple(v for v in declared["residual_variants"] if v != variant)}
+    monkeypatch.setattr(fused, "capabilities", lambda: without)
+    kernel, reason = kernels.choose(fused.AUTO, raw.dtype, np.float32, cut.bands, cut.wiener_residual, True, jax.devices("cpu")[0])
+    assert kernel == kernels.DEFINITION and reason == f"the fused kernel's {variant} code does not apply a kernel residual"
+    assert kernels.choose(fused.AUTO, raw.dtype, np.float32, cut.bands, None, True, jax.devices("cpu")[0]) == (
+        kernels.FusedCpu(variant), None)

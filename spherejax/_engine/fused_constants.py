@@ -12,6 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .fused_extension import capabilities
+
 
 def kernel_constants(wiener, wiener_offset, weights):
     """What the kernel takes of the estimator and the illuminant: projection (B, 34) = [W^T | W^T
@@ -26,11 +28,17 @@ def kernel_constants(wiener, wiener_offset, weights):
     return projection, bias, jnp.sum(weights, axis=0)
 
 
-#: The rank of a kernel residual's weights A (31, m) the kernel applies (kernel/fused_correct.h,
-#: kResidualRank): A = P G with P (31, 8) and G (8, m), eight multiply-adds per inducing point and
-#: pixel. The fit keeps A at this rank or less (`estimation.kernel_residual.RESIDUAL_RANK`); a
-#: residual of higher rank (a file not made by the fit) takes the jax.numpy path (`residual_fits`).
-RESIDUAL_RANK = 8
+#: The rank of a kernel residual's weights A (31, m) the kernel applies, as the compiled kernel
+#: declares it (`fused_extension.capabilities`, kResidualRank of kernel/fused_correct.h; 8 where
+#: it was not built, the layout the sources define): A = P G with P (31, 8) and G (8, m), eight
+#: multiply-adds per inducing point and pixel. The fit keeps A at this rank or less
+#: (`estimation.kernel_residual.RESIDUAL_RANK`); a residual of higher rank (a file not made by the
+#: fit) takes the jax.numpy path (`residual_fits`).
+RESIDUAL_RANK = int(capabilities().get("residual_rank", 8))
+
+#: The kernel takes the residual's whitening and inducing rows in groups of this many (zero rows
+#: pad them), as it declares (`capabilities`, "residual_rows").
+RESIDUAL_ROWS = int(capabilities().get("residual_rows", 8))
 
 
 def _padded_rows(x, multiple: int):
@@ -69,15 +77,15 @@ def residual_constants(residual, weights, bands: int):
     hi = jax.lax.Precision.HIGHEST
     f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
     mu, S, Z, A = (f32(x) for x in (residual.centre, residual.whitening, residual.inducing, residual.weights))
-    whitening = _padded_rows(jnp.concatenate([S, -jnp.matmul(S, mu, precision=hi)[:, None]], axis=1), 8)
+    whitening = _padded_rows(jnp.concatenate([S, -jnp.matmul(S, mu, precision=hi)[:, None]], axis=1), RESIDUAL_ROWS)
     Y = jnp.matmul(Z, S, precision=hi)  # (m, B): row j is S^T z_j
     c = -jnp.matmul(Y, mu, precision=hi) - 0.5 * jnp.sum(Z * Z, axis=1)
-    inducing = _padded_rows(jnp.concatenate([Y, c[:, None]], axis=1), 8)
+    inducing = _padded_rows(jnp.concatenate([Y, c[:, None]], axis=1), RESIDUAL_ROWS)
     U, singular, Vt = jnp.linalg.svd(A, full_matrices=False)
     rank = min(RESIDUAL_RANK, singular.shape[0])
     P = jnp.pad(U[:, :rank] * singular[:rank], ((0, 0), (0, RESIDUAL_RANK - rank)))  # (31, 8)
     G = jnp.pad(Vt[:rank], ((0, RESIDUAL_RANK - rank), (0, 0)))  # (8, m)
-    factor = _padded_rows(G.T, 8)
+    factor = _padded_rows(G.T, RESIDUAL_ROWS)
     basis = jnp.concatenate([P.T, jnp.matmul(P.T, f32(weights), precision=hi)], axis=1)
     return whitening, inducing, factor, basis
 

@@ -112,13 +112,17 @@ class FusedCpu(PixelKernel):
         return self.variant
 
     def refusal(self, raw_dtype, compute_dtype, bands, residual, concrete):
+        # What the compiled kernel declares it supports (module.cc, `capabilities`).
+        declared = fused.capabilities()
         if np.dtype(compute_dtype) != np.float32:
             return f"the fused kernel computes in float32, not {np.dtype(compute_dtype)}"
-        if np.dtype(raw_dtype) not in fused.RAW_DTYPES:
-            return f"the fused kernel reads uint16 or float32 raw, not {np.dtype(raw_dtype)}"
-        if not 1 <= bands <= fused.MAX_BANDS:
-            return f"the fused kernel takes 1 to {fused.MAX_BANDS} bands, not {bands}"
+        if np.dtype(raw_dtype).name not in declared.get("raw_dtypes", ()):
+            return f"the fused kernel reads {' or '.join(declared.get('raw_dtypes', ()))} raw, not {np.dtype(raw_dtype)}"
+        if not 1 <= bands <= declared.get("max_bands", 0):
+            return f"the fused kernel takes 1 to {declared.get('max_bands', 0)} bands, not {bands}"
         if residual is not None:
+            if self.variant not in declared.get("residual_variants", ()):
+                return f"the fused kernel's {self.variant} code does not apply a kernel residual"
             if not concrete:
                 return "a traced kernel residual: its rank cannot be checked against the kernel's"
             if not fused.residual_fits(residual):
