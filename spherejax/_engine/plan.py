@@ -251,7 +251,8 @@ class Plan:
         c = self.constants
         pixels = self.shape[-3] * self.shape[-2]
         projection, bias, white_xyz = jax.jit(fused.kernel_constants)(c.wiener, c.wiener_offset, c.tristimulus_weights)
-        residual = jax.jit(fused.residual_constants, static_argnums=2)(c.wiener_residual, c.tristimulus_weights, c.bands)
+        residual = jax.jit(fused.residual_constants, static_argnums=2)(c.wiener_residual, c.tristimulus_weights,
+                                                                      c.bands)
         return {
             "dark": np.asarray(c.dark).reshape(pixels, c.bands), "white": np.asarray(c.white).reshape(pixels, c.bands),
             "coeffs": np.asarray(c.coeffs), "projection": np.asarray(projection), "bias": np.asarray(bias),
@@ -477,6 +478,7 @@ class Plan:
 _no_flat_field = jax.jit(equations.flat_field_unusable)
 
 
+
 def _on_device(raw, device) -> bool:
     """True when raw is a jax.Array on exactly `device`."""
     try:
@@ -504,4 +506,7 @@ def plan_for(calibration: Calibration, shape, dtype) -> Plan:
         return plan
     if not _concrete(calibration):
         return Plan(calibration, shape, dtype)
-    return calibration._plan(key, lambda: Plan(calibration, shape, dtype))
+    # Made now even while a trace runs (frames mapped with `jax.vmap`, a caller's `jit`): a kept
+    # plan holds the calibration's arrays, never that trace's tracers of them.
+    with jax.ensure_compile_time_eval():
+        return calibration._plan(key, lambda: Plan(calibration, shape, dtype))
