@@ -18,6 +18,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+import spherejax
 from spherejax.grid import WAVELENGTHS_NM
 from spherejax.polynomial import PAPER_TABLE_2
 from spherejax.simulate import ExperimentDesign
@@ -309,3 +310,59 @@ def nonlinear_targets(rng, n):
     basis = np.sin(np.linspace(0, 3, 31))[None]
     R = 0.3 + V @ fixed.normal(scale=0.05, size=(8, 31)) + 0.05 * np.sin(3 * t[:, :1] + 2 * t[:, 1:2]) * basis
     return V, R
+
+
+def numpy_kernel_estimate(v, calibration):
+    """W v + r0 + A k(v) in float64 of Stage II responses v (..., B) with a calibration whose
+    estimator has a kernel residual: E9-E10 of spherejax.estimation.kernel_residual written out,
+    the oracle the kernels' residual is tested against."""
+    k = calibration.wiener_residual
+    u = (v - np.asarray(k.centre, np.float64)) @ np.asarray(k.whitening, np.float64).T
+    features = np.exp(-0.5 * np.sum((u[..., None, :] - np.asarray(k.inducing, np.float64)) ** 2, axis=-1))
+    return (v @ np.asarray(calibration.wiener, np.float64).T + np.asarray(calibration.wiener_offset, np.float64)
+            + features @ np.asarray(k.weights, np.float64).T)
+
+
+#: The saturation level of `make_fused_case`'s frames (a 14-bit camera's full scale).
+FUSED_SATURATION = 16383.0
+
+
+def make_fused_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, saturation=FUSED_SATURATION, offset=False):
+    """(raw, calibration): frames with every kind of bad pixel for the fused kernel's tests, of
+    `bands` bands (`images` leading axes of raw); with
+    `offset`, a non-zero Wiener offset r0 of both signs (else r0 = 0)."""
+    rng = np.random.default_rng(seed)
+    dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
+    white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
+    # Reflectances from 0.001 to 1.2: XYZ / white spans both branches of the Lab companding.
+    level = np.exp(rng.uniform(np.log(1e-3), np.log(1.2), (*images, height, width, 1)))
+    raw = dark + (white - dark) * level * rng.uniform(0.9, 1.1, (*images, height, width, bands))
+    raw = np.clip(np.rint(raw), 0, saturation - 1)
+    index = (0,) * len(images)
+    raw[(*index, 3, 4, 5 % bands)] = saturation  # saturated
+    white[10, 11, 2 % bands] = dark[10, 11, 2 % bands]  # white == dark
+    white[12, 13, 3 % bands] = dark[12, 13, 3 % bands] - 5  # white < dark
+    raw[(*index, 12, 13, 0)] = saturation  # saturated and no flat field: two bits
+    # Below the dark level: by 7 % of the white signal (a dark frame 700 counts too high) ...
+    dark[2, 21, 1 % bands] += 700
+    raw[(*index, 2, 21, 1 % bands)] = 0
+    # ... and by 0.5 %, which noise allows: not flagged.
+    raw[(*index, 0, 22, 2 % bands)] = np.floor(dark[0, 22, 2 % bands] - 0.005 * (white - dark)[0, 22, 2 % bands])
+    if raw_dtype == np.float32:
+        white[14, 15, 1 % bands] = np.nan
+        white[16, 17, 0] = np.inf
+        raw[(*index, 6, 7, 0)] = np.nan
+        raw[(*index, 8, 9, bands - 1)] = -np.inf
+        raw[(*index, 18, 19, 0)] = np.inf
+        raw[(*index, 1, 20, 0)] = -1000.0  # a raw value of -1000 counts: v about -0.11
+    raw = raw.astype(raw_dtype)
+    patch = np.zeros((height, width), bool)
+    patch[height // 2 - 4:height // 2 + 4, width // 2 - 5:width // 2 + 5] = True
+    coeffs = np.asarray(PAPER_TABLE_2[np.arange(bands) % 16], np.float32)
+    wiener = (np.abs(rng.normal(0.0, 1.0, (31, bands))) / bands).astype(np.float32)
+    wiener_offset = (rng.uniform(-0.05, 0.05, 31) if offset else np.zeros(31)).astype(np.float32)
+    calibration = spherejax.Calibration(
+        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=saturation,
+        wiener_offset=wiener_offset,
+    )
+    return raw, calibration

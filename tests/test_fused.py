@@ -26,49 +26,8 @@ from spherejax.calibration import compute_dtype as _compute_dtype
 from spherejax.pipeline import patch_ratio
 from spherejax.polynomial import PAPER_TABLE_2
 
-from .helpers import cpu_only, image_program
+from .helpers import FUSED_SATURATION as SATURATION, cpu_only, image_program, make_fused_case as make_case
 
-SATURATION = 16383.0
-
-
-def make_case(height, width, bands, *, raw_dtype=np.uint16, images=(), seed=0, saturation=SATURATION, offset=False):
-    """A calibration and raw frames with every kind of bad pixel, for `bands` bands; with
-    `offset`, a non-zero Wiener offset r0 of both signs (else r0 = 0)."""
-    rng = np.random.default_rng(seed)
-    dark = rng.uniform(95, 105, (height, width, bands)).astype(np.float32)
-    white = (dark + rng.uniform(8000, 12000, (height, width, bands))).astype(np.float32)
-    # Reflectances from 0.001 to 1.2: XYZ / white spans both branches of the Lab companding.
-    level = np.exp(rng.uniform(np.log(1e-3), np.log(1.2), (*images, height, width, 1)))
-    raw = dark + (white - dark) * level * rng.uniform(0.9, 1.1, (*images, height, width, bands))
-    raw = np.clip(np.rint(raw), 0, saturation - 1)
-    index = (0,) * len(images)
-    raw[(*index, 3, 4, 5 % bands)] = saturation  # saturated
-    white[10, 11, 2 % bands] = dark[10, 11, 2 % bands]  # white == dark
-    white[12, 13, 3 % bands] = dark[12, 13, 3 % bands] - 5  # white < dark
-    raw[(*index, 12, 13, 0)] = saturation  # saturated and no flat field: two bits
-    # Below the dark level: by 7 % of the white signal (a dark frame 700 counts too high) ...
-    dark[2, 21, 1 % bands] += 700
-    raw[(*index, 2, 21, 1 % bands)] = 0
-    # ... and by 0.5 %, which noise allows: not flagged.
-    raw[(*index, 0, 22, 2 % bands)] = np.floor(dark[0, 22, 2 % bands] - 0.005 * (white - dark)[0, 22, 2 % bands])
-    if raw_dtype == np.float32:
-        white[14, 15, 1 % bands] = np.nan
-        white[16, 17, 0] = np.inf
-        raw[(*index, 6, 7, 0)] = np.nan
-        raw[(*index, 8, 9, bands - 1)] = -np.inf
-        raw[(*index, 18, 19, 0)] = np.inf
-        raw[(*index, 1, 20, 0)] = -1000.0  # a raw value of -1000 counts: v about -0.11
-    raw = raw.astype(raw_dtype)
-    patch = np.zeros((height, width), bool)
-    patch[height // 2 - 4:height // 2 + 4, width // 2 - 5:width // 2 + 5] = True
-    coeffs = np.asarray(PAPER_TABLE_2[np.arange(bands) % 16], np.float32)
-    wiener = (np.abs(rng.normal(0.0, 1.0, (31, bands))) / bands).astype(np.float32)
-    wiener_offset = (rng.uniform(-0.05, 0.05, 31) if offset else np.zeros(31)).astype(np.float32)
-    calibration = sj.Calibration(
-        dark=dark, white=white, patch=patch, coeffs=coeffs, wiener=wiener, saturation=saturation,
-        wiener_offset=wiener_offset,
-    )
-    return raw, calibration
 
 
 def correct_both(monkeypatch, raw, calibration, **kwargs):

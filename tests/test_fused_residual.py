@@ -23,7 +23,8 @@ import spherejax as sj
 from spherejax import estimation, pixel_constants
 from spherejax._engine import fused
 
-from .test_fused import make_case
+from .helpers import numpy_kernel_estimate
+from .helpers import make_fused_case as make_case
 
 pytestmark = pytest.mark.skipif(not fused.built(), reason="the fused kernel was not built")
 
@@ -49,15 +50,6 @@ def _with_residual(raw, calibration, inducing: int, rank: int, seed: int):
     A = rng.normal(scale=0.015, size=(31, rank)) @ rng.normal(size=(rank, inducing)) / np.sqrt(rank)
     residual = estimation.KernelResidual(*(jnp.asarray(x, jnp.float32) for x in (mu, S, Z, A)))
     return dataclasses.replace(calibration, wiener_residual=residual)
-
-
-def _numpy_estimate(v, calibration):
-    """W v + r0 + A k(v) in float64: E9-E10 written out."""
-    k = calibration.wiener_residual
-    u = (v - np.asarray(k.centre, np.float64)) @ np.asarray(k.whitening, np.float64).T
-    features = np.exp(-0.5 * np.sum((u[..., None, :] - np.asarray(k.inducing, np.float64)) ** 2, axis=-1))
-    return (v @ np.asarray(calibration.wiener, np.float64).T + np.asarray(calibration.wiener_offset, np.float64)
-            + features @ np.asarray(k.weights, np.float64).T)
 
 
 def _arrays(raw, calibration, p):
@@ -128,7 +120,7 @@ def test_the_residual_on_each_variant_is_the_definitions(frames, monkeypatch, va
     atol = 4e-6 if variant == fused.GENERIC else 2e-6
     np.testing.assert_allclose(reflectance[good], np.asarray(want.reflectance)[good], rtol=0, atol=atol)
     np.testing.assert_allclose(lab[good], np.asarray(want.lab)[good], rtol=0, atol=5e-4)
-    expected = _numpy_estimate(np.asarray(want.v_stage2, np.float64), calibration)
+    expected = numpy_kernel_estimate(np.asarray(want.v_stage2, np.float64), calibration)
     np.testing.assert_allclose(reflectance[good].astype(np.float64), expected[good], rtol=0, atol=atol + 1e-6)
 
 

@@ -17,6 +17,7 @@ import spherejax as sj
 from spherejax import estimation, pixel_constants
 from spherejax._engine import fused
 from tests.batch_support import B, frame, make_calibration
+from tests.helpers import numpy_kernel_estimate
 
 
 @pytest.fixture(scope="module")
@@ -30,21 +31,12 @@ def calibrations():
     return affine, dataclasses.replace(affine, wiener_residual=residual), frame(rng)
 
 
-def _numpy_estimate(v, calibration):
-    """W v + r0 + A k(v) in float64, the kernel written out (E9-E10)."""
-    k = calibration.wiener_residual
-    u = (v - np.asarray(k.centre, np.float64)) @ np.asarray(k.whitening, np.float64).T
-    features = np.exp(-0.5 * np.sum((u[..., None, :] - np.asarray(k.inducing, np.float64)) ** 2, axis=-1))
-    return (v @ np.asarray(calibration.wiener, np.float64).T + np.asarray(calibration.wiener_offset, np.float64)
-            + features @ np.asarray(k.weights, np.float64).T)
-
-
 def test_correct_applies_the_residual_and_lab_follows_the_reflectance(calibrations):
     _, kernel, raw = calibrations
     result = sj.correct(raw, kernel, intermediates=True)
     good = np.asarray(result.quality) == 0
     assert good.mean() > 0.9
-    expected = _numpy_estimate(np.asarray(result.v_stage2, np.float64), kernel)
+    expected = numpy_kernel_estimate(np.asarray(result.v_stage2, np.float64), kernel)
     got = np.asarray(result.reflectance, np.float64)
     np.testing.assert_allclose(got[good], expected[good], atol=2e-5)
     assert np.isnan(got[~good]).all()
@@ -108,7 +100,7 @@ def test_the_fused_kernel_applies_the_residual_as_the_jax_numpy_path_does(near_t
     assert np.abs(residual[good]).max() > 0.02
     np.testing.assert_allclose(np.asarray(got.reflectance)[good], np.asarray(want.reflectance)[good], atol=2e-6)
     np.testing.assert_allclose(np.asarray(got.lab)[good], np.asarray(want.lab)[good], atol=2e-4)
-    expected = _numpy_estimate(np.asarray(got.v_stage2, np.float64), cut)
+    expected = numpy_kernel_estimate(np.asarray(got.v_stage2, np.float64), cut)
     np.testing.assert_allclose(np.asarray(got.reflectance, np.float64)[good], expected[good], atol=1e-5)
     assert np.isnan(np.asarray(got.reflectance)[~good]).all() and np.isnan(np.asarray(got.lab)[~good]).all()
 
@@ -121,7 +113,7 @@ def test_a_residual_the_kernel_does_not_fit_takes_the_jax_numpy_path(near_the_fr
     assert not fused.residual_fits(full.wiener_residual) and fused.residual_fits(cut.wiener_residual)
     assert sj.plan(full, raw.shape, dtype=raw.dtype).kernel_mode is None
     good = np.asarray(sj.correct(raw, full).quality) == 0
-    expected = _numpy_estimate(np.asarray(sj.correct(raw, full, intermediates=True).v_stage2, np.float64), full)
+    expected = numpy_kernel_estimate(np.asarray(sj.correct(raw, full, intermediates=True).v_stage2, np.float64), full)
     np.testing.assert_allclose(np.asarray(sj.correct(raw, full).reflectance, np.float64)[good], expected[good], atol=1e-5)
     if fused.AVX2 in fused.supported_variants():
         monkeypatch.setenv(fused.SWITCH, fused.AVX2)
@@ -129,7 +121,7 @@ def test_a_residual_the_kernel_does_not_fit_takes_the_jax_numpy_path(near_the_fr
         assert sj.plan(cut.rows(0, 8), (8, *raw.shape[1:]), dtype=raw.dtype).kernel_mode == fused.AVX2
         assert sj.plan(full, raw.shape, dtype=raw.dtype).kernel_mode is None
         got = sj.correct(raw, cut)
-        expected = _numpy_estimate(np.asarray(sj.correct(raw, cut, intermediates=True).v_stage2, np.float64), cut)
+        expected = numpy_kernel_estimate(np.asarray(sj.correct(raw, cut, intermediates=True).v_stage2, np.float64), cut)
         np.testing.assert_allclose(np.asarray(got.reflectance, np.float64)[good], expected[good], atol=1e-5)
 
 
@@ -254,7 +246,7 @@ def test_large_frames_get_the_residual_too():
         assert plan.kernel_mode is None
     got = np.asarray(sj.correct(raw, kernel).reflectance, np.float64)
     v = np.asarray(sj.correct(raw, kernel, intermediates=True).v_stage2, np.float64)
-    np.testing.assert_allclose(got, _numpy_estimate(v, kernel), atol=2e-5)
+    np.testing.assert_allclose(got, numpy_kernel_estimate(v, kernel), atol=2e-5)
 
 
 def test_a_residual_that_is_not_a_kernel_residual_is_refused(calibrations):
