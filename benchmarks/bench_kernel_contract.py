@@ -97,8 +97,10 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         made = default_calibration(folder, args.seed)
     if made.wiener_residual is None:
-        raise SystemExit("bench_kernel_contract: calibrate's default took an affine estimator on this session; "
-                         "the kernel estimator's cost cannot be measured on it")
+        # Not a failure of spherejax: cross-validation found no gain on this session.
+        print(f"bench_kernel_contract: calibrate's default took an affine estimator on the session of seed {args.seed}; "
+              "nothing to measure (try another --seed)")
+        return 0
     inputs = make_inputs(args.size)
     kernel = spherejax.Calibration(
         dark=inputs["dark"], white=inputs["white"], patch=inputs["patch"], coeffs=np.asarray(made.coeffs),
