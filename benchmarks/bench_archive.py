@@ -29,7 +29,7 @@ Against what
        OpenImageIO, the same formats and compression; once without fsync and once with an fsync
        of each output file. No correction at all: what the file formats alone cost. Each step
        (read, each output, the fsyncs) is timed per file, and its median reported.
-    3. The raw floor, the bound the issue "Archive throughput" sets targets against: each
+    3. The raw floor, the bound the archive's throughput targets are set against: each
        input's bytes read (no decoding) and one input's outputs' bytes, as spherejax wrote them,
        written as plain files under spherejax's fsync policy (temporary name, fsync, rename,
        folder fsync). Measured three times (first, after spherejax's run, last) and the median

@@ -8,11 +8,11 @@ What it measures
     2. The held-out-family table: every material family of `simulated_targets.FAMILIES`
        (ColorChecker, TCS and CQS, TM-30 CES, RAW to ACES) held out in turn, the estimators
        trained on the other three: spectral rms and mean ΔE00 (D65) of the default ("auto"), of
-       each method, of the first release's form (offset-free training form, leave-one-out sigma^2)
+       each method, of the offset-free form (offset-free training form, leave-one-out sigma^2)
        and of the oracle (the model-based estimator built from the simulator's true sensitivity,
        offset and noise, with the training reflectances' statistics).
     3. Train on one family, apply to each (16 pairs): the shape of the acceptance protocol, as
-       ratios of the default's spectral rms to the oracle's and to the first release's.
+       ratios of the default's spectral rms to the oracle's and to the offset-free form's.
     4. Dyed materials (`spherejax.kubelka_munk`: four Kubelka-Munk families of six dyes, 20 x 20
        px patch means through the simulated camera): 200 targets of a family (seed 0) train the
        default ("auto": what it chose, with the kernel's cross-validated gain and paired z), its
@@ -324,7 +324,7 @@ def estimators(V, R, truth) -> dict:
         "auto": spherejax.fit_wiener(V, R),
         "training": spherejax.fit_wiener(V, R, method="training"),
         "model": spherejax.fit_wiener(V, R, method="model"),
-        "first release": spherejax.fit_wiener(V, R, select_wiener_noise_variance(V, R)[0], offset=False),
+        "offset-free": spherejax.fit_wiener(V, R, select_wiener_noise_variance(V, R)[0], offset=False),
         "oracle": spherejax.wiener_from_system(
             truth.sensitivity, truth.offset, truth.noise_variance(R), R.mean(0), np.cov(R.T, bias=True)
         ),
@@ -408,7 +408,7 @@ def main(argv=None) -> int:
               f"{r['ratio']:6.1f}x {r['compile_s']:13.2f}")
 
     held_out = held_out_table(data, truth)
-    names = ["auto", "training", "model", "first release", "oracle"]
+    names = ["auto", "training", "model", "offset-free", "oracle"]
     print("\nheld-out families (trained on the other three): spectral rms / mean ΔE00 D65")
     print(f"{'held out':14} " + " ".join(f"{n:>16}" for n in names) + "  auto chose")
     for family, row in held_out.items():
@@ -416,10 +416,10 @@ def main(argv=None) -> int:
         print(f"{family:14} {cells}  {row['auto']['method']}")
 
     pairs = pairs_table(data, truth)
-    print("\ntrain on one family, apply to each: spectral rms of auto, and its ratio to the oracle and to the first release")
+    print("\ntrain on one family, apply to each: spectral rms of auto, and its ratio to the oracle and to the offset-free form")
     within = sum(p["auto"] <= 1.05 * p["oracle"] for p in pairs.values())
     for pair, p in pairs.items():
-        print(f"  {pair:32} {p['auto']:.4f}  {p['auto'] / p['oracle']:.3f} x oracle  {p['auto'] / p['first release']:.3f} x first release")
+        print(f"  {pair:32} {p['auto']:.4f}  {p['auto'] / p['oracle']:.3f} x oracle  {p['auto'] / p['offset-free']:.3f} x offset-free")
     print(f"  within 5 % of the oracle or better: {within} of {len(pairs)} pairs")
 
     km, km_failures = kubelka_munk_tables(args.seed, args.repeats)

@@ -330,7 +330,7 @@ def test_when_the_kernel_applies(monkeypatch):
 
 @pytest.mark.parametrize("value", ["off", "false", "no", "", "AUTO", " 0", "AVX2", "avx512f", "sse2"])
 def test_an_undocumented_switch_value_is_refused(monkeypatch, value):
-    """SPHEREJAX_FUSED=off used to leave the kernel on."""
+    """A value such as SPHEREJAX_FUSED=off is refused rather than leaving the kernel on."""
     raw, calibration = make_case(24, 24, 16)
     monkeypatch.setenv(fused.SWITCH, value)
     expected = "'auto', '1', 'portable', 'avx512', 'avx2', 'generic', '0'"
@@ -341,8 +341,8 @@ def test_an_undocumented_switch_value_is_refused(monkeypatch, value):
 @pytestmark_kernel
 @cpu_kernel
 def test_intermediates_do_not_change_the_main_outputs(monkeypatch):
-    """Asking for v, v_stage1, v_stage2 used to switch the kernel off, so Lab moved by up to
-    1.5e-4 and reflectance was not bit-identical to the call without them."""
+    """Asking for v, v_stage1, v_stage2 leaves the main outputs the kernel's: bit-identical to the
+    call without them (the jax.numpy path's Lab differs by up to 1.5e-4)."""
     monkeypatch.delenv(fused.SWITCH, raising=False)
     raw, calibration = make_case(40, 48, 16)
     plain = sj.correct(raw, calibration)

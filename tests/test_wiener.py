@@ -48,7 +48,7 @@ def with_ones(V):
 
 class TestTrainingBased:
     def test_offset_free_noise_free_limit_is_least_squares(self, sets):
-        """offset=False is the first release's estimator: today's numbers."""
+        """offset=False is the offset-free estimator."""
         R = sets["ColorChecker: PMC"]
         V = respond(R, gaussian_sensitivity(), 0.001, seed=0)
         estimator = sj.fit_wiener(V, R, noise_variance=0.0, offset=False)
@@ -99,7 +99,7 @@ class TestTrainingBased:
 
     def test_an_offset_on_the_responses_changes_nothing(self, sets, held_out):
         """A residual dark level shifts every response by the same b; the affine estimators
-        absorb it exactly, the first release's offset-free form does not."""
+        absorb it exactly, the offset-free form does not."""
         train = np.concatenate([v for k, v in sets.items() if k.startswith(("ColorChecker", "TCS", "VS"))])
         M = gaussian_sensitivity()
         V, V_test = respond(train, M, 0.002, seed=2), respond(held_out, M, 0.002, seed=3)
@@ -116,7 +116,7 @@ class TestTrainingBased:
 
     @pytest.mark.parametrize("training_set", ["ColorChecker: ColorChecker N Ohta", "ColorChecker: PMC"])
     def test_leave_one_out_picks_a_regulariser_that_generalises(self, sets, held_out, training_set):
-        """The first release's choice, kept: with few targets (24-30), broad filters (FWHM 30 nm)
+        """The offset-free choice: with few targets (24-30), broad filters (FWHM 30 nm)
         and 2 % noise the unregularised fit chases the noise. Over five noise draws the
         leave-one-out choice must be within 5 % of the best grid value for held-out data it
         never saw, and on average at least 10 % better than no regularisation."""
@@ -197,7 +197,7 @@ class TestModelBased:
         np.testing.assert_allclose(np.asarray(estimator.offset), r_mean - W @ (M @ r_mean + b), atol=1e-9)
 
     def test_noise_free_with_training_correlation_matches_training_based(self, sets):
-        """The first release's wiener_from_sensitivity, kept: uncentred, no offset."""
+        """The offset-free wiener_from_sensitivity: uncentred, no offset."""
         train = np.concatenate([v for k, v in sets.items() if k.startswith("ColorChecker")])
         M = gaussian_sensitivity()
         W_model = np.asarray(_offset_free.wiener_from_sensitivity(M, train, noise_variance=0.0))
@@ -279,7 +279,7 @@ class TestCrossValidation:
 
 
 def held_out_family_table(families):
-    """family -> (rms of auto, of the first release's form, of the oracle), each trained on
+    """family -> (rms of auto, of the offset-free form, of the oracle), each trained on
     the other three families and applied to this one."""
     data, truth = families
     table = {}
@@ -300,7 +300,7 @@ class TestAcrossMaterials:
     @pytest.mark.slow
     def test_held_out_families(self, families):
         """Each material family held out in turn (ColorChecker, TCS/CQS, TM-30 CES, RAW to ACES):
-        the default estimator does at least as well as the first release's training form and
+        the default estimator does at least as well as the offset-free training form and
         within 10 % of the oracle built from the simulator's true sensitivity and noise."""
         for family, (auto, first_release, oracle) in held_out_family_table(families).items():
             assert auto <= first_release, (family, auto, first_release)
@@ -309,7 +309,7 @@ class TestAcrossMaterials:
     @pytest.mark.slow
     def test_train_on_one_family_apply_to_each(self, families):
         """The acceptance protocol's shape: fit on one family with the defaults, apply to every
-        family; the default is never worse than the first release's form, and within 10 % of the
+        family; the default is never worse than the offset-free form, and within 10 % of the
         oracle on at least 14 of the 16 pairs."""
         data, truth = families
         within = 0

@@ -8,7 +8,7 @@ folder and renames into place only when complete, so a failure leaves nothing ne
 (`spherejax.atomic_files`, below the engine so that its cache uses it too: the steps, and the one
 rule for temporary names that cleanup recognises).
 
-The package's modules, one job each (their names are all available here, as before the split):
+The package's modules, one job each (their names are all available here):
 
     errors             SpherejaxFileError and its kinds, the one-line messages
     library_messages   what OpenImageIO and HDF5 say of a damaged file, in plain words

@@ -3,7 +3,7 @@ atomically with a checksum, read whole or by rows without loading every array; t
 format versions 1 to 3 are still read (whole).
 
 This module is the public API: `save_calibration`, `open_calibration`, `load_calibration` and
-`CalibrationFile`. The rest, by job (their names are importable from here too, as before the split):
+`CalibrationFile`. The rest, by job (their names are importable from here too):
 `calibration_checks` (the format, its versions and their arrays, the header, the checks of header
 and arrays, the noise model, the usable white patch), `calibration_hdf5` (the HDF5 layout: writing,
 indexing a file before reading it, the check that it stores every declared byte, reads by rows and

@@ -1,5 +1,5 @@
-"""The catalogue, round three: `spherejax correct` and the files it does not own (the issue
-"Reliability, round three", reproducers 1, 2, 4, 7, 9 and 13 and their variants).
+"""`spherejax correct` and the files it does not own: each test is a way a batch could replace,
+delete or misread a file that is not its own, and checks that it does not.
 
 - Outputs that are inputs or the calibration, however named, are refused before any work.
 - Files at output names that spherejax never wrote (no manifest record, no claim of a killed run)
@@ -43,7 +43,7 @@ def _correct(cal, inputs, out, *extra):
 
 
 def test_out_as_the_inputs_folder_never_replaces_an_input(cal, tmp_path, rng, capsys):
-    """Reproducer 1: a.tif's Lab output replaced the input a.lab.exr in the same folder."""
+    """An input named like another input's output (a.lab.exr beside a.tif) is never replaced by it."""
     folder = tmp_path / "in3"
     folder.mkdir()
     io.write_frame(folder / "a.tif", frame(rng), channel_names=NAMES)
@@ -75,8 +75,8 @@ def test_an_output_reached_through_a_link_that_is_the_calibration_is_refused(cal
 
 
 def test_files_spherejax_never_wrote_are_refused_not_deleted(cal, tmp_path, rng, capsys):
-    """Reproducer 2: with no manifest in OUT, a failed input deleted a.preview.png, the other
-    format's clean-up deleted b.reflectance.hdr, and b.lab.exr was overwritten."""
+    """With no manifest in OUT, a failed input's clean-up deletes no file it did not write
+    (a.preview.png, the other format's b.reflectance.hdr) and b.lab.exr is not overwritten."""
     inputs = tmp_path / "in2"
     inputs.mkdir()
     (inputs / "a.tif").write_bytes(b"not a TIFF")
@@ -183,8 +183,8 @@ def test_a_torn_lock_file_names_its_holder_and_claims_nothing(tmp_path):
 
 
 def test_an_input_replaced_while_corrected_fails_and_leaves_nothing(cal, tmp_path, rng, monkeypatch):
-    """Reproducer 4: the pixels came from a file put in the input's place after it was hashed,
-    while the manifest and the EXR recorded the old file's hash."""
+    """A file put in the input's place after it was hashed is not corrected under the old
+    file's hash: the manifest and the EXR record the hash of the pixels corrected."""
     source = tmp_path / "a.tif"
     io.write_frame(source, frame(rng), channel_names=NAMES)
     replacement = tmp_path / "new.tif"
@@ -212,7 +212,7 @@ def test_an_input_replaced_while_corrected_fails_and_leaves_nothing(cal, tmp_pat
 
 @pytest.mark.parametrize("changed", [["--illuminant", "A"], ["--exr-compression", "zip"], ["--reflectance-type", "half"]])
 def test_resume_redoes_inputs_corrected_with_other_settings(cal, tmp_path, rng, capsys, changed):
-    """Reproducer 7: a D65 batch resumed with --illuminant A skipped the D65 outputs as done."""
+    """A D65 batch resumed with --illuminant A does not take the D65 outputs as done."""
     inputs = tmp_path / "in"
     inputs.mkdir()
     for name in ("a", "b", "c"):
@@ -255,7 +255,7 @@ def test_resume_redoes_records_of_another_version_or_without_settings(cal, tmp_p
 
 
 def test_hashing_an_input_is_a_safe_point(tmp_path):
-    """Reproducer 9: SIGTERM waited for a checksum of the whole file; now each block checks."""
+    """SIGTERM during a checksum stops at the next block, not after the whole file."""
     big = tmp_path / "big.tif"
     with open(big, "wb") as handle:
         handle.write(os.urandom(4 << 20))
@@ -268,8 +268,8 @@ def test_hashing_an_input_is_a_safe_point(tmp_path):
 
 
 def test_a_sparse_manifest_is_read_by_its_data_and_stops_on_a_signal(tmp_path):
-    """Reproducer 13: `truncate -s 3G OUT/manifest.jsonl` was read whole (4.3 GB peak); the
-    records around the hole are still read, and reading is a safe point."""
+    """A manifest with a 3 GB hole (`truncate -s 3G OUT/manifest.jsonl`) is not read whole into
+    memory; the records around the hole are still read, and reading is a safe point."""
     record = {"name": "a", "input": "a.tif", "status": "failed", "outputs": {}}
     path = tmp_path / archive.MANIFEST_NAME
     with open(path, "wb") as handle:
@@ -304,8 +304,8 @@ sys.exit(cli.main(sys.argv[1:]))
 
 @pytest.mark.parametrize("command", ["calibrate", "evaluate"])
 def test_sigterm_in_a_command_without_safe_points_leaves_nothing_half_written(workspace, tmp_path, command):
-    """Reproducer 9's variant for the commands without safe points of their own: Python's
-    default SIGTERM killed them without a word, leaving the temporary file being written."""
+    """The commands without safe points of their own stop on SIGTERM with a message and leave
+    no temporary file behind (Python's default SIGTERM would kill them without a word)."""
     import subprocess
     import sys
 
