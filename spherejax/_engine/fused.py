@@ -25,12 +25,12 @@ it is tested against (tests/test_fused.py), and it is what runs:
   the kernel out when something looks wrong).
 
 A calibration whose estimator has a kernel residual (E8-E12, `estimation.kernel_residual`) goes to
-the kernel too (`residual_constants`: its whitening, inducing points and rank-8 weights), where the
-kernel computes a block's outputs 16 pixels a vector (fused_correct.h, residual_of_16): 2.8 times
-the affine calibration's time at 1024 x 1024 x 16 on 2 Zen 4 cores (benchmarks/bench_wiener.py),
-against 21 times on the jax.numpy path. The AVX-512 and generic code have it; a plan whose variant
-is AVX2 (no residual code in its own block), a traced calibration and a residual of rank above 8
-take the jax.numpy path (`spherejax._engine.plan`, `residual_fits`).
+the kernel too (`residual_constants`: its whitening, inducing points and rank-8 weights), where
+every variant computes a block's outputs many pixels a vector with one residual template
+(fused_correct.h, `residual_of`, the variant's lanes a policy of it): 2.2-2.7 times the affine
+calibration's time at 1024 x 1024 x 16 on 2 Zen 4 cores (benchmarks/bench_kernel_contract.py).
+A traced calibration and a residual of rank above 8 take the jax.numpy path (the kernel contract,
+`spherejax._engine.kernels`, reading what the extension declares: `capabilities`).
 
 With `intermediates=True` the main outputs still come from the kernel, so that they do not depend
 on what else was asked for; the cubes it never forms (v, v_stage1, v_stage2) come from the
