@@ -314,7 +314,7 @@ class Plan:
         direct = (self.reads_numpy and noise is None and not intermediates and isinstance(raw, np.ndarray)
                   and raw.flags.c_contiguous)
         if p is not None:
-            if direct:
+            if direct and _checks.is_concrete(p):  # a traced p (a derivative with respect to it) is XLA's
                 return self._correct_directly(raw, p)
             return steps.pixels_step(
                 raw, p, self.constants, saturation=self.saturation, intermediates=intermediates,
