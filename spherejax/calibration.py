@@ -28,6 +28,8 @@ PARAMETERS = ("coeffs", "wiener", "wiener_offset")
 #: Plans a calibration keeps (`Calibration._plan`): the frame shapes of a batch, a stack and its
 #: frames, a few strip heights.
 _PLANS_KEPT = 8
+#: Crops a calibration keeps (`Calibration._part`): the strips of a large image and a few regions.
+_PARTS_KEPT = 256
 _plans_lock = threading.Lock()
 
 
@@ -157,20 +159,52 @@ class Calibration(eqx.Module):
     def __getstate__(self):
         # A pickled calibration (a dask worker's) carries its arrays, never its plans, which
         # hold compiled programs and device memory.
-        return {name: value for name, value in self.__dict__.items() if name not in ("_plans", "_patch_box")}
+        return {name: value for name, value in self.__dict__.items() if name not in ("_plans", "_patch_box", "_parts")}
 
     def rows(self, row0: int, row1: int) -> Calibration:
         """This calibration for image rows row0:row1 only, without the patch (None).
 
         For correcting an image in strips: `correct(raw[row0:row1], calibration.rows(row0, row1),
         p=patch_ratio(raw, calibration))` equals rows row0:row1 of `correct(raw, calibration)`.
+        The same rows give the same object while it is kept (`_part`), and with it its plans.
         """
         height = self.image_shape[0]
         if not 0 <= row0 < row1 <= height:
             raise ValueError(f"rows: expected 0 <= row0 < row1 <= {height}, got {row0}:{row1}")
-        # dataclasses.replace carries every other field (the Wiener offset included) and runs
-        # the checks again.
-        return dataclasses.replace(self, dark=self.dark[row0:row1], white=self.white[row0:row1], patch=None)
+        return self._part(row0, row1, 0, self.image_shape[1])
+
+    def box(self, row0: int, row1: int, col0: int, col1: int) -> Calibration:
+        """This calibration for the pixels [row0:row1, col0:col1] only, without the patch: a region
+        corrected with the whole image's p (`spherejax.measure`). Kept as `rows` is."""
+        height, width = self.image_shape
+        if not (0 <= row0 < row1 <= height and 0 <= col0 < col1 <= width):
+            raise ValueError(f"box: expected 0 <= row0 < row1 <= {height} and 0 <= col0 < col1 <= {width}, "
+                             f"got {row0}:{row1}, {col0}:{col1}")
+        return self._part(row0, row1, col0, col1)
+
+    def _part(self, row0: int, row1: int, col0: int, col1: int) -> Calibration:
+        """The patchless crop [row0:row1, col0:col1], kept for a concrete calibration (the last
+        `_PARTS_KEPT`: the strips of an image, a few measured regions), so that every input
+        corrected by those rows or that region reuses one plan."""
+        def crop():
+            # dataclasses.replace carries every other field (the Wiener offset included) and runs
+            # the checks again.
+            return dataclasses.replace(self, dark=self.dark[row0:row1, col0:col1],
+                                       white=self.white[row0:row1, col0:col1], patch=None)
+
+        if not _checks.is_concrete(self.dark):  # a traced calibration: its crops are traced too
+            return crop()
+        key = (row0, row1, col0, col1)
+        with _plans_lock:
+            parts = self.__dict__.setdefault("_parts", {})
+            part = parts.get(key)
+        if part is None:
+            part = crop()
+            with _plans_lock:
+                part = parts.setdefault(key, part)
+                while len(parts) > _PARTS_KEPT:
+                    del parts[next(iter(parts))]
+        return part
 
 
 def compute_dtype(raw, calibration: Calibration):

@@ -269,9 +269,7 @@ def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None
     p_u = prepared.patch_ratio_u(raw, noise) if noise is not None else jnp.zeros_like(p)
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-    box = dataclasses.replace(
-        calibration, dark=calibration.dark[r0:r1, c0:c1], white=calibration.white[r0:r1, c0:c1], patch=None
-    )
+    box = calibration.box(r0, r1, c0, c1)  # kept by the calibration: the same region reuses its plan
     raw_box = raw[r0:r1, c0:c1]
     quality = np.asarray(correct(raw_box, box, p=p).quality)
     region = mask[r0:r1, c0:c1]

@@ -452,3 +452,20 @@ def test_a_derivative_with_respect_to_p_of_numpy_rows(rng, calibration):
     step = 1e-2
     numeric = [(loss(strip)(p.at[b].add(step)) - loss(strip)(p.at[b].add(-step))) / (2 * step) for b in range(B)]
     np.testing.assert_allclose(got, np.asarray(numeric), rtol=5e-2)
+
+
+def test_a_calibration_keeps_its_rows_and_regions(rng, calibration):
+    """`Calibration.rows` and `Calibration.box` give the same object for the same pixels (so the
+    strips and regions of every input reuse one plan), the right pixels, no patch, and refuse
+    pixels outside the image naming them; a pickled calibration carries none of them."""
+    import pickle
+
+    rows, box = calibration.rows(3, 9), calibration.box(20, 27, 9, 17)
+    assert calibration.rows(3, 9) is rows and calibration.box(20, 27, 9, 17) is box
+    assert rows.patch is None and box.patch is None
+    assert np.asarray(rows.dark).tobytes() == np.asarray(calibration.dark)[3:9].tobytes()
+    assert np.asarray(box.white).tobytes() == np.asarray(calibration.white)[20:27, 9:17].tobytes()
+    assert spherejax.plan(box, (7, 8, B)) is spherejax.plan(calibration.box(20, 27, 9, 17), (7, 8, B))
+    with pytest.raises(ValueError, match=r"box: expected 0 <= row0 < row1 <= 45 and 0 <= col0 < col1 <= 38, got 20:27, 9:39"):
+        calibration.box(20, 27, 9, 39)
+    assert "_parts" not in pickle.loads(pickle.dumps(calibration)).__dict__

@@ -358,8 +358,8 @@ class Plan:
 
         The fused kernel reads NumPy rows where they lie with the rows' dark and white sliced from
         the plan's own arrays (no Calibration, plan or constants made per strip); elsewhere (the
-        jax.numpy definition, the GPU) the calibration's rows, kept by this plan per row range, go
-        through their own plan."""
+        jax.numpy definition, the GPU) the calibration's rows (`Calibration.rows`, which keeps them)
+        go through their own plan."""
         height, width, bands = self.shape[-3:]
         raw_shape = tuple(getattr(raw, "shape", ()))
         if len(raw_shape) != 3 or raw_shape[1:] != (width, bands) or not 0 <= row0 < row0 + raw_shape[0] <= height:
@@ -370,10 +370,9 @@ class Plan:
                 and raw.dtype == self.dtype and _checks.is_concrete(p)):
             return self._correct_directly(raw, p, rows=(row0, row1))
         calibration = self._calibration()
-        kept = self.__dict__.setdefault("_row_calibrations", {})
-        rows = kept.get((row0, row1))
-        if rows is None:
-            rows = kept.setdefault((row0, row1), calibration.rows(row0, row1))
+        if calibration is None:
+            raise ValueError("rows: this plan's calibration is gone; make the plan again from the calibration")
+        rows = calibration.rows(row0, row1)  # kept by the calibration, with its plan
         return plan_for(rows, raw_shape, raw.dtype)(raw, p=p)
 
     def _correct_directly(self, raw: np.ndarray, p=None, rows: tuple[int, int] | None = None) -> CorrectionResult:
