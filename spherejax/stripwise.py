@@ -67,7 +67,7 @@ def _padded(rows: np.ndarray, height: int) -> np.ndarray:
     return np.concatenate([rows, pad])
 
 
-def _correct_rows(cube: io.CubeReader, calibration: io.CalibrationFile, row0: int, row1: int, height: int, p):
+def _correct_rows(cube: io.CubeReader, calibration: io.CalibrationFile, row0: int, row1: int, p, *, height: int):
     """Rows row0:row1 of the image corrected with the whole image's p, padded to `height` rows
     (every strip one shape: one plan, one compilation). The calibration file keeps the rows'
     `Calibration` (`io.CalibrationFile.rows`), and with it the plan, for the next input."""
@@ -121,17 +121,13 @@ def correct_strips(
         # runs on the frame where it lies (the plan's direct route), p from the patch's box as
         # `image_patch_ratio` takes it, so the same numbers.
         strips = [(0, height, lambda: correct(cube.read_rows(0, height), calibration.calibration()))]
-    elif calibration.in_memory:
-        # Every strip of every input through the whole calibration's one plan (`Plan.rows`).
-        p = image_patch_ratio(cube, calibration)
-        strips = [
-            (row0, min(row0 + step, height), functools.partial(_rows_by_the_whole_plan, cube, calibration, row0, min(row0 + step, height), p))
-            for row0 in range(0, height, step)
-        ]
     else:
         p = image_patch_ratio(cube, calibration)
+        # Every strip of every input through the whole calibration's one plan (`Plan.rows`), or for a
+        # calibration read from disk by rows, each strip's rows padded to one shape.
+        rows_of = _rows_by_the_whole_plan if calibration.in_memory else functools.partial(_correct_rows, height=step)
         strips = [
-            (row0, min(row0 + step, height), functools.partial(_correct_rows, cube, calibration, row0, min(row0 + step, height), step, p))
+            (row0, min(row0 + step, height), functools.partial(rows_of, cube, calibration, row0, min(row0 + step, height), p))
             for row0 in range(0, height, step)
         ]
     for row0, row1, correct_strip in strips:
