@@ -278,12 +278,7 @@ SPHEREJAX_AVX2_TARGET inline void affine_block_avx2_16(const Problem& pr, int64_
                                                        float* reflectance, float (*xyz)[kBlock], uint8_t* quality) {
   constexpr int64_t B = kLanes;
   alignas(32) float tilde[kBlock][B];
-  BlockPixels at(pr, first, count);
-  for (int64_t i = 0; i < kBlock; ++i) {
-    at.at(i);
-    quality[i] = stage2_at<Raw, Avx2Stage2>(pr, at, tilde[i]);
-    at.next(pr, i);
-  }
+  stage2_of_block<Raw, Avx2Stage2>(pr, first, count, tilde, quality);
   // Columns 0..35 of the (B, 48) matrix and bias: 31 reflectances, X, Y, Z, padding.
   const float* projection = reinterpret_cast<const float*>(pr.projection);
   const float* bias = reinterpret_cast<const float*>(pr.bias);
@@ -330,12 +325,7 @@ SPHEREJAX_AVX2_TARGET inline void residual_block_avx2_16(const Problem& pr, int6
                                                          uint8_t* quality) {
   alignas(32) float rows[kBlock][kMaxBands];
   alignas(32) float tilde[kMaxBands][kBlock];
-  BlockPixels at(pr, first, count);
-  for (int64_t i = 0; i < kBlock; ++i) {
-    at.at(i);
-    quality[i] = stage2_at<Raw, Avx2Stage2>(pr, at, rows[i]);
-    at.next(pr, i);
-  }
+  stage2_of_block<Raw, Avx2Stage2>(pr, first, count, rows, quality);
   Avx2Lanes::columns(rows, kLanes, tilde);
   for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Avx2Lanes::kWidth) {
     residual_of<Avx2Lanes>(pr, kLanes, tilde, lane0, out);

@@ -436,6 +436,20 @@ SPHEREJAX_INLINE uint8_t stage2_at(const Problem& pr, const BlockPixels& at, flo
   return q;
 }
 
+// Stage II (stage2_at) of the kBlock pixels of a block that starts at `first`, count of them real
+// (BlockPixels), pixel i's v_tilde into rows[i] and its quality bits into quality[i]: the first pass
+// of every block that runs Stage II for a whole block before its projections.
+template <typename Raw, typename Stage2, int64_t kStride>
+SPHEREJAX_INLINE void stage2_of_block(const Problem& pr, int64_t first, int64_t count, float (*rows)[kStride],
+                                      uint8_t* quality) {
+  BlockPixels at(pr, first, count);
+  for (int64_t i = 0; i < kBlock; ++i) {
+    at.at(i);
+    quality[i] = stage2_at<Raw, Stage2>(pr, at, rows[i]);
+    at.next(pr, i);
+  }
+}
+
 // Lab and the quality of a block's pixels from their XYZ (xyz[c][i]) and quality bits.
 SPHEREJAX_INLINE void finish_block(const Problem& pr, int64_t first, int64_t count, const float (*xyz)[kBlock],
                                    const uint8_t* quality) {
@@ -514,12 +528,7 @@ SPHEREJAX_INLINE void correct_block_with_residual(const Problem& pr, int64_t fir
   alignas(64) float tilde[kMaxBands][kBlock];
   alignas(64) float out[kPadded][kBlock];
   uint8_t quality[kBlock];
-  BlockPixels at(pr, first, count);
-  for (int64_t i = 0; i < kBlock; ++i) {
-    at.at(i);
-    quality[i] = stage2_at<Raw, Stage2>(pr, at, rows[i]);
-    at.next(pr, i);
-  }
+  stage2_of_block<Raw, Stage2>(pr, first, count, rows, quality);
   Lanes::columns(rows, B, tilde);
   for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Lanes::kWidth) residual_of<Lanes>(pr, B, tilde, lane0, out);
   Lanes::write_rows(out, count, pr.reflectance + first * kReflectance);
