@@ -469,3 +469,23 @@ def test_a_calibration_keeps_its_rows_and_regions(rng, calibration):
     with pytest.raises(ValueError, match=r"box: expected 0 <= row0 < row1 <= 45 and 0 <= col0 < col1 <= 38, got 20:27, 9:39"):
         calibration.box(20, 27, 9, 39)
     assert "_parts" not in pickle.loads(pickle.dumps(calibration)).__dict__
+
+
+def test_refusals_of_rows_padding_and_a_plan_without_its_calibration(rng, calibration_path, monkeypatch):
+    """`CalibrationFile.rows` refuses a padding shorter than the rows asked for, naming both; a plan
+    whose calibration is gone refuses `Plan.rows` where it needs the calibration's rows (off the
+    fused kernel), saying why, rather than failing on None."""
+    import gc
+
+    with io.open_calibration(calibration_path) as opened:
+        with pytest.raises(ValueError, match=r"^padded_to: expected at least the 6 rows asked for, got 4$"):
+            opened.rows(3, 9, padded_to=4)
+        assert opened.rows(3, 9, padded_to=8) is opened.rows(3, 9, padded_to=8)
+        assert np.asarray(opened.rows(3, 9, padded_to=8).dark)[6:].tobytes() == bytes(2 * W * B * 4)
+    monkeypatch.setenv("SPHEREJAX_FUSED", "0")
+    raw = make_raw(rng)
+    prepared = spherejax.plan(make_calibration(np.random.default_rng(1)), raw.shape, dtype=raw.dtype)
+    gc.collect()
+    assert prepared.calibration is None
+    with pytest.raises(ValueError, match=r"^rows: this plan's calibration is gone"):
+        prepared.rows(np.ascontiguousarray(raw[:5]), 0, np.ones(B, np.float32))
