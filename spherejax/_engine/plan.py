@@ -202,7 +202,7 @@ class Plan:
             self.route = RECYCLING
         else:
             self.route = PROGRAM
-        self._direct = self._kernel_arrays() if self.reads_numpy else None
+        self._direct = None  # the fused kernel's NumPy arrays, made at the first direct call
         # What the kernel derives from the constants (the GPU kernel's padded, folded arrays and its
         # residual's), once here rather than in every call's program.
         self.prepared = jax.jit(self.kernel.prepare)(self.constants) if self.concrete and self.kernel.prepares else None
@@ -401,6 +401,10 @@ class Plan:
              ((*batch, height, width), np.uint8)),
         )
         (reflectance, _), (lab, _), (quality, _) = pairs
+        if self._direct is None:
+            with self._lock, jax.ensure_compile_time_eval():  # concrete even if a trace is running
+                if self._direct is None:
+                    self._direct = self._kernel_arrays()
         k = self._direct
         dark, white = k["dark"], k["white"]
         if rows is not None:  # row-major pixels: rows row0:row1 are one contiguous slice
