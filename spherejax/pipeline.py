@@ -47,6 +47,12 @@ from .quality import (
 )
 
 
+#: The frame dtypes a plan takes (`plan`): the integer counts and floats JAX represents. Others
+#: are refused: float128 (long double) has no JAX type, and complex frames mean nothing here.
+SUPPORTED_DTYPES = ("uint8", "uint16", "uint32", "uint64", "int8", "int16", "int32", "int64", "float16", "float32",
+                    "float64")
+
+
 def _check_calibration(calibration) -> None:
     if not isinstance(calibration, Calibration):
         raise ValueError(
@@ -129,7 +135,7 @@ def plan(calibration: Calibration, shape, *, dtype=np.uint16):
     Args:
       calibration: a `Calibration` (rows of one need `p` at every call).
       shape: the frames' shape, (H, W, B) or (..., H, W, B), with the calibration's H, W, B.
-      dtype: the frames' dtype: unsigned or signed integer counts (uint16 by default) or float.
+      dtype: the frames' dtype, one of `SUPPORTED_DTYPES`: integer counts (uint16 by default) or float.
 
     Returns:
       A plan: call it as `correct` without the calibration, `plan(raw, p=None,
@@ -139,7 +145,7 @@ def plan(calibration: Calibration, shape, *, dtype=np.uint16):
 
     Raises:
       ValueError: not a Calibration, a shape that is not the calibration's frames, or a dtype
-        that is neither integer nor float.
+        not in `SUPPORTED_DTYPES`.
     """
     _check_calibration(calibration)
     try:
@@ -153,8 +159,8 @@ def plan(calibration: Calibration, shape, *, dtype=np.uint16):
         dtype = np.dtype(dtype)
     except TypeError:
         raise ValueError(f"dtype: expected a NumPy dtype, got {dtype!r}") from None
-    if dtype.kind not in "uif":
-        raise ValueError(f"dtype: expected integer counts or floats, got {dtype}")
+    if dtype.name not in SUPPORTED_DTYPES:
+        raise ValueError(f"dtype: expected integer counts or floats, got {dtype} (supported: {', '.join(SUPPORTED_DTYPES)})")
     return _prepared(jax.ShapeDtypeStruct(shape, dtype), calibration)
 
 
@@ -215,6 +221,7 @@ def correct(raw, calibration: Calibration, *, p=None, intermediates: bool = Fals
 
 __all__ = [
     "Quality",
+    "SUPPORTED_DTYPES",
     "PARAMETERS",
     "QUALITY_SATURATED",
     "QUALITY_NONFINITE",

@@ -296,21 +296,46 @@ class Plan:
     # ---------------------------------------------------------------------------------------
     # Calls
 
+    def _check_frames(self, raw, p=None, p_u=None) -> None:
+        """Raise ValueError, one line naming the argument, the shape (or dtype) given and the one
+        expected, unless raw has this plan's shape and dtype and p and p_u (when given) one value
+        per band of each image. `correct` passes only what it checked; a plan called directly
+        (`spherejax.plan`) would otherwise fail inside JAX with a message about its internals."""
+        shape, dtype = tuple(getattr(raw, "shape", ())), getattr(raw, "dtype", None)
+        if shape != self.shape or dtype != self.dtype:
+            raise ValueError(f"raw: expected frames of this plan's shape {self.shape} and dtype {self.dtype}, got "
+                             f"{'shape ' + str(shape) + ' and dtype ' + str(dtype) if dtype is not None else type(raw).__name__}")
+        expected = (*self.shape[:-3], self.shape[-1])
+        for name, value in (("p", p), ("p_u", p_u)):
+            if value is not None and tuple(getattr(value, "shape", np.shape(value))) != expected:
+                raise ValueError(f"{name}: expected shape {expected} (one value per band of each image), got "
+                                 f"{tuple(getattr(value, 'shape', np.shape(value)))}")
+
     def patch_ratio(self, raw) -> jax.Array:
         """p (..., B) of whole frames (`spherejax.pipeline.patch_ratio`)."""
+        self._check_frames(raw)
+        if self.patch is None:
+            raise ValueError("raw: this plan's calibration has no patch (rows of a calibration): p needs the whole one")
         return steps.patch_ratio_step(
             raw, self.patch, self.box_origin, box_shape=self.box_shape, saturation=self.saturation
         )
 
     def patch_ratio_u(self, raw, noise) -> jax.Array:
         """u(p) (..., B) of whole frames under a `NoiseModel` (`spherejax.pipeline.patch_ratio_u`)."""
+        self._check_frames(raw)
+        if self.patch is None:
+            raise ValueError("raw: this plan's calibration has no patch (rows of a calibration): u(p) needs the whole one")
         return steps.patch_ratio_std_step(
             raw, self.patch, noise, self.box_origin, box_shape=self.box_shape, saturation=self.saturation
         )
 
     def __call__(self, raw, *, p=None, intermediates: bool = False, noise=None, p_u=None) -> CorrectionResult:
         """`correct(raw, calibration, ...)` of frames of this plan's shape and dtype, checked by
-        the caller (`spherejax.pipeline.correct`)."""
+        the caller (`spherejax.pipeline.correct`) or here (`_check_frames`) when called directly."""
+        self._check_frames(raw, p, p_u)
+        if p is None and self.patch is None:
+            raise ValueError("p: expected the whole image's white-patch ratio with rows of a calibration "
+                             "(patch_ratio of the whole image), got None")
         direct = (self.reads_numpy and noise is None and not intermediates and isinstance(raw, np.ndarray)
                   and raw.flags.c_contiguous)
         if p is not None:
