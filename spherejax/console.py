@@ -13,9 +13,14 @@ notes and the one error line. `configured()` gives them two destinations:
   appears without saying whose it is. While a tqdm bar is drawn, lines go through `tqdm.write` and
   never break it.
 - --log-file FILE, at DEBUG, each line with its UTC time, level and logger. The file is appended to
-  when it is a log spherejax wrote (its first line is one of spherejax's log lines), created when
-  nothing is there, and refused in one line otherwise (a file of the user's, a folder, a link, a
-  FIFO): spherejax writes only files it owns.
+  when it is a log spherejax wrote (its first line is one of spherejax's log lines: the signature
+  on the file itself), created with that first line in it when nothing is there (so a log of
+  spherejax's is never empty, and an empty file is nobody's proof), and refused in one line
+  otherwise (a file of the user's, an empty file, a folder, a link, a FIFO): spherejax writes only
+  files it owns. Like any output it is checked first against the command's own files
+  (`configured`'s `apart_from`, `spherejax.cli.written_paths`): never an input or an output of
+  the command (OUT's lock or manifest, measure's CSV), nor inside a folder the command writes
+  whole.
 
 Results (tables, "written: ...", the batch summary) are not messages: they go to stdout with
 `print`, and -q leaves them out.
@@ -111,18 +116,96 @@ class _UTCFormatter(logging.Formatter):
 
 def not_a_log(path: pathlib.Path) -> str | None:
     """None if `path` is a log file spherejax wrote (its first line is one of its log lines), else
-    why it may not be appended to: the `replaceable` test of `io.ownership.refuse_in_the_way`."""
+    why it may not be appended to: the `replaceable` test of `io.ownership.refuse_in_the_way`.
+    An empty file is not one: spherejax creates a log with its first line in it (`_create_log`)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
     except OSError as error:
         return f"a file that cannot be read ({error.strerror})"
     try:
         first = os.read(fd, 256)
     finally:
         os.close(fd)
-    if not first or _LOG_FILE_LINE.match(first):
-        return None  # an empty file: one spherejax created and then stopped before its first line
+    if not first:
+        return "an empty file, not a spherejax log (a spherejax log begins with one of its log lines)"
+    if _LOG_FILE_LINE.match(first):
+        return None
     return "a file that is not a spherejax log (its first line is not one of spherejax's log lines)"
+
+
+def _create_log(target: pathlib.Path, formatter: logging.Formatter) -> None:
+    """Create the log file `target` holding its first line, whole, or leave what another process
+    put there since it was looked at (the check that follows judges it).
+
+    The line is written to a temporary sibling first and linked into place (link(2) never
+    replaces a file), so no log of spherejax's is ever seen empty or torn: its first line is
+    its signature (`not_a_log`)."""
+    from . import __version__, atomic_files
+
+    record = logging.makeLogRecord({"name": log.name, "levelno": logging.DEBUG, "levelname": "DEBUG",
+                                    "msg": f"log file created by spherejax {__version__}"})
+    line = (formatter.format(record) + "\n").encode("utf-8")
+    temporary = atomic_files.temp_sibling(target)
+    try:
+        with atomic_files.open_exclusive(temporary) as handle:
+            handle.write(line)
+            handle.flush()
+            os.fsync(handle.fileno())
+        try:
+            os.link(temporary, target)
+        except FileExistsError:
+            return  # someone else's since the look: refused or appended to by the check after
+        except OSError:
+            # A file system without hard links: create it directly (O_EXCL: never over a file).
+            with contextlib.suppress(FileExistsError), atomic_files.open_exclusive(target) as handle:
+                handle.write(line)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+
+
+def _refuse_command_paths(target: pathlib.Path, paths) -> None:
+    """Raise unless the log file `target` is apart from the command's own files (`paths`, a
+    `spherejax.cli.written_paths.CommandPaths`): not one of its inputs or outputs (resolved path,
+    or (st_dev, st_ino)), not in a folder it writes whole, not at a name it gives its outputs.
+
+    Raises:
+      SpherejaxFileError: one line naming the log file and the command's file it would be.
+    """
+    from .io import ownership
+    from .io.errors import SpherejaxFileError
+
+    label = "--log-file FILE"
+    ownership.refuse_overlaps({label: target}, {**paths.inputs, **paths.outputs})
+
+    def identity(path) -> tuple[str, tuple[int, int] | None]:
+        resolved = os.path.realpath(path)
+        try:
+            found = os.stat(resolved)
+        except OSError:
+            return resolved, None
+        return resolved, (found.st_dev, found.st_ino)
+
+    resolved = os.path.realpath(target)
+    holders, folder = [], os.path.dirname(resolved)
+    while True:
+        holders.append(identity(folder))
+        if os.path.dirname(folder) == folder:
+            break
+        folder = os.path.dirname(folder)
+
+    def same(one, other) -> bool:
+        return one[0] == other[0] or (one[1] is not None and one[1] == other[1])
+
+    expected = f"{label} a file apart from the command's inputs, outputs and the folders it writes"
+    for what, folder in paths.folders.items():
+        if any(same(identity(folder), holder) for holder in holders):
+            raise SpherejaxFileError(target, f"{label} lies in {what} ({folder}), a folder the command writes whole", expected)
+    name = os.path.basename(resolved)
+    for what, folder, suffixes in paths.named:
+        suffix = next((suffix for suffix in suffixes if name.endswith(suffix)), None)
+        if suffix is not None and same(identity(folder), holders[0]):
+            raise SpherejaxFileError(target, f"{label} has the name of {what} ({folder}/*{suffix})", expected)
 
 
 class _LogFileHandler(logging.StreamHandler):
@@ -137,8 +220,9 @@ class _LogFileHandler(logging.StreamHandler):
             super().close()
 
 
-def _open_log_file(path: str) -> logging.Handler:
-    """A handler appending to the log file at `path`, checked first (module docstring)."""
+def _open_log_file(path: str, apart_from=None) -> logging.Handler:
+    """A handler appending to the log file at `path`, checked first (module docstring) and, with
+    `apart_from`, against the command's own files (`_refuse_command_paths`)."""
     from .io import ownership
     from .io.errors import SpherejaxFileError
 
@@ -146,6 +230,11 @@ def _open_log_file(path: str) -> logging.Handler:
     if not target.parent.is_dir():
         raise SpherejaxFileError(target, "cannot be created: its folder does not exist",
                                  "--log-file FILE in an existing folder")
+    if apart_from is not None:
+        _refuse_command_paths(target, apart_from)
+    formatter = _UTCFormatter(LOG_FILE_FORMAT)
+    if not os.path.lexists(target):
+        _create_log(target, formatter)
     ownership.refuse_in_the_way({"--log-file FILE": target}, replaceable=not_a_log,
                                 expected="--log-file FILE a new file, or a spherejax log to append to")
     try:
@@ -156,19 +245,22 @@ def _open_log_file(path: str) -> logging.Handler:
         raise SpherejaxFileError(target, f"cannot be opened for writing ({error.strerror})",
                                  "--log-file FILE a new file, or a spherejax log to append to") from None
     handler = _LogFileHandler(open(fd, "a", encoding="utf-8", errors="backslashreplace"))
-    handler.setFormatter(_UTCFormatter(LOG_FILE_FORMAT))
+    handler.setFormatter(formatter)
     handler.setLevel(logging.DEBUG)
     return handler
 
 
 @contextlib.contextmanager
-def configured(*, quiet: bool = False, verbose: int = 0, log_file: str | None = None) -> Iterator[None]:
+def configured(*, quiet: bool = False, verbose: int = 0, log_file: str | None = None,
+               apart_from=None) -> Iterator[None]:
     """Route the loggers of `LOGGER_NAMES` to the terminal (and `log_file`) for one command.
 
     Args:
       quiet: only warnings and errors on the terminal.
       verbose: 1 or more: debug records too (each device command of hw/, for instance).
       log_file: a path to append every record to, at DEBUG, with times; None for none.
+      apart_from: the command's own files (`spherejax.cli.written_paths.CommandPaths`), which
+        `log_file` may not be nor lie among; None: not checked.
 
     Raises:
       SpherejaxFileError: `log_file` is something spherejax may not write (module docstring).
@@ -178,7 +270,7 @@ def configured(*, quiet: bool = False, verbose: int = 0, log_file: str | None = 
     terminal.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
     handlers = [terminal]
     if log_file is not None:
-        handlers.append(_open_log_file(log_file))
+        handlers.append(_open_log_file(log_file, apart_from))
     saved = []
     for name in LOGGER_NAMES:
         logger = logging.getLogger(name)

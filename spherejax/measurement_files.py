@@ -465,6 +465,68 @@ def check_output_base(base) -> None:
     )
 
 
+# What each output of `measure` starts with: the signature on the file itself by which a file at
+# an output's name is known to be one an earlier `measure` wrote, and so may be replaced
+# (docs/reliability.md, "Files"). Nothing else counts: not the name, not the folder, not a
+# file's being a regular file. A CSV begins with its header row (`csv_header`, as
+# number_text.csv_text writes it), the JSON with its "format" field (`json_text` writes it first,
+# on the second line), the CGATS file with CGATS.17's first line and ORIGINATOR "spherejax ..."
+# (`cgats_text`: ORIGINATOR is a keyword of the standard, written first, with no KEYWORD line).
+_SIGNATURES = {
+    "csv": (",".join(csv_header()) + "\n").encode(),
+    "json": b'{\n  "format": "' + FORMAT.encode() + b'",\n',
+    "cgats": b'CGATS.17\nORIGINATOR\t"spherejax ',
+}
+_SIGNATURE_WORDS = {
+    "csv": "its first line is not the header of measure's CSV",
+    "json": f'it does not begin with "format": "{FORMAT}"',
+    "cgats": 'it does not begin with CGATS.17 and ORIGINATOR "spherejax ..."',
+}
+
+
+def not_a_measurement_file(path, kind: str) -> str | None:
+    """None if `path` is a `kind` ("csv", "json" or "cgats") output an earlier `spherejax measure`
+    wrote (it begins with that output's signature, `_SIGNATURES`), else why not: the `replaceable`
+    test of `io.ownership.refuse_in_the_way` for measure's outputs."""
+    import os
+
+    signature = _SIGNATURES[kind]
+    try:
+        # O_NOFOLLOW, O_NONBLOCK: a link or FIFO put there since it was looked at is not followed
+        # or waited on (refuse_in_the_way refused them by what they are).
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as error:
+        return f"a file that cannot be read ({error.strerror})"
+    try:
+        start = os.read(fd, len(signature))
+    except OSError as error:
+        return f"a file that cannot be read ({error.strerror})"
+    finally:
+        os.close(fd)
+    if start == signature:
+        return None
+    return f"a file spherejax measure did not write ({_SIGNATURE_WORDS[kind]})"
+
+
+def refuse_foreign_files(csv_path, json_path, cgats_path=None) -> None:
+    """Before any work: nothing lies at an output's name but what an earlier `measure` wrote
+    (`not_a_measurement_file`); a folder, link, FIFO or a file of the user's there is refused.
+
+    Raises:
+      SpherejaxFileError: one line naming the file in the way.
+    """
+    from .io import ownership
+
+    outputs = [("OUT.csv", csv_path, "csv"), ("OUT.json", json_path, "json")]
+    if cgats_path is not None:
+        outputs.append(("--cgats FILE", cgats_path, "cgats"))
+    for label, path, kind in outputs:
+        ownership.refuse_in_the_way(
+            {label: path}, replaceable=lambda found, kind=kind: not_a_measurement_file(found, kind),
+            expected=f"{label} a new file, or one an earlier spherejax measure wrote, to replace",
+        )
+
+
 def write_files(files: Mapping[pathlib.Path, bytes]) -> None:
     """Write every path -> bytes as one set (`spherejax.atomic_files.write_together`: all the
     temporary files first, then the renames); SpherejaxFileError naming the file on a failure."""
@@ -490,6 +552,8 @@ __all__ = [
     "json_document",
     "json_text",
     "noise_model_summary",
+    "not_a_measurement_file",
     "output_paths",
+    "refuse_foreign_files",
     "write_files",
 ]

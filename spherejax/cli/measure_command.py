@@ -129,12 +129,10 @@ def cmd_measure(args) -> int:
     if args.cgats is not None:
         outputs["--cgats FILE"] = args.cgats
     io.refuse_overlaps(outputs, {"the input cube": args.input, "the calibration (-c)": args.calibration})
-    # A regular file there is an earlier measurement's, replaced; a FIFO, device, folder or link
-    # is not spherejax's, and was replaced by the new file (a FIFO, exit 0).
-    from ..io import ownership
-
-    ownership.refuse_in_the_way(outputs, replaceable=lambda path: None,
-                                expected="new files, or regular files an earlier measurement wrote")
+    # A file at an output's name is replaced only when its own first bytes prove an earlier
+    # measure wrote it: a user's user.csv, user.json or notes at the --cgats name, at -o's names
+    # or the default ones in the working folder, is refused and left as it is.
+    measurement_files.refuse_foreign_files(csv_path, json_path, args.cgats)
 
     calibration_file = io.open_calibration(args.calibration)
     try:

@@ -224,6 +224,8 @@ simulator or spherejax version in OUT is refused (choose another OUT), never rep
     demo.set_defaults(run=cmd_demo)
 
     simulate = _command(commands, "simulate", summary="write a synthetic session like the paper's experiment",
+    demo.add_argument("--force", action="store_true",
+                      help="replace OUT/calibration.h5 even when no earlier demo wrote it (a spherejax calibration only)")
                         description="""
 Simulate the paper's experiment on a physical model of the sphere, lamp, filters and camera
 (spherejax.simulate) and write it as a session folder: manifest.json and 16-bit TIFF frames, as

@@ -15,6 +15,7 @@ from .parser import DEPRECATED_SPELLINGS, _version_line, build_parser
 from .shared import EXIT_BAD_INPUT, _one_line
 
 
+from . import written_paths
 #: The start of JAX's warning about a torn persistent compilation cache entry (`_run`).
 TORN_CACHE_ENTRY_WARNING = "Error reading persistent compilation cache entry"
 
@@ -35,7 +36,9 @@ def main(argv=None) -> int:
         return 0
     with contextlib.ExitStack() as messages:
         try:
-            messages.enter_context(console.configured(quiet=args.quiet, verbose=args.verbose, log_file=args.log_file))
+            # The log is checked against the command's own files like any output (`written_paths`).
+            messages.enter_context(console.configured(quiet=args.quiet, verbose=args.verbose, log_file=args.log_file,
+                                                      apart_from=written_paths.of(args) if args.log_file else None))
         except (ValueError, OSError) as error:  # --log-file refused: there is no log to say it through
             print(_error_line(error), file=sys.stderr)
             return EXIT_BAD_INPUT

@@ -138,6 +138,48 @@ def demo_session_differs(session, seed: int) -> str | None:
 
 def cmd_demo(args) -> int:
     from .. import io
+#: The mark a demo leaves in its calibration's metadata, inside the header its checksum signs: the
+#: proof, on the file itself, that OUT/calibration.h5 is a demo's, which a demo may replace. A
+#: spherejax calibration without it (one `calibrate` made for an instrument, say) is a lab's
+#: calibration: replaced only with --force.
+DEMO_MARK = {"written_by": "spherejax demo"}
+
+
+def not_a_demo_calibration(path) -> str | None:
+    """None if `path` is a calibration a demo wrote (it opens, its checksum verifies and its
+    metadata holds `DEMO_MARK`), else why not, in words for a refusal."""
+    from .. import io
+
+    try:
+        calibration_file = io.open_calibration(path)
+    except io.SpherejaxFileError as error:
+        return f"a file that is not a spherejax calibration ({error.problem})"
+    try:
+        header = calibration_file.header
+    finally:
+        calibration_file.close()
+    metadata = header.get("metadata")
+    if isinstance(metadata, dict) and all(metadata.get(key) == value for key, value in DEMO_MARK.items()):
+        return None
+    return f"a spherejax calibration that no demo wrote (instrument {header.get('instrument_id')!r})"
+
+
+def _check_demo_calibration(path: pathlib.Path, inputs, *, force: bool) -> None:
+    """Before any work: OUT/calibration.h5 is none of `inputs` and replaces nothing but an earlier
+    demo's calibration (`not_a_demo_calibration`) or, with --force, a spherejax calibration; a
+    file that is no calibration is never replaced."""
+    from .. import io
+
+    label = "OUT/calibration.h5"
+    _check_calibration_output(path, label, inputs)
+    if force or not os.path.lexists(path):
+        return
+    reason = not_a_demo_calibration(path)
+    if reason is not None:
+        raise io.SpherejaxFileError(path, f"{label} is in the way: {reason}",
+                                    f"{label} a new file or an earlier demo's, or --force to replace this calibration")
+
+
 
     out = pathlib.Path(args.out)
     session_dir = out / "session"
@@ -145,7 +187,8 @@ def cmd_demo(args) -> int:
     # would simulate (`demo_session_differs`), and refused otherwise -- not replaced: the tables
     # and calibration beside it were computed from it, and a demo never deletes captures, which in
     # a real lab's folder cost an afternoon to take. Else OUT/session must be new or empty;
-    # OUT/calibration.h5 and OUT/evaluation/ replace only what an earlier demo wrote.
+    # OUT/calibration.h5 and OUT/evaluation/ replace only what an earlier demo wrote (its mark in
+    # the calibration's signed header; its metrics.json beside the tables).
     reuse = (session_dir / "manifest.json").exists()
     if os.path.lexists(out) and not out.is_dir():
         raise io.SpherejaxFileError(out, "--out DIR is in the way: it is not a folder", "--out DIR a folder, or a new name")
@@ -160,7 +203,7 @@ def cmd_demo(args) -> int:
                 "another -o/--out DIR for this run, or the same settings to reuse it",
             )
     inputs = {"the session folder (OUT/session)": session_dir, **({} if session is None else _session_files(session))}
-    _check_calibration_output(out / "calibration.h5", "OUT/calibration.h5", inputs)
+    _check_demo_calibration(out / "calibration.h5", inputs, force=getattr(args, "force", False))
     names = _evaluation_names(session) if session is not None else [
         "tables.txt", *(f"table{n}.csv" for n in (1, 3, 4, 5, 6)), "metrics.json", "figure5.png", "figure6.png"]
     _check_output_folder(out / "evaluation", names, _EVALUATION_RECORD, label="OUT/evaluation",
@@ -174,6 +217,6 @@ def cmd_demo(args) -> int:
             session = io.write_simulated_session(session_dir, seed=args.seed)
             progress.done(f"{len(session.frames)} captures")
         calibration, report = _calibrate(session, args, progress)
-        _save_calibration(out / "calibration.h5", calibration, report, session)
+        _save_calibration(out / "calibration.h5", calibration, report, session, marks=DEMO_MARK)
         _evaluate(session, calibration, out / "evaluation", progress, args.quiet)
     return 0

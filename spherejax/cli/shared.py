@@ -113,10 +113,12 @@ def wiener_report_table(report) -> str:
     return "\n".join(lines)
 
 
-def _save_calibration(path, calibration, report, session) -> None:
+def _save_calibration(path, calibration, report, session, marks=None) -> None:
+    """Save with the session's path, the report and `marks` (more metadata, e.g. the demo's
+    mark `session_commands.DEMO_MARK`) in the signed header."""
     from .. import io
 
-    metadata = {"session": str(session.path)}
+    metadata = {"session": str(session.path), **(marks or {})}
     if report is not None:
         metadata["calibration_report"] = report.as_dict()
     io.save_calibration(

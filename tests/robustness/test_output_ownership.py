@@ -285,9 +285,13 @@ def test_demo_refuses_a_session_folder_of_other_files_before_simulating(tmp_path
 
 @pytest.mark.slow
 def test_demo_again_replaces_what_an_earlier_demo_wrote(root, demo_out, capsys):
-    """An earlier demo's calibration and evaluation (its metrics.json beside its tables) are the
-    demo's to replace; a file of the user's beside them stays."""
-    shutil.copyfile(root / "cal.h5", demo_out / "calibration.h5")
+    """An earlier demo's calibration (its mark in the signed header) and evaluation (its
+    metrics.json beside its tables) are the demo's to replace; a file of the user's beside them stays."""
+    from spherejax.cli.session_commands import DEMO_MARK
+
+    calibration, header = io.load_calibration(root / "cal.h5")
+    io.save_calibration(demo_out / "calibration.h5", calibration, instrument_id=header["instrument_id"],
+                        band_centres_nm=header["band_centres_nm"], metadata={**header["metadata"], **DEMO_MARK})
     (demo_out / "evaluation").mkdir()
     record = {"band_centres_nm": [], "markov_kappa": [], "metrics": {}}
     (demo_out / "evaluation" / "metrics.json").write_text(json.dumps(record))
