@@ -84,7 +84,7 @@ class Operator:
         self.yes, self.stream, self.input_fn = yes, stream or sys.stderr, input_fn
 
     def check_can_prompt(self) -> None:
-        if not self.yes and not sys.stdin.isatty():
+        if not self.yes and not _stdin_is_terminal():
             raise AcquisitionError(
                 "acquire needs an operator at a terminal to place the white standard and samples; "
                 "pass --yes to answer every prompt as done"
@@ -96,7 +96,22 @@ class Operator:
             return
         # A signal while the prompt waits stops the run at once, not after the next Enter.
         with interrupt.immediately():
-            self.input_fn(f"{message}, then press Enter ")
+            try:
+                self.input_fn(f"{message}, then press Enter ")
+            except EOFError:  # the terminal closed (Ctrl-D, a hang-up) while the prompt waited
+                raise AcquisitionError(
+                    f"standard input ended while waiting for the operator ({message}); "
+                    "expected Enter at the terminal, or --yes"
+                ) from None
+
+
+def _stdin_is_terminal() -> bool:
+    """Whether stdin is a terminal an operator can answer at: False for a closed stdin (`<&-`:
+    sys.stdin is None outside the command line, which opens /dev/null there) or a pipe."""
+    try:
+        return sys.stdin is not None and sys.stdin.isatty()
+    except (AttributeError, ValueError, OSError):  # replaced by an object without it, or closed
+        return False
 
 
 # ------------------------------------------------------------------------------------- protocol

@@ -8,7 +8,12 @@ in the same one-line refusal whichever way it is damaged:
 - an integer of more than 4300 digits (int() refuses it with a plain ValueError);
 - arrays or objects nested thousands deep (the C scanner raises RecursionError);
 - NaN and Infinity, which are not JSON, where the caller says so (a checksum over strict JSON
-  could not be verified with one in it).
+  could not be verified with one in it);
+- a key given twice in one object, which `json.loads` takes silently, the last one winning: a
+  session manifest with two "frames" or a profile-like document edited by hand would be read as
+  something its author did not see. Refused, naming the key (RFC 8259 says names SHOULD be
+  unique; every document spherejax writes has unique keys, so a duplicate is always damage or a
+  hand edit gone wrong).
 
 Callers wrap the problem in their own error type, naming the file and what was expected
 (`spherejax.io`, `hw.lamp`). No file access here: the caller reads the bytes, so it also decides
@@ -39,6 +44,20 @@ def _not_json(constant: str):
     raise ValueError(f"{constant} is not a JSON value")
 
 
+class _DuplicateKey(ValueError):
+    """A key found twice in one JSON object (`_unique_keys`)."""
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """json's object_pairs_hook: the object as a dict, or `_DuplicateKey` naming the key given twice."""
+    document = {}
+    for key, value in pairs:
+        if key in document:
+            raise _DuplicateKey(f"the key {key!r} appears twice in one object")
+        document[key] = value
+    return document
+
+
 def loads(data: bytes | str, *, allow_nan: bool = True):
     """The JSON value of `data` (bytes are decoded as strict UTF-8).
 
@@ -48,7 +67,8 @@ def loads(data: bytes | str, *, allow_nan: bool = True):
 
     Raises:
       JSONTextError: not UTF-8, not JSON, beyond the parser's limits (integer digits, nesting
-        depth) or a non-finite constant where they are refused; never RecursionError.
+        depth), a key given twice in one object, or a non-finite constant where they are
+        refused; never RecursionError.
     """
     if isinstance(data, (bytes, bytearray, memoryview)):
         try:
@@ -57,7 +77,10 @@ def loads(data: bytes | str, *, allow_nan: bool = True):
             detail = f"byte {error.start}"
             raise JSONTextError(f"is not UTF-8 text ({detail})", detail) from None
     try:
-        return json.loads(data, **({} if allow_nan else {"parse_constant": _not_json}))
+        return json.loads(data, object_pairs_hook=_unique_keys,
+                          **({} if allow_nan else {"parse_constant": _not_json}))
+    except _DuplicateKey as error:
+        detail = str(error)
     except json.JSONDecodeError as error:
         detail = f"{error.msg} at line {error.lineno} column {error.colno}"
     except RecursionError:

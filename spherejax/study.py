@@ -46,6 +46,26 @@ from .polynomial import stage2_unchecked
 
 _HIGHEST = jax.lax.Precision.HIGHEST
 
+#: The largest `response_weight`: the response term is in units of the closed form's own residual,
+#: so at 1e6 it outweighs ΔE00 a million to one and the study is the closed form again; a larger
+#: weight changes nothing but the objective's size, and at 1e308 that size is infinite.
+RESPONSE_WEIGHT_MAX = 1e6
+#: The most BFGS iterations (`max_steps`): each evaluates the whole objective and its gradient a
+#: few times; more is a run of days, never a better fit (BFGS converges in hundreds).
+MAX_STEPS_MAX = 100_000
+
+
+def _check_study_options(response_weight, max_steps) -> tuple[float, int]:
+    """(response_weight, max_steps) as numbers in range, or ValueError naming the argument."""
+    import numbers
+
+    if isinstance(response_weight, bool) or not isinstance(response_weight, numbers.Real) \
+            or not (0.0 <= float(response_weight) <= RESPONSE_WEIGHT_MAX):  # NaN fails the comparison
+        raise ValueError(f"response_weight: expected a number 0..{RESPONSE_WEIGHT_MAX:g}, got {response_weight!r}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or not 1 <= max_steps <= MAX_STEPS_MAX:
+        raise ValueError(f"max_steps: expected an integer 1..{MAX_STEPS_MAX}, got {max_steps!r}")
+    return float(response_weight), int(max_steps)
+
 
 @dataclasses.dataclass
 class StudyResult:
@@ -141,7 +161,13 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
 
     Returns:
       `StudyResult`.
+
+    Raises:
+      ValueError: `response_weight` or `max_steps` out of range (`RESPONSE_WEIGHT_MAX`,
+        `MAX_STEPS_MAX`), or an objective that is not finite at the start or the end (the fit's
+        numbers would mean nothing, and study.json would record inf).
     """
+    response_weight, max_steps = _check_study_options(response_weight, max_steps)
     base = base_calibration(session)
     if training is None:
         training = measure_frames(session, session.frames_with(role="sample", set="training"), base)
@@ -180,11 +206,19 @@ def study_session(session, calibration: Calibration, *, fit_wiener: bool = False
     estimator = {"wiener": np.asarray(params["wiener"], np.float32),
                  "wiener_offset": np.asarray(params["wiener_offset"], np.float32)} if fit_wiener else {}
     studied = dataclasses.replace(calibration, coeffs=np.asarray(params["coeffs"], np.float32), **estimator)
+    objective_start, objective_end = (np.asarray(objective(x, problem)) for x in (start, params))
+    for when, value in (("at the start (the given calibration)", objective_start), ("after the fit", objective_end)):
+        if not np.isfinite(value):
+            # Every input is checked finite and bounded, so this is a calibration or session
+            # whose colours overflow (absurd coefficients): no fit of it can be reported.
+            raise ValueError(f"study: the objective is {float(value)} {when}, expected a finite mean ΔE00 "
+                             f"(response_weight {response_weight:g}; the calibration's colours of the training "
+                             "samples are not finite)")
     return StudyResult(
         calibration=studied,
         # Python floats that state the precision they were computed in (study.json writes them).
-        objective_start=json_ready(np.asarray(objective(start, problem))),
-        objective_end=json_ready(np.asarray(objective(params, problem))),
+        objective_start=json_ready(objective_start),
+        objective_end=json_ready(objective_end),
         steps=int(solution.stats["num_steps"]),
         converged=bool(solution.result == optx.RESULTS.successful),
         reference=reference,

@@ -107,14 +107,14 @@ def subcommand_parsers() -> dict[str, argparse.ArgumentParser]:
 NUMERIC_OPTIONS = {
     ("demo", "--seed"): "an integer 0..9223372036854775807",
     ("simulate", "--seed"): "an integer 0..9223372036854775807",
-    ("calibrate", "--gain"): "a finite number > 0",
-    ("calibrate", "--read-noise"): "a finite number >= 0",
-    ("calibrate", "--white-reflectance-u"): "a finite number >= 0",
-    ("study", "--response-weight"): "a finite number >= 0",
-    ("study", "--max-steps"): "an integer >= 1",
+    ("calibrate", "--gain"): "a number 0.0001..10000",
+    ("calibrate", "--read-noise"): "a number 0..65536",
+    ("calibrate", "--white-reflectance-u"): "a number 0..1",
+    ("study", "--response-weight"): "a number 0..1e6",
+    ("study", "--max-steps"): "an integer 1..100000",
     ("correct", "--workers"): "an integer",
-    ("measure", "--gain"): "a finite number > 0",
-    ("measure", "--read-noise"): "a finite number >= 0",
+    ("measure", "--gain"): "a number 0.0001..10000",
+    ("measure", "--read-noise"): "a number 0..65536",
     ("measure", "--frames"): "an integer 1..16777216",
 }
 
@@ -162,11 +162,11 @@ BY_KIND = [
     ("non-negative-integer", ["simulate", "-o", "{t}/session", "--seed", "-7"],
      "spherejax: error: --seed '-7': expected the simulation's seed, an integer 0..9223372036854775807"),
     ("positive-number", ["calibrate", "{t}/session", "-o", "{t}/cal.h5", "--gain", "inf"],
-     "spherejax: error: --gain 'inf': expected electrons per count, a finite number > 0"),
+     "spherejax: error: --gain 'inf': expected electrons per count, a number 0.0001..10000"),
     ("non-negative-number", ["calibrate", "{t}/session", "-o", "{t}/cal.h5", "--read-noise", "-0.5"],
-     "spherejax: error: --read-noise '-0.5': expected one frame's read noise in counts rms, a finite number >= 0"),
+     "spherejax: error: --read-noise '-0.5': expected one frame's read noise in counts rms, a number 0..65536"),
     ("study-layout", ["study", "{t}/session", "--response-weight", "nan"],
-     "spherejax: error: --response-weight: expected a value >= 0, got nan"),
+     "spherejax: error: --response-weight: expected a value 0..1e6, got nan"),
 ]
 
 
@@ -180,12 +180,12 @@ def test_a_bad_number_is_one_line_and_exit_status_2(tmp_path, capsys, argv, line
 
 def test_the_option_may_come_with_an_equals_sign_and_global_options(tmp_path, capsys):
     argv = ["-q", "calibrate", tmp_path / "session", "-o", tmp_path / "cal.h5", "--gain=", "-v"]
-    assert_one_line(*run(argv, capsys), "spherejax: error: --gain '': expected electrons per count, a finite number > 0")
+    assert_one_line(*run(argv, capsys), "spherejax: error: --gain '': expected electrons per count, a number 0.0001..10000")
 
 
 def test_a_control_character_in_the_value_stays_on_the_line(tmp_path, capsys):
     argv = ["study", tmp_path / "session", "--max-steps", "1\n2"]
-    assert_one_line(*run(argv, capsys), "spherejax: error: --max-steps: expected a positive number of BFGS iterations, got 1\\n2")
+    assert_one_line(*run(argv, capsys), "spherejax: error: --max-steps: expected a positive number of BFGS iterations, at most 100000, got 1\\n2")
 
 
 def test_usage_errors_stay_argparse_s(capsys):
@@ -202,7 +202,7 @@ def test_the_parser_alone_exits_with_status_2(capsys):
     with pytest.raises(SystemExit) as stopped:
         cli.build_parser().parse_args(["study", "s", "--max-steps", "-3"])
     assert stopped.value.code == 2 and isinstance(stopped.value, numbers.BadNumber)
-    assert capsys.readouterr().err == "spherejax: error: --max-steps: expected a positive number of BFGS iterations, got -3\n"
+    assert capsys.readouterr().err == "spherejax: error: --max-steps: expected a positive number of BFGS iterations, at most 100000, got -3\n"
 
 
 def test_python_dash_m_spherejax_refuses_a_bad_number_in_one_line(tmp_path):
@@ -212,4 +212,13 @@ def test_python_dash_m_spherejax_refuses_a_bad_number_in_one_line(tmp_path):
         capture_output=True, text=True, timeout=180,
     )
     assert result.returncode == 2 and result.stdout == ""
-    assert result.stderr == "spherejax: error: --gain '1e400': expected electrons per count, a finite number > 0\n"
+    assert result.stderr == "spherejax: error: --gain '1e400': expected electrons per count, a number 0.0001..10000\n"
+
+
+def test_number_in_bounds_both_ends():
+    kind = numbers.number_in("electrons per count", minimum=numbers.GAIN_MIN, maximum=numbers.GAIN_MAX)
+    assert kind("0.0001") == 1e-4 and kind("10000") == 1e4 and kind("2.5") == 2.5
+    for text in [*NON_NUMBERS, "0", "-1", "9.9e-5", "10000.01", "1e308"]:
+        refused(kind, text)
+    assert kind.expected == "electrons per count, a number 0.0001..10000"
+    assert numbers.shown(1e6) == "1e6" and numbers.shown(65536.0) == "65536" and numbers.shown(1e-4) == "0.0001"

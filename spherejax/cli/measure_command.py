@@ -8,6 +8,7 @@ import pathlib
 
 from .. import console, interrupt
 from ..console import Steps
+from .shared import argument_text, check_writable
 
 
 def _measure_regions(values, image_shape=None) -> list[tuple[str, tuple[int, int, int, int], str]]:
@@ -15,6 +16,7 @@ def _measure_regions(values, image_shape=None) -> list[tuple[str, tuple[int, int
     and value. With `image_shape`, each rectangle must also lie inside the image."""
     regions, names = [], set()
     for given in values:
+        given = argument_text(given, "--region")  # "rôt" under LC_ALL=C: its UTF-8, not escapes
         expected = "NAME=r0,r1,c0,c1: a name, then four integers, rows r0..r1-1 and columns c0..c1-1"
         name, sep, numbers = given.partition("=")
         name = name.strip()
@@ -50,6 +52,7 @@ def _measure_reference(value: str | None, names):
 
     if value is None:
         return None
+    value = argument_text(value, "--reference")  # as the region names are (`_measure_regions`)
     if value in names:
         return "region", value
     parts = value.split(",")
@@ -125,6 +128,9 @@ def cmd_measure(args) -> int:
     if args.cgats is not None:
         measurement_files.check_cgats_path(args.cgats, measurement_files.output_paths(base))
     csv_path, json_path = measurement_files.output_paths(base)
+    check_writable(csv_path, "-o OUT", folder=False)  # before the cube is read and measured
+    if args.cgats is not None:
+        check_writable(args.cgats, "--cgats FILE", folder=False)
     outputs = {"OUT.csv": csv_path, "OUT.json": json_path}
     if args.cgats is not None:
         outputs["--cgats FILE"] = args.cgats

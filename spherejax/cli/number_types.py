@@ -5,10 +5,17 @@ none):
 
   integer               --workers (its range, 1..the cores this process may use, depends on the
                         machine: spherejax.cluster.check_workers says it, for the API too)
-  positive_integer      --max-steps, --frames (at most FRAMES_MAX)
+  positive_integer      --max-steps (at most MAX_STEPS_MAX), --frames (at most FRAMES_MAX)
   non_negative_integer  --seed, at most SEED_MAX
-  positive_number       --gain
-  non_negative_number   --read-noise, --white-reflectance-u, --response-weight
+  number_in             --gain (GAIN_MIN..GAIN_MAX), --read-noise (0..READ_NOISE_MAX),
+                        --white-reflectance-u (0..1), --response-weight (0..RESPONSE_WEIGHT_MAX)
+
+Every option's number is bounded, above and below, by what it can mean: a finite number is not
+enough, since one of 1e308 is finite and yet overflows the first product it enters (a response
+weight of 1e308 made `study`'s objective infinite; a gain of 1e308 is infinite in the float32 a
+noise model holds). The bounds are wide enough for any instrument and narrow enough that no
+product of them overflows float32 (the noise model's variance, signal / gain + read_noise², is at
+most 65535 / 1e-4 + 65536² < 1e10).
 
 (--region NAME=r0,r1,c0,c1 and --reference NAME|L,a,b hold numbers too, but each is a small
 format of its own, which `spherejax measure` parses and refuses in its own words.)
@@ -42,6 +49,19 @@ SEED_MAX = 2**63 - 1
 #: The most frames a noise model counts: it holds them as float32 (`spherejax.NoiseModel`), whose
 #: integers are exact up to 2**24 (and a 400-digit count would not convert at all: OverflowError).
 FRAMES_MAX = 2**24
+#: The most BFGS iterations `study` runs: each is a few evaluations of the whole objective, so a
+#: larger number is a run of days, never a better fit (the default is 300).
+MAX_STEPS_MAX = 100_000
+#: A camera's gain in electrons per count: from 1e-4 (a 16-bit count of a ten-thousandth of an
+#: electron) to 1e4 (ten thousand electrons a count); no camera lies outside.
+GAIN_MIN, GAIN_MAX = 1e-4, 1e4
+#: One frame's read noise in counts rms, at most the full scale of a 16-bit frame.
+READ_NOISE_MAX = 65536.0
+#: The white standard's relative standard uncertainty: 1 is 100 %.
+WHITE_REFLECTANCE_U_MAX = 1.0
+#: `study`'s weight of the response residual beside ΔE00: spherejax.study.RESPONSE_WEIGHT_MAX,
+#: which says why (repeated here so that parsing imports no JAX; a test checks they agree).
+RESPONSE_WEIGHT_MAX = 1e6
 
 
 class NumberError(argparse.ArgumentTypeError):
@@ -125,6 +145,18 @@ def non_negative_number(what: str | None = None, **options) -> NumberType:
     return NumberType(_finite_float, lambda x: x >= 0, "a finite number >= 0", what, **options)
 
 
+def shown(number: float) -> str:
+    """A bound as a person writes it: 0.0001, 65536, 1e6 (not format's 1e+06)."""
+    return f"{number:g}".replace("e+0", "e").replace("e+", "e")
+
+
+def number_in(what: str | None = None, *, minimum: float, maximum: float, **options) -> NumberType:
+    """A finite number in minimum..maximum, both included: an option whose number means something
+    only within bounds (module docstring)."""
+    kind = f"a number {shown(minimum)}..{shown(maximum)}"
+    return NumberType(_finite_float, lambda x: minimum <= x <= maximum, kind, what, **options)
+
+
 class BadNumber(SystemExit):
     """Raised by the command line's parsers once they have written a `NumberError`'s line on
     stderr: exit status 2 (a SystemExit, as argparse's own errors, wherever a parser is used on
@@ -132,6 +164,8 @@ class BadNumber(SystemExit):
 
 
 __all__ = [
-    "VALUE_FIRST", "EXPECTED_FIRST", "SEED_MAX", "FRAMES_MAX", "NumberError", "NumberType", "BadNumber",
-    "integer", "positive_integer", "non_negative_integer", "positive_number", "non_negative_number",
+    "VALUE_FIRST", "EXPECTED_FIRST", "SEED_MAX", "FRAMES_MAX", "MAX_STEPS_MAX", "GAIN_MIN", "GAIN_MAX",
+    "READ_NOISE_MAX", "WHITE_REFLECTANCE_U_MAX", "RESPONSE_WEIGHT_MAX", "NumberError", "NumberType", "BadNumber",
+    "integer", "positive_integer", "non_negative_integer", "positive_number", "non_negative_number", "number_in",
+    "shown",
 ]

@@ -126,15 +126,19 @@ def add_output_option(parser, *, dest: str, metavar: str, help: str, required: b
 
 # The type of each numeric option, by what its number is (`number_types`: one kind each).
 SEED = numbers.non_negative_integer("the simulation's seed", maximum=numbers.SEED_MAX)
-GAIN = numbers.positive_number("electrons per count")
-READ_NOISE = numbers.non_negative_number("one frame's read noise in counts rms")
-WHITE_REFLECTANCE_U = numbers.non_negative_number("the white standard's relative standard uncertainty (0.003 for 0.3 %)")
+GAIN = numbers.number_in("electrons per count", minimum=numbers.GAIN_MIN, maximum=numbers.GAIN_MAX)
+READ_NOISE = numbers.number_in("one frame's read noise in counts rms", minimum=0.0, maximum=numbers.READ_NOISE_MAX)
+WHITE_REFLECTANCE_U = numbers.number_in("the white standard's relative standard uncertainty (0.003 for 0.3 %)",
+                                        minimum=0.0, maximum=numbers.WHITE_REFLECTANCE_U_MAX)
 SAMPLE_FRAMES = numbers.positive_integer("the sample frames averaged", maximum=numbers.FRAMES_MAX)
 # The number's whole range is for spherejax.cluster.check_workers, which knows the machine's cores.
 WORKERS = numbers.integer("the number of worker processes (1..the cores this process may use)")
 # `study`'s, in the words of the checks they replace (`number_types.EXPECTED_FIRST`).
-RESPONSE_WEIGHT = numbers.non_negative_number(expected="a value >= 0", layout=numbers.EXPECTED_FIRST)
-MAX_STEPS = numbers.positive_integer(expected="a positive number of BFGS iterations", layout=numbers.EXPECTED_FIRST)
+RESPONSE_WEIGHT = numbers.number_in(minimum=0.0, maximum=numbers.RESPONSE_WEIGHT_MAX,
+                                    expected=f"a value 0..{numbers.shown(numbers.RESPONSE_WEIGHT_MAX)}", layout=numbers.EXPECTED_FIRST)
+MAX_STEPS = numbers.positive_integer(maximum=numbers.MAX_STEPS_MAX,
+                                     expected=f"a positive number of BFGS iterations, at most {numbers.MAX_STEPS_MAX}",
+                                     layout=numbers.EXPECTED_FIRST)
 
 
 def _version_line() -> str:
@@ -220,12 +224,12 @@ simulator or spherejax version in OUT is refused (choose another OUT), never rep
     add_output_option(demo, dest="out", metavar="DIR", default="spherejax-demo",
                       help="output folder: session/, calibration.h5, evaluation/ (default ./spherejax-demo)")
     demo.add_argument("--seed", type=SEED, default=0, help="simulation seed, 0..2**63 - 1 (default 0)")
+    demo.add_argument("--force", action="store_true",
+                      help="replace OUT/calibration.h5 even when no earlier demo wrote it (a spherejax calibration only)")
     calibration_options(demo)
     demo.set_defaults(run=cmd_demo)
 
     simulate = _command(commands, "simulate", summary="write a synthetic session like the paper's experiment",
-    demo.add_argument("--force", action="store_true",
-                      help="replace OUT/calibration.h5 even when no earlier demo wrote it (a spherejax calibration only)")
                         description="""
 Simulate the paper's experiment on a physical model of the sphere, lamp, filters and camera
 (spherejax.simulate) and write it as a session folder: manifest.json and 16-bit TIFF frames, as
@@ -256,13 +260,13 @@ replaced only with --force, and only when it is a spherejax calibration.""",
                            help="replace CAL if it exists (it must be a spherejax calibration)")
     calibration_options(calibrate)
     calibrate.add_argument("--gain", metavar="E_PER_COUNT", type=GAIN,
-                           help="camera gain, electrons per count, for the stored noise model "
+                           help="camera gain, electrons per count (1e-4..1e4), for the stored noise model "
                                 "(default: the session's metadata camera, if it records one)")
     calibrate.add_argument("--read-noise", metavar="COUNTS", type=READ_NOISE,
-                           help="read noise of one frame, counts rms (default: the session's, as --gain)")
+                           help="read noise of one frame, counts rms (0..65536; default: the session's, as --gain)")
     calibrate.add_argument("--white-reflectance-u", metavar="REL", type=WHITE_REFLECTANCE_U,
                            help="relative standard uncertainty of the white standard's certified "
-                                "reflectance, e.g. 0.003 (default: the session's, else 0)")
+                                "reflectance, 0..1, e.g. 0.003 (default: the session's, else 0)")
     calibrate.set_defaults(run=cmd_calibrate)
 
     evaluate = _command(commands, "evaluate", summary="the paper's tables and figures for a session",
@@ -295,8 +299,9 @@ captures (Table 6 format). OUT gets study.txt, study.csv, study.json and study-c
     study.add_argument("-c", "--calibration", metavar="CAL", help="starting calibration (default: the closed form from SESSION)")
     study.add_argument("--wiener", action="store_true", help="also optimise the Wiener matrix")
     study.add_argument("--response-weight", type=RESPONSE_WEIGHT, default=0.01,
-                       help="weight of the paper's response residual (Eq. 21) beside ΔE00 (default 0.01; 0 = colour only)")
-    study.add_argument("--max-steps", type=MAX_STEPS, default=300, help="BFGS iterations (default 300)")
+                       help="weight of the paper's response residual (Eq. 21) beside ΔE00, 0..1e6 (default 0.01; "
+                            "0 = colour only)")
+    study.add_argument("--max-steps", type=MAX_STEPS, default=300, help="BFGS iterations, 1..100000 (default 300)")
     add_output_option(study, dest="out", metavar="DIR", help="output folder (default SESSION-study beside the session)")
     calibration_options(study)
     study.set_defaults(run=cmd_study)
@@ -372,11 +377,11 @@ OUT.csv and OUT.json, and with --cgats a CGATS.17 file colour quality-control so
                          help="also write the regions as CGATS.17 text (X-Rite layout: SAMPLE_ID, SAMPLE_NAME, "
                               "LAB_L/A/B, nm400..nm700), as colour quality-control software and ArgyllCMS read")
     measure.add_argument("--gain", metavar="E_PER_COUNT", type=GAIN,
-                         help="camera gain, electrons per count: overrides the calibration's noise model, "
-                              "or with --read-noise supplies one")
+                         help="camera gain, electrons per count (1e-4..1e4): overrides the calibration's noise "
+                              "model, or with --read-noise supplies one")
     measure.add_argument("--read-noise", metavar="COUNTS", type=READ_NOISE,
-                         help="read noise of one frame, counts rms (as --gain)")
+                         help="read noise of one frame, counts rms, 0..65536 (as --gain)")
     measure.add_argument("--frames", metavar="N", type=SAMPLE_FRAMES,
-                         help="sample frames averaged in INPUT (default: the noise model's, else 1)")
+                         help="sample frames averaged in INPUT, 1..2**24 (default: the noise model's, else 1)")
     measure.set_defaults(run=cmd_measure)
     return parser

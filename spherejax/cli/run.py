@@ -5,17 +5,19 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import sys
 import warnings
 
 from .. import console, interrupt
 from .._engine.allocator import keep_freed_memory
+from . import streams
 from .number_types import BadNumber
 from .parser import DEPRECATED_SPELLINGS, _version_line, build_parser
 from .shared import EXIT_BAD_INPUT, _one_line
-
-
 from . import written_paths
+
+
 #: The start of JAX's warning about a torn persistent compilation cache entry (`_run`).
 TORN_CACHE_ENTRY_WARNING = "Error reading persistent compilation cache entry"
 
@@ -25,7 +27,28 @@ def _error_line(error: BaseException) -> str:
 
 
 def main(argv=None) -> int:
-    """Run the command line on `argv` (default sys.argv[1:]); the exit status."""
+    """Run the command line on `argv` (default sys.argv[1:]); the exit status.
+
+    stdin, stdout and stderr are guarded for the whole run (`streams`): a closed one is opened on
+    /dev/null, a failed write never stops the work, and the exit status says, once the work is
+    done and recorded, that the results could not be written (141 for a reader that went away,
+    as Unix tools exit; 2 with one line for a full or closed stdout). argparse's own exits
+    (--help, --version) go through the same check: `--version > /dev/full` is not a success.
+    """
+    with streams.guarded() as guard:
+        try:
+            status = _main(argv)
+        except SystemExit as exiting:
+            if exiting.code not in (None, 0):
+                raise
+            status = guard.exit_status(0)
+            if status == 0:
+                raise
+            raise SystemExit(status) from None
+        return guard.exit_status(status)
+
+
+def _main(argv) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -52,7 +75,25 @@ def main(argv=None) -> int:
         return _run(args)
 
 
+def _missing_working_folder() -> str | None:
+    """None if the working folder exists; else the one-line refusal naming it. A folder deleted
+    while a shell stood in it makes os.getcwd() fail, and every relative path with it, as
+    "[Errno 2] No such file or directory" naming no file."""
+    try:
+        os.getcwd()
+    except FileNotFoundError:
+        where = os.environ.get("PWD")  # the shell's record of it: the folder itself is gone
+        named = f" {_one_line(where)}" if where and not os.path.isdir(where) else ""
+        return (f"spherejax: error: the working folder{named} no longer exists (deleted since the shell "
+                "entered it) (expected a working folder that exists: cd to one)")
+    return None
+
+
 def _run(args) -> int:
+    missing = _missing_working_folder()
+    if missing is not None:
+        console.say(missing, logging.ERROR)
+        return EXIT_BAD_INPUT
     # Before any JAX work: reuse freed blocks instead of page-faulting fresh ones on every image
     # (spherejax._engine.allocator says why; about 2x on a 1-megapixel correction).
     keep_freed_memory()

@@ -10,6 +10,7 @@ from ..console import Steps
 from .shared import (
     _STUDY_FILES, _STUDY_RECORD, _EVALUATION_RECORD, _calibrate, _check_calibration_output,
     _check_output_folder, _evaluate, _evaluation_names, _inputs, _save_calibration, _session_files, _write_files,
+    check_writable,
 )
 
 
@@ -23,6 +24,7 @@ def cmd_simulate(args) -> int:
         raise ValueError("no session folder given (expected -o/--out DIR, the session folder to create)")
     out = pathlib.Path(args.out if args.out is not None else args.out_positional)
     io.check_new_session_folder(out)  # before minutes of simulation, not after
+    check_writable(out, "-o DIR", folder=False)  # staged beside it, then renamed into place
     with Steps(1, args.quiet) as progress:
         progress.start(f"simulating a session into {out}")
         session = io.write_simulated_session(out, seed=args.seed)
@@ -136,8 +138,6 @@ def demo_session_differs(session, seed: int) -> str | None:
     return None
 
 
-def cmd_demo(args) -> int:
-    from .. import io
 #: The mark a demo leaves in its calibration's metadata, inside the header its checksum signs: the
 #: proof, on the file itself, that OUT/calibration.h5 is a demo's, which a demo may replace. A
 #: spherejax calibration without it (one `calibrate` made for an instrument, say) is a lab's
@@ -180,6 +180,8 @@ def _check_demo_calibration(path: pathlib.Path, inputs, *, force: bool) -> None:
                                     f"{label} a new file or an earlier demo's, or --force to replace this calibration")
 
 
+def cmd_demo(args) -> int:
+    from .. import io
 
     out = pathlib.Path(args.out)
     session_dir = out / "session"
@@ -195,6 +197,7 @@ def _check_demo_calibration(path: pathlib.Path, inputs, *, force: bool) -> None:
     session = io.load_session(session_dir) if reuse else None
     if session is None:
         io.check_new_session_folder(session_dir)
+        check_writable(session_dir, "OUT/session", folder=False)  # staged beside it, then renamed
     else:
         differs = demo_session_differs(session, args.seed)
         if differs is not None:

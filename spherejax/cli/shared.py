@@ -66,6 +66,59 @@ def _one_line(text: str) -> str:
     return "".join(c if c.isprintable() or c == " " else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
+def check_writable(path, label: str, *, folder: bool) -> None:
+    """Before any work: files can be created where `path` goes, so that a read-only or immutable
+    folder, or a read-only file system, is found in one line before minutes of work, not at the
+    first write after them.
+
+    `path` is an output folder (`folder` True: its files go inside it) or an output file (its
+    files go into its folder); either may not exist yet, and is then created in the nearest
+    folder above it that does. That folder is tried the only way that answers for every cause
+    (mode bits, which root ignores; chattr +i, which stops root too; a read-only mount; ACLs): a
+    temporary name (`atomic_files.temp_sibling`, so a kill in between leaves only what clean-up
+    recognises) created with O_EXCL and removed at once.
+
+    Raises:
+      SpherejaxFileError: one line naming `path`, the folder and the system's reason.
+    """
+    from .. import atomic_files
+    from ..io.errors import SpherejaxFileError
+
+    path = pathlib.Path(path)
+    where = path if folder else path.parent
+    while not os.path.lexists(where) and where != where.parent:
+        where = where.parent
+    if not os.path.isdir(where):
+        return  # a file or link in the way: the ownership checks name it
+    probe = atomic_files.temp_sibling(where / "write-check")
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    except OSError as error:
+        same = where.resolve() == path.resolve()
+        problem = (f"cannot be written ({error.strerror})" if same
+                   else f"cannot be created: the folder {where} cannot be written ({error.strerror})")
+        raise SpherejaxFileError(path, problem, f"{label} where spherejax can create files") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+
+
+def argument_text(value: str, option: str) -> str:
+    """A command-line value (a region's name, say) as the text typed: under a locale that is not
+    UTF-8 (LC_ALL=C) Python decodes the arguments' bytes as ASCII with lone surrogates for the
+    rest, so "rôt" arrives as 'r\\udcc3\\udcb4t', which is neither printable nor what was meant;
+    its bytes are decoded as UTF-8 instead. Text without such bytes is returned as it is.
+
+    Raises:
+      ValueError: the bytes are not UTF-8 either, in one line naming `option` and the value.
+    """
+    raw = value.encode("utf-8", "surrogateescape")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{option} '{_one_line(value)}': is not UTF-8 text (expected text in UTF-8)") from None
+
+
 def _calibrate(session, args, progress):
     from .. import calibrate
 
@@ -167,6 +220,7 @@ def _check_calibration_output(path, label: str, inputs, *, force: bool = True) -
     if not force and os.path.lexists(path):
         raise SpherejaxFileError(path, "exists: a spherejax calibration",
                                  f"{label} a new file, or --force to replace this calibration")
+    check_writable(path, label, folder=False)
 
 
 def _evaluation_names(session) -> list[str]:
@@ -191,6 +245,7 @@ def _check_output_folder(out_dir, names, record, *, label: str, inputs, holding)
         return None if earlier else f"a file spherejax did not write (no earlier run's {record_name} beside it)"
 
     ownership.check_output_folder(out_dir, names, label=label, inputs=inputs, holding=holding, replaceable=replaceable)
+    check_writable(out_dir, label, folder=True)
 
 
 def _evaluate(session, calibration, out_dir, progress, quiet):

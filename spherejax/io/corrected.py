@@ -19,7 +19,7 @@ import OpenImageIO as oiio
 from .. import labelled
 from . import envi
 from .errors import SpherejaxFileError
-from .library_messages import complete_image, image_open_problem, image_read_problem
+from .library_messages import complete_image, image_open_problem, image_read_problem, library_path
 from .quality_png import read_quality_png
 from .spectral_layout import reflective_channels
 
@@ -38,7 +38,7 @@ def _chunk_rows(width: int, channels: int, itemsize: int) -> int:
 
 
 def _image_header(path: pathlib.Path) -> tuple[oiio.ImageSpec, dict]:
-    image = oiio.ImageInput.open(str(path))
+    image = oiio.ImageInput.open(library_path(path, _EXPECTED))
     if image is None:
         raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _EXPECTED)
     try:
@@ -51,7 +51,7 @@ def _image_header(path: pathlib.Path) -> tuple[oiio.ImageSpec, dict]:
 
 def _read_rows(path: str, row0: int, row1: int, order: tuple[int, ...]) -> np.ndarray:
     """Rows row0:row1 of an image, float32 (rows, W, C), channels in `order`."""
-    image = oiio.ImageInput.open(path)
+    image = oiio.ImageInput.open(library_path(path, _EXPECTED))
     if image is None:
         raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _EXPECTED)
     try:

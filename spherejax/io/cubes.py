@@ -27,9 +27,10 @@ from collections.abc import Sequence
 
 import numpy as np
 import OpenImageIO as oiio
+from .. import jsontext
 from .documents import _describe_bands
 from .errors import SpherejaxFileError
-from .library_messages import complete_image, image_open_problem, image_read_problem
+from .library_messages import complete_image, image_open_problem, image_read_problem, library_path
 from .frames import (
     AtomicImageWriter, _FRAME_EXPECTED, _frame_names_and_attributes, _open_checked_frame, _refuse_undecodable_text,
     _require_frame_shape, _spec_shape, require_image_file,
@@ -104,7 +105,7 @@ def _channel_names(image: oiio.ImageInput) -> list[str]:
     spec = image.spec()
     if image.format_name() == "tiff":
         try:
-            stored = json.loads(spec.get_string_attribute("ImageDescription"))["channel_names"]
+            stored = jsontext.loads(spec.get_string_attribute("ImageDescription"))["channel_names"]
             if isinstance(stored, list) and len(stored) == spec.nchannels:
                 return [str(name) for name in stored]
         except (ValueError, TypeError, KeyError, RecursionError):  # not write_frame's JSON
@@ -289,7 +290,7 @@ def open_cube(path, *, expected_shape: Sequence[int], band_centres_nm=None) -> C
     path = pathlib.Path(path)
     height, width, bands = (int(n) for n in expected_shape)
     require_image_file(path, _CUBE_EXPECTED, (height, width, bands))
-    image = oiio.ImageInput.open(str(path))
+    image = oiio.ImageInput.open(library_path(path, _CUBE_EXPECTED))
     if image is None:
         raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _CUBE_EXPECTED)
     try:

@@ -14,10 +14,13 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import OpenImageIO as oiio
 
+from .. import jsontext
 from .atomic_writer import AtomicWriter
 from .errors import SpherejaxFileError, _show
 from .hashing import sha256_file
-from .library_messages import complete_image, image_open_problem, image_read_problem, image_write_problem, write_limit
+from .library_messages import (
+    complete_image, image_open_problem, image_read_problem, image_write_problem, library_path, write_limit,
+)
 from .plain_files import file_kind
 
 _FRAME_EXPECTED = "a single-page 16-bit TIFF of shape (H, W, C)"
@@ -77,7 +80,7 @@ def require_image_file(path: pathlib.Path, expected: str, shape=None) -> None:
 def _open_checked_frame(path: pathlib.Path) -> oiio.ImageInput:
     """An open ImageInput on a checked camera frame (one page, uint16 samples); the caller closes it."""
     require_image_file(path, _FRAME_EXPECTED)
-    image = oiio.ImageInput.open(str(path))
+    image = oiio.ImageInput.open(library_path(path, _FRAME_EXPECTED))
     if image is None:
         raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), _FRAME_EXPECTED)
     try:
@@ -190,7 +193,7 @@ def read_frame_metadata(path) -> dict:
         spec = image.spec()
         description = spec.get_string_attribute("ImageDescription")
     try:
-        stored = json.loads(description)
+        stored = jsontext.loads(description)  # strict: a key given twice is not write_frame's JSON
         # Converted inside the try: a description that is JSON but not write_frame's falls back too.
         return {"channel_names": list(stored["channel_names"]), "attributes": dict(stored["attributes"])}
     except (ValueError, TypeError, KeyError, RecursionError):
@@ -218,7 +221,16 @@ def _frame_names_and_attributes(path, channels: int, channel_names, attributes):
                 f"attribute {key!r} is reserved for the channel names and attributes",
                 f"attribute names other than {list(_RESERVED_ATTRIBUTES)}",
             )
+    attributes = {key: _library_text(value) for key, value in attributes.items()}
     return channel_names, attributes
+
+
+def _library_text(text: str) -> str:
+    """`text` as OpenImageIO can store it (its binding encodes str as UTF-8): a file name read
+    under a non-UTF-8 locale (LC_ALL=C) holds os.fsdecode's lone surrogates, which UTF-8 cannot
+    encode; they become the characters their bytes spell in UTF-8 ("rôt"), or \\xNN escapes where
+    those bytes are not UTF-8. Text without them is returned as it is."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def write_frame(path, array, *, channel_names=None, attributes=None) -> None:
@@ -287,10 +299,11 @@ class AtomicImageWriter(AtomicWriter):
         super().__init__(path, spec.height)
 
     def _open(self) -> None:
+        library_path(self.path)  # a name OpenImageIO cannot take: refused before the temporary file exists
         self._create(self.path)
         # The format is named, not guessed from the temporary file's extension.
         output = oiio.ImageOutput.create(self._format)
-        if output is None or not output.open(str(self._temp), self._spec):
+        if output is None or not output.open(library_path(self._temp), self._spec):
             detail = output.geterror() if output is not None else oiio.geterror()
             problem = image_write_problem(self.path, self._temp, detail, self._format)
             self.abort()

@@ -17,6 +17,14 @@ message names the file already), OpenEXR's error codes or repeated sentences, an
 
 The callers (`frames`, `cubes`, `corrected`, `calibration_files`) add the path and what was
 expected; every function returns the problem alone.
+
+`library_path` is the other half of talking to OpenImageIO: the path as the str its binding
+takes. pybind11 encodes a str as UTF-8, while Python decodes file names with the locale's
+encoding: under LC_ALL=C a name "rôt.tif" is 'r\\udcc3\\udcb4t.tif' (os.fsdecode's escapes), which
+pybind11 refuses ("incompatible function arguments"), and bytes are no better. Decoded as UTF-8
+instead, the str encodes back to the name's own bytes, so the file opens under any locale; a
+name that is not UTF-8 at all cannot be given to OpenImageIO and is refused in one line. (h5py
+takes Python's own str paths under every locale: it encodes them with os.fsencode.)
 """
 
 from __future__ import annotations
@@ -30,6 +38,22 @@ import resource
 _DETAIL_LENGTH = 160
 #: The library under OpenImageIO that reads or writes each of its formats (`ImageInput.format_name`).
 _FORMAT_LIBRARIES = {"tiff": "libtiff", "openexr": "OpenEXR", "png": "libpng"}
+
+
+def library_path(path: os.PathLike | str, expected: str = "a file whose name is UTF-8 text: rename it") -> str:
+    """`path` as the str OpenImageIO's binding opens (module docstring): its bytes as UTF-8.
+
+    Raises:
+      SpherejaxFileError: the name's bytes are not UTF-8, naming the file.
+    """
+    raw = os.fsencode(path)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        from .errors import SpherejaxFileError
+
+        raise SpherejaxFileError(path, "has a name that is not UTF-8 text, which OpenImageIO cannot open",
+                                 expected) from None
 
 
 def _size(path) -> int | None:
@@ -265,5 +289,5 @@ def hdf5_problem(error: BaseException, dataset: str | None = None) -> str:
 
 __all__ = [
     "complete_image", "hdf5_problem", "image_open_problem", "image_read_problem", "image_write_problem",
-    "library_detail", "write_limit",
+    "library_detail", "library_path", "write_limit",
 ]

@@ -353,9 +353,10 @@ def _read_manifest(manifest_path: pathlib.Path):
     except OSError as error:
         raise SessionError(manifest_path, f"cannot be read: {error.strerror}", "the manifest of a spherejax session") from None
     try:
-        # Not json.loads: jsontext also turns bad UTF-8, 4300-digit integers and deep nesting
-        # into the one-line problem.
-        return jsontext.loads(data)
+        # Not json.loads: jsontext also turns bad UTF-8, 4300-digit integers, deep nesting and a
+        # key given twice (json.loads keeps the last) into the one-line problem. NaN and Infinity
+        # are not JSON, and `write_session` never writes them (its metadata is refused first).
+        return jsontext.loads(data, allow_nan=False)
     except jsontext.JSONTextError as error:
         raise SessionError(manifest_path, error.problem, "JSON") from None
 
