@@ -45,7 +45,9 @@ prefix: ``OUT/x``). For each input name N:
                        channels "T.400nm".."T.700nm" (31), spectralLayoutVersion "1.0";
                        attributes spherejax:calibration_checksum, spherejax:software_version,
                        spherejax:source (the input relative to that common folder),
-                       spherejax:input_sha256, spherejax:illuminant
+                       spherejax:input_sha256, spherejax:illuminant, spherejax:output_set
+                       (the same in every output of the input, the PNGs' tEXt included:
+                       `open_corrected` refuses files side by side from two corrections)
     N.lab.exr          float32, channels "L*", "a*", "b*" under the illuminant, same attributes
                        (not "L", "a", "b": OpenImageIO takes a channel "a" for alpha)
     N.quality.png      uint8, one channel: the quality bits (pipeline.QUALITY_*), 0 = good, as the
@@ -93,13 +95,18 @@ already taken by another input of the batch, fails.
 
 Safety
 ------
+Before anything is created, every path given must lead to something, and OUT must lie apart
+from the inputs: not a path given, a session's folder or an input's file, not inside one and
+holding none (`discovery.refuse_out_among_inputs`: resolved paths and the (st_dev, st_ino) of
+every folder above, so links and `..` hide nothing); else the batch is refused in one line.
 Before any work, every output is checked against every input and the calibration (resolved
-paths, and (st_dev, st_ino) where the file exists, so links and `..` hide nothing), and every
-output name already taken by a file is checked against what spherejax owns: the outputs OUT's
-manifest records, and those a killed run claimed in its lock file (`lock.OutputLock`). A file
-spherejax did not write refuses the batch in one line naming it; it is never replaced, and
-clean-up (a failed input's outputs, the other format's files) removes only owned files
-(`lock.claim_outputs`).
+paths, and (st_dev, st_ino) where the file exists), and every file already at an output's name
+must be proved spherejax's on its own, by its bytes: a SHA-256 that a record of OUT's manifest
+lists at that very name, or that a run stopped by a kill wrote into its lock file just before
+renaming the file into place (`lock.record_made`). Nothing else proves anything: not a claim of
+the name, not a matching EXR beside it. A file not so proved refuses the batch in one line naming
+it; it is never replaced, and clean-up (a failed input's outputs, the other format's files)
+removes only proved files (`lock.claim_outputs`).
 
 Every output is written under a temporary name beside it (created with O_EXCL) and renamed into
 place when complete. An input that fails has none of its outputs left in OUT. An input's hash and
@@ -112,9 +119,10 @@ checksums, the same software version and settings (`output_settings`: illuminant
 compression and reflectance type) and every output is present with the recorded SHA-256; anything else is redone.
 Hashing and reading the manifest are safe points (below): a signal never waits for them.
 
-OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run, and one JSON object: the
-holder's pid and host (for the message that refuses a second run) and the outputs the run claims
-before writing them (`lock.OutputLock`). The kernel drops the flock when a process dies,
+OUT/.spherejax.lock holds an exclusive `fcntl.flock` for the whole run, and JSON lines: the
+holder's pid and host (for the message that refuses a second run), the outputs the run claims
+before writing them, and the SHA-256 of each output finished, written before it is renamed into
+place (`lock.OutputLock`). The kernel drops the flock when a process dies,
 so a crashed or killed run never leaves OUT locked: its lock file is simply taken over. This is
 sturdier than "is that pid alive", which a reused pid fools. Temporary files left by a killed run
 are removed when the next run takes the lock.
@@ -129,6 +137,19 @@ manifest, the lock is released, and `run_batch` raises `interrupt.Interrupted`; 
 continues with the rest. With dask, submitting stops and the inputs already on workers finish and
 are recorded first (`cluster.DaskExecutor.map`).
 
+One batch, one calibration (`batch_calibration`): the calibration is read once, when the batch
+starts, and every input, in whichever thread or worker, proves before it reads anything and again
+before its outputs go into place that the calibration file is still the one the batch read (its
+checksum, inode, size and modification time). A calibration replaced (`calibrate --force`),
+rewritten or removed mid-batch stops the batch as a signal does (the input under way leaves
+nothing, the finished ones are recorded), with `CalibrationChangedError`: one line naming the
+file, exit status 2. A manifest never holds two calibrations from one run.
+
+On the way out, whatever ended the batch (its end, a stop, a failure, a full disk), the output
+folders the batch created and left empty are removed (only those it created: an input that
+fails while another uses its folder cannot remove it), and an OSError is reported in one line
+naming its file (the manifest, the lock file, the working folder) and what the system said.
+
 Modules
 -------
     discovery  InputSpec and `discover_inputs`: what the paths given name, each input once
@@ -139,6 +160,8 @@ Modules
     manifest   OUT/manifest.jsonl: `FileResult`, the one record type, and what --resume reads
     lock       OUT/.spherejax.lock (`OutputLock`) and the ownership check of every output
     batch      `run_batch`, `correct_input`, and the two inputs under way at once
+    batch_calibration  one batch, one calibration: what the batch read, and the checks every
+               input makes against it (`CalibrationIdentity`, `CalibrationChangedError`)
     stage_times  seconds per stage of each input, collected only when asked (the benchmark)
     errors     `BatchError`, `NoInputError`
 
@@ -149,6 +172,7 @@ names are for the package and its tests.
 from __future__ import annotations
 
 from .batch import BatchSummary, correct_input, run_batch
+from .batch_calibration import CalibrationChangedError, CalibrationIdentity
 from .discovery import InputSpec, discover_inputs
 from .errors import BatchError, NoInputError
 from .inputs import input_checksum, load_calibration
@@ -166,6 +190,8 @@ __all__ = [
     "OUTPUT_KINDS_BY_FORMAT",
     "PREVIEW_BAD_PIXEL",
     "BatchError",
+    "CalibrationChangedError",
+    "CalibrationIdentity",
     "NoInputError",
     "InputSpec",
     "FileResult",
