@@ -101,7 +101,7 @@ def holds_lock(process: subprocess.Popen, out: pathlib.Path):
 
     def condition():
         try:
-            return json.loads((out / archive.LOCK_NAME).read_text())["pid"] == process.pid
+            return json.loads((out / archive.LOCK_NAME).read_text().partition("\n")[0])["pid"] == process.pid  # its first line
         except (OSError, ValueError, KeyError):
             return False
 

@@ -239,9 +239,11 @@ def test_bad_inputs_fail_alone(cal, tmp_path, rng, capsys, monkeypatch):
 
     monkeypatch.setattr(io.AtomicImageWriter, "commit", full_disk)
 
-    status, stdout, err = run(["correct", "-c", str(cal), str(inputs), str(tmp_path / "missing.tif"), "-o", str(out)], capsys)
+    # (A path given that leads to nothing refuses the whole batch before OUT is created:
+    # tests/robustness/test_correct_ownership_proved.py.)
+    status, stdout, err = run(["correct", "-c", str(cal), str(inputs), "-o", str(out)], capsys)
     assert status == 1
-    assert stdout.strip() == "2 corrected, 0 skipped (already done), 10 failed"
+    assert stdout.strip() == "2 corrected, 0 skipped (already done), 9 failed"
     failures = {line.split(": ", 2)[1].removeprefix("failed "): line for line in err.splitlines() if line.startswith("spherejax: failed ")}
     expected_reasons = {
         "in/bad/text.tif": "not a readable image",
@@ -253,14 +255,13 @@ def test_bad_inputs_fail_alone(cal, tmp_path, rng, capsys, monkeypatch):
         "in/unwritable/x.tif": "is not a folder",
         "in/escape/y.tif": "would be written outside OUT",
         "in/ok/full.tif": "No space left on device",
-        "missing.tif": "no such file or folder",
     }
     assert set(failures) == set(expected_reasons)
     for source, reason in expected_reasons.items():
         assert reason in failures[source], failures[source]
     assert "Traceback" not in err
     # The failures were logged as they happened and summarised at the end: one line each time.
-    assert sum(line.startswith("spherejax: [") and ": failed: " in line for line in err.splitlines()) == 10
+    assert sum(line.startswith("spherejax: [") and ": failed: " in line for line in err.splitlines()) == 9
     # Nothing partial: the good inputs' outputs only, no temporaries, nothing outside OUT.
     assert sorted(outputs_of(out)) == sorted([f"in/ok/good{i}.{k}" for i in (1, 2) for k in KINDS] + ["in/unwritable"])
     assert list(outside.iterdir()) == []
@@ -356,6 +357,11 @@ def test_resume_skips_verified_and_redoes_the_rest(cal, tmp_path, rng, capsys):
     (out / "in" / "a.lab.exr").write_bytes(b"corrupted")  # a damaged output
     (out / "in" / "b.preview.png").unlink()  # a missing output
     io.write_frame(tmp_path / "in" / "c.tif", frame(rng))  # a changed input
+    # Bytes spherejax never recorded at that name are not provably its own: refused, kept.
+    status, _, err = run([*argv, "--resume"], capsys)
+    assert status == cli.EXIT_BAD_INPUT and "a.lab.exr: is in the way of an output" in err
+    assert (out / "in" / "a.lab.exr").read_bytes() == b"corrupted"
+    (out / "in" / "a.lab.exr").unlink()
     status, stdout, err = run([*argv, "--resume"], capsys)
     assert status == 0
     assert stdout.strip() == "3 corrected, 1 skipped (already done), 0 failed"
@@ -381,6 +387,9 @@ def test_resume_ignores_a_torn_manifest_line_and_stale_temporaries(cal, tmp_path
     manifest = out / archive.MANIFEST_NAME
     lines = manifest.read_bytes().splitlines(keepends=True)
     manifest.write_bytes(lines[0] + lines[1][:40])  # killed halfway through the second record
+    # What the killed run left in its lock file: b's outputs, recorded before they were renamed.
+    made = {"made": json.loads(lines[1])["outputs"]}
+    (out / archive.LOCK_NAME).write_text(json.dumps({"pid": 999999, "host": "gone"}) + "\n" + json.dumps(made) + "\n")
     (out / ".b.lab.exr.0123456789ab.tmp").write_bytes(b"half")
     status, stdout, _ = run([*argv, "--resume"], capsys)
     assert status == 0 and stdout.strip() == "1 corrected, 1 skipped (already done), 0 failed"
@@ -542,7 +551,8 @@ def test_twenty_kills_and_resumes_give_byte_identical_outputs(cal, tmp_path):
             for output, digest in record["outputs"].items():
                 assert output_digest(killed / output) == digest, f"kill {len(landed)}: {output}"
         unrecorded = _unrecorded(killed)
-        lock = json.loads((killed / archive.LOCK_NAME).read_text()) if (killed / archive.LOCK_NAME).exists() else {}
+        lock = (json.loads((killed / archive.LOCK_NAME).read_text().partition("\n")[0])  # the holder's line
+                if (killed / archive.LOCK_NAME).exists() else {})
         landed.append((mode, len(done), lock.get("pid") == process.pid, len(temporaries), len(unrecorded)))
 
     before_final = len(_done(killed))
@@ -834,6 +844,9 @@ def test_resume_in_envi_verifies_envi_outputs(cal, tmp_path, rng, capsys):
     status, stdout, _ = run([*argv, "--format", "envi", "--resume"], capsys)
     assert status == 0 and stdout.strip() == "0 corrected, 1 skipped (already done), 0 failed"
     (out / "a.reflectance.img").write_bytes(b"damaged")
+    status, _, err = run([*argv, "--format", "envi", "--resume"], capsys)  # not its bytes: refused
+    assert status == cli.EXIT_BAD_INPUT and "a.reflectance.img: is in the way of an output" in err
+    (out / "a.reflectance.img").unlink()
     status, stdout, _ = run([*argv, "--format", "envi", "--resume"], capsys)
     assert stdout.strip() == "1 corrected, 0 skipped (already done), 0 failed"
     # The same batch resumed in the other format has none of its outputs: redone, and the files

@@ -13,7 +13,8 @@ import stat
 from collections.abc import Callable, Iterable, Sequence
 
 from .. import io
-from .errors import NoInputError
+from ..io.ownership import refuse_nesting
+from .errors import BatchError, NoInputError
 
 #: The names of cube files (`io.read_cube`), in any case.
 CUBE_SUFFIXES = (".tif", ".tiff", ".exr")
@@ -54,8 +55,9 @@ class InputSpec:
       band_centres_nm: for "bands", the centre of each file.
       instrument_id: a session's instrument, checked against the calibration's; None otherwise.
       problem: set when discovery already knows the input is bad; it then fails with this reason.
-      owned: the files of OUT (paths relative to OUT, POSIX) at this input's output names that
-        OUT's manifest records as written by spherejax: the only ones its clean-up may remove
+      owned: the files of OUT (paths relative to OUT, POSIX) at this input's output names proved
+        spherejax's, each by its own bytes (`lock.claim_outputs`: a SHA-256 OUT's manifest or a
+        stopped run's lock file records at that name): the only ones it may replace or remove
         (set by `run_batch`; empty for a fresh OUT).
     """
 
@@ -96,13 +98,13 @@ def _special_file_problem(path, mode: int) -> str:
     return str(io.SpherejaxFileError(path, f"is {io.file_kind(mode)}", _EXPECTED_INPUT))
 
 
-def _stat_problem(path: pathlib.Path, error: OSError) -> str:
+def _not_found(path: pathlib.Path, error: OSError) -> str:
+    """Why a path given leads to no input, in words: the `os.stat` that failed."""
     if isinstance(error, FileNotFoundError):
-        what = "is a symbolic link to nothing" if os.path.islink(path) else "no such file or folder"
-        return str(io.SpherejaxFileError(path, what, "an input to correct"))
+        return "is a symbolic link to nothing" if os.path.islink(path) else "no such file or folder"
     if error.errno == errno.ELOOP:
-        return str(io.SpherejaxFileError(path, "is a loop of symbolic links", "an input to correct"))
-    return str(io.SpherejaxFileError(path, f"cannot be read: {error.strerror}", "an input to correct"))
+        return "is a loop of symbolic links"
+    return f"cannot be read: {error.strerror}"
 
 
 @dataclasses.dataclass
@@ -133,6 +135,7 @@ class _Discovery:
             self.out = None  # OUT does not exist yet: nothing of it to skip
         self.found: list[_Found] = []
         self.searched: dict[Identity, pathlib.Path] = {}
+        self.sessions: list[pathlib.Path] = []  # every session folder found (`refuse_out_among_inputs`)
 
     def _rel(self, path: pathlib.Path) -> str:
         return path.relative_to(self.root).as_posix()
@@ -147,12 +150,17 @@ class _Discovery:
         self.found.append(_Found(InputSpec(name=rel, source=rel, files=(str(path),), problem=problem)))
 
     def given(self, path: pathlib.Path) -> None:
-        """One path of the command line: a file, a folder to search, or a bad input."""
+        """One path of the command line: a file, a folder to search, or a bad input.
+
+        Raises:
+          BatchError: the path leads to nothing (a mistyped name, a link to nothing, a loop of
+            links) or cannot be looked at: the batch is refused before OUT is created, so that
+            the corrected command runs as a new batch, not as a `--resume`.
+        """
         try:
             st = os.stat(path)  # follows links: what the name leads to
         except OSError as error:
-            self._failing(path, _stat_problem(path, error))
-            return
+            raise BatchError(path, _not_found(path, error), "an input to correct; nothing was created") from None
         if stat.S_ISDIR(st.st_mode):
             ancestors = set()
             for parent in pathlib.Path(os.path.realpath(path)).parents:
@@ -175,6 +183,7 @@ class _Discovery:
             return
         self.searched[key] = folder
         if (folder / io.MANIFEST_NAME).is_file():
+            self.sessions.append(folder)
             self._session(folder)
             return
         try:
@@ -298,9 +307,15 @@ def discover_inputs(paths: Sequence, out_root, warn: Callable[[str], None] | Non
     """Every input named by `paths` (files, sessions, folders searched recursively), in order,
     each physical input once (module docstring, Inputs).
 
-    A path that does not exist, or is a FIFO, socket or device, becomes an input that fails with
-    that reason; OUT is never searched (so a rerun does not take its own outputs for inputs).
-    `warn` gets one line per folder not followed and per input named again (skipped).
+    Every path given must lead to something: one that does not (a mistyped name, a link to
+    nothing) refuses the batch, as does an OUT among the inputs (`refuse_out_among_inputs`), both
+    before `run_batch` creates anything. A FIFO, socket or device given becomes an input that
+    fails with that reason; OUT is never searched (so a link to it inside an input folder does
+    not make its outputs inputs). `warn` gets one line per folder not followed and per input
+    named again (skipped).
+
+    Raises:
+      BatchError: a path given leads to nothing, or OUT is, lies inside or holds an input.
     """
     if not paths:
         raise ValueError("no INPUT given: name cube files, session folders or folders to search")
@@ -308,7 +323,36 @@ def discover_inputs(paths: Sequence, out_root, warn: Callable[[str], None] | Non
     discovery = _Discovery(_common_folder(given), pathlib.Path(out_root), warn or (lambda line: None))
     for path in given:
         discovery.given(path)
-    return _refuse_repeated_names(discovery.inputs())
+    inputs = _refuse_repeated_names(discovery.inputs())
+    refuse_out_among_inputs(out_root, {str(path): path for path in paths}, discovery.sessions, inputs)
+    return inputs
+
+
+def refuse_out_among_inputs(out_root, given: dict, sessions: Sequence[pathlib.Path], inputs: Sequence[InputSpec]) -> None:
+    """Refuse OUT where its outputs would land among the inputs: OUT is, lies inside or holds
+    (at any depth) a path given, a session's folder (its frames folder among them) or an input's
+    file. `correct caps -o caps` would write beside the inputs, outputs a later batch of `caps`
+    takes for inputs; `-o` the folder holding a session would fill its frames folder.
+
+    Called before anything is created (`run_batch` makes OUT after discovery). Links, `..`
+    and bind mounts hide nothing (`io.ownership.refuse_nesting`).
+
+    Args:
+      given: each path as given (its name in messages) -> the path.
+      sessions: the session folders found, given or searched (through links too).
+      inputs: the inputs found; their files are compared too.
+
+    Raises:
+      BatchError: "OUT: OUT is|lies inside|holds the input PATH (expected ...)", one line.
+    """
+    compared = dict(given)
+    compared.update((f"session {folder}", folder) for folder in sessions)
+    compared.update((file, file) for spec in inputs for file in spec.files)
+    try:
+        refuse_nesting(out_root, compared, label="OUT", expected=(
+            "an OUT apart from the inputs, neither one of them, nor inside one, nor holding one; nothing was created"))
+    except io.SpherejaxFileError as error:
+        raise BatchError(error.path, error.problem, error.expected) from None
 
 
 def _refuse_repeated_names(inputs: list[InputSpec]) -> list[InputSpec]:
@@ -324,4 +368,6 @@ def _refuse_repeated_names(inputs: list[InputSpec]) -> list[InputSpec]:
     return checked
 
 
-__all__ = ["CUBE_SUFFIXES", "Identity", "InputSpec", "discover_inputs", "identity", "no_input_error"]
+__all__ = [
+    "CUBE_SUFFIXES", "Identity", "InputSpec", "discover_inputs", "identity", "no_input_error", "refuse_out_among_inputs",
+]

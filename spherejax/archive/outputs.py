@@ -99,8 +99,13 @@ class OutputWriter(Protocol):
 
     def write_rows(self, row0: int, pixels: np.ndarray) -> None: ...
 
+    def finish(self) -> dict[pathlib.Path, str]:
+        """Finish the output's files (fsynced, not yet in place); {path: SHA-256 (hex)} of each
+        (an ENVI image is two)."""
+        ...
+
     def commit(self) -> dict[pathlib.Path, str]:
-        """Put the output's files in place; {path: SHA-256 (hex)} of each (an ENVI image is two)."""
+        """Put the output's files in place (`finish`ed first if not yet); {path: SHA-256 (hex)}."""
         ...
 
     def __enter__(self) -> OutputWriter: ...
@@ -130,6 +135,9 @@ class _OneFile:
 
     def write_rows(self, row0: int, pixels: np.ndarray) -> None:
         self.writer.write_rows(row0, pixels)
+
+    def finish(self) -> dict[pathlib.Path, str]:
+        return {self.writer.path: self.writer.finish()}
 
     def commit(self) -> dict[pathlib.Path, str]:
         return {self.writer.path: self.writer.commit()}
@@ -182,15 +190,11 @@ def output_openers(
                 band_names=lab_names, attributes=attributes,
             ),
         }
-    # The PNGs carry the output set too (a tEXt chunk), so that every output says which
-    # correction it belongs to (`io.corrected`).
-    output_set = {name: value for name, value in attributes.items() if name == "spherejax:output_set"}
-    openers["quality"] = lambda: _OneFile(io.open_quality_png(paths["quality.png"], (height, width, 1), text=output_set))
+    openers["quality"] = lambda: _OneFile(io.open_quality_png(paths["quality.png"], (height, width, 1)))
     # The preview is for browsing: written fast (`io.open_png`'s `fast`: a tenth of the time,
     # a third of a megabyte larger).
     openers["preview"] = lambda: _OneFile(
-        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"], fast=True,
-                    attributes=output_set)
+        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"], fast=True)
     )
     return openers
 
@@ -199,12 +203,18 @@ def correct_into(
     cube: io.CubeReader, calibration: io.CalibrationFile, folder: pathlib.Path, stem: str,
     attributes: dict, rows_per_strip: int | None, exr_compression: str, output_format: str = "exr",
     before_commit: Callable[[], None] | None = None, reflectance_type: str = "float",
+    record_made: Callable[[dict[pathlib.Path, str]], None] | None = None,
 ) -> dict[pathlib.Path, str]:
     """Correct `cube` strip by strip (`stripwise.correct_strips`) into its outputs in
     `output_format` (`OUTPUT_KINDS_BY_FORMAT`), each written under a temporary name and renamed
     into place once complete; on a failure the temporary files go and the outputs already
     renamed are removed. `before_commit` runs once every strip is written and before anything
-    is renamed: raising there leaves nothing. Returns {path: SHA-256 (hex)} of every file written."""
+    is renamed: raising there leaves nothing. Then every output is finished (complete and
+    fsynced under its temporary name) and `record_made` gets {path: SHA-256 (hex)} of them all
+    before the first is renamed into place: what it records (the batch's claims,
+    `lock.record_made`) is then known before the file exists at its name, so that a run killed
+    between the renames and the manifest line leaves files proved its own, by their bytes.
+    Returns {path: SHA-256 (hex)} of every file written."""
     from ..stripwise import correct_strips
 
     kinds = OUTPUT_KINDS_BY_FORMAT[output_format]
@@ -243,6 +253,12 @@ def correct_into(
         interrupt.check()
         if before_commit is not None:
             before_commit()
+        finished: dict[pathlib.Path, str] = {}
+        for output, writer in writers.items():
+            with stage_times.stage(f"commit {names[output]}"):
+                finished.update(writer.finish())
+        if record_made is not None:
+            record_made(finished)
         try:
             for output, writer in writers.items():
                 with stage_times.stage(f"commit {names[output]}"):
@@ -326,9 +342,9 @@ def _make_folders(root: pathlib.Path, parts, target) -> tuple[pathlib.Path, list
 def remove_outputs(out_root: pathlib.Path, spec: InputSpec, keep: Sequence[str] = ()) -> None:
     """Remove the outputs of `spec` an earlier run left, but those of the kinds in `keep`: all of
     them for a failed input (the manifest says it failed), those of the other format for one just
-    corrected (the manifest lists what it wrote). Only files OUT's manifest records as
-    spherejax's (`InputSpec.owned`) are removed: a file of the same name that spherejax never
-    wrote is the user's. Nothing is touched outside OUT."""
+    corrected (the manifest lists what it wrote). Only files proved spherejax's before any work
+    (`InputSpec.owned`: their bytes recorded at that name, `lock.claim_outputs`) are removed: any
+    other file of the same name is the user's. Nothing is touched outside OUT."""
     root = out_root.resolve()
     path = root / spec.name
     if ".." in pathlib.PurePosixPath(spec.name).parts or not path.parent.resolve().is_relative_to(root):
@@ -366,34 +382,9 @@ def remove_temporaries(out_root: pathlib.Path) -> int:
     return removed
 
 
-def written_for(out_root: pathlib.Path, spec: InputSpec) -> bool:
-    """Whether `spec`'s reflectance output in OUT (EXR or ENVI) says spherejax wrote it from this
-    input: its spherejax:source attribute (header field "spherejax source") is `spec.source`."""
-    import OpenImageIO as oiio
-
-    base = out_root / spec.name
-    exr = base.parent / f"{base.name}.reflectance.exr"
-    with contextlib.suppress(OSError):
-        os.close(io.open_regular(exr, os.O_RDONLY))  # a FIFO or a link there: not ours, at once
-        image = oiio.ImageInput.open(str(exr))
-        if image is not None:
-            try:
-                return image.spec().get_string_attribute("spherejax:source") == spec.source
-            finally:
-                image.close()
-    header = base.parent / f"{base.name}.reflectance.hdr"
-    with contextlib.suppress(OSError):
-        fd = io.open_regular(header, os.O_RDONLY)
-        with open(fd, "rb") as handle:
-            text = handle.read(1 << 16).decode("utf-8", errors="replace")
-        wanted = f"spherejax source = {envi._header_value(spec.source)}"
-        return any(line.strip() == wanted for line in text.splitlines())
-    return False
-
-
 __all__ = [
     "ALL_OUTPUT_KINDS", "LAB_CHANNELS", "OUTPUT_FORMATS", "OUTPUT_KINDS", "OUTPUT_KINDS_BY_FORMAT", "PREVIEW_BAD_PIXEL",
     "OutputWriter", "correct_into", "output_folder", "output_openers", "output_settings", "release_folder",
     "remove_empty_folders",
-    "remove_outputs", "remove_temporaries", "srgb_preview", "written_for",
+    "remove_outputs", "remove_temporaries", "srgb_preview",
 ]

@@ -66,6 +66,7 @@ class AtomicWriter(abc.ABC):
         self._direct: DirectFile | None = None
         self._digest = None
         self._stream_target: pathlib.Path | None = None
+        self._finished: tuple | None = None  # (the digest(s),) once `finish` has run
         try:
             self._open()
         except OSError as error:
@@ -156,20 +157,37 @@ class AtomicWriter(abc.ABC):
     def write_rows(self, row0: int, pixels) -> None:
         """Write rows row0:row0 + len(pixels), the next rows of the image."""
         self._check_open()
+        if self._finished is not None:
+            raise SpherejaxFileError(self.path, "is finished: no row can be written after `finish`")
         if row0 != self._next_row:
             raise ValueError(f"rows: expected the next row {self._next_row}, got {row0}")
         self._write_rows(row0, pixels)
         self._next_row = row0 + len(pixels)
 
-    def commit(self):
-        """Finish the files, fsync them, rename them into place; return the digest(s)
-        (`_complete`)."""
+    def finish(self):
+        """Finish the files, fsynced and closed, without putting them in place; return the
+        digest(s) (`_complete`). A caller that must record what it is about to put in place (the
+        batch's claims: `archive.lock.record_made`) calls this, records, then `commit`s; `commit`
+        alone finishes first. No row can be written after it."""
         self._check_open()
-        if self._next_row != self.height:
-            self.abort()
-            raise SpherejaxFileError(self.path, f"has {self._next_row} of its {self.height} rows", "every row written")
+        if self._finished is None:
+            if self._next_row != self.height:
+                self.abort()
+                raise SpherejaxFileError(self.path, f"has {self._next_row} of its {self.height} rows", "every row written")
+            try:
+                self._finished = (self._complete(),)
+            except OSError as error:
+                self.abort()
+                raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
+            except BaseException:
+                self.abort()
+                raise
+        return self._finished[0]
+
+    def commit(self):
+        """Finish the files (`finish`, unless done), rename them into place; return the digest(s)."""
+        digest = self.finish()
         try:
-            digest = self._complete()
             for target, temporary in self._temps.items():
                 os.replace(temporary, target)
             for folder in dict.fromkeys(target.parent for target in self._temps):

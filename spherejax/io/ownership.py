@@ -10,6 +10,8 @@ What every writing command checks, before any work (each raises a one-line `Sphe
 "PATH: problem (expected ...)", naming the output's path):
 
 - `refuse_overlaps`: no output file is an input, the calibration or another output;
+- `refuse_nesting`: an output folder of outputs named after the inputs (`correct`'s OUT) is no
+  input, lies inside none and holds none, at any depth;
 - `refuse_holding`: no output folder (one a command fills, creates or removes whole) is an input
   or holds one, directly or at any depth as the command needs: an evaluation written into the
   session's own folder or its frames folder, an acquisition's work folder holding its profile;
@@ -120,6 +122,49 @@ def refuse_holding(
                 )
 
 
+def refuse_nesting(
+    folder: os.PathLike | str, inputs: Mapping[str, os.PathLike | str], *, label: str, expected: str,
+) -> None:
+    """Raise unless an output folder (present or not) is none of `inputs`, lies inside none of
+    them and holds none of them, at any depth: `correct`'s OUT and its inputs, so that no output
+    lands among the inputs (where a later batch would take it for one) or in a session's folder.
+
+    Compared as `refuse_holding` compares: the resolved paths (links and `..` undone) of the
+    folder, of every folder above it, of each input and of every folder above each input, and
+    their (st_dev, st_ino) where they exist, which also sees through a bind mount. Each input is a
+    file or a folder; only a folder can hold the output folder.
+
+    Args:
+      folder: the output folder.
+      inputs: a name for each input in messages (the path as given) -> its path.
+      label: what the folder is, in messages ("OUT").
+      expected: what was expected, in messages.
+
+    Raises:
+      SpherejaxFileError: one line naming the folder, how it meets which input, and `expected`.
+    """
+    resolved, node = _identity(pathlib.Path(folder))
+    # The folder and every folder above it: an input among them is the folder or holds it.
+    around = [(resolved, node), *_holders(resolved)]
+    around_paths = {path for path, _ in around}
+    around_nodes = {found for _, found in around if found is not None}
+    holders_of: dict[str, list] = {}  # an input's parent folder -> its holders (inputs share folders)
+    for name, path in inputs.items():
+        other_resolved, other_node = _identity(pathlib.Path(path))
+        if other_resolved == resolved or (node is not None and other_node == node):
+            how = "is"
+        elif other_resolved in around_paths or (other_node is not None and other_node in around_nodes):
+            how = "lies inside"
+        else:
+            parent = os.path.dirname(other_resolved)
+            if parent not in holders_of:
+                holders_of[parent] = [_identity(pathlib.Path(parent)), *_holders(parent)]
+            if not any(path_ == resolved or (node is not None and found == node) for path_, found in holders_of[parent]):
+                continue
+            how = "holds"
+        raise SpherejaxFileError(folder, f"{label} {how} the input {name}", expected)
+
+
 def _lstat(path: pathlib.Path) -> os.stat_result | None:
     try:
         return os.lstat(path)
@@ -227,6 +272,6 @@ def check_output_folder(
 
 
 __all__ = [
-    "refuse_overlaps", "refuse_holding", "refuse_in_the_way", "not_a_calibration", "earlier_run",
+    "refuse_overlaps", "refuse_holding", "refuse_nesting", "refuse_in_the_way", "not_a_calibration", "earlier_run",
     "check_output_folder",
 ]

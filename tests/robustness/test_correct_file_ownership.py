@@ -52,7 +52,8 @@ def test_out_as_the_inputs_folder_never_replaces_an_input(cal, tmp_path, rng, ca
     status, stdout, err = run(_correct(cal, [folder / "a.lab.exr", folder / "a.tif"], folder), capsys)
     assert status != 0 and stdout == ""
     line, = err.strip().splitlines()
-    assert f"{folder / 'a.lab.exr'}: is the output a.lab.exr of a.tif, and also the input a.lab.exr" in line
+    # OUT holding the inputs is refused as such, before any output is looked at.
+    assert line.startswith(f"spherejax: error: {folder}: OUT holds the input {folder / 'a.lab.exr'} (expected ")
     assert "Traceback" not in err
     assert _snapshot(folder) == before  # no manifest, no lock, no output
 
@@ -128,7 +129,8 @@ def test_a_failed_input_removes_only_its_recorded_outputs(cal, tmp_path, rng, ca
 
 def test_outputs_left_unrecorded_by_a_killed_run_are_known_by_its_claims(cal, tmp_path, rng, capsys):
     """A run killed after putting an input's outputs in place and before its manifest record
-    leaves them unrecorded; the claims in the lock file it left make them spherejax's."""
+    leaves them unrecorded; the SHA-256s it recorded in its lock file before the renames (its
+    made records) prove them spherejax's."""
     inputs = tmp_path / "in"
     inputs.mkdir()
     for name in ("a", "b"):
@@ -142,8 +144,9 @@ def test_outputs_left_unrecorded_by_a_killed_run_are_known_by_its_claims(cal, tm
     records = manifest_records(out)
     (out / archive.MANIFEST_NAME).write_text(json.dumps(records[0]) + "\n")
     claims = [name for record in records for name in sorted(record["outputs"])]
-    (out / archive.LOCK_NAME).write_text(json.dumps({"pid": 999999, "host": "gone", "claims": claims}) + "\n")
-    # b's reflectance output is renamed aside: only the claim speaks for b's other outputs.
+    lines = [{"pid": 999999, "host": "gone"}, {"claims": claims}, {"made": records[1]["outputs"]}]
+    (out / archive.LOCK_NAME).write_text("".join(json.dumps(line) + "\n" for line in lines))
+    # b's reflectance output is renamed aside: only the made records speak for b's other outputs.
     (out / "in" / "b.reflectance.exr").unlink()
     status, stdout, err = run(_correct(cal, [inputs], out, "--resume"), capsys)
     assert status == 0, err
@@ -159,8 +162,8 @@ def test_claims_survive_a_run_taken_over_and_failing_before_its_end(tmp_path):
     lock.acquire()
     assert lock.taken_over == "pid 1 on h" and lock.claimed == {"x/a.lab.exr"}
     lock.claim(["x/b.lab.exr"])
-    written = json.loads((tmp_path / archive.LOCK_NAME).read_text())
-    assert written["pid"] == os.getpid() and written["claims"] == ["x/a.lab.exr", "x/b.lab.exr"]
+    holder, *lines = [json.loads(line) for line in (tmp_path / archive.LOCK_NAME).read_text().splitlines()]
+    assert holder["pid"] == os.getpid() and [name for line in lines for name in line["claims"]] == ["x/a.lab.exr", "x/b.lab.exr"]
     lock.release(keep_claims=True)  # as a run that failed with outputs maybe in place
     again = archive.OutputLock(tmp_path)
     again.acquire()
