@@ -275,14 +275,21 @@ class DaskExecutor:
         already on workers are let finish (a task cannot be stopped mid-write from here, and one
         cancelled while running would go on writing into OUT after the lock is released) and
         yielded, so the manifest records them, and then `interrupt.Interrupted` is raised.
+
+        A worker that finds the calibration file is not the batch's
+        (`archive.CalibrationChangedError`, raised by `correct_input` with the batch's
+        `calibration_identity`, having left nothing in OUT) stops the batch the same way: nothing
+        more is submitted, the inputs under way finish (or find the change themselves) and are
+        yielded, and the first such error is raised.
         """
         waiting = list(enumerate(specs))
         waiting.reverse()  # popped from the end: submitted in order
         running: dict = {}
         window = max(1, sum(self.client.nthreads().values()))
+        changed: archive.CalibrationChangedError | None = None
         try:
             while waiting or running:
-                stopping = interrupt.requested() is not None
+                stopping = interrupt.requested() is not None or changed is not None
                 while waiting and len(running) < window and not stopping:
                     k, spec = waiting.pop()
                     future = self.client.submit(
@@ -301,10 +308,15 @@ class DaskExecutor:
                     spec = running.pop(future)
                     try:
                         result = future.result()
+                    except archive.CalibrationChangedError as error:  # the batch stops; this input left nothing
+                        changed = changed or error
+                        continue
                     except Exception as error:  # noqa: BLE001 -- a lost worker fails its input, not the batch
                         result = archive.failed_result(spec, f"worker failed: {' '.join(str(error).split())}")
                     yield spec, result
             interrupt.check()
+            if changed is not None:
+                raise changed
         finally:
             # Only when the caller stopped iterating early (an error of its own): nothing more
             # of ours should land in OUT; inputs not started are dropped.

@@ -45,7 +45,9 @@ prefix: ``OUT/x``). For each input name N:
                        channels "T.400nm".."T.700nm" (31), spectralLayoutVersion "1.0";
                        attributes spherejax:calibration_checksum, spherejax:software_version,
                        spherejax:source (the input relative to that common folder),
-                       spherejax:input_sha256, spherejax:illuminant
+                       spherejax:input_sha256, spherejax:illuminant, spherejax:output_set
+                       (the same in every output of the input, the PNGs' tEXt included:
+                       `open_corrected` refuses files side by side from two corrections)
     N.lab.exr          float32, channels "L*", "a*", "b*" under the illuminant, same attributes
                        (not "L", "a", "b": OpenImageIO takes a channel "a" for alpha)
     N.quality.png      uint8, one channel: the quality bits (pipeline.QUALITY_*), 0 = good, as the
@@ -135,6 +137,19 @@ manifest, the lock is released, and `run_batch` raises `interrupt.Interrupted`; 
 continues with the rest. With dask, submitting stops and the inputs already on workers finish and
 are recorded first (`cluster.DaskExecutor.map`).
 
+One batch, one calibration (`batch_calibration`): the calibration is read once, when the batch
+starts, and every input, in whichever thread or worker, proves before it reads anything and again
+before its outputs go into place that the calibration file is still the one the batch read (its
+checksum, inode, size and modification time). A calibration replaced (`calibrate --force`),
+rewritten or removed mid-batch stops the batch as a signal does (the input under way leaves
+nothing, the finished ones are recorded), with `CalibrationChangedError`: one line naming the
+file, exit status 2. A manifest never holds two calibrations from one run.
+
+On the way out, whatever ended the batch (its end, a stop, a failure, a full disk), the output
+folders the batch created and left empty are removed (only those it created: an input that
+fails while another uses its folder cannot remove it), and an OSError is reported in one line
+naming its file (the manifest, the lock file, the working folder) and what the system said.
+
 Modules
 -------
     discovery  InputSpec and `discover_inputs`: what the paths given name, each input once
@@ -145,6 +160,8 @@ Modules
     manifest   OUT/manifest.jsonl: `FileResult`, the one record type, and what --resume reads
     lock       OUT/.spherejax.lock (`OutputLock`) and the ownership check of every output
     batch      `run_batch`, `correct_input`, and the two inputs under way at once
+    batch_calibration  one batch, one calibration: what the batch read, and the checks every
+               input makes against it (`CalibrationIdentity`, `CalibrationChangedError`)
     stage_times  seconds per stage of each input, collected only when asked (the benchmark)
     errors     `BatchError`, `NoInputError`
 
@@ -155,6 +172,7 @@ names are for the package and its tests.
 from __future__ import annotations
 
 from .batch import BatchSummary, correct_input, run_batch
+from .batch_calibration import CalibrationChangedError, CalibrationIdentity
 from .discovery import InputSpec, discover_inputs
 from .errors import BatchError, NoInputError
 from .inputs import input_checksum, load_calibration
@@ -172,6 +190,8 @@ __all__ = [
     "OUTPUT_KINDS_BY_FORMAT",
     "PREVIEW_BAD_PIXEL",
     "BatchError",
+    "CalibrationChangedError",
+    "CalibrationIdentity",
     "NoInputError",
     "InputSpec",
     "FileResult",

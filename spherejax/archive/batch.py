@@ -5,15 +5,19 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import os
 import pathlib
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 from .. import interrupt, io
+from ..io.corrected import OUTPUT_SET_ATTRIBUTE, output_set_id
 from . import inputs as _inputs
 from . import stage_times
+from .batch_calibration import CalibrationChangedError, CalibrationIdentity, open_for_input, read_once
 from .discovery import InputSpec, discover_inputs, no_input_error
 from .errors import BatchError
 from .inputs import check_unchanged, hash_input, load_calibration, max_input_bytes
@@ -28,7 +32,7 @@ from .outputs import (
 def correct_input(
     source: InputSpec, out_root, calibration_path, *, illuminant: str | None = None,
     rows_per_strip: int | None = None, exr_compression: str = io.DEFAULT_EXR_COMPRESSION,
-    output_format: str = "exr", reflectance_type: str = "float",
+    output_format: str = "exr", reflectance_type: str = "float", calibration_identity: CalibrationIdentity | None = None,
 ) -> FileResult:
     """Correct one input into OUT and return its `FileResult`; never raises for a bad input.
 
@@ -46,17 +50,26 @@ def correct_input(
       exr_compression: of the EXR outputs, one of `io.EXR_COMPRESSIONS` (all lossless).
       output_format: "exr" (the default) or "envi" (`OUTPUT_KINDS_BY_FORMAT`).
       reflectance_type: of an EXR reflectance, "float" (default) or "half" (`io.EXR_PIXEL_TYPES`).
+      calibration_identity: the batch's calibration (`batch_calibration.CalibrationIdentity`, as
+        `run_batch` read it): the calibration used must be that one, from before the input is
+        read until its outputs go into place. None: the file as found when the input starts.
+
+    Raises (the batch stops; this input has left nothing in OUT):
+      CalibrationChangedError: the calibration file is not the batch's, or changed before this
+        input's outputs went into place (`batch_calibration`).
+      interrupt.Interrupted: a stop request, at a safe point.
     """
     with stage_times.input_record(source.name):
         return _correct_input(
             source, out_root, calibration_path, illuminant=illuminant, rows_per_strip=rows_per_strip,
             exr_compression=exr_compression, output_format=output_format, reflectance_type=reflectance_type,
+            identity=calibration_identity,
         )
 
 
 def _correct_input(
     source: InputSpec, out_root, calibration_path, *, illuminant, rows_per_strip, exr_compression, output_format,
-    reflectance_type,
+    reflectance_type, identity,
 ) -> FileResult:
     from .. import __version__
 
@@ -73,8 +86,8 @@ def _correct_input(
             in_use = False
 
     try:
-        calibration = load_calibration(calibration_path, illuminant)
-        calibration_checksum = calibration.header["checksum"]
+        calibration, identity = open_for_input(calibration_path, illuminant, identity, load_calibration)
+        calibration_checksum = identity.checksum
         if source.problem is not None:
             raise ValueError(source.problem)
         with stage_times.stage("hash"):
@@ -86,13 +99,26 @@ def _correct_input(
                 "spherejax:source": source.source,
                 "spherejax:input_sha256": checksum,
                 "spherejax:illuminant": calibration.patch_calibration.illuminant,
+                # In every output of this input, the PNGs too: `io.open_corrected` refuses files
+                # side by side that are not one correction's (`io.corrected`).
+                OUTPUT_SET_ATTRIBUTE: output_set_id(
+                    input_sha256=checksum, calibration_checksum=calibration_checksum, software_version=__version__,
+                ),
             }
             folder, created = output_folder(out_root, source.name)
             in_use = True
+            _note_created(out_root, created)
             stem = pathlib.PurePosixPath(source.name).name
+
+            def before_commit() -> None:
+                # The input read is the one hashed, and every row of the calibration read came
+                # from the batch's calibration file (`batch_calibration`).
+                check_unchanged(source, states)
+                identity.check_file(calibration_path)
+
             written = correct_into(
                 cube, calibration, folder, stem, attributes, rows_per_strip, exr_compression, output_format,
-                before_commit=lambda: check_unchanged(source, states), reflectance_type=reflectance_type,
+                before_commit=before_commit, reflectance_type=reflectance_type,
                 record_made=lambda digests: record_made(out_root, digests),  # before they are in place
             )
         release()  # the outputs are in place: their folders are no longer empty
@@ -109,16 +135,25 @@ def _correct_input(
             software_version=__version__,
             settings=output_settings(calibration, output_format, exr_compression, reflectance_type),
             megapixels=height * width / 1e6,
-            seconds=time.perf_counter() - start,
+            seconds=time.perf_counter() - start, folders_created=tuple(map(str, created)),
         )
-    except interrupt.Interrupted:
-        # Stopped at a safe point: the writers removed their temporary files and nothing was
-        # renamed into place; the folders this input created go too. Outputs an earlier run left
-        # stay as they are (the manifest says what they are): this run changed nothing of them.
+    except (interrupt.Interrupted, CalibrationChangedError):
+        # Stopped at a safe point, or before its outputs went into place with a calibration
+        # that is no longer the batch's: the writers removed their temporary files and nothing
+        # was renamed into place; the folders this input created go too. Outputs an earlier run
+        # left stay as they are (the manifest says what they are): this run changed nothing of them.
         release()
         remove_empty_folders(created)
         raise
     except Exception as error:  # noqa: BLE001 -- the batch boundary: one bad input never stops it
+        changed = identity.change_of(calibration_path) if identity is not None else None
+        if changed is not None:
+            # The calibration changed under the input (rows of a large one read from a file
+            # rewritten in place fail in HDF5's words): not this input's failure but the batch's
+            # stop, as above. Nothing of this input was put in place.
+            release()
+            remove_empty_folders(created)
+            raise changed from None
         if source.problem is None:  # (a repeated name's outputs are the other input's)
             remove_outputs(out_root, source)
         release()
@@ -131,7 +166,7 @@ def _correct_input(
         return FileResult(
             name=source.name, source=source.source, status="failed", input_sha256=checksum,
             calibration_checksum=calibration_checksum, software_version=__version__,
-            reason=reason, seconds=time.perf_counter() - start,
+            reason=reason, seconds=time.perf_counter() - start, folders_created=tuple(map(str, created)),
         )
 
 
@@ -190,15 +225,23 @@ def run_batch(
 
     Raises (before anything is written):
       CalibrationFileError: a calibration that cannot be read.
-      BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked.
+      BatchError: OUT is not a folder, holds a manifest and resume is False, or is locked; a
+        working folder that no longer exists while paths given are relative (named).
       NoInputError (a BatchError): the inputs hold no cube, band files or session (OUT is not
         created). Inputs that are all done already are not that: --resume skips them.
     Raises (inside `interrupt.stop_requests()`, on SIGINT or SIGTERM):
       interrupt.Interrupted: at the next safe point, with `done` (inputs finished, skipped or
         failed) and `total`; the input under way has left nothing in OUT, the lock is released,
         the manifest records every input finished.
+    Raises (during the batch):
+      CalibrationChangedError (a BatchError): the calibration file was replaced, rewritten or
+        removed after the batch read it (`batch_calibration`); the batch stopped as on a signal,
+        every input it records was corrected with the calibration it read.
+      BatchError: an OSError of OUT's own files (the manifest, the lock file), naming the file.
+    On every way out, the output folders the batch created and left empty are removed.
     """
     # Absolute: workers started in other folders read and write these paths themselves.
+    _require_working_folder([out_root, calibration_path, *inputs])
     out_root = pathlib.Path(os.path.abspath(out_root))
     calibration_path = pathlib.Path(os.path.abspath(calibration_path))
     if exr_compression not in io.EXR_COMPRESSIONS:
@@ -212,7 +255,8 @@ def run_batch(
             f"reflectance_type: expected 'float' with output_format {output_format!r} (half floats are an "
             f"OpenEXR type; ENVI has none), got {reflectance_type!r}"
         )
-    calibration = load_calibration(calibration_path, illuminant)
+    # The batch's one read of its calibration: every input must be corrected with this one.
+    calibration, identity = read_once(calibration_path, illuminant, load_calibration)
     header = calibration.header
     settings = output_settings(calibration, output_format, exr_compression, reflectance_type)
     if out_root.exists() and not out_root.is_dir():
@@ -234,9 +278,13 @@ def run_batch(
     lock.acquire()
     summary = BatchSummary(taken_over=lock.taken_over)
     ended = False
+    _open_created(out_root)
+    results = None
     try:
-        remove_temporaries(out_root)
-        last, recorded = manifest_state(out_root)  # one read of the manifest, streamed
+        with _naming(out_root, "a temporary file a killed run left cannot be removed"):
+            remove_temporaries(out_root)
+        with _naming(out_root / MANIFEST_NAME, "cannot be read"):
+            last, recorded = manifest_state(out_root)  # one read of the manifest, streamed
         done = last if resume else {}
         # --resume's verification first (read only): an input verified done is left as it is, so
         # claim_outputs need not hash its outputs again; the others' files are proved by theirs.
@@ -249,7 +297,8 @@ def run_batch(
         except interrupt.Interrupted as stopped:
             stopped.done, stopped.total = sum(verified), len(specs)  # those verified are done
             raise
-        written = written_by_spherejax(out_root, lock)
+        with _naming(out_root / MANIFEST_NAME, "cannot be read"):
+            written = written_by_spherejax(out_root, lock)
         specs = claim_outputs(specs, out_root, calibration_path, output_format, written, verified)
         manifest = Manifest(out_root)
         try:
@@ -264,10 +313,11 @@ def run_batch(
                             on_result(spec, None)
                         continue
                     pending.append(spec)
-                lock.claim(f"{spec.name}.{kind}" for spec in pending if spec.problem is None
-                           for kind in OUTPUT_KINDS_BY_FORMAT[output_format])
+                with _naming(lock.path, "cannot record the outputs this run claims"):
+                    lock.claim(f"{spec.name}.{kind}" for spec in pending if spec.problem is None
+                               for kind in OUTPUT_KINDS_BY_FORMAT[output_format])
                 options = {"illuminant": illuminant, "exr_compression": exr_compression, "output_format": output_format,
-                           "reflectance_type": reflectance_type}
+                           "reflectance_type": reflectance_type, "calibration_identity": identity}
                 if executor is None:
                     results = _in_process(pending, out_root, calibration_path, options)
                 else:
@@ -275,6 +325,7 @@ def run_batch(
                 # The manifest is written here, by the one process that holds the lock, whoever
                 # corrected the input; an input is recorded only once its outputs are complete.
                 for spec, result in results:
+                    _note_created(out_root, result.folders_created)  # from a worker elsewhere, too
                     manifest.append(result)
                     if result.status == "done":
                         summary.corrected += 1
@@ -286,17 +337,107 @@ def run_batch(
                 stopped.done = summary.corrected + summary.skipped + len(summary.failed)
                 stopped.total = len(specs)
                 raise
+            except CalibrationChangedError as changed:
+                finished = summary.corrected + summary.skipped + len(summary.failed)
+                raise CalibrationChangedError(
+                    changed.path, f"{changed.problem}; the batch stopped after {finished} of {len(specs)} inputs",
+                ) from None
             ended = True
         finally:
-            manifest.close()
-    except interrupt.Interrupted:
+            if hasattr(results, "close"):
+                # Waits for the inputs under way (`_in_process`): no thread of ours writes into
+                # OUT once the lock is released, whatever stopped this loop.
+                results.close()
+            with _naming(manifest.path, "cannot be closed"):
+                manifest.close()
+    except (interrupt.Interrupted, CalibrationChangedError):
         ended = True  # a clean stop: every input is recorded or has left nothing
         raise
     finally:
-        # A run that ended removes its lock file, claims and all; after any other error the
-        # claims stay for the next run (as after a kill): outputs may be in place unrecorded.
-        lock.release(keep_claims=not ended)
+        try:
+            _remove_empty_created(out_root)
+        finally:
+            # A run that ended removes its lock file, claims and all; after any other error the
+            # claims stay for the next run (as after a kill): outputs may be in place unrecorded.
+            lock.release(keep_claims=not ended)
     return summary
+
+
+# ------------------------------------------------------------------ on the way out of a batch
+
+
+@contextlib.contextmanager
+def _naming(path: pathlib.Path, doing: str) -> Iterator[None]:
+    """An OSError inside becomes a `BatchError` naming the file it concerns, in one line: "PATH:
+    doing: what the system said" (`error.filename` when the system named one, else `path`), never
+    a bare "[Errno 28] No space left on device"."""
+    try:
+        yield
+    except OSError as error:
+        raise BatchError(error.filename or path, f"{doing}: {error.strerror or error}") from None
+
+
+def _require_working_folder(paths: Sequence) -> None:
+    """Refuse, in one line naming it, a working folder that is gone when relative paths depend on
+    it (os.getcwd fails with "[Errno 2]" after the folder was removed, naming nothing)."""
+    if all(os.path.isabs(os.fspath(path)) for path in paths):
+        return
+    try:
+        os.getcwd()
+    except OSError as error:
+        raise BatchError(
+            _working_folder_name(), f"the working folder cannot be used: {error.strerror} (removed while this "
+                                    "shell was in it?)",
+            "an existing working folder for the relative paths given, or absolute paths",
+        ) from None
+
+
+def _working_folder_name() -> str:
+    """The working folder's name when os.getcwd no longer gives it: what the kernel still says
+    (Linux: /proc/self/cwd, "PATH (deleted)"), else the shell's $PWD, else words."""
+    try:
+        return os.readlink("/proc/self/cwd").removesuffix(" (deleted)")
+    except OSError:
+        return os.environ.get("PWD") or "the working folder"
+
+
+#: The output folders the inputs of each batch running in this process created, by OUT (resolved):
+#: `run_batch` opens the entry and removes those left empty on its way out; `_correct_input` adds
+#: to it (in a dask worker, which runs no batch, the folders travel back in the FileResult).
+_created_by_batch: dict[pathlib.Path, set[pathlib.Path]] = {}
+_created_lock = threading.Lock()
+
+
+def _open_created(out_root: pathlib.Path) -> None:
+    """Start recording the folders the batch writing into OUT creates (`_note_created`)."""
+    with _created_lock:
+        _created_by_batch[out_root.resolve()] = set()
+
+
+def _note_created(out_root, folders) -> None:
+    """Record `folders`, just made in OUT by an input, for the batch of this process writing there
+    (none runs in a dask worker: its folders come back in its FileResult)."""
+    if folders:
+        with _created_lock:
+            batch = _created_by_batch.get(pathlib.Path(out_root).resolve())
+            if batch is not None:
+                batch.update(map(pathlib.Path, folders))
+
+
+def _remove_empty_created(out_root: pathlib.Path) -> None:
+    """Remove every output folder this batch created that is empty now, deepest first.
+
+    An input that fails or stops removes the folders it made, but only while no other input under
+    way uses them (`outputs.remove_empty_folders`); with two inputs under way in one folder (the
+    frames of a session, `_in_process`; or two dask workers), the one that made it may fail while
+    the other uses it, and the other did not make it: both leave it. Here every input is over, so
+    whatever is still empty goes. Only folders made in this run: a folder the user made stays,
+    empty or not; os.rmdir removes nothing that holds a file."""
+    with _created_lock:
+        created = _created_by_batch.pop(out_root.resolve(), set())
+    for folder in sorted(created, key=lambda path: len(path.parts), reverse=True):
+        with contextlib.suppress(OSError):  # not empty, or gone: either way nothing of ours to remove
+            folder.rmdir()
 
 
 #: Inputs an in-process batch works on at once, each in its own thread (`_in_process`).
@@ -330,7 +471,8 @@ def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_pa
     order; once any input stops, none is started, the others under way are waited for (each
     stops at its next safe point, leaving nothing, or finishes), the finished ones are yielded,
     and the stop is raised: no thread is left writing into OUT after this generator ends, also
-    when its consumer stops early (the `finally`).
+    when its consumer stops early (the `finally`). An input that finds the calibration file
+    changed (`batch_calibration.CalibrationChangedError`) stops the batch the same way.
     """
     if in_flight <= 1 or len(pending) <= 1:
         for spec in pending:
@@ -340,7 +482,7 @@ def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_pa
     pool = concurrent.futures.ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="spherejax-input")
     under_way: collections.deque = collections.deque()
     upcoming = iter(pending)
-    stopped: interrupt.Interrupted | None = None
+    stopped: interrupt.Interrupted | CalibrationChangedError | None = None
     try:
         while True:
             while stopped is None and len(under_way) < in_flight:
@@ -358,8 +500,8 @@ def _in_process(pending: list[InputSpec], out_root: pathlib.Path, calibration_pa
             spec, future = under_way.popleft()
             try:
                 result = future.result()
-            except interrupt.Interrupted as stop:
-                stopped = stopped or stop
+            except (interrupt.Interrupted, CalibrationChangedError) as stop:
+                stopped = stopped or stop  # the batch stops: no input starts after this one
                 continue
             yield spec, result
         if stopped is not None:

@@ -27,7 +27,8 @@ MANIFEST_NAME = "manifest.jsonl"
 @dataclasses.dataclass(frozen=True)
 class FileResult:
     """What became of one input: a manifest record (`to_json`, `from_json`) plus timing for
-    progress (`megapixels`, `seconds`, never recorded).
+    progress (`megapixels`, `seconds`) and the output folders its correction created
+    (`folders_created`, paths, for the batch to remove those left empty), never recorded.
 
     status is "done" or "failed" (with a one-line `reason`); outputs maps each output's path
     relative to OUT to its SHA-256 (hex); settings are the options that shape the outputs
@@ -45,6 +46,7 @@ class FileResult:
     settings: dict | None = None
     megapixels: float = 0.0
     seconds: float = 0.0
+    folders_created: tuple[str, ...] = ()
 
     def to_json(self) -> dict:
         """The manifest line of this result: `source` is its "input"; settings and reason only
@@ -209,8 +211,18 @@ class Manifest:
             raise BatchError(self.path, f"cannot be opened: {link_or(error)}", "a regular file inside OUT") from None
 
     def append(self, result: FileResult) -> None:
-        """Record `result` (its `to_json`), on disk when this returns."""
-        self._writer.append(result.to_json())
+        """Record `result` (its `to_json`), on disk when this returns.
+
+        Raises BatchError naming the manifest when the write or its fsync fails (a full disk): the
+        input's outputs are in place unrecorded, and stay claimed in OUT's lock for `--resume`.
+        """
+        try:
+            self._writer.append(result.to_json())
+        except OSError as error:
+            raise BatchError(
+                self.path, f"cannot record {result.source}: {error.strerror or error}",
+                "room on its disk: the outputs in place stay claimed by OUT's lock; run again with --resume",
+            ) from None
 
     def close(self) -> None:
         self._writer.close()

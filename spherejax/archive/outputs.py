@@ -190,11 +190,15 @@ def output_openers(
                 band_names=lab_names, attributes=attributes,
             ),
         }
-    openers["quality"] = lambda: _OneFile(io.open_quality_png(paths["quality.png"], (height, width, 1)))
+    # The PNGs carry the output set too (a tEXt chunk), so that every output says which
+    # correction it belongs to (`io.corrected`).
+    output_set = {name: value for name, value in attributes.items() if name == "spherejax:output_set"}
+    openers["quality"] = lambda: _OneFile(io.open_quality_png(paths["quality.png"], (height, width, 1), text=output_set))
     # The preview is for browsing: written fast (`io.open_png`'s `fast`: a tenth of the time,
     # a third of a megabyte larger).
     openers["preview"] = lambda: _OneFile(
-        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"], fast=True)
+        io.open_png(paths["preview.png"], (height, width, 3), channel_names=["R", "G", "B"], fast=True,
+                    attributes=output_set)
     )
     return openers
 

@@ -127,6 +127,7 @@ def add_output_option(parser, *, dest: str, metavar: str, help: str, required: b
 # The type of each numeric option, by what its number is (`number_types`: one kind each).
 SEED = numbers.non_negative_integer("the simulation's seed", maximum=numbers.SEED_MAX)
 GAIN = numbers.number_in("electrons per count", minimum=numbers.GAIN_MIN, maximum=numbers.GAIN_MAX)
+GAIN_RANGE = f"{numbers.shown(numbers.GAIN_MIN)}..{numbers.shown(numbers.GAIN_MAX)}"  # for --help
 READ_NOISE = numbers.number_in("one frame's read noise in counts rms", minimum=0.0, maximum=numbers.READ_NOISE_MAX)
 WHITE_REFLECTANCE_U = numbers.number_in("the white standard's relative standard uncertainty (0.003 for 0.3 %)",
                                         minimum=0.0, maximum=numbers.WHITE_REFLECTANCE_U_MAX)
@@ -260,7 +261,7 @@ replaced only with --force, and only when it is a spherejax calibration.""",
                            help="replace CAL if it exists (it must be a spherejax calibration)")
     calibration_options(calibrate)
     calibrate.add_argument("--gain", metavar="E_PER_COUNT", type=GAIN,
-                           help="camera gain, electrons per count (1e-4..1e4), for the stored noise model "
+                           help=f"camera gain, electrons per count ({GAIN_RANGE}), for the stored noise model "
                                 "(default: the session's metadata camera, if it records one)")
     calibrate.add_argument("--read-noise", metavar="COUNTS", type=READ_NOISE,
                            help="read noise of one frame, counts rms (0..65536; default: the session's, as --gain)")
@@ -377,7 +378,7 @@ OUT.csv and OUT.json, and with --cgats a CGATS.17 file colour quality-control so
                          help="also write the regions as CGATS.17 text (X-Rite layout: SAMPLE_ID, SAMPLE_NAME, "
                               "LAB_L/A/B, nm400..nm700), as colour quality-control software and ArgyllCMS read")
     measure.add_argument("--gain", metavar="E_PER_COUNT", type=GAIN,
-                         help="camera gain, electrons per count (1e-4..1e4): overrides the calibration's noise "
+                         help=f"camera gain, electrons per count ({GAIN_RANGE}): overrides the calibration's noise "
                               "model, or with --read-noise supplies one")
     measure.add_argument("--read-noise", metavar="COUNTS", type=READ_NOISE,
                          help="read noise of one frame, counts rms, 0..65536 (as --gain)")

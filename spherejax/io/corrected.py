@@ -7,10 +7,28 @@ wavelength) with wavelength in nm, lab (y, x, lab) and quality (y, x) where thei
 there, and the reflectance file's header as attributes. The pixels are dask arrays of whole-row
 chunks read on demand (an EXR's scanlines through OpenImageIO, an ENVI file through a memory
 map), so a file larger than memory opens at once and a selection reads only its rows.
+
+The files of one Dataset must be one correction's outputs: a reflectance beside another input's
+Lab or quality mask (copied there, or left by another run) would give a Dataset whose variables
+describe different pixels. `spherejax correct` writes into every output of an input (the EXRs'
+and ENVI headers' attributes, the PNGs' tEXt chunks) one `OUTPUT_SET_ATTRIBUTE`, a digest of the
+input's SHA-256, the calibration's checksum and the software version (`output_set_id`), and
+`open_corrected` refuses, in one line naming both files, a Lab, quality or preview file beside
+the reflectance that carries another one. Beyond it, the attributes the reflectance and the Lab
+both carry must agree: the input's SHA-256, the calibration's checksum, the software version and
+the Lab illuminant (a Lab made under another illuminant than the reflectance's file names would
+be labelled wrongly; the reflectance, quality mask and preview do not depend on it).
+
+Outputs of versions that wrote no output set are still read, and a file that carries none is
+checked for what it carries: the EXR and ENVI Lab of every version carry the attributes above,
+so a Lab of another input or calibration is refused all the same; a quality mask or preview
+without attributes is checked for its size only.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import pathlib
 
 import numpy as np
@@ -31,6 +49,36 @@ _EXPECTED = (
     "an output of spherejax correct: N.reflectance.exr, N.lab.exr, N.quality.png "
     "(or their ENVI .hdr), or N"
 )
+
+
+#: The attribute naming the correction an output belongs to (module docstring): the same value in
+#: every output of one input of one run of `spherejax correct`.
+OUTPUT_SET_ATTRIBUTE = "spherejax:output_set"
+#: What must agree between the files of one Dataset wherever both carry it, beside
+#: `OUTPUT_SET_ATTRIBUTE` (the Lab illuminant most of all: the output set leaves it out).
+_SHARED_ATTRIBUTES = ("spherejax:input_sha256", "spherejax:calibration_checksum", "spherejax:illuminant",
+                      "spherejax:software_version")
+
+
+def output_set_id(*, input_sha256: str, calibration_checksum: str, software_version: str) -> str:
+    """The `OUTPUT_SET_ATTRIBUTE` of an input's outputs: "sha256:" and the SHA-256 of what makes
+    them (the input's bytes, the calibration, the software), so that the outputs of one
+    correction share it and a rerun writes the same bytes. The Lab illuminant is left out: the
+    reflectance, quality and preview do not depend on it (the Lab's own attribute names it)."""
+    identity = json.dumps({"input_sha256": input_sha256, "calibration_checksum": calibration_checksum,
+                           "software_version": software_version}, sort_keys=True)
+    return "sha256:" + hashlib.sha256(identity.encode("utf-8", "surrogateescape")).hexdigest()
+
+
+def _require_one_set(reflectance: pathlib.Path, ours: dict, other: pathlib.Path, theirs: dict) -> None:
+    """Refuse `other` (a Lab, quality or preview file beside the reflectance) unless it is an
+    output of the same correction (module docstring)."""
+    expected = f"the outputs of one input from one run of spherejax correct, as {reflectance.name} is"
+    for name in (OUTPUT_SET_ATTRIBUTE, *_SHARED_ATTRIBUTES):  # what both carry (older files carry less)
+        if name in ours and name in theirs and ours[name] != theirs[name]:
+            problem = (f"is not an output of the correction {reflectance} is from: its {name} is "
+                       f"{theirs[name]}, the reflectance's {ours[name]}")
+            raise SpherejaxFileError(other, problem, expected)
 
 
 def _chunk_rows(width: int, channels: int, itemsize: int) -> int:
@@ -81,7 +129,15 @@ def _lazy_exr(path: pathlib.Path, spec: oiio.ImageSpec, order: tuple[int, ...]):
     return da.concatenate(blocks, axis=0)
 
 
-def _lazy_quality(path: pathlib.Path, shape: tuple[int, int]):
+def _png_attributes(path: pathlib.Path, shape: tuple[int, int]) -> dict:
+    """A quality or preview PNG's attributes (its tEXt chunks), once its size is checked."""
+    spec, attributes = _image_header(path)
+    if (spec.height, spec.width) != shape:
+        raise SpherejaxFileError(path, f"is {spec.height} x {spec.width}", f"the reflectance's {shape[0]} x {shape[1]}")
+    return attributes
+
+
+def _lazy_quality(path: pathlib.Path):
     """The quality PNG as a dask array (H, W): one task (a PNG is read from its start). Its
     values are the bits: a palette PNG's indices, not the colours OpenImageIO would expand them
     to (`quality_png.read_quality_png`), or an earlier version's grey values."""
@@ -89,9 +145,8 @@ def _lazy_quality(path: pathlib.Path, shape: tuple[int, int]):
     import dask.array as da
 
     spec, _ = _image_header(path)
-    if (spec.height, spec.width) != shape:
-        raise SpherejaxFileError(path, f"is {spec.height} x {spec.width}", f"the reflectance's {shape[0]} x {shape[1]}")
-    return da.from_delayed(dask.delayed(read_quality_png, pure=True)(str(path)), shape=shape, dtype=np.uint8)
+    return da.from_delayed(dask.delayed(read_quality_png, pure=True)(str(path)), shape=(spec.height, spec.width),
+                           dtype=np.uint8)
 
 
 def _reflectance_exr(path: pathlib.Path):
@@ -107,13 +162,14 @@ def _reflectance_exr(path: pathlib.Path):
 
 
 def _lab_exr(path: pathlib.Path, shape: tuple[int, int]):
-    spec, _ = _image_header(path)
+    """(the Lab EXR as a dask array (H, W, 3), its attributes)."""
+    spec, attributes = _image_header(path)
     names = list(spec.channelnames)
     if sorted(names) != sorted(labelled.LAB_LABELS):
         raise SpherejaxFileError(path, f"has channels {names}", 'the channels "L*", "a*", "b*"')
     if (spec.height, spec.width) != shape:
         raise SpherejaxFileError(path, f"is {spec.height} x {spec.width}", f"the reflectance's {shape[0]} x {shape[1]}")
-    return _lazy_exr(path, spec, tuple(names.index(label) for label in labelled.LAB_LABELS))
+    return _lazy_exr(path, spec, tuple(names.index(label) for label in labelled.LAB_LABELS)), attributes
 
 
 def _stem(path: pathlib.Path) -> pathlib.Path:
@@ -136,11 +192,14 @@ def open_corrected(path):
     Returns:
       Dataset with reflectance (y, x, wavelength) float32, wavelength in nm; lab (y, x, lab_channel) and
       quality (y, x) uint8 when their files are beside it; attrs: the reflectance file's header
-      (spherejax:calibration_checksum, spherejax:source, ...). Pixels are dask arrays; `.load()`
-      or `.values` reads them.
+      (spherejax:calibration_checksum, spherejax:source, spherejax:output_set, ...). Pixels are
+      dask arrays; `.load()` or `.values` reads them.
 
     Raises:
-      SpherejaxFileError: no reflectance file for `path`, or one that is not a spherejax output.
+      SpherejaxFileError: no reflectance file for `path`, or one that is not a spherejax output;
+        a Lab, quality or preview file beside it that is not an output of the same correction
+        (module docstring: another `OUTPUT_SET_ATTRIBUTE`, or another input, calibration,
+        software version or illuminant named in both), naming both files.
     """
     path = pathlib.Path(path)
     stem = _stem(path)
@@ -155,16 +214,22 @@ def open_corrected(path):
     else:
         raise SpherejaxFileError(path, "has no reflectance file beside it (N.reflectance.exr or .hdr)", _EXPECTED)
     shape = tuple(reflectance.shape[:2])
+    reflectance_path = exr if exr.is_file() else hdr
     arrays = {"reflectance": reflectance}
     lab_exr, lab_hdr = stem.with_name(stem.name + ".lab.exr"), stem.with_name(stem.name + ".lab.hdr")
     if lab_exr.is_file():
-        arrays["lab"] = _lab_exr(lab_exr, shape)
+        arrays["lab"], lab_attributes = _lab_exr(lab_exr, shape)
+        _require_one_set(reflectance_path, attributes, lab_exr, lab_attributes)
     elif lab_hdr.is_file():
-        arrays["lab"] = envi.open_lazy(lab_hdr, kind="lab", chunk_bytes=CHUNK_BYTES, shape=shape)[0]
-    quality = stem.with_name(stem.name + ".quality.png")
+        arrays["lab"], _, lab_attributes = envi.open_lazy(lab_hdr, kind="lab", chunk_bytes=CHUNK_BYTES, shape=shape)
+        _require_one_set(reflectance_path, attributes, lab_hdr, lab_attributes)
+    quality, preview = (stem.with_name(stem.name + suffix) for suffix in (".quality.png", ".preview.png"))
     if quality.is_file():
-        arrays["quality"] = _lazy_quality(quality, shape)
+        _require_one_set(reflectance_path, attributes, quality, _png_attributes(quality, shape))
+        arrays["quality"] = _lazy_quality(quality)
+    if preview.is_file():  # not in the Dataset, but one of the correction's outputs all the same
+        _require_one_set(reflectance_path, attributes, preview, _png_attributes(preview, shape))
     return labelled.dataset(arrays, attrs=attributes, wavelengths_nm=wavelengths)
 
 
-__all__ = ["CHUNK_BYTES", "open_corrected"]
+__all__ = ["CHUNK_BYTES", "OUTPUT_SET_ATTRIBUTE", "open_corrected", "output_set_id"]

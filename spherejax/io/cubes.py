@@ -436,13 +436,13 @@ FAST_PNG_LEVEL = 1
 FAST_PNG_FILTER = 8  # libpng's PNG_FILTER_NONE, as OpenImageIO's "png:filter" takes it
 
 
-def open_png(path, shape, *, channel_names, fast: bool = False) -> AtomicImageWriter:
+def open_png(path, shape, *, channel_names, fast: bool = False, attributes=None) -> AtomicImageWriter:
     """An `AtomicImageWriter` for a uint8 (H, W, C) PNG, C = 1 (grey) or 3 (RGB); `fast`: zlib
     level 1 without row filters (`FAST_PNG_LEVEL`), else libpng's defaults (smaller, ten times
-    slower)."""
+    slower); string `attributes` become tEXt chunks under their names."""
     path = pathlib.Path(path)
     shape = _require_image_shape(path, shape, "(H, W, 1) or (H, W, 3) uint8", channels=(1, 3))
-    spec = _output_spec(path, shape, np.uint8, channel_names, None)
+    spec = _output_spec(path, shape, np.uint8, channel_names, attributes)
     if fast:
         spec.attribute("png:compressionLevel", FAST_PNG_LEVEL)
         spec.attribute("png:filter", FAST_PNG_FILTER)

@@ -103,9 +103,14 @@ class JournalWriter:
           ValueError: a record JSON cannot hold (NaN, a value of no JSON type): nothing written.
           OSError: the write or the fsync failed.
         """
-        data = self._prefix + encode(record)
-        os.write(self.fd, data)  # one write on O_APPEND: never interleaved
-        os.fsync(self.fd)
+        data = memoryview(self._prefix + encode(record))
+        try:
+            while data:  # one write on O_APPEND (never interleaved) unless the disk fills mid-line:
+                data = data[os.write(self.fd, data):]  # then the next write says why (ENOSPC)
+            os.fsync(self.fd)
+        except BaseException:
+            self._prefix = b"\n"  # a line left torn here: the next record starts on a line of its own
+            raise
         self._prefix = b""
 
     def close(self) -> None:

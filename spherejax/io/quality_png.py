@@ -74,7 +74,7 @@ class QualityPngWriter(StreamedImageWriter):
     (`streamed_writer`: the same interface and rules as `frames.AtomicImageWriter`). Rows in
     order, top to bottom; the bytes do not depend on the strips."""
 
-    def __init__(self, path, shape):
+    def __init__(self, path, shape, text=None):
         shape = tuple(int(n) for n in shape)
         if len(shape) == 3 and shape[-1] == 1:
             shape = shape[:2]
@@ -91,6 +91,8 @@ class QualityPngWriter(StreamedImageWriter):
             _SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"PLTE", PALETTE.tobytes())
             + _chunk(b"tEXt", b"Description\0" + KEY_TEXT.encode("latin-1"))
             + _chunk(b"tEXt", b"Software\0" + f"spherejax {__version__}".encode("latin-1"))
+            # More tEXt chunks (`text`: keyword -> Latin-1 value), e.g. the outputs' set (`io.corrected`).
+            + b"".join(_chunk(b"tEXt", f"{key}\0{value}".encode("latin-1")) for key, value in (text or {}).items())
         )
 
     def _idat(self, data: bytes, final: bool = False) -> None:
@@ -117,9 +119,10 @@ class QualityPngWriter(StreamedImageWriter):
         self._write(_chunk(b"IEND", b""))
 
 
-def open_quality_png(path, shape) -> QualityPngWriter:
-    """A `QualityPngWriter` for a quality mask of shape (H, W) or (H, W, 1)."""
-    return QualityPngWriter(path, shape)
+def open_quality_png(path, shape, *, text=None) -> QualityPngWriter:
+    """A `QualityPngWriter` for a quality mask of shape (H, W) or (H, W, 1); `text`: more tEXt
+    chunks, keyword -> value (Latin-1)."""
+    return QualityPngWriter(path, shape, text)
 
 
 def write_quality_png(path, quality) -> str:
