@@ -59,14 +59,22 @@ class CalibrationIdentity:
 
     def check_file(self, path) -> None:
         """Raise `CalibrationChangedError` unless `path` is still the file the batch read."""
+        changed = self.change_of(path)
+        if changed is not None:
+            raise changed
+
+    def change_of(self, path) -> CalibrationChangedError | None:
+        """The `CalibrationChangedError` to raise if `path` is no longer the file the batch read,
+        else None."""
         now = file_stamp(path)
         if now is None:
-            raise CalibrationChangedError(path, "changed during the batch: it is no longer there")
+            return CalibrationChangedError(path, "changed during the batch: it is no longer there")
         if now != self.stamp:
-            raise CalibrationChangedError(
+            return CalibrationChangedError(
                 path, "changed during the batch: another file is there now, or the same one rewritten (its inode, "
                       "size or modification time are not those the batch read)",
             )
+        return None
 
     def check_opened(self, path, calibration: io.CalibrationFile) -> None:
         """Raise `CalibrationChangedError` unless `calibration` (opened from `path`) is the batch's."""

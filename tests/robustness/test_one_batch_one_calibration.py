@@ -170,6 +170,44 @@ def test_a_calibration_changed_while_an_input_is_corrected_leaves_nothing_of_it(
     assert manifest_records(out) == [] and outputs_of(out) == {}
 
 
+def test_a_calibration_read_by_rows_rewritten_in_place_mid_input_stops_the_batch(cal, tmp_path, monkeypatch):
+    """A calibration whose dark and white stay on disk (`io.CalibrationFile.rows`) rewritten in
+    place while an input reads its rows: whatever HDF5 then reads (the new bytes, or an error), the
+    input is not recorded, as done or as failed, and the batch stops."""
+    monkeypatch.setattr(io.calibration_files, "IN_MEMORY_BYTES", 4096)
+    inputs = _inputs(tmp_path, 2)
+    path = _own_calibration(cal, tmp_path)
+    out = tmp_path / "out"
+    correct_into = batch_module.correct_into
+
+    def rewrite_then_correct(cube, calibration, *args, **kwargs):
+        assert not calibration.in_memory
+        _rewritten_in_place(path)
+        return correct_into(cube, calibration, *args, **kwargs)
+
+    monkeypatch.setattr(batch_module, "correct_into", rewrite_then_correct)
+    with pytest.raises(archive.CalibrationChangedError, match="after 0 of 2 inputs"):
+        archive.run_batch([inputs], out, path)
+    assert manifest_records(out) == [] and outputs_of(out) == {}
+
+
+def test_an_input_that_fails_because_the_calibration_changed_is_no_failure_but_a_stop(cal, tmp_path, monkeypatch):
+    """An error inside an input (HDF5's words for rows of a rewritten file) once the calibration
+    changed: the batch stops; the input is not recorded as failed."""
+    inputs = _inputs(tmp_path, 1)
+    path = _own_calibration(cal, tmp_path)
+    out = tmp_path / "out"
+
+    def rewrite_then_fail(*args, **kwargs):
+        _rewritten_in_place(path)
+        raise RuntimeError("Can't synchronously read data (wrong B-tree signature)")
+
+    monkeypatch.setattr(batch_module, "correct_into", rewrite_then_fail)
+    with pytest.raises(archive.CalibrationChangedError, match="after 0 of 1 inputs"):
+        archive.run_batch([inputs], out, path)
+    assert manifest_records(out) == [] and outputs_of(out) == {}
+
+
 def test_every_worker_verifies_the_batchs_checksum(cal, tmp_path):
     """`correct_input` as a worker runs it: with an identity that is not the file's (another
     checksum, or another file stamp), it refuses before reading the input and leaves nothing."""
