@@ -21,8 +21,15 @@ from .estimation.kernel_residual import KernelResidual
 from .grid import N_WAVELENGTHS
 
 #: The calibration's parameters every pixel goes through: a NaN or infinity in any of them makes
-#: every output NaN while the quality flags, which describe pixels, stay 0. Refused when concrete.
+#: every output NaN while the quality flags, which describe pixels, stay 0. Refused when concrete,
+#: with every other array that is not a frame (`FRAMES`): the estimator's kernel residual too.
 PARAMETERS = ("coeffs", "wiener", "wiener_offset")
+
+#: The fields that hold per-pixel frames: a NaN or a white at or below the dark frame there
+#: concerns its own pixels, which every kernel flags one by one (`Quality.WHITE_NOT_ABOVE_DARK`).
+#: Every other array of a calibration is a parameter every pixel goes through
+#: (`check_parameters`).
+FRAMES = ("dark", "white", "patch")
 
 
 #: Plans a calibration keeps (`Calibration._plan`): the frame shapes of a batch, a stack and its
@@ -109,8 +116,24 @@ class Calibration(eqx.Module):
                 raise ValueError(f"wiener_residual: expected a residual of the {bands} bands, got one of {self.wiener_residual.bands}")
         if self.saturation is not None and not float(self.saturation) > 0:
             raise ValueError(f"saturation: expected a level > 0 or None, got {self.saturation!r}")
-        for name in PARAMETERS:
-            _checks.require_finite(name, getattr(self, name))
+        self.check_values()
+
+    def check_values(self) -> None:
+        """Raise ValueError, one line naming the array, unless every parameter (every array but
+        the frames) is finite, the sizes are within the documented limits and the estimator maps
+        known responses to plausible reflectance (`check_sizes`, `check_parameters`,
+        `check_plausible`). Values are checked only
+        when concrete: a traced calibration (under jit, grad or vmap) passes.
+
+        Construction runs it; `io.save_calibration` runs it again, since a calibration made by
+        `jax.tree_util.tree_map` never went through construction."""
+        residual = self.wiener_residual
+        points = 0 if residual is None else int(residual.inducing.shape[0])
+        itemsize = np.dtype(compute_dtype(self.dark, self)).itemsize
+        check_sizes(self.bands, points, itemsize, self.image_shape)
+        check_parameters(self, skip=FRAMES)
+        if all(_checks.is_concrete(x) for x in (self.coeffs, self.wiener, self.wiener_offset)):
+            check_plausible(self.coeffs, self.wiener, self.wiener_offset, residual)
 
     @property
     def bands(self) -> int:
@@ -207,6 +230,145 @@ class Calibration(eqx.Module):
         return part
 
 
+# ---------------------------------------------------------------------------------------------
+# What every array of a calibration must hold (`Calibration.check_values`, run where a calibration
+# is built, saved and opened: `spherejax.io.calibration_files`). Each check raises ValueError in
+# one line naming the array, the value found and what was expected.
+
+#: The most bands a calibration may have: the Stage II coefficients (B, 4), the Wiener matrix
+#: (31, B) and the residual's whitening (B, B) grow with B. Multispectral cameras have 4 to 32
+#: bands (the paper's 16) and pushbroom hyperspectral ones up to a few hundred; 256 admits them
+#: all and keeps every per-pixel matrix of a calibration under 256 kB.
+MAX_BANDS = 256
+
+#: The most inducing points m of a kernel residual (`estimation.KernelResidual`, E10). The fit
+#: makes at most `estimation.kernel_residual.INDUCING_POINTS` (64); applying m points costs every
+#: pixel (B + 9) m multiply-adds and, on the jax.numpy path, 8 m bytes of working memory. 1024 is
+#: the most the GPU kernel applies (`spherejax._engine.gpu_residual.MAX_INDUCING_POINTS`) and 16
+#: times what the fit makes: a 192 x 272 frame then takes about a second and 0.5 GB, where 32 768
+#: points (a 13 MB file) took 51 s and 11.5 GB.
+MAX_INDUCING_POINTS = 1024
+
+#: The most working memory one pixel's correction may need (`correction_bytes_per_pixel`), in
+#: bytes. The affine estimator needs about 530 (16 bands, float32); a kernel residual adds 8 m
+#: (float32) or 16 m (float64) bytes. 16 KiB admits 1024 inducing points in float32 with up to 64
+#: bands, about 18 times the affine correction, and refuses what would make one frame's correction
+#: need gigabytes per hundred thousand pixels.
+MAX_CORRECTION_BYTES_PER_PIXEL = 16 << 10
+
+#: The largest reflectance magnitude (1 = a perfect diffuser) a calibration may give for the
+#: responses whose reflectance is known to be ordinary (`check_plausible`): the white standard's
+#: (v = 1 in every band, p = 1), the training responses' mean (a kernel residual's centre), and
+#: the residual's own term at its inducing points. Materials stay within 0..1, fluorescent whites
+#: reach about 1.5, and a poorly conditioned fit overshoots by a few; 100 leaves room for all of
+#: them (and for the random matrices of the tests, up to about 40) while refusing a parameter off
+#: by orders of magnitude: Stage II's c1 or the Wiener matrix times 1e30, residual weights of 3e38,
+#: which gave reflectance of 1e30 or infinity with quality 0.
+PLAUSIBLE_REFLECTANCE = 100.0
+
+
+def correction_bytes_per_pixel(bands: int, inducing_points: int, itemsize: int) -> int:
+    """The working memory, in bytes, of one pixel's correction on the jax.numpy path (the one that
+    holds the most intermediates): raw, v, v_tilde and the Stage II input (B each), reflectance and
+    the residual's share of it (31 each), XYZ and Lab (3 each), the residual's distances and
+    kernel values (m each) in the compute dtype (`itemsize` bytes), and the quality byte."""
+    return itemsize * (4 * bands + 2 * N_WAVELENGTHS + 6 + 2 * inducing_points) + 1
+
+
+def check_sizes(bands: int, inducing_points: int, itemsize: int, image_shape: tuple[int, int]) -> None:
+    """Raise ValueError unless the bands and inducing points are within `MAX_BANDS` and
+    `MAX_INDUCING_POINTS` and a pixel's correction needs at most `MAX_CORRECTION_BYTES_PER_PIXEL`
+    (the message gives the estimate for one frame of `image_shape`). Needs shapes only: a
+    calibration file is checked with it before any array is read."""
+    if bands > MAX_BANDS:
+        raise ValueError(f"dark: {bands} bands; expected at most {MAX_BANDS} (MAX_BANDS)")
+    per_pixel = correction_bytes_per_pixel(bands, inducing_points, itemsize)
+    frame = per_pixel * int(np.prod(image_shape, dtype=np.int64))
+    need = f"about {per_pixel} bytes a pixel, {frame / 1e9:.3g} GB for one {image_shape[0]} x {image_shape[1]} frame"
+    if inducing_points > MAX_INDUCING_POINTS:
+        raise ValueError(f"wiener_residual.inducing: {inducing_points} inducing points, whose correction would need "
+                         f"{need}; expected at most {MAX_INDUCING_POINTS} (MAX_INDUCING_POINTS)")
+    if per_pixel > MAX_CORRECTION_BYTES_PER_PIXEL:
+        raise ValueError(f"calibration: a correction would need {need} ({bands} bands, {inducing_points} inducing points, "
+                         f"{itemsize}-byte floats); expected at most {MAX_CORRECTION_BYTES_PER_PIXEL} bytes a pixel "
+                         "(MAX_CORRECTION_BYTES_PER_PIXEL)")
+
+
+def _leaf_name(path) -> str:
+    """`wiener_residual.weights` for the pytree path of a calibration's leaf."""
+    return ".".join(str(getattr(key, "name", getattr(key, "key", getattr(key, "idx", key)))) for key in path)
+
+
+def check_parameters(tree, *, skip: tuple[str, ...] = ()) -> None:
+    """Raise ValueError naming the first array of `tree` (a `Calibration`, or any pytree of
+    arrays) that holds a NaN or an infinity, its first such value and where; arrays under the
+    top-level fields `skip` (the frames) are left out, and traced arrays pass.
+
+    Every array leaf is checked, whatever its name: an estimator that carries new arrays is
+    covered without a list to update."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        name = _leaf_name(path)
+        if name.split(".")[0] in skip or not hasattr(leaf, "dtype"):
+            continue
+        _checks.require_finite(name, leaf)
+
+
+def _residual_term(inducing, weights, u) -> np.ndarray:
+    """A k (n, 31) at whitened responses u (n, B), float64 (E8-E10 with the lengthscale folded)."""
+    # |u - z|^2 expanded as `estimation.kernel_features` does: no (n, m, B) temporary.
+    squared = (u * u).sum(axis=-1)[:, None] - 2.0 * (u @ inducing.T) + (inducing * inducing).sum(axis=-1)
+    return np.exp(-0.5 * np.maximum(squared, 0.0)) @ weights.T
+
+
+def _plausibility_cases(coeffs, wiener, offset, residual):
+    """(what, reflectance (31,) or (n, 31)) the calibration gives for responses of known, ordinary
+    reflectance, in float64 (overflow there is an error, not float32's infinity)."""
+    white = coeffs.sum(axis=1)  # Eq. 23 at v = 1, p = 1: the white standard, v_tilde = c1 + c2 + c3 + c4
+    estimator = "coeffs, wiener, wiener_offset" + ("" if residual is None else " and wiener_residual")
+    cases = [(f"{estimator}: the white standard's response (v = 1, p = 1)", white)]
+    if residual is not None:
+        cases.append(("wiener_residual: the training responses' mean (its centre)", np.asarray(residual.centre, np.float64)))
+    out = []
+    for what, v_tilde in cases:
+        reflectance = wiener @ v_tilde + offset
+        if residual is not None:
+            centre, whitening, inducing, weights = (np.asarray(x, np.float64) for x in
+                                                    (residual.centre, residual.whitening, residual.inducing, residual.weights))
+            reflectance = reflectance + _residual_term(inducing, weights, ((v_tilde - centre) @ whitening.T)[None])[0]
+        out.append((what, reflectance))
+    if residual is not None and not residual.__dict__.get("_plausible_at_inducing"):
+        # Depends on the residual alone, which is immutable and shared by every crop of a
+        # calibration (`Calibration.rows`): worked out once (m^2 B operations, 16 M for m = 1024).
+        inducing, weights = np.asarray(residual.inducing, np.float64), np.asarray(residual.weights, np.float64)
+        out.append(("wiener_residual.weights: the residual term A k at its inducing points", _residual_term(inducing, weights, inducing)))
+    return out
+
+
+def check_plausible(coeffs, wiener, offset, residual) -> None:
+    """Raise ValueError unless the calibration's Stage II and estimator give reflectance within
+    +-`PLAUSIBLE_REFLECTANCE` for the responses of `_plausibility_cases`, in float64.
+
+    Finite parameters can still be absurd: Stage II's c1 times 1e30 makes every reflectance 1e30
+    with quality 0, and residual weights of 3e38 overflow float32 to infinity near the training
+    responses. A residual whose kernel has been checked once is remembered (it is immutable)."""
+    coeffs, wiener, offset = (np.asarray(x, np.float64) for x in (coeffs, wiener, offset))
+    if residual is not None and not all(_checks.is_concrete(x) for x in jax.tree_util.tree_leaves(residual)):
+        residual = None  # traced: only the affine part can be checked
+    with np.errstate(over="ignore", invalid="ignore"):
+        cases = _plausibility_cases(coeffs, wiener, offset, residual)
+    for what, reflectance in cases:
+        bad = ~(np.abs(reflectance) <= PLAUSIBLE_REFLECTANCE)
+        if bad.any():
+            index = np.unravel_index(int(np.flatnonzero(bad)[0]), reflectance.shape)
+            found = float(reflectance[index])
+            raise ValueError(
+                f"{what} gives reflectance {found:.3g} at {400 + 10 * int(index[-1])} nm; expected reflectance within "
+                f"+-{PLAUSIBLE_REFLECTANCE:g} (PLAUSIBLE_REFLECTANCE: a parameter off by orders of magnitude)"
+            )
+    if residual is not None:
+        object.__setattr__(residual, "_plausible_at_inducing", True)  # a frozen dataclass: its own memo
+
+
 def compute_dtype(raw, calibration: Calibration):
     return _checks.float_dtype(
         raw, calibration.dark, calibration.white, calibration.coeffs, calibration.wiener,
@@ -239,4 +401,6 @@ def patch_bounding_box(patch) -> tuple[int, int, int, int] | None:
     return None if rows.size == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
 
 
-__all__ = ["PARAMETERS", "Calibration", "compute_dtype", "saturation_level", "patch_bounding_box"]
+__all__ = [
+    "FRAMES", "MAX_BANDS", "MAX_CORRECTION_BYTES_PER_PIXEL", "MAX_INDUCING_POINTS", "PARAMETERS", "PLAUSIBLE_REFLECTANCE",
+    "check_parameters", "check_plausible", "check_sizes", "correction_bytes_per_pixel", "Calibration", "compute_dtype", "saturation_level", "patch_bounding_box"]

@@ -13,6 +13,7 @@ import numpy as np
 import pydantic
 
 from .. import jsontext
+from ..calibration import check_sizes
 from ..grid import N_WAVELENGTHS
 from ..uncertainty import NoiseModel
 from .documents import (
@@ -237,8 +238,17 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
             f"{arrays['dark'].shape}",
             "one band centre per band of the arrays",
         )
+    points = 0
     if RESIDUAL_ARRAYS[0] in names:
         _check_residual_shapes(path, len(bands), *(arrays[name].shape for name in RESIDUAL_ARRAYS))
+        points = arrays["wiener_residual_inducing"].shape[0]
+    try:
+        # From the shapes alone, before the checksum reads any array: 32 768 inducing points are
+        # refused at once. 4-byte floats, the least the engine computes in (a float64 calibration
+        # is checked again in its own dtype when its `Calibration` is built).
+        check_sizes(len(bands), points, 4, arrays["dark"].shape[:2])
+    except ValueError as error:
+        raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
 
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..grid import N_WAVELENGTHS
 from .._checks import require_finite
-from ..calibration import PARAMETERS, Calibration, patch_bounding_box
+from ..calibration import Calibration, patch_bounding_box
 from ..uncertainty import NoiseModel
 # The functions here look their helpers up in this module: tests patch `_require_usable_patch`,
 # `_utc_now` and `IN_MEMORY_BYTES` here. The block sizes `_READ_BLOCK` and `_CHUNK_BYTES` are read
@@ -90,6 +90,9 @@ def save_calibration(
         raise CalibrationFileError(
             path, f"cannot hold a noise model of type {type(noise_model).__name__}", "a spherejax.NoiseModel or None"
         )
+    with _reraise_invalid(path):
+        # Built calibrations were checked; one made by jax.tree_util.tree_map never was.
+        calibration.check_values()
     arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS}
     arrays.update(_residual_arrays(calibration))
     header = {
@@ -174,10 +177,13 @@ class CalibrationFile:
             if patch != dark[:2]:
                 raise ValueError(f"patch: expected shape {dark[:2]} (one entry per image pixel), got {patch}")
             self.image_shape, self.bands = dark[:2], dark[2]
-            for name in PARAMETERS:
-                # Small arrays read whole: a NaN or infinity there makes every reflectance NaN.
-                # The check Calibration makes when built, here before any frame is read.
-                require_finite(name, self._value(name))
+            for name in arrays:
+                # Every array but the frames is a parameter every pixel goes through (small, read
+                # whole): a NaN or infinity there makes every reflectance NaN or infinite with
+                # quality 0. The check Calibration makes when built, here before any frame is read
+                # and naming the array as the file does; new arrays are covered without a list.
+                if name not in _FRAME_ARRAYS:
+                    require_finite(name, self._value(name))
             self.patch_box = patch_bounding_box(self._value("patch"))
             if self.patch_box is None:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
