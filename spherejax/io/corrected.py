@@ -137,16 +137,15 @@ def _png_attributes(path: pathlib.Path, shape: tuple[int, int]) -> dict:
     return attributes
 
 
-def _lazy_quality(path: pathlib.Path):
-    """The quality PNG as a dask array (H, W): one task (a PNG is read from its start). Its
-    values are the bits: a palette PNG's indices, not the colours OpenImageIO would expand them
-    to (`quality_png.read_quality_png`), or an earlier version's grey values."""
+def _lazy_quality(path: pathlib.Path, shape: tuple[int, int]):
+    """The quality PNG, of (H, W) `shape` (checked by `_png_attributes`), as a dask array: one
+    task (a PNG is read from its start). Its values are the bits: a palette PNG's indices, not
+    the colours OpenImageIO would expand them to (`quality_png.read_quality_png`), or an earlier
+    version's grey values."""
     import dask
     import dask.array as da
 
-    spec, _ = _image_header(path)
-    return da.from_delayed(dask.delayed(read_quality_png, pure=True)(str(path)), shape=(spec.height, spec.width),
-                           dtype=np.uint8)
+    return da.from_delayed(dask.delayed(read_quality_png, pure=True)(str(path)), shape=shape, dtype=np.uint8)
 
 
 def _reflectance_exr(path: pathlib.Path):
@@ -226,7 +225,7 @@ def open_corrected(path):
     quality, preview = (stem.with_name(stem.name + suffix) for suffix in (".quality.png", ".preview.png"))
     if quality.is_file():
         _require_one_set(reflectance_path, attributes, quality, _png_attributes(quality, shape))
-        arrays["quality"] = _lazy_quality(quality)
+        arrays["quality"] = _lazy_quality(quality, shape)
     if preview.is_file():  # not in the Dataset, but one of the correction's outputs all the same
         _require_one_set(reflectance_path, attributes, preview, _png_attributes(preview, shape))
     return labelled.dataset(arrays, attrs=attributes, wavelengths_nm=wavelengths)
