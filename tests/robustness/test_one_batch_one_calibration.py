@@ -373,6 +373,45 @@ def test_a_stop_through_the_command_line_leaves_no_empty_folder(cal, tmp_path, m
     assert _empty_folders(out) == [] and not (out / "in" / "sub").exists()
 
 
+@pytest.mark.slow
+def test_real_signals_with_inputs_under_way_in_shared_folders_leave_no_empty_folder(cal, tmp_path):
+    """SIGTERM and SIGINT to `spherejax correct` (a child process) while inputs that share new
+    output folders are under way, two by two: whenever the signal lands, every folder left in OUT
+    holds a recorded output, and --resume finishes the batch."""
+    import signal
+
+    from tests.batch_support import holds_lock, start_correct, wait_until
+
+    rng = np.random.default_rng(4)
+    for k in range(8):
+        (tmp_path / "in" / f"d{k}").mkdir(parents=True)
+        for name in ("a", "b"):
+            io.write_frame(tmp_path / "in" / f"d{k}" / f"{name}.tif", frame(rng))
+    out = tmp_path / "out"
+    stops = 0
+    for signum, after in ((signal.SIGTERM, 1), (signal.SIGINT, 2), (signal.SIGTERM, 1)):
+        resume = ["--resume"] if out.exists() else []
+        process = start_correct(["-c", cal, tmp_path / "in", "-o", out, *resume], may_be_killed=False, quiet=True)
+        wait_until(process, holds_lock(process, out))
+        done = len(manifest_records(out)) if (out / archive.MANIFEST_NAME).exists() else 0
+        wait_until(process, lambda: (out / archive.MANIFEST_NAME).exists() and len(manifest_records(out)) >= done + after)
+        if process.poll() is not None:
+            break  # the batch finished first: nothing left to stop
+        process.send_signal(signum)
+        _, err = process.communicate(timeout=120)
+        assert process.returncode in (128 + signum, 0), err.decode()
+        stops += process.returncode != 0
+        assert _empty_folders(out) == [], err.decode()
+        recorded = {name for record in manifest_records(out) for name in record["outputs"]}
+        assert set(outputs_of(out)) == recorded
+    process = start_correct(["-c", cal, tmp_path / "in", "-o", out, "--resume"], may_be_killed=False, quiet=True)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err.decode()
+    assert len({record["name"] for record in manifest_records(out)}) == 16
+    assert _empty_folders(out) == []
+    assert stops >= 1  # a signal landed mid-batch at least once
+
+
 def test_folders_the_user_made_are_left_even_when_empty(cal, tmp_path, monkeypatch):
     """Only folders this run made go: OUT/in/sub made before the run stays (empty), and so does
     an empty folder the user keeps beside the outputs."""
