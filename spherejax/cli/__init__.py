@@ -1,8 +1,9 @@
 """The `spherejax` command line (docs/design.md, "The command line").
 
 Modules: parser (conventions, every command's options and help), number_types (one argparse
-type per kind of number an option takes), run (`main`), shared (what several commands share),
-session_commands (simulate, calibrate, evaluate, study, demo), correct_command, measure_command.
+type per kind of number an option takes), run (`main`), streams (stdin, stdout and stderr closed,
+full or abandoned), shared (what several commands share), session_commands (simulate, calibrate,
+evaluate, study, demo), correct_command, measure_command.
 
     spherejax demo [-o DIR] [--seed N]         simulate, calibrate, correct, evaluate
     spherejax simulate -o DIR [--seed N]       a synthetic session like the paper's experiment
@@ -35,7 +36,15 @@ options -q, -v and --log-file go before or after the command (`_global_options`)
 through `logging` and progress through tqdm on a terminal (spherejax.console), results to stdout.
 
 Exit status 0 on success; on bad input a one-line message on stderr (no traceback), exit
-status 2, and nothing written. `correct` goes on past bad inputs: each is logged with its
+status 2, and nothing written. Numbers are bounded at both ends by what they can mean
+(`number_types`); JSON is read strictly (`spherejax.jsontext`: a key given twice is refused);
+output folders are tried before any work (`shared.check_writable`); a working folder deleted
+under the shell is named in one line. The standard streams are guarded (`streams`): a closed one
+is opened on /dev/null; results that cannot be written (a full or closed stdout) give one line
+and exit status 2 once the work is done and kept; a reader of stdout that went away (`| head`)
+gives 141, as a Unix tool killed by SIGPIPE, with the work done and recorded; under a locale that
+is not UTF-8, names and arguments are taken by their bytes as UTF-8 (`io.library_path`,
+`shared.argument_text`) or refused in one line. `correct` goes on past bad inputs: each is logged with its
 reason, and the run ends with a summary and exit status 1 if any failed. Everything is computed before the first byte is written, and
 every file is written to a temporary name and renamed into place.
 

@@ -8,6 +8,7 @@ import pathlib
 
 from .. import console, interrupt
 from ..console import Steps
+from . import number_types as numbers
 from .shared import argument_text, check_writable
 
 
@@ -62,7 +63,13 @@ def _measure_reference(value: str | None, names):
         except ValueError:
             lab = None
         if lab is not None and all(math.isfinite(x) for x in lab):
-            return "lab", lab
+            (l_low, l_high), (ab_low, ab_high) = numbers.REFERENCE_L_RANGE, numbers.REFERENCE_AB_RANGE
+            if l_low <= lab[0] <= l_high and all(ab_low <= x <= ab_high for x in lab[1:]):
+                return "lab", lab
+            raise ValueError(
+                f"--reference {value!r}: lies outside CIELAB's range (expected L* {numbers.shown(l_low)}.."
+                f"{numbers.shown(l_high)} and a*, b* {numbers.shown(ab_low)}..{numbers.shown(ab_high)})"
+            )
     known = ", ".join(repr(name) for name in names)
     raise ValueError(
         f"--reference {value!r}: expected the name of a --region ({known}) or three finite numbers L,a,b"

@@ -10,15 +10,16 @@ none):
   number_in             --gain (GAIN_MIN..GAIN_MAX), --read-noise (0..READ_NOISE_MAX),
                         --white-reflectance-u (0..1), --response-weight (0..RESPONSE_WEIGHT_MAX)
 
+(--region NAME=r0,r1,c0,c1 and --reference NAME|L,a,b hold numbers too, each a small format of
+its own that `spherejax measure` parses in its own words: the region's bounds within the image,
+the reference's L*, a*, b* within REFERENCE_L_RANGE and REFERENCE_AB_RANGE.)
+
 Every option's number is bounded, above and below, by what it can mean: a finite number is not
 enough, since one of 1e308 is finite and yet overflows the first product it enters (a response
 weight of 1e308 made `study`'s objective infinite; a gain of 1e308 is infinite in the float32 a
 noise model holds). The bounds are wide enough for any instrument and narrow enough that no
 product of them overflows float32 (the noise model's variance, signal / gain + read_noise², is at
 most 65535 / 1e-4 + 65536² < 1e10).
-
-(--region NAME=r0,r1,c0,c1 and --reference NAME|L,a,b hold numbers too, but each is a small
-format of its own, which `spherejax measure` parses and refuses in its own words.)
 
 A number is finite: "nan", "inf" and "1e400" (inf as a float) are refused, as every numeric check
 of spherejax refuses them. A refused value raises `NumberError`, an argparse.ArgumentTypeError
@@ -59,6 +60,10 @@ GAIN_MIN, GAIN_MAX = 1e-4, 1e4
 READ_NOISE_MAX = 65536.0
 #: The white standard's relative standard uncertainty: 1 is 100 %.
 WHITE_REFLECTANCE_U_MAX = 1.0
+#: `measure --reference L,a,b`: L* 0..200 and a*, b* -500..500, wider than any surface colour
+#: (fluorescent whites reach L* 105, the most saturated a* and b* about 130), narrow enough that
+#: CIEDE2000's products (C to the 7th power) stay finite in float32. (1e308,0,0 gave ΔE00 NaN.)
+REFERENCE_L_RANGE, REFERENCE_AB_RANGE = (0.0, 200.0), (-500.0, 500.0)
 #: `study`'s weight of the response residual beside ΔE00: spherejax.study.RESPONSE_WEIGHT_MAX,
 #: which says why (repeated here so that parsing imports no JAX; a test checks they agree).
 RESPONSE_WEIGHT_MAX = 1e6
@@ -165,7 +170,7 @@ class BadNumber(SystemExit):
 
 __all__ = [
     "VALUE_FIRST", "EXPECTED_FIRST", "SEED_MAX", "FRAMES_MAX", "MAX_STEPS_MAX", "GAIN_MIN", "GAIN_MAX",
-    "READ_NOISE_MAX", "WHITE_REFLECTANCE_U_MAX", "RESPONSE_WEIGHT_MAX", "NumberError", "NumberType", "BadNumber",
+    "READ_NOISE_MAX", "WHITE_REFLECTANCE_U_MAX", "RESPONSE_WEIGHT_MAX", "REFERENCE_L_RANGE", "REFERENCE_AB_RANGE", "NumberError", "NumberType", "BadNumber",
     "integer", "positive_integer", "non_negative_integer", "positive_number", "non_negative_number", "number_in",
     "shown",
 ]

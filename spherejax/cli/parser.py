@@ -183,8 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=(
             "Run 'spherejax COMMAND --help' for a command's description, options and examples.\n"
             "Exit status: 0 done; 1 a batch or acquisition with failed inputs; 2 bad input (one line on\n"
-            "stderr naming the file, the value and what was expected; nothing written); 130/143 stopped by\n"
-            "SIGINT/SIGTERM."
+            "stderr naming the file, the value and what was expected; nothing written), or standard output\n"
+            "full or closed (after the work, which is kept); 130/143 stopped by SIGINT/SIGTERM; 141 the reader\n"
+            "of standard output went away (after the work, which is kept and recorded)."
         ),
         formatter_class=_HelpFormatter,
     )
@@ -369,7 +370,8 @@ OUT.csv and OUT.json, and with --cgats a CGATS.17 file colour quality-control so
     measure.add_argument("--region", action="append", required=True, metavar="NAME=r0,r1,c0,c1",
                          help="a region to measure: rows r0..r1-1, columns c0..c1-1 (repeatable, names unique)")
     measure.add_argument("--reference", metavar="NAME|L,a,b",
-                         help="ΔE00 against the region NAME (its uncertainty included) or an exact L*,a*,b*")
+                         help="ΔE00 against the region NAME (its uncertainty included) or an exact L*,a*,b* "
+                              "(L* 0..200, a* and b* -500..500)")
     measure.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
                          help="illuminant for Lab (default: the calibration's)")
     add_output_option(measure, dest="output", metavar="OUT", old_spelling=True,

@@ -150,10 +150,13 @@ def test_a_batch_manifest_line_with_a_key_given_twice_is_no_record(tmp_path):
     (["calibrate", "S", "-o", "c.h5", "--white-reflectance-u", "2"], "--white-reflectance-u"),
     (["measure", "-c", "c.h5", "i.tif", "--region", "a=0,1,0,1", "--gain", "3e38"], "--gain"),
     (["measure", "-c", "c.h5", "i.tif", "--region", "a=0,1,0,1", "--read-noise", "1e5"], "--read-noise"),
+    (["measure", "-c", "c.h5", "i.tif", "--region", "a=0,1,0,1", "--reference", "1e30,0,0"], "--reference"),
+    (["measure", "-c", "c.h5", "i.tif", "--region", "a=0,1,0,1", "--reference", "50,0,-1e308"], "--reference"),
 ])
 def test_a_finite_number_beyond_its_options_bound_is_refused_in_one_line(argv, option, tmp_path, capsys, monkeypatch):
     """1e308 is finite: it passed, and `study` exited 0 with an infinite objective; a gain of
-    3e38 is infinite in the float32 a noise model holds. Each option's bounds are in --help."""
+    3e38 is infinite in the float32 a noise model holds; a reference L* of 1e30 gave ΔE00 NaN with
+    exit status 0. Each option's bounds are in --help."""
     monkeypatch.chdir(tmp_path)
     status = cli.main(argv)
     err = capsys.readouterr().err
