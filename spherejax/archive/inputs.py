@@ -25,7 +25,9 @@ def load_calibration(path, illuminant: str | None = None) -> io.CalibrationFile:
     path = pathlib.Path(path).resolve()
     try:
         stat = path.stat()
-        stamp = (stat.st_mtime_ns, stat.st_size)
+        # The file's identity too: another file renamed over it may keep the time and size
+        # (cp -p, a tool that sets them), and the cache must not give the old one's contents.
+        stamp = (stat.st_dev, stat.st_ino, stat.st_mtime_ns, stat.st_size)
     except OSError:
         stamp = None  # open_calibration names the problem
     return _calibration(str(path), stamp, illuminant)

@@ -208,6 +208,25 @@ def test_an_input_that_fails_because_the_calibration_changed_is_no_failure_but_a
     assert manifest_records(out) == [] and outputs_of(out) == {}
 
 
+def test_a_calibration_replaced_by_one_of_the_same_time_and_size_is_read_as_it_is(cal, tmp_path):
+    """Between two batches of one process, another calibration renamed over the file with the
+    old one's modification time and size (cp -p, or a tool that sets the time): the second batch
+    corrects with the file as it is, not the first batch's calibration kept in memory."""
+    inputs = _inputs(tmp_path, 1)
+    path = _own_calibration(cal, tmp_path)
+    archive.run_batch([inputs], tmp_path / "first", path)
+    old = os.stat(path)
+    other = tmp_path / "other.h5"
+    _another_calibration(other)
+    assert os.path.getsize(other) == old.st_size
+    os.replace(other, path)
+    os.utime(path, ns=(old.st_atime_ns, old.st_mtime_ns))
+    archive.run_batch([inputs], tmp_path / "second", path)
+    (record,) = manifest_records(tmp_path / "second")
+    assert record["calibration_checksum"] == io.open_calibration(path).header["checksum"]
+    assert record["calibration_checksum"] != manifest_records(tmp_path / "first")[0]["calibration_checksum"]
+
+
 def test_every_worker_verifies_the_batchs_checksum(cal, tmp_path):
     """`correct_input` as a worker runs it: with an identity that is not the file's (another
     checksum, or another file stamp), it refuses before reading the input and leaves nothing."""
