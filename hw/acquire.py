@@ -67,6 +67,7 @@ from .acquisition_journal import (
     _check_ownership,
     _check_resume,
     _is_work_folder,
+    _lock_session,
     _profile_identity,
     _remove_stale_staging,
 )
@@ -117,12 +118,11 @@ def acquire(
     Raises:
       ProfileError: a profile that is invalid, before anything is opened.
       AcquisitionError: SESSION or SESSION.partial a symbolic link, or holding the profile or
-        its lamp state file (before anything is opened); a device check failed (before anything
-        moved), or a fault stopped the run (what was captured stays in SESSION.partial for
-        --resume).
+        its lamp state file (before anything is opened); another acquisition holding the
+        session's lock, SESSION.lock (before anything is opened or touched); a device check
+        failed (before anything moved), or a fault stopped the run (what was captured stays in
+        SESSION.partial for --resume).
     """
-    from spherejax import atomic_files
-
     settings = settings or Settings()
     if through_gige and (not emulate or real_camera):
         raise ValueError("through_gige: the simulated camera's route, with emulate and without real_camera")
@@ -132,6 +132,19 @@ def acquire(
     if emulate and not real_camera and profile.camera.backend != "sim":
         profile = dataclasses.replace(profile, camera=dataclasses.replace(profile.camera, backend="sim", options={}))
     _check_ownership(profile, out, partial, emulate=emulate)
+    # One acquisition per session: the lock before anything opens, and before SESSION.partial is
+    # looked at, created, resumed or removed; a second run is refused here, touching nothing.
+    with _lock_session(out):
+        return _acquire_locked(profile, out, partial, emulate=emulate, through_gige=through_gige, resume=resume,
+                               operator=operator, settings=settings, on_instrument=on_instrument)
+
+
+def _acquire_locked(profile, out: pathlib.Path, partial: pathlib.Path, *, emulate: bool, through_gige: bool,
+                    resume: bool, operator: Operator, settings: Settings,
+                    on_instrument: Callable[[Instrument], None] | None) -> pathlib.Path:
+    """`acquire` from its checks on, with the session's lock held."""
+    from spherejax import atomic_files
+
     if resume:
         _remove_stale_staging(out)
         if (out / "manifest.json").is_file():

@@ -8,8 +8,9 @@
     SESSION.partial/lamp.json        with --emulate, the emulated lamp's state (`hw.lamp`)
 
 Here: the journal, the checks before a run creates, resumes or removes the work folder
-(`_check_ownership`, `_check_resume`, `_is_work_folder`) and the cleanup of the staging folders
-a run killed while it wrote the session leaves (`_remove_stale_staging`). `acquire.acquire`
+(`_check_ownership`, `_check_resume`, `_is_work_folder`), the lock that lets one acquisition at a
+time work on a session (`_lock_session`, SESSION.lock beside it) and the cleanup of the staging
+folders a run killed while it wrote the session leaves (`_remove_stale_staging`). `acquire.acquire`
 decides when each is called. Every refusal is one AcquisitionError line.
 """
 
@@ -30,6 +31,8 @@ from .profile import Profile
 
 JOURNAL_NAME = "journal.jsonl"
 PARTIAL_SUFFIX = ".partial"
+#: SESSION.lock beside SESSION: one acquisition per session at a time (`_lock_session`).
+LOCK_SUFFIX = ".lock"
 
 
 def _utc_now() -> str:
@@ -146,7 +149,8 @@ def _check_ownership(profile: Profile, out: pathlib.Path, partial: pathlib.Path,
     creates and removes whole, are not links (the session is renamed into place, which would
     replace a link; the work folder would be written through one), and neither is, nor holds at
     any depth, the profile or the lamp state file it reads and updates (io.ownership.refuse_holding,
-    by resolved path and (st_dev, st_ino)). AcquisitionError, one line naming the folder."""
+    by resolved path and (st_dev, st_ino)); SESSION.lock is neither of those files either
+    (io.ownership.refuse_overlaps). AcquisitionError, one line naming the folder or file."""
     from spherejax.io import SpherejaxFileError, ownership
 
     inputs = {"the profile (--profile)": profile.path}
@@ -161,6 +165,39 @@ def _check_ownership(profile: Profile, out: pathlib.Path, partial: pathlib.Path,
                     f"{label} a folder spherejax makes, not a link",
                 )
         ownership.refuse_holding(folders, inputs)
+        ownership.refuse_overlaps({"SESSION.lock": session_lock_path(out)}, inputs)
+    except SpherejaxFileError as error:
+        raise AcquisitionError(str(error)) from None
+
+
+def session_lock_path(out: pathlib.Path) -> pathlib.Path:
+    """SESSION.lock, beside SESSION and SESSION.partial."""
+    return out.with_name(out.name + LOCK_SUFFIX)
+
+
+def _lock_session(out: pathlib.Path):
+    """The exclusive lock of one acquisition on the session `out` (`spherejax.io.exclusive_lock`,
+    the primitive of `correct`'s lock on OUT): taken before any device opens and before
+    SESSION.partial is created, resumed or removed, and held until the run ends, so that a second
+    `acquire` on the same session (with --resume or not) is refused in one line, touching nothing:
+    two runs once drove the instrument at once and the loser left a full SESSION.partial. A run
+    killed leaves SESSION.lock, unlocked; the next run takes it over and removes it at its end.
+
+    Returns:
+      The `spherejax.io.exclusive_lock.HeldLock` (release it, or use it as a context manager).
+
+    Raises:
+      AcquisitionError: one line naming SESSION.lock: held by a running acquisition (its pid and
+        host), or something else at that name (a user's file, a link, a folder).
+    """
+    from spherejax.io import SpherejaxFileError, exclusive_lock
+
+    try:
+        return exclusive_lock.take(
+            session_lock_path(out), record={"acquiring": out.name},
+            busy=f"another spherejax acquire is writing the session {out.name}",
+            expected="one acquisition per session: wait for it to finish, or choose another -o SESSION",
+        )
     except SpherejaxFileError as error:
         raise AcquisitionError(str(error)) from None
 
@@ -177,4 +214,4 @@ def _is_work_folder(partial: pathlib.Path) -> bool:
     return all(atomic_files.is_temp_sibling(entry.name, "profile.json") for entry in partial.iterdir())
 
 
-__all__ = ["JOURNAL_NAME", "PARTIAL_SUFFIX", "Journal"]
+__all__ = ["JOURNAL_NAME", "LOCK_SUFFIX", "PARTIAL_SUFFIX", "Journal", "session_lock_path"]

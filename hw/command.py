@@ -46,7 +46,23 @@ def add_command(commands) -> None:
                               "camera on 127.0.0.1 and read by the GenICam backend (needs Aravis and PyGObject)")
     acquire.add_argument("--resume", action="store_true",
                          help="complete an interrupted acquisition without retaking what it captured")
-    acquire.set_defaults(run=run_acquire)
+    acquire.set_defaults(run=run_acquire, written_paths=written_paths)
+
+
+def written_paths(args):
+    """What `acquire` reads and writes, for the check of --log-file FILE before it is opened
+    (`spherejax.cli.written_paths`): the profile; SESSION and SESSION.partial, folders it writes
+    whole; SESSION.lock."""
+    import pathlib
+
+    from spherejax.cli.written_paths import CommandPaths
+
+    out = pathlib.Path(args.output)
+    return CommandPaths(
+        inputs={"--profile FILE": pathlib.Path(args.profile)},
+        outputs={"SESSION.lock": out.with_name(out.name + ".lock")},
+        folders={"-o SESSION": out, "SESSION.partial": out.with_name(out.name + ".partial")},
+    )
 
 
 def run_acquire(args) -> int:
