@@ -41,6 +41,7 @@ from pydantic_core import PydanticCustomError
 
 from ..number_text import json_ready
 from .errors import SpherejaxFileError, _show
+from .library_messages import library_text
 
 
 def _json_value(path, value, error_type: type[SpherejaxFileError], what: str):
@@ -59,9 +60,22 @@ def _json_value(path, value, error_type: type[SpherejaxFileError], what: str):
         raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
 
     try:
-        return json.loads(json.dumps(value, default=default, allow_nan=False))
+        return _without_surrogates(json.loads(json.dumps(value, default=default, allow_nan=False)))
     except (TypeError, ValueError) as error:
         raise error_type(path, f"{what} cannot be stored as JSON: {error}", "JSON values") from None
+
+
+def _without_surrogates(value):
+    """`value` (as JSON reads back) with every string and key through `library_text`: a path
+    recorded under a non-UTF-8 locale (a calibration's session, say) holds lone surrogates, which
+    the UTF-8 of the file cannot encode ("'utf-8' codec can't encode characters ...")."""
+    if isinstance(value, str):
+        return library_text(value)
+    if isinstance(value, list):
+        return [_without_surrogates(v) for v in value]
+    if isinstance(value, dict):
+        return {library_text(k): _without_surrogates(v) for k, v in value.items()}
+    return value
 
 
 def _canonical_json(value) -> bytes:

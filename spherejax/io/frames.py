@@ -19,7 +19,8 @@ from .atomic_writer import AtomicWriter
 from .errors import SpherejaxFileError, _show
 from .hashing import sha256_file
 from .library_messages import (
-    complete_image, image_open_problem, image_read_problem, image_write_problem, library_path, write_limit,
+    complete_image, image_open_problem, image_read_problem, image_write_problem, library_path, library_text,
+    write_limit,
 )
 from .plain_files import file_kind
 
@@ -221,16 +222,8 @@ def _frame_names_and_attributes(path, channels: int, channel_names, attributes):
                 f"attribute {key!r} is reserved for the channel names and attributes",
                 f"attribute names other than {list(_RESERVED_ATTRIBUTES)}",
             )
-    attributes = {key: _library_text(value) for key, value in attributes.items()}
+    attributes = {key: library_text(value) for key, value in attributes.items()}  # names under LC_ALL=C
     return channel_names, attributes
-
-
-def _library_text(text: str) -> str:
-    """`text` as OpenImageIO can store it (its binding encodes str as UTF-8): a file name read
-    under a non-UTF-8 locale (LC_ALL=C) holds os.fsdecode's lone surrogates, which UTF-8 cannot
-    encode; they become the characters their bytes spell in UTF-8 ("rôt"), or \\xNN escapes where
-    those bytes are not UTF-8. Text without them is returned as it is."""
-    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def write_frame(path, array, *, channel_names=None, attributes=None) -> None:

@@ -56,6 +56,20 @@ def library_path(path: os.PathLike | str, expected: str = "a file whose name is 
                                  expected) from None
 
 
+def library_text(text: str) -> str:
+    """`text` with no lone surrogates, for what encodes text as UTF-8 (OpenImageIO's attributes,
+    a calibration's or a manifest's JSON): a name decoded under a non-UTF-8 locale holds
+    os.fsdecode's surrogates for its bytes, which become the characters those bytes spell in UTF-8
+    ("rôt"), or \\xNN escapes where they are not UTF-8. Text without surrogates is returned as is."""
+    if not any("\ud800" <= c <= "\udfff" for c in text):
+        return text
+    try:
+        raw = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a surrogate no file name gives (from a JSON escape, say)
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return raw.decode("utf-8", "backslashreplace")
+
+
 def _size(path) -> int | None:
     try:
         return os.stat(path).st_size
@@ -289,5 +303,5 @@ def hdf5_problem(error: BaseException, dataset: str | None = None) -> str:
 
 __all__ = [
     "complete_image", "hdf5_problem", "image_open_problem", "image_read_problem", "image_write_problem",
-    "library_detail", "library_path", "write_limit",
+    "library_detail", "library_path", "library_text", "write_limit",
 ]

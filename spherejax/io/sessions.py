@@ -186,9 +186,11 @@ class Session:
         raise SessionError(self.manifest_path, f"has no frame {id!r}", f"one of {known}")
 
     def frame_path(self, frame: FrameInfo | str) -> pathlib.Path:
-        """Where a frame's file lies."""
+        """Where a frame's file lies. The manifest names it in UTF-8 text; the file system is
+        given those bytes (`os.fsdecode` of them), so that "frames/rôt.tif" is found under a
+        locale that is not UTF-8 too (LC_ALL=C cannot encode "ô" as text)."""
         frame = self.frame(frame) if isinstance(frame, str) else frame
-        return self.path / frame.file
+        return self.path / os.fsdecode(frame.file.encode("utf-8", "surrogateescape"))
 
     def read(self, frame: FrameInfo | str) -> np.ndarray:
         """The pixels of a frame (or frame id): (H, W, B) uint16, checked against the manifest."""

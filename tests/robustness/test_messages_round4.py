@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -305,3 +306,27 @@ def test_a_region_name_is_refused_for_what_is_wrong_with_it_under_the_c_locale(r
 def test_the_streams_write_names_as_their_bytes_and_other_characters_as_escapes():
     assert "r\udcc3\udcb4t ±".encode("ascii", streams.ERROR_HANDLER) == b"r\xc3\xb4t \\xb1"
 
+
+
+def test_a_session_with_utf8_names_calibrates_under_the_c_locale(workspace, tmp_path):
+    """Variants at another command and other paths: a session folder "séance" whose manifest
+    names a frame "frames/blänc.tif" (UTF-8 text, which LC_ALL=C cannot encode as a path), read
+    through OpenImageIO, and a calibration written by h5py whose header records the session's
+    path (it failed: "'utf-8' codec can't encode characters ...: surrogates not allowed")."""
+    import json
+
+    session = tmp_path / "séance"
+    shutil.copytree(workspace / "session", session)
+    manifest = json.loads((session / "manifest.json").read_text())
+    white = next(frame for frame in manifest["frames"] if frame["role"] == "white")
+    (session / white["file"]).rename(session / "frames" / "blänc.tif")
+    white["file"] = "frames/blänc.tif"
+    (session / "manifest.json").write_text(json.dumps(manifest, ensure_ascii=False), encoding="utf-8")
+    result = _run(["-q", "calibrate", session, "-o", session / "câl.h5"], env=C_LOCALE)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
+    calibration_file = io.open_calibration(session / "câl.h5")
+    try:
+        assert calibration_file.header["metadata"]["session"] == str(session)
+    finally:
+        calibration_file.close()
