@@ -234,7 +234,11 @@ def _open_log_file(path: str, apart_from=None) -> logging.Handler:
         _refuse_command_paths(target, apart_from)
     formatter = _UTCFormatter(LOG_FILE_FORMAT)
     if not os.path.lexists(target):
-        _create_log(target, formatter)
+        try:
+            _create_log(target, formatter)
+        except OSError as error:  # a read-only folder, a full disk: said of the log, not its temporary
+            raise SpherejaxFileError(target, f"cannot be created ({error.strerror or error})",
+                                     "--log-file FILE in a folder spherejax may write") from None
     ownership.refuse_in_the_way({"--log-file FILE": target}, replaceable=not_a_log,
                                 expected="--log-file FILE a new file, or a spherejax log to append to")
     try:

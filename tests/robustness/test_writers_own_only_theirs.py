@@ -314,3 +314,15 @@ def test_demo_force_replaces_a_spherejax_calibration_and_marks_its_own(root, dem
     (demo_out / "calibration.h5").write_text("my notes\n")
     refused_unchanged(root, ["demo", "--out", demo_out, "--seed", "5", "--force"], capsys, demo_out / "calibration.h5",
                       "a file that is not a spherejax calibration")
+
+
+def test_a_new_log_in_a_folder_that_cannot_be_written_is_refused_naming_the_log(root, capsys):
+    """The log's first line goes through a temporary sibling: a folder that refuses it is said of
+    the log file, in one line, with nothing left."""
+    from tests.robustness.catalogue import read_only
+
+    (root / "ro").mkdir()
+    log = root / "ro" / "run.log"
+    with read_only(root / "ro"):
+        refused_unchanged(root, ["--log-file", log, "calibrate", root / "nowhere", "-o", root / "x.h5"], capsys, log,
+                          "cannot be created")
