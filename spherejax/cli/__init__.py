@@ -3,7 +3,8 @@
 Modules: parser (conventions, every command's options and help), number_types (one argparse
 type per kind of number an option takes), run (`main`), streams (stdin, stdout and stderr closed,
 full or abandoned), shared (what several commands share), session_commands (simulate, calibrate,
-evaluate, study, demo), correct_command, measure_command.
+evaluate, study, demo), correct_command, measure_command, written_paths (what each command reads
+and writes, from its arguments: what --log-file may not be).
 
     spherejax demo [-o DIR] [--seed N]         simulate, calibrate, correct, evaluate
     spherejax simulate -o DIR [--seed N]       a synthetic session like the paper's experiment
@@ -57,7 +58,10 @@ that only with --force;
 replace only the files of an earlier run there (its metrics.json or study.json beside them);
 `simulate` and `demo` refuse a session folder that is a link or ends in ".."; `demo` reuses a
 session only when it is the one asked for (`demo_session_differs`) and replaces only what an
-earlier demo wrote; --log-file appends only to a log spherejax wrote (spherejax.console). Anything else in the way is refused in one line naming it.
+earlier demo wrote (its mark in the calibration's signed header; `demo --force` for another
+spherejax calibration); `measure` replaces only files that begin with its own outputs' signatures;
+--log-file appends only to a log spherejax wrote (spherejax.console) and is none of the command's
+own files (`written_paths`). Anything else in the way is refused in one line naming it.
 
 `correct` and `acquire` stop cleanly on SIGINT (Ctrl-C) or SIGTERM (spherejax.interrupt): at the
 next safe point, with what was finished kept and recorded, nothing half-written left and OUT's

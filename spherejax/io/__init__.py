@@ -20,6 +20,7 @@ The package's modules, one job each (their names are all available here):
     plain_files        files spherejax keeps for itself, opened so that nothing planted there
                        makes it wait or read without end
     ownership          outputs that are not inputs: the check before any work
+    exclusive_lock     one run at a time: an exclusive flock on a lock file known by its record
     atomic_writer      `AtomicWriter`, the one state machine of every image writer: rows into
                        temporary files, put in place by `commit`, removed by `abort`
     direct_io          large new files written past the page cache (O_DIRECT) where allowed
