@@ -127,11 +127,14 @@ def _reopen_closed_descriptors() -> set[int]:
     return closed
 
 
-def _use_names_handler(stream) -> None:
-    """Encoding errors of `stream` handled by ERROR_HANDLER (a stream that cannot be reconfigured,
-    a test's capture, is left as it is)."""
-    with contextlib.suppress(AttributeError, ValueError, io.UnsupportedOperation):
-        stream.reconfigure(errors=ERROR_HANDLER)
+def _use_errors_handler(stream, errors: str | None) -> str | None:
+    """Encoding errors of `stream` handled by `errors` (ERROR_HANDLER, or the one it had, put back
+    when the command ends); the handler it had. A stream that cannot be reconfigured is left as it is."""
+    before = getattr(stream, "errors", None)
+    if errors is not None:
+        with contextlib.suppress(AttributeError, ValueError, OSError, io.UnsupportedOperation):
+            stream.reconfigure(errors=errors)
+    return before
 
 
 class Guard:
@@ -188,8 +191,7 @@ def guarded() -> Iterator[Guard]:
     # (-q) is not refused for it.
     stdout = _GuardedStream(real_out if real_out is not None else _Closed(), "<stdout>")
     stderr = _GuardedStream(real_err if real_err is not None else _Closed(), "<stderr>")
-    for real in (real_out, real_err):
-        _use_names_handler(real)
+    handlers = [(real, _use_errors_handler(real, ERROR_HANDLER)) for real in (real_out, real_err) if real is not None]
     sys.stdout, sys.stderr = stdout, stderr
     try:
         yield Guard(stdout, stderr)
@@ -197,6 +199,8 @@ def guarded() -> Iterator[Guard]:
         sys.stdin, sys.stdout, sys.stderr = saved
         _detach_broken(stdout, real_out, 1)
         _detach_broken(stderr, real_err, 2)
+        for real, errors in handlers:  # an embedding program's streams as they were
+            _use_errors_handler(real, errors)
 
 
 class _Closed:
