@@ -31,6 +31,7 @@ import pathlib
 import stat
 from collections.abc import Callable, Mapping
 
+from .. import jsontext
 from ..atomic_files import write_atomic
 
 #: The file's first key and value: what makes it a file spherejax wrote.
@@ -85,7 +86,7 @@ def _read(path: pathlib.Path) -> dict | None:
         return None
     with os.fdopen(descriptor, "rb") as stored:
         try:
-            document = json.loads(stored.read(1 << 20))
+            document = jsontext.loads(stored.read(1 << 20))  # strict: a key given twice is damage
         except ValueError:
             return None
     if not isinstance(document, dict) or document.get("format") != FORMAT or not isinstance(document.get("machines"), dict):

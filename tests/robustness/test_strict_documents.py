@@ -213,3 +213,15 @@ def test_study_session_refuses_an_objective_that_is_not_finite(workspace, monkey
     monkeypatch.setattr(study, "_objective", lambda params, problem: jnp.sum(params["coeffs"]) * jnp.inf)
     with pytest.raises(ValueError, match=r"the objective is (inf|nan) at the start .* expected a finite mean"):
         study.study_session(session, calibration, max_steps=1)
+
+
+def test_the_kernel_timings_cache_with_a_key_given_twice_is_not_spherejaxs(tmp_path):
+    """The engine's cache of kernel timings (`_engine.variant_cache`) is a document spherejax
+    reads too: one with "machines" given twice is not the file it wrote, and is left alone."""
+    from spherejax._engine import variant_cache
+
+    path = tmp_path / "timings.json"
+    path.write_text(json.dumps({"format": variant_cache.FORMAT, "machines": {}})[:-1] + ', "machines": {"m": {}}}')
+    assert variant_cache._read(path) is None
+    path.write_text(json.dumps({"format": variant_cache.FORMAT, "machines": {"m": {}}}))
+    assert variant_cache._read(path) == {"m": {}}
