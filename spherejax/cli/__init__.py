@@ -55,7 +55,8 @@ path and (st_dev, st_ino), so links and `..` cannot hide an overlap. `calibrate 
 CAL beside the session's files, never over one, and replaces only a spherejax calibration, and
 that only with --force;
 `evaluate` and `study` refuse an --out DIR that is the session's folder or its frames folder, and
-replace only the files of an earlier run there (its metrics.json or study.json beside them);
+replace only the files of an earlier run there, whose very bytes its metrics.json or study.json
+records (`run_records`);
 `simulate` and `demo` refuse a session folder that is a link or ends in ".."; `demo` reuses a
 session only when it is the one asked for (`demo_session_differs`) and replaces only what an
 earlier demo wrote (its mark in the calibration's signed header; `demo --force` for another

@@ -104,7 +104,8 @@ def cmd_study(args) -> int:
             "closed_form": closed.metrics, "study": studied.metrics,
         }
         _write_files(out, {"study.txt": text.encode(), "study.csv": csv.encode(),
-                           "study.json": json.dumps(number_text.json_ready(payload), indent=2).encode()})
+                           "study.json": json.dumps(number_text.json_ready(payload), indent=2).encode()},
+                     record=_STUDY_RECORD[0])
         _save_calibration(out / "study-calibration.h5", result.calibration, None, session)
         progress.done()
     if not args.quiet:

@@ -19,12 +19,17 @@ LOSSES = ("l2", "huber", "cauchy", "tukey")
 WIENER_METHODS = ("auto", "training", "model", "kernel")
 
 
-def _write_files(out_dir: pathlib.Path, files: dict[str, bytes]) -> None:
+def _write_files(out_dir: pathlib.Path, files: dict[str, bytes], record: str | None = None) -> None:
     """Write name -> bytes into out_dir as one set (`spherejax.atomic_files.write_together`: all
     the temporary files first, then the renames). When one cannot be written (a full disk), none
-    of the files is changed and a folder this call created is removed."""
+    of the files is changed and a folder this call created is removed. With `record` (one of
+    `files`, a JSON object), it lists the SHA-256 of the others (`run_records`): what lets a later
+    run replace them."""
     from .. import atomic_files  # here, not at the top: --help imports nothing of JAX
+    from .run_records import with_file_record
 
+    if record is not None:
+        files = with_file_record(files, record)
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
@@ -231,18 +236,22 @@ def _evaluation_names(session) -> list[str]:
 
 def _check_output_folder(out_dir, names, record, *, label: str, inputs, holding) -> None:
     """Before any work: `out_dir` and the files `names` it will hold (io.ownership.check_output_folder).
-    Files already there are replaced when an earlier run of the command left them (its `record`
-    beside them) and, for a calibration, when it is one."""
+    Files already there are replaced when an earlier run of the command wrote them (its `record`
+    beside them lists their very bytes, `run_records`) and, for a calibration, when it is one."""
     from ..io import ownership
+    from .run_records import not_recorded, recorded_files
 
     out_dir = pathlib.Path(out_dir)
     record_name, keys = record
     earlier = ownership.earlier_run(out_dir / record_name, keys)
+    recorded = recorded_files(out_dir / record_name) if earlier else {}
 
     def replaceable(path: pathlib.Path) -> str | None:
         if path.suffix == ".h5":
             return ownership.not_a_calibration(path)
-        return None if earlier else f"a file spherejax did not write (no earlier run's {record_name} beside it)"
+        if path.name == record_name:  # the record itself: known by its own keys
+            return None if earlier else f"a file spherejax did not write (not an earlier run's {record_name})"
+        return not_recorded(path, recorded, record_name)
 
     ownership.check_output_folder(out_dir, names, label=label, inputs=inputs, holding=holding, replaceable=replaceable)
     check_writable(out_dir, label, folder=True)
@@ -254,7 +263,7 @@ def _evaluate(session, calibration, out_dir, progress, quiet):
     progress.start(f"correcting and evaluating every capture of {session.path}")
     evaluation = evaluate.evaluate_session(session, calibration)
     files = _evaluation_files(evaluation)
-    _write_files(pathlib.Path(out_dir), files)
+    _write_files(pathlib.Path(out_dir), files, record=_EVALUATION_RECORD[0])
     progress.done(f"tables and figures in {out_dir}")
     if not quiet:
         print(evaluate.format_tables(evaluation))

@@ -12,6 +12,7 @@ had lost or changed, or a failure only after all the work.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import pathlib
@@ -158,9 +159,12 @@ def test_evaluate_again_replaces_its_own_tables_and_nothing_else(root, capsys):
     argv = ["evaluate", root / "session", "-c", root / "cal.h5", "--out", out]
     assert run(argv, capsys)[0] == 0
     (out / "notes.txt").write_text("mine")
-    (out / "tables.txt").write_text("an earlier evaluation's tables, edited")
+    # Its own tables, as its metrics.json records their bytes (one the user edited is not its
+    # own: test_writers_own_only_theirs.py), are replaced: a new file at the name.
+    before = (out / "tables.txt").stat().st_ino
     status, _, err = run(argv, capsys)
     assert status == 0, err
+    assert (out / "tables.txt").stat().st_ino != before
     assert (out / "tables.txt").read_text().startswith("Table 1.")
     assert (out / "notes.txt").read_text() == "mine"
 
@@ -285,17 +289,18 @@ def test_demo_refuses_a_session_folder_of_other_files_before_simulating(tmp_path
 
 @pytest.mark.slow
 def test_demo_again_replaces_what_an_earlier_demo_wrote(root, demo_out, capsys):
-    """An earlier demo's calibration (its mark in the signed header) and evaluation (its
-    metrics.json beside its tables) are the demo's to replace; a file of the user's beside them stays."""
+    """An earlier demo's calibration (its mark in the signed header) and evaluation (tables whose
+    bytes its metrics.json records) are the demo's to replace; a file of the user's beside them stays."""
     from spherejax.cli.session_commands import DEMO_MARK
 
     calibration, header = io.load_calibration(root / "cal.h5")
     io.save_calibration(demo_out / "calibration.h5", calibration, instrument_id=header["instrument_id"],
                         band_centres_nm=header["band_centres_nm"], metadata={**header["metadata"], **DEMO_MARK})
     (demo_out / "evaluation").mkdir()
-    record = {"band_centres_nm": [], "markov_kappa": [], "metrics": {}}
+    tables = b"an earlier demo's tables"
+    record = {"band_centres_nm": [], "markov_kappa": [], "metrics": {}, "files": {"tables.txt": hashlib.sha256(tables).hexdigest()}}
     (demo_out / "evaluation" / "metrics.json").write_text(json.dumps(record))
-    (demo_out / "evaluation" / "tables.txt").write_text("an earlier demo's tables")
+    (demo_out / "evaluation" / "tables.txt").write_bytes(tables)
     (demo_out / "evaluation" / "notes.txt").write_text("mine")
     status, _, err = run(["demo", "--out", demo_out, "--seed", "5"], capsys)
     assert status == 0, err

@@ -326,3 +326,59 @@ def test_a_new_log_in_a_folder_that_cannot_be_written_is_refused_naming_the_log(
     with read_only(root / "ro"):
         refused_unchanged(root, ["--log-file", log, "calibrate", root / "nowhere", "-o", root / "x.h5"], capsys, log,
                           "cannot be created")
+
+
+# --------------------------------------------------------------------------------------------
+# evaluate, study and demo: a file beside an earlier run's record is replaced only when the
+# record lists its very bytes
+
+
+def _record(folder: pathlib.Path, name: str, keys, files: dict[str, bytes]) -> None:
+    """An earlier run's record (`name`, with `keys`) listing the SHA-256 of `files`."""
+    import hashlib
+    import json
+
+    folder.mkdir(parents=True, exist_ok=True)
+    document = {key: [] for key in keys}
+    document["files"] = {file: hashlib.sha256(data).hexdigest() for file, data in files.items()}
+    (folder / name).write_text(json.dumps(document))
+
+
+EVALUATION_KEYS = ("band_centres_nm", "markov_kappa", "metrics")
+STUDY_KEYS = ("objective_start", "objective_end", "closed_form", "study")
+
+
+@pytest.mark.parametrize("case", ["evaluate, unlisted", "evaluate, edited", "study, unlisted", "demo, edited"])
+def test_a_users_file_beside_an_earlier_runs_record_is_not_replaced(root, workspace, demo_out, capsys, case):
+    """unchecked: a spherejax metrics.json (or study.json) beside them made every output name
+    count as spherejax's: the user's tables.txt replaced, or one the user edited since."""
+    session = workspace / "session"
+    if case.startswith("evaluate"):
+        folder, record, keys, named = root / "e", "metrics.json", EVALUATION_KEYS, "tables.txt"
+        argv = ["evaluate", session, "-c", root / "cal.h5", "--out", folder]
+    elif case.startswith("study"):
+        folder, record, keys, named = root / "s", "study.json", STUDY_KEYS, "study.txt"
+        argv = ["study", session, "-c", root / "cal.h5", "--out", folder, "--max-steps", "1"]
+    else:
+        folder, record, keys, named = demo_out / "evaluation", "metrics.json", EVALUATION_KEYS, "tables.txt"
+        argv = ["demo", "--out", demo_out, "--seed", "5"]
+    listed = {} if case.endswith("unlisted") else {named: b"the tables an earlier run wrote\n"}
+    _record(folder, record, keys, listed)
+    (folder / named).write_text("my own tables, or the run's edited by me\n")
+    refused_unchanged(root, argv, capsys, folder / named, "is in the way: a file spherejax did not write")
+
+
+@pytest.mark.slow
+def test_evaluate_again_replaces_what_it_wrote_and_nothing_else(root, workspace, capsys):
+    """A real run's metrics.json lists its files, so the next run replaces them; one the user
+    edited in between is refused."""
+    argv = ["evaluate", workspace / "session", "-c", root / "cal.h5", "--out", root / "e"]
+    assert run(argv, capsys)[0] == 0
+    import json
+
+    listed = json.loads((root / "e" / "metrics.json").read_text())["files"]
+    assert set(listed) == {p.name for p in (root / "e").iterdir()} - {"metrics.json"}
+    assert run(argv, capsys)[0] == 0
+    with open(root / "e" / "table1.csv", "a") as handle:
+        handle.write("my note\n")
+    refused_unchanged(root, argv, capsys, root / "e" / "table1.csv", "its bytes are not those")
