@@ -17,10 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import pathlib
-import time
 from collections.abc import Iterator
-
-from spherejax import interrupt
 
 from .camera import Camera, CameraError, open_camera
 from .errors import AcquisitionError, HardwareError
@@ -73,7 +70,7 @@ def _band_selector(profile: Profile, stack: contextlib.ExitStack, emulated) -> F
         with _naming(f"tunable filter {config.model} ([tunable_filter])"):
             selector = stack.enter_context(open_filter(
                 port, model=config.model, bands_nm=profile.band_centres_nm, settle_s=config.settle_s,
-                sleep=_sleep_unless_stopped, **config.options,
+                **config.options,  # its waits are spherejax.interrupt.sleep: a stop cuts them short
             ))
             selector.check()
             selector.wait_until_ready(config.warmup_timeout_s)
@@ -89,14 +86,6 @@ def _band_selector(profile: Profile, stack: contextlib.ExitStack, emulated) -> F
     with _naming("filter wheels"):
         bank.check()
     return bank
-
-
-def _sleep_unless_stopped(seconds: float) -> None:
-    """time.sleep, a safe point before and after (`spherejax.interrupt`): a filter's warm-up can
-    take minutes, and SIGINT or SIGTERM must stop the run within one poll, not after it."""
-    interrupt.check()
-    time.sleep(seconds)
-    interrupt.check()
 
 
 def _emulated_band(profile: Profile, emulated) -> int | None:

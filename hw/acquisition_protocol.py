@@ -121,7 +121,8 @@ def _stdin_is_terminal() -> bool:
 class Settings:
     """How a run behaves beyond the profile: sleep and clock are injectable for tests."""
 
-    sleep: Callable[[float], None] = time.sleep
+    # The lamp's warm-up interval (30 s by default) in slices with a safe point after each.
+    sleep: Callable[[float], None] = interrupt.sleep
     log: Callable[[str], None] = lambda line: print(f"spherejax: {line}", file=sys.stderr, flush=True)
     progress: Callable[[int, int], None] | None = None  # (done, total) band images
 

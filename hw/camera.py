@@ -36,6 +36,7 @@ import operator
 from collections.abc import Callable
 
 import numpy as np
+from spherejax import interrupt
 
 from .errors import InstrumentError
 
@@ -227,6 +228,9 @@ class Camera(abc.ABC):
         count = self._count(n, f"average needs an integer number of frames >= 1, got {n!r}")
         total = np.zeros(self.frame_shape, np.float64)
         for _ in range(count):
+            # A safe point between frames: an exposure runs inside the camera's SDK and cannot be
+            # cut, but a stop need not wait for all `n` of them.
+            interrupt.check()
             total += self.snap()
         return total / np.float64(count)
 
@@ -293,8 +297,19 @@ class ProfileOption:
     check: Callable[[object], bool] | None = None
 
 
+#: The largest sensor side, in pixels, a profile may give the simulated camera (16384: far beyond
+#: any scientific sensor's, yet a frame of it stays within memory), and the longest exposure or
+#: frame timeout it may give any backend, s: finite, so that no wait a profile sets is without end.
+MAX_SIDE_PX = 16384
+MAX_PROFILE_SECONDS = 3600.0
+
+
 def _is_shape(value) -> bool:
-    return len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in value)
+    return len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_SIDE_PX for v in value)
+
+
+def _is_seconds(value) -> bool:
+    return 0 < value <= MAX_PROFILE_SECONDS
 
 
 def _is_roi(value) -> bool:
@@ -313,26 +328,28 @@ PROFILE_OPTIONS: dict[str, dict[str, ProfileOption]] = {
     "sim": {
         # Both numpy's and JAX's generators take 0 .. 2**32 - 1 whatever JAX's x64 setting.
         "seed": ProfileOption(int, "an integer 0..4294967295", lambda v: 0 <= v <= 2**32 - 1),
-        "image_shape": ProfileOption(list, "[height, width] in pixels, two integers >= 1", _is_shape),
+        "image_shape": ProfileOption(list, f"[height, width] in pixels, two integers >= 1 and <= {MAX_SIDE_PX}", _is_shape),
         "name": ProfileOption(str, "a non-empty string", bool),
     },
     "pvcam": {
         "camera_name": ProfileOption(str, "a PVCAM camera name, a non-empty string", bool),
-        "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0", lambda v: v > 0),
+        "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0 and <= 3600", _is_seconds),
     },
     # hw.genicam.GenICamCamera; pixel formats as hw.genicam.MONO_FORMATS (not imported: that
     # module is the backend, loaded only when chosen).
     "genicam": {
         "device_id": ProfileOption(str, "an Aravis device id as arv-tool-0.8 lists it, or an IP address", bool),
-        "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0", lambda v: v > 0),
-        "gain": ProfileOption((int, float), "a gain >= 0 in the camera's unit (dB on most)", lambda v: v >= 0),
+        "exposure_s": ProfileOption((int, float), "an initial exposure in seconds > 0 and <= 3600", _is_seconds),
+        "gain": ProfileOption((int, float), "a gain >= 0 and <= 1000 in the camera's unit (dB on most)",
+                              lambda v: 0 <= v <= 1000),
         "pixel_format": ProfileOption(
             str, 'one of "Mono8", "Mono10", "Mono12", "Mono14", "Mono16"',
             lambda v: v in ("Mono8", "Mono10", "Mono12", "Mono14", "Mono16"),
         ),
         "roi": ProfileOption(list, "[row0, col0, height, width] in unbinned sensor pixels", _is_roi),
-        "binning": ProfileOption(int, "a square binning, an integer >= 1", lambda v: v >= 1),
-        "timeout_s": ProfileOption((int, float), "seconds > 0 a frame may take beyond its exposure", lambda v: v > 0),
+        "binning": ProfileOption(int, "a square binning, an integer >= 1 and <= 64", lambda v: 1 <= v <= 64),
+        "timeout_s": ProfileOption((int, float), "seconds > 0 and <= 3600 a frame may take beyond its exposure",
+                                   _is_seconds),
     },
 }
 

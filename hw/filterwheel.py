@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import operator
 
 from .errors import DeviceError, PortError, ProtocolError
@@ -57,8 +58,8 @@ class FilterWheel(PromptedSerialDevice):
     ):
         if model is not None and model not in MODELS:
             raise ValueError(f"model must be one of {sorted(MODELS)} or None, got {model!r}")
-        if move_timeout_s <= 0:
-            raise ValueError(f"move_timeout_s must be positive, got {move_timeout_s}")
+        if not (math.isfinite(move_timeout_s) and move_timeout_s > 0):  # NaN, inf: a move without end
+            raise ValueError(f"move_timeout_s must be a finite number of seconds > 0, got {move_timeout_s}")
         super().__init__(port, baudrate=baudrate, timeout_s=timeout_s)
         self.model = model
         self.move_timeout_s = float(move_timeout_s)
@@ -140,7 +141,8 @@ class FilterWheel(PromptedSerialDevice):
         """Move to ``slot`` and confirm it with ``pos?``.
 
         The slot is checked against the position count read on connect before anything is sent.
-        ``pos=n`` then waits up to ``move_timeout_s`` for the prompt that ends the move.
+        ``pos=n`` then waits up to ``move_timeout_s`` for the prompt that ends the move, in polls
+        that are each a safe point (``hw.serialline``): a stop does not wait for the move's end.
 
         Args:
             slot: 1..count.

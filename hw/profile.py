@@ -66,6 +66,22 @@ Optional sections (defaults in `AcquisitionSettings` and `Layout`):
     white_reflectance_u = 0.003  # optional: relative standard uncertainty (>= 0) of the white
                               #   standard's certified reflectance (0.003 = 0.3 %)
 
+Every number is bounded by a documented limit (`LIMITS`: the waits, timeouts and counts a run
+acts on), generous for any instrument but finite: `settle_s = 1e300` would otherwise overflow the
+wait once the devices had moved, and `dark_frames = 9223372036854775807` would average for ever.
+
+    tunable_filter.settle_s          0 .. 60 s      a liquid crystal settles in tens of ms
+    tunable_filter.warmup_s          0 .. 3600 s    a VariSpec warms up in minutes
+    tunable_filter.warmup_timeout_s  > 0 .. 86400 s
+    wheels.NAME.move_timeout_s       > 0 .. 600 s   a slow-mode move takes up to about 7 s
+    acquisition.warmup_interval_s    0 .. 3600 s
+    acquisition.warmup_timeout_s     > 0 .. 86400 s a lamp warms up in tens of minutes
+    acquisition.frames_averaged,
+      dark_frames, warmup_checks     1 .. 1000
+    noise.gain_e_per_count           > 0 .. 1e6;  read_noise_counts 0 .. 1e6;
+    noise.white_reflectance_u        0 .. 1
+    camera options                   hw.camera.PROFILE_OPTIONS (exposures and timeouts <= 3600 s)
+
 Everything is checked when the profile is read, before any device is opened, and a problem is
 one `ProfileError` line naming the file and the key: a missing key, an unknown key (a typo must not
 pass silently, nor a camera option the backend does not take), two bands on one slot, a slot beyond
@@ -99,6 +115,33 @@ WHEEL_POSITIONS = {"FW102C": 6, "FW212C": 12}
 SHUTTER_MODELS = ("SC10",)
 CAMERA_BACKENDS = tuple(PROFILE_OPTIONS)
 SETS = ("training", "test")
+
+#: The documented limits of the profile's numbers (module docstring): key -> (low, high).
+LIMITS = {
+    "settle_s": (0.0, 60.0),
+    "warmup_s": (0.0, 3600.0),
+    "move_timeout_s": (0.0, 600.0),
+    "warmup_interval_s": (0.0, 3600.0),
+    "warmup_timeout_s": (0.0, 86400.0),
+    "frames": (1, 1000),
+    "gain_e_per_count": (0.0, 1e6),
+    "read_noise_counts": (0.0, 1e6),
+    "white_reflectance_u": (0.0, 1.0),
+}
+
+
+def _seconds(key: str, *, above_zero: bool = False, why: str = ""):
+    """A number of seconds within LIMITS[key] (> its low end if `above_zero`), worded with them."""
+    low, high = LIMITS[key]
+    bound = number(gt=low, le=high) if above_zero else number(ge=low, le=high)
+    text = f"seconds {'>' if above_zero else '>='} {low:g} and <= {high:g}" + (f" ({why})" if why else "")
+    return Annotated[bound, Expect(text)]
+
+
+def _count():
+    low, high = LIMITS["frames"]
+    return Annotated[integer(low, high), Expect(f"an integer >= {low} and <= {high}")]
+
 _SAFE_ID = re.compile(r"[A-Za-z0-9._-]+")
 
 
@@ -242,7 +285,7 @@ _Port = Annotated[str, pydantic.Field(min_length=1), Expect("a serial port path 
 _WheelModel = Annotated[Literal[tuple(WHEEL_POSITIONS)], Expect(f"one of {sorted(WHEEL_POSITIONS)}")]
 # Which slots exist depends on the wheel's model: the range is checked with it (_Wheel below).
 _Slot = Annotated[int, Expect("a slot 1..12 of the FW212C, 1..6 of the FW102C")]
-_MoveTimeout = Annotated[number(gt=0), Expect("seconds > 0 (a slow-mode move takes up to about 7 s)")]
+_MoveTimeout = _seconds("move_timeout_s", above_zero=True, why="a slow-mode move takes up to about 7 s")
 _ShutterModel = Annotated[Literal[SHUTTER_MODELS], Expect(f"one of {list(SHUTTER_MODELS)}")]
 _Backend = Annotated[Literal[CAMERA_BACKENDS], Expect(f"one of {list(CAMERA_BACKENDS)}")]
 _Table = Expect("a table")
@@ -271,10 +314,10 @@ class _TunableFilter(Document):
     model: _FilterModel
     port: _Port
     bands: Annotated[list[integer(1)], pydantic.Field(min_length=1), Expect("a list of band centres in nm")] | None = None
-    settle_s: Annotated[number(ge=0), Expect("seconds >= 0")] = TunableFilterConfig.settle_s
-    warmup_timeout_s: Annotated[number(gt=0), Expect("seconds > 0")] = TunableFilterConfig.warmup_timeout_s
+    settle_s: _seconds("settle_s") = TunableFilterConfig.settle_s
+    warmup_timeout_s: _seconds("warmup_timeout_s", above_zero=True) = TunableFilterConfig.warmup_timeout_s
     bandwidth: _Bandwidth | None = None
-    warmup_s: Annotated[number(ge=0), Expect("seconds >= 0")] | None = None
+    warmup_s: _seconds("warmup_s") | None = None
 
     @pydantic.model_validator(mode="after")
     def _bands_the_model_tunes(self):
@@ -344,14 +387,14 @@ _CAMERA_TABLES = {
 
 
 class _Acquisition(Document):
-    frames_averaged: integer(1) = AcquisitionSettings.frames_averaged
-    dark_frames: integer(1) = AcquisitionSettings.dark_frames
+    frames_averaged: _count() = AcquisitionSettings.frames_averaged
+    dark_frames: _count() = AcquisitionSettings.dark_frames
     target_level: Annotated[number(gt=0, lt=1), Expect("a fraction of full scale in (0, 1)")] = AcquisitionSettings.target_level
     target_percentile: Annotated[number(gt=0, le=100), Expect("a percentile in (0, 100]")] = AcquisitionSettings.target_percentile
     warmup_drift_percent: Annotated[number(gt=0), Expect("a percentage > 0")] = AcquisitionSettings.warmup_drift_percent
-    warmup_interval_s: Annotated[number(ge=0), Expect("seconds >= 0")] = AcquisitionSettings.warmup_interval_s
-    warmup_checks: integer(1) = AcquisitionSettings.warmup_checks
-    warmup_timeout_s: Annotated[number(gt=0), Expect("seconds > 0")] = AcquisitionSettings.warmup_timeout_s
+    warmup_interval_s: _seconds("warmup_interval_s") = AcquisitionSettings.warmup_interval_s
+    warmup_checks: _count() = AcquisitionSettings.warmup_checks
+    warmup_timeout_s: _seconds("warmup_timeout_s", above_zero=True) = AcquisitionSettings.warmup_timeout_s
 
 
 class _Layout(Document):
@@ -370,9 +413,12 @@ class _Sample(Document):
 
 
 class _Noise(Document):
-    gain_e_per_count: Annotated[number(gt=0), Expect("electrons per count, a number > 0")] | None = None
-    read_noise_counts: Annotated[number(ge=0), Expect("one frame's read noise in counts rms, a number >= 0")] | None = None
-    white_reflectance_u: Annotated[number(ge=0), Expect("a relative standard uncertainty >= 0 (0.003 for 0.3 %)")] | None = None
+    gain_e_per_count: Annotated[number(gt=0, le=LIMITS["gain_e_per_count"][1]),
+                                Expect("electrons per count, a number > 0 and <= 1e+06")] | None = None
+    read_noise_counts: Annotated[number(ge=0, le=LIMITS["read_noise_counts"][1]),
+                                 Expect("one frame's read noise in counts rms, a number >= 0 and <= 1e+06")] | None = None
+    white_reflectance_u: Annotated[number(ge=0, le=LIMITS["white_reflectance_u"][1]),
+                                   Expect("a relative standard uncertainty >= 0 and <= 1 (0.003 for 0.3 %)")] | None = None
 
     @pydantic.model_validator(mode="after")
     def _both_or_neither(self):
@@ -555,6 +601,7 @@ def load_profile(path) -> Profile:
 
 
 __all__ = [
+    "LIMITS",
     "WHEEL_POSITIONS",
     "ProfileError",
     "WheelConfig",

@@ -16,7 +16,9 @@ Protocol facts (docs/instrument.md, "Thorlabs FW102C / FW212C serial protocol" a
   ``\\r`` and drain whatever comes back before the first real command.
 
 How a reply is read: the input buffer is flushed, the command written, and bytes are read in short
-polls (``POLL_S``) until a deadline, never with one fixed read. The reply is complete once the
+polls (``POLL_S``) until a deadline, never with one fixed read. Each poll is a safe point
+(`spherejax.interrupt.check`): a stop asked for while a wheel moves (up to its ``move_timeout_s``)
+is acted on within a poll, the port left open for the clean-up to close the shutter. The reply is complete once the
 echo of the command has arrived followed by the prompt; lines before the echo are stale (a late
 prompt after a timed-out move, a trailing space) and are ignored, and ``\\x00`` bytes are dropped.
 Any line between echo and prompt that contains ``Command error`` or ``CMD_`` is a device error
@@ -37,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import logging
+import math
 import os
 import re
 import stat
@@ -44,6 +47,7 @@ import threading
 import time
 
 import serial
+from spherejax import interrupt
 
 from .errors import DeviceError, DeviceTimeout, PortError, ProtocolError
 
@@ -228,8 +232,8 @@ class PromptedSerialDevice:
     PROMPTED = True
 
     def __init__(self, port: str, *, baudrate: int, timeout_s: float = 1.0):
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be positive, got {timeout_s}")
+        if not (math.isfinite(timeout_s) and timeout_s > 0):  # NaN or inf: a wait without end
+            raise ValueError(f"timeout_s must be a finite number of seconds > 0, got {timeout_s}")
         self.port = port
         self.baudrate = baudrate
         self.timeout_s = float(timeout_s)
@@ -365,6 +369,7 @@ class PromptedSerialDevice:
             deadline = time.monotonic() + timeout
             scan = self._scan_reply(command, b"", expect_value)
             while True:
+                interrupt.check()  # a safe point every poll: a move can take its whole timeout
                 chunk = self._read_chunk(ser, command)
                 if chunk:
                     raw += chunk

@@ -18,7 +18,10 @@ never raises: it belongs in ``finally`` blocks.
 from __future__ import annotations
 
 import logging
+import math
 import time
+
+from spherejax import interrupt
 
 from .errors import DeviceError, ProtocolError
 from .serialline import PromptedSerialDevice
@@ -41,6 +44,8 @@ class Shutter(PromptedSerialDevice):
 
     def __init__(self, port: str, *, timeout_s: float = 1.0, baudrate: int = 9600, settle_s: float = 0.5):
         super().__init__(port, baudrate=baudrate, timeout_s=timeout_s)
+        if not (math.isfinite(settle_s) and settle_s >= 0):
+            raise ValueError(f"settle_s must be a finite number of seconds >= 0, got {settle_s}")
         self.settle_s = float(settle_s)
         #: The ``id?`` reply, set by ``connect``.
         self.identity: str = ""
@@ -93,16 +98,18 @@ class Shutter(PromptedSerialDevice):
                         f"shutter still {state} {self.settle_s:g} s after ens (interlock tripped?)",
                         self.last_reply,
                     )
-                time.sleep(0.02)
+                interrupt.sleep(0.02)
 
     def make_safe(self) -> None:
         """Close the shutter if at all possible; never raises (for ``finally`` blocks).
 
         Reconnects first when the port was closed (e.g. after it vanished and came back). Failures are
-        logged as warnings, since the caller is usually already handling another exception.
+        logged as warnings, since the caller is usually already handling another exception. Runs
+        shielded from stops (`spherejax.interrupt.shielded`): a second Ctrl-C, or the stop being
+        cleaned up after, must not leave the shutter open halfway through closing it.
         """
         try:
-            with self._lock:
+            with interrupt.shielded(), self._lock:
                 if not self.is_connected:
                     self.connect()
                 self.close_shutter()

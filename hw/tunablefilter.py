@@ -39,15 +39,24 @@ VarispecLCTF adapter for the framing)
 After every tune the driver waits ``settle_s`` (liquid crystals settle in tens of milliseconds;
 the profile's default 0.1 s) and reads the wavelength back; a read-back more than
 ``TOLERANCE_NM`` from the band is a `DeviceError`.
+
+Every wait (the settling, a VariSpec's ``warmup_s``, a Kurios's ST? polls) goes through the
+`sleep` the driver is given, by default `spherejax.interrupt.sleep`: slices of at most
+`interrupt.SLICE_S` with a safe point after each, so a stop (SIGINT, SIGTERM, SIGHUP) during a
+warm-up of minutes is acted on within a fraction of a second, not after it. Wait lengths must be
+finite and >= 0 (`ValueError` otherwise); an instrument profile bounds them further (`hw.profile`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import re
 import time
 from collections.abc import Callable, Sequence
+
+from spherejax import interrupt
 
 from .errors import DeviceError, DeviceTimeout, ProtocolError
 from .serialline import PromptedSerialDevice, Scan, _text
@@ -98,6 +107,14 @@ def _last_number(text: str, port: str, command: str, raw: bytes) -> float:
     return float(numbers[-1])
 
 
+def _wait_seconds(name: str, value) -> float:
+    """A wait length as float seconds: finite and >= 0, else ValueError naming it."""
+    seconds = float(value)
+    if not (math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"{name} {value!r}: expected a finite number of seconds >= 0")
+    return seconds
+
+
 class TunableFilter(PromptedSerialDevice):
     """What both families share: the tuning, settling and read-back of a band, and the checks.
 
@@ -107,17 +124,17 @@ class TunableFilter(PromptedSerialDevice):
       bands_nm: the bands the acquisition will ask for (checked against the filter's range).
       settle_s: seconds to wait after each tune before the read-back (and the first frame).
       timeout_s: seconds to wait for a reply.
-      sleep: the waiting function (tests pass a fake clock's).
+      sleep: the waiting function (module docstring; tests pass a fake clock's).
     """
 
     def __init__(self, port: str, *, model: str, bands_nm: Sequence[int], settle_s: float = 0.1,
-                 timeout_s: float = 1.0, sleep: Callable[[float], None] = time.sleep):
+                 timeout_s: float = 1.0, sleep: Callable[[float], None] = interrupt.sleep):
         if model not in MODELS:
             raise ValueError(f"tunable filter model {model!r}: expected one of {sorted(MODELS)}")
         super().__init__(port, baudrate=MODELS[model].baudrate, timeout_s=timeout_s)
         self.model = model
         self.bands_nm = [int(band) for band in bands_nm]
-        self.settle_s = float(settle_s)
+        self.settle_s = _wait_seconds("settle_s", settle_s)
         self.sleep = sleep
         #: The identity reply and the tuning range the filter reports, set by `connect`.
         self.identity = ""
@@ -271,7 +288,7 @@ class VariSpecFilter(TunableFilter):
 
     def __init__(self, port: str, *, model: str = "VariSpec-VIS", warmup_s: float = 0.0, **options):
         super().__init__(port, model=model, **options)
-        self.warmup_s = float(warmup_s)
+        self.warmup_s = _wait_seconds("warmup_s", warmup_s)
 
     def _scan_reply(self, command: str, raw: bytes, expect_value: bool) -> Scan:
         """The VariSpec's framing: the echo of the command, then (a query) one reply line, each

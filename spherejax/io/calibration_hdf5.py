@@ -413,6 +413,9 @@ def _write_hdf5(path: pathlib.Path, header: dict, arrays: Mapping[str, np.ndarra
                     stored.create_dataset(name, data=array, chunks=chunks).attrs["description"] = CALIBRATION_ARRAYS[name]
             if keeping.error is not None:
                 raise keeping.error
+            # A safe point before the rename: a stop that came while HDF5 wrote (only recorded
+            # there, `spherejax.interrupt`) leaves no file, the temporary removed.
+            interrupt.check()
     except OSError as error:
         # Python's OSError (the first failed write, kept by _FailureKeepingFile) in its own words,
         # not "[Errno 28] No space left on device: 'PATH'"; h5py's as a cleaned detail.

@@ -188,10 +188,9 @@ def test_a_stop_request_during_a_long_warm_up_stops_it_within_one_poll(no_leaks)
     import time
 
     from spherejax import interrupt
-    from spherejax_hw.acquisition_devices import _sleep_unless_stopped
 
     with EmulatedPort(KuriosEmulator(warmup_s=1e9)) as port:
-        with open_filter(port.path, model="Kurios-VIS", bands_nm=BANDS, sleep=_sleep_unless_stopped) as lctf:
+        with open_filter(port.path, model="Kurios-VIS", bands_nm=BANDS) as lctf:  # the default wait
             timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
             start = time.monotonic()
             with interrupt.stop_requests(), pytest.raises(interrupt.Interrupted) as info:
