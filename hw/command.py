@@ -91,7 +91,7 @@ def run_acquire(args) -> int:
 
     settings = acquire.Settings(log=log, progress=progress)
     try:
-        with interrupt.stop_requests():  # SIGINT / SIGTERM: stop between band images (`main` reports)
+        with interrupt.stop_requests():  # SIGINT / SIGTERM / SIGHUP: stop between band images (`main` reports)
             session = acquire.acquire(
                 args.profile, args.output, emulate=args.emulate, real_camera=args.real_camera,
                 through_gige=args.through_gige, resume=args.resume,
