@@ -270,3 +270,76 @@ def test_traced_calibrations_are_not_checked_by_value():
         return jnp.nanmean(sj.correct(raw, scaled).lab)
 
     assert np.isfinite(float(jax.grad(lab)(1.0)))
+
+
+# ------------------------------------------------------------------------------------ the command line
+
+def _resigned_in_place(path, edits: dict) -> None:
+    """Replace arrays of the calibration file `path` (name -> new array) and re-sign it."""
+    entries = calibration_entries(path)
+    header = json.loads(entries["header"].tobytes().decode("utf-8"))
+    for name, value in edits.items():
+        entries[name] = value
+        header["arrays"][name]["shape"] = list(value.shape)
+        header["arrays"][name]["dtype"] = value.dtype.str
+    arrays = {k: v for k, v in entries.items() if k != "header"}
+    header["checksum"] = calibration_files._checksum(header, arrays)
+    entries["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), np.uint8)
+    path.unlink()
+    write_calibration_entries(path, entries, "hdf5")
+
+
+def _edit(kind: str):
+    """edits(entries) -> {array: new value} for one kind of damage, on any calibration file."""
+    def edits(entries):
+        if kind == "wiener-nan":
+            value = entries["wiener"].copy()
+            value[4, 2] = np.nan
+            return {"wiener": value}
+        if kind == "c1-times-1e30":
+            value = entries["coeffs"].copy()
+            value[:, 0] *= value.dtype.type(1e30)
+            return {"coeffs": value}
+        if kind == "offset-inf":
+            value = entries["wiener_offset"].copy()
+            value[0] = np.inf
+            return {"wiener_offset": value}
+        bands = entries["dark"].shape[-1]
+        dtype = entries["wiener"].dtype
+        return {"wiener_residual_centre": np.zeros(bands, dtype), "wiener_residual_whitening": np.eye(bands, dtype=dtype),
+                "wiener_residual_inducing": np.zeros((32768, bands), dtype), "wiener_residual_weights": np.zeros((31, 32768), dtype)}
+    return edits
+
+
+DAMAGES = {"wiener-nan": "not finite", "c1-times-1e30": "expected reflectance within +-100", "offset-inf": "not finite",
+           "32768-inducing-points": "32768 inducing points"}
+
+
+def _command_case(command: str, kind: str):
+    from tests.robustness.catalogue import Case
+
+    def prepare(f):
+        if command == "evaluate":
+            path = f.calibration()
+        else:
+            path = f.cube_cal
+        _resigned_in_place(path, _edit(kind)(calibration_entries(path)))
+        if command == "evaluate":
+            return ["evaluate", str(f.session()), "-c", str(path), "--out", str(f.tmp / "evaluation")], str(path)
+        cube = f.cube()
+        if command == "correct":
+            return ["correct", "-c", str(path), str(cube), "-o", str(f.tmp / "out")], str(path)
+        return ["measure", "-c", str(path), str(cube), "--region", "a=0,4,0,4", "-o", str(f.tmp / "m")], str(path)
+
+    return Case(f"{command}-{kind}", command, prepare, DAMAGES[kind])
+
+
+@pytest.mark.parametrize("kind", list(DAMAGES))
+@pytest.mark.parametrize("command", ["correct", "measure", "evaluate"])
+def test_the_command_line_refuses_such_a_calibration_in_one_line_with_nothing_written(command, kind, workspace, cal,
+                                                                                         tmp_path, capsys):
+    """The reproducers through `correct`, `measure` and `evaluate`: exit status 2, one line naming
+    the calibration file and what is wrong, no traceback, nothing new on disk."""
+    from tests.robustness.catalogue import check_case
+
+    check_case(_command_case(command, kind), workspace, cal, tmp_path, capsys)
