@@ -9,6 +9,7 @@ against (`spherejax._engine.kernels`), and what runs where no compiled kernel ap
       -> v_tilde = Stage I and II (Eq. 16-17, 23)
       -> reflectance = W v_tilde + r0 (+ A k(v_tilde), the kernel residual E8)
       -> Lab under the calibration's illuminant (ASTM E308 XYZ, perfect-diffuser white)
+      -> quality bit 2 and NaN where an output of a good pixel is not finite (`flag_nonfinite_outputs`)
 
 For Lab the Wiener matrix and the XYZ weights are folded into one (B, 3) matrix, so XYZ is
 computed from v_tilde directly; that equals reflectance @ weights up to rounding (tested). The
@@ -166,6 +167,28 @@ def quality_bits(raw, raw_f, dark, white, p, saturation, no_flat_field=None):
     )
 
 
+def flag_nonfinite_outputs(reflectance, lab, quality):
+    """(reflectance, lab, quality) with every pixel of quality 0 whose reflectance (..., 31) or
+    Lab (..., 3) holds a value that is not finite flagged `QUALITY_NONFINITE` and made NaN in both.
+
+    Why. The flags describe the inputs; finite inputs can still give outputs that are not finite:
+    a raw value of 1e38 over a white signal of one count, or an estimator whose product overflows
+    float32 (weights of 3e38 in a calibration made without its checks), gave reflectance up to
+    infinity with quality 0. Every kernel (the fused CPU kernel's flag_nonfinite_outputs, the
+    Pallas GPU kernel) applies this same rule to its own outputs, so that every output is NaN
+    exactly where quality says so.
+
+    x * 0 is +-0 for a finite x and NaN otherwise: one sum over the channels tells, without the
+    slower `any` over a short axis (`pixel_flags`) and without overflow. The test is made on the
+    values alone (no derivative flows through it), so gradients stay those of the outputs.
+    """
+    probe = jnp.sum(reflectance * 0.0, axis=-1) + jnp.sum(lab * 0.0, axis=-1)
+    overflowed = (quality == 0) & ~jnp.isfinite(jax.lax.stop_gradient(probe))
+    quality = quality | overflowed.astype(jnp.uint8) * QUALITY_NONFINITE
+    keep = ~overflowed[..., None]
+    return jnp.where(keep, reflectance, jnp.nan), jnp.where(keep, lab, jnp.nan), quality
+
+
 def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, intermediates=False, no_flat_field=None):
     """The per-pixel path in jax.numpy: the definition the fused CPU kernel is tested against.
 
@@ -206,8 +229,10 @@ def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, intermediate
         reflectance = reflectance + residual
         xyz = xyz + jnp.matmul(residual, constants.tristimulus_weights, precision=_HIGHEST)
     lab = xyz_to_lab(xyz, constants.white_xyz())
+    reflectance, lab, quality = flag_nonfinite_outputs(reflectance, lab, quality)
     if not intermediates:
         return reflectance, lab, quality
+    good = (quality == 0)[..., None]  # without the pixels whose outputs overflowed
     v_out = jnp.where(good, v, jnp.nan)
     v_stage2_out = jnp.where(good, v_stage2_safe, jnp.nan)
     return reflectance, lab, quality, v_out, v_out * p_pixel, v_stage2_out
@@ -215,5 +240,5 @@ def pixel_outputs(raw, p, constants: PixelConstants, *, saturation, intermediate
 
 __all__ = [
     "pixel_flags", "flat_field_unusable", "patch_flags", "patch_box_inputs", "patch_ratio_of_box", "project_good_pixels",
-    "quality_bits", "pixel_outputs",
+    "quality_bits", "flag_nonfinite_outputs", "pixel_outputs",
 ]

@@ -16,7 +16,10 @@ class Quality(enum.IntFlag):
 
     #: raw at or above the saturation level in some band
     SATURATED = 1
-    #: raw NaN or infinite in some band (float input)
+    #: raw NaN or infinite in some band (float input), or an output (reflectance or Lab) NaN or
+    #: infinite though the inputs were finite: an estimate that overflows float32, e.g. a raw of
+    #: 1e38 over a white signal of one count (`equations.flag_nonfinite_outputs`). One bit for
+    #: both: either way a value was not finite, and files keep their bits (no new bit needed).
     NONFINITE = 2
     #: white <= dark (or not finite) in some band: no flat field
     WHITE_NOT_ABOVE_DARK = 4

@@ -505,7 +505,9 @@ def test_a_plan_takes_the_kernel_for_a_kernel_estimator_calibration():
 
     many = kernel_residual.KernelResidual(residual.centre, residual.whitening, jnp.zeros((1025, BANDS), jnp.float32),
                                           jnp.zeros((31, 1025), jnp.float32))
-    plan = Plan(dataclasses.replace(affine, wiener_residual=many), raw.shape, raw.dtype, kernel_mode=gpu_kernel.INTERPRET)
+    # eqx.tree_at skips construction's checks: a Calibration built with more than
+    # calibration.MAX_INDUCING_POINTS (1024) is refused; the kernel's own bound still guards a plan.
+    plan = Plan(eqx.tree_at(lambda c: c.wiener_residual, calibration, many), raw.shape, raw.dtype, kernel_mode=gpu_kernel.INTERPRET)
     assert plan.kernel_mode is None and "applies_residual" in plan.kernel_refusal
 
 

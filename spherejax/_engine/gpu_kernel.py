@@ -284,7 +284,6 @@ def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_m
             | patch_unusable * QUALITY_PATCH_UNUSABLE
         )
         good = quality == 0  # (bp,)
-        plt.store(quality_ref.at[image, rows], quality.astype(jnp.uint8), mask=in_frame)
 
         # Stage II (Eq. 23) on good pixels, 0 on the others (the safe-where of _pixel_outputs),
         # written as polynomial.stage2_unchecked writes it.
@@ -295,18 +294,11 @@ def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_m
         product = jax.lax.dot(
             v_tilde, projection_ref[...], precision=jax.lax.Precision.HIGHEST, preferred_element_type=jnp.float32
         )
-        good_rows = good[:, None]
         estimate = product + bias_ref[...][None, :]
         if has_residual:  # + A k(v_tilde) (E8), and its XYZ below
             residual, residual_xyz = gpu_residual.residual_of_block(v_tilde, residual_refs, precision=residual_precision)
             estimate = estimate + residual
-        reflectance = jnp.where(good_rows, estimate, jnp.nan)
         channel = jax.lax.broadcasted_iota(jnp.int32, (block_pixels, _REFLECTANCE_PAD), 1)
-        plt.store(
-            reflectance_ref.at[image, rows, pl.ds(channel0, _REFLECTANCE_PAD)],
-            reflectance,
-            mask=in_frame[:, None] & (channel < N_WAVELENGTHS),
-        )
 
         # XYZ = v_tilde (W^T weights) + r0 weights, one row sum per tristimulus value; then
         # colorimetry.xyz_to_lab.
@@ -323,6 +315,22 @@ def _make_kernel(*, block_pixels, pixels, bands, raw_is_float, saturation, has_m
         lab_b = 200.0 * (f_y - f_z)
         lab_channel = jax.lax.broadcasted_iota(jnp.int32, (block_pixels, _LAB_PAD), 1)
         lab = jnp.where(lab_channel == 0, lab_l[:, None], jnp.where(lab_channel == 1, lab_a[:, None], lab_b[:, None]))
+
+        # Good pixels whose outputs are not finite (an estimate that overflows float32) get bit 2
+        # and NaN, as equations.flag_nonfinite_outputs: x * 0 is NaN exactly for a value that is
+        # not finite; the padding channels are left out.
+        probe = (jnp.sum(jnp.where(channel < N_WAVELENGTHS, estimate * 0.0, 0.0), axis=1)
+                 + jnp.sum(jnp.where(lab_channel < 3, lab * 0.0, 0.0), axis=1))
+        overflowed = good & ~jnp.isfinite(probe)
+        quality = quality | overflowed.astype(jnp.int32) * QUALITY_NONFINITE
+        good = good & ~overflowed
+        plt.store(quality_ref.at[image, rows], quality.astype(jnp.uint8), mask=in_frame)
+        reflectance = jnp.where(good[:, None], estimate, jnp.nan)
+        plt.store(
+            reflectance_ref.at[image, rows, pl.ds(channel0, _REFLECTANCE_PAD)],
+            reflectance,
+            mask=in_frame[:, None] & (channel < N_WAVELENGTHS),
+        )
         lab = jnp.where(good[:, None], lab, jnp.nan)
         plt.store(lab_ref.at[image, rows, pl.ds(channel0, _LAB_PAD)], lab, mask=in_frame[:, None] & (lab_channel < 3))
 

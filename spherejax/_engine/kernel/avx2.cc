@@ -343,8 +343,8 @@ SPHEREJAX_AVX2_TARGET inline void residual_block_avx2_16(const Problem& pr, int6
 // they overwrite (a read of 136 bytes a pixel that the path does not need). Other blocks (the
 // last, partial one) take ordinary stores.
 SPHEREJAX_AVX2_TARGET inline void finish_block_avx2(const Problem& pr, int64_t first, int64_t count,
-                                                    const float* reflectance, const float (*xyz)[kBlock],
-                                                    const uint8_t* quality) {
+                                                    float* reflectance, const float (*xyz)[kBlock],
+                                                    uint8_t* quality) {
   alignas(32) float lab[kBlock * 3];
   for (int64_t i = 0; i < kBlock; i += 16) {
     // f(X / Xn), f(Y / Yn), f(Z / Zn) of pixels i..i+7 and i+8..i+15, side by side.
@@ -376,6 +376,28 @@ SPHEREJAX_AVX2_TARGET inline void finish_block_avx2(const Problem& pr, int64_t f
       _mm_store_ps(out + 16, _mm256_extractf128_ps(middle4, 1));
       _mm_store_ps(out + 20, _mm256_extractf128_ps(last4, 1));
     }
+  }
+  // Good pixels whose outputs are not finite (fused_correct.h, flag_nonfinite_outputs): the sum of
+  // the block's reflectance rows (in whole ymm: 124 for a full block) and XYZ in four accumulators,
+  // about four additions a pixel; a sum that is not finite (a bad pixel's NaN, an output that is not
+  // finite, or finite ones that overflow) sends the block through its good pixels one by one.
+  {
+    __m256 sums[4] = {_mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps()};
+    const int64_t whole = count * kReflectance / 8 * 8;
+    int64_t k = 0;
+    for (; k + 32 <= whole; k += 32) {
+      for (int q = 0; q < 4; ++q) sums[q] = _mm256_add_ps(sums[q], _mm256_loadu_ps(reflectance + k + 8 * q));
+    }
+    for (; k < whole; k += 8) sums[0] = _mm256_add_ps(sums[0], _mm256_loadu_ps(reflectance + k));
+    for (int c = 0; c < 3; ++c) {
+      for (int64_t i = 0; i < kBlock; i += 8) sums[1 + c] = _mm256_add_ps(sums[1 + c], _mm256_load_ps(xyz[c] + i));
+    }
+    alignas(32) float lanes[8];
+    _mm256_store_ps(lanes, _mm256_add_ps(_mm256_add_ps(sums[0], sums[1]), _mm256_add_ps(sums[2], sums[3])));
+    float zero = 0.0f;
+    for (int q = 0; q < 8; ++q) zero += lanes[q] * 0.0f;
+    for (int64_t r = whole; r < count * kReflectance; ++r) zero += reflectance[r] * 0.0f;
+    if (!(zero == 0.0f)) flag_nonfinite_outputs(count, reflectance, lab, 3, 1, quality);
   }
   float* reflectance_out = pr.reflectance + first * kReflectance;
   float* lab_out = pr.lab + first * 3;

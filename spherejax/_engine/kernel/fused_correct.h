@@ -21,8 +21,9 @@
 //            an estimator with one, E8-E10 of spherejax/estimation/kernel_residual.py: see
 //            residual_of; absent when the call has no inducing points)
 //   Lab      = CIE 1976 from XYZ / white_xyz                          (CIE 15:2004)
-// and NaN in reflectance and Lab wherever quality != 0. The tests compare it with the plain
-// path on every branch (tests/test_fused.py).
+// and NaN in reflectance and Lab wherever quality != 0; a pixel whose outputs come out not finite
+// (an estimate that overflows float32) gets bit 2 as well (flag_nonfinite_outputs). The tests
+// compare it with the plain path on every branch (tests/test_fused.py).
 //
 // Each pixel goes through the same code wherever it lies (the last block of a range is padded,
 // never handled by a scalar tail), so a strip of an image gives the same bits as the whole image.
@@ -138,7 +139,13 @@ void correct_range_avx2(const Problem& pr, int64_t first, int64_t last);
 // y <- y (y^3 + 2x) / (2 y^3 + x), each cubing the relative error: within 3 ulp in float32
 // (tests/test_fused.py).
 // Written out because libm's cbrtf does not vectorise.
+// Above 2^72 the Halley step's y (y^3 + 2x) would overflow float32 (from about 4e28), making a
+// finite XYZ an infinite Lab: such x are taken times 2^-72 and their root times 2^24, both exact,
+// so every x below keeps its bits and every finite x has a finite root, as jnp.cbrt's
+// (equations.flag_nonfinite_outputs counts on Lab being finite where XYZ is).
 SPHEREJAX_INLINE float cube_root_positive(float x) {
+  const bool huge = x > 0x1p72f;
+  x = huge ? x * 0x1p-72f : x;
   uint32_t bits;
   std::memcpy(&bits, &x, sizeof bits);
   bits = bits / 3u + 0x2a5137a0u;
@@ -148,7 +155,7 @@ SPHEREJAX_INLINE float cube_root_positive(float x) {
     const float y3 = y * y * y;
     y = y * (y3 + 2.0f * x) / (2.0f * y3 + x);
   }
-  return y;
+  return huge ? y * 0x1p24f : y;
 }
 
 SPHEREJAX_INLINE float lab_f(float t) {
@@ -450,9 +457,70 @@ SPHEREJAX_INLINE void stage2_of_block(const Problem& pr, int64_t first, int64_t 
   }
 }
 
-// Lab and the quality of a block's pixels from their XYZ (xyz[c][i]) and quality bits.
+// Outputs that are not finite on a pixel the flags call good: a finite v_tilde whose estimate
+// overflows float32 (raw of 1e38 over a white signal of one count, a calibration's weights of
+// 3e38 made without its checks). Such a pixel gets Quality.NONFINITE (2) and NaN in its
+// reflectance and Lab, as spherejax.equations.flag_nonfinite_outputs defines it, so that every
+// output is NaN exactly where quality says so.
+//
+// How it costs next to nothing: a sum of outputs is not finite when one of them is not (or when
+// finite ones overflow, which only sends the block here for nothing). Each block sums its outputs
+// (correct_block: its good pixels' three vectors, still in registers, three additions a pixel;
+// residual_block_suspect; the AVX2 block's finish, over all its pixels); only a block whose sum is
+// not finite (none, in an ordinary image; one with a bad pixel, whose outputs are NaN, for the AVX2
+// one) goes through its good pixels one by one here, exactly: x * 0 is +-0 for a finite x and NaN
+// for an infinite or NaN one, so their sum is 0 exactly when every term is finite.
+//
+// rows: the block's reflectance, a row of 31 floats per pixel; lab: pixel i's channel c at
+// lab[i * pixel_stride + c * channel_stride]; quality: the block's bits, updated.
+SPHEREJAX_INLINE void flag_nonfinite_outputs(int64_t count, float* rows, float* lab, int64_t pixel_stride,
+                                             int64_t channel_stride, uint8_t* quality) {
+  for (int64_t i = 0; i < count; ++i) {
+    if (quality[i]) continue;  // already NaN in every output, with its own bits
+    float probe = 0.0f;
+    for (int64_t o = 0; o < kReflectance; ++o) probe += rows[i * kReflectance + o] * 0.0f;
+    for (int64_t c = 0; c < 3; ++c) probe += lab[i * pixel_stride + c * channel_stride] * 0.0f;
+    if (probe == 0.0f) continue;
+    quality[i] |= 2;
+    std::fill(rows + i * kReflectance, rows + (i + 1) * kReflectance, NAN);
+    for (int64_t c = 0; c < 3; ++c) lab[i * pixel_stride + c * channel_stride] = NAN;
+  }
+}
+
+// Whether a good pixel of a residual block (outputs out[o][pixel], o < 34) may have an output that
+// is not finite: per pixel, the sum of its outputs, a lane per pixel (34 vector additions for 16
+// pixels), then its quality.
+SPHEREJAX_INLINE bool residual_block_suspect(const float (*out)[kBlock], int64_t count, const uint8_t* quality) {
+  alignas(64) float probes[kBlock];
+  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += kLanes) {
+    Vec probe = {};
+    for (int64_t o = 0; o < kOutputs; ++o) {
+      Vec x;
+      std::memcpy(&x, out[o] + lane0, sizeof x);
+      probe += x;
+    }
+    std::memcpy(probes + lane0, &probe, sizeof probe);
+  }
+  bool suspect = false;
+  for (int64_t i = 0; i < count; ++i) suspect |= (quality[i] == 0) & !(probes[i] * 0.0f == 0.0f);
+  return suspect;
+}
+
+// Whether a probe (a sum of outputs, flag_nonfinite_outputs) is finite in every lane: once per block.
+SPHEREJAX_INLINE bool probe_is_finite(Vec probe) {
+  float lanes[kLanes];
+  std::memcpy(lanes, &probe, sizeof lanes);
+  float zero = 0.0f;
+  for (int64_t l = 0; l < kLanes; ++l) zero += lanes[l] * 0.0f;
+  return zero == 0.0f;
+}
+
+// Lab and the quality of a block's pixels from their XYZ (xyz[c][i]) and quality bits, once the
+// block's reflectance rows are in the outputs. suspect: whether a good pixel of the block may have
+// an output that is not finite (its caller's probe of the reflectance and XYZ, which Lab follows:
+// lab_f is finite for every finite XYZ); then each good pixel is checked (flag_nonfinite_outputs).
 SPHEREJAX_INLINE void finish_block(const Problem& pr, int64_t first, int64_t count, const float (*xyz)[kBlock],
-                                   const uint8_t* quality) {
+                                   uint8_t* quality, bool suspect) {
   alignas(64) float lab[3][kBlock];
   for (int64_t i = 0; i < kBlock; ++i) {
     const float fx = lab_f(xyz[0][i] * pr.inverse_white[0]);
@@ -462,6 +530,7 @@ SPHEREJAX_INLINE void finish_block(const Problem& pr, int64_t first, int64_t cou
     lab[1][i] = 500.0f * (fx - fy);
     lab[2][i] = 200.0f * (fy - fz);
   }
+  if (suspect) flag_nonfinite_outputs(count, pr.reflectance + first * kReflectance, &lab[0][0], 1, kBlock, quality);
   for (int64_t i = 0; i < count; ++i) {
     float* out = pr.lab + (first + i) * 3;
     out[0] = lab[0][i];
@@ -481,6 +550,7 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
   alignas(64) float xyz[3][kBlock];
   alignas(64) float tilde[kMaxBands];
   uint8_t quality[kBlock];
+  Vec probe = {};
   BlockPixels at(pr, first, count);
   for (int64_t i = 0; i < kBlock; ++i) {
     at.at(i);
@@ -504,6 +574,9 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
       even0 += tilde[b] * m[0], even1 += tilde[b] * m[1], even2 += tilde[b] * m[2];
     }
     const Vec out0 = even0 + odd0, out1 = even1 + odd1, out2 = even2 + odd2;
+    // The good pixels' outputs, reflectance and XYZ (out2's padding lanes are 0 for a finite
+    // v_tilde), summed for flag_nonfinite_outputs: three additions a pixel.
+    if (quality[i] == 0) probe += out0 + out1 + out2;
     if (i < count) {
       float* out = pr.reflectance + flat * kReflectance;
       std::memcpy(out, &out0, sizeof(Vec));
@@ -514,7 +587,7 @@ SPHEREJAX_INLINE void correct_block(const Problem& pr, int64_t first, int64_t co
     xyz[2][i] = out2[1];
     at.next(pr, i);
   }
-  finish_block(pr, first, count, xyz, quality);
+  finish_block(pr, first, count, xyz, quality, !probe_is_finite(probe));
 }
 
 // correct_block for a call with a kernel residual: Stage II pixel by pixel, then the outputs
@@ -532,7 +605,7 @@ SPHEREJAX_INLINE void correct_block_with_residual(const Problem& pr, int64_t fir
   Lanes::columns(rows, B, tilde);
   for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Lanes::kWidth) residual_of<Lanes>(pr, B, tilde, lane0, out);
   Lanes::write_rows(out, count, pr.reflectance + first * kReflectance);
-  finish_block(pr, first, count, out + kReflectance, quality);
+  finish_block(pr, first, count, out + kReflectance, quality, residual_block_suspect(out, count, quality));
 }
 
 // correct_block with the Stage II `Stage2`, as a Block type for correct_blocks; the residual's
