@@ -177,8 +177,9 @@ class AtomicWriter(abc.ABC):
             try:
                 self._finished = (self._complete(),)
             except OSError as error:
+                why = self._why(error)  # before `abort`: the reason may lie in the temporary (its size)
                 self.abort()
-                raise SpherejaxFileError(self.path, f"could not be written: {self._why(error)}") from None
+                raise SpherejaxFileError(self.path, f"could not be written: {why}") from None
             except BaseException:
                 self.abort()
                 raise

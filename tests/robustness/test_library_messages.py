@@ -435,8 +435,17 @@ def test_a_resumed_batch_whose_inputs_are_all_done_is_not_empty(cal, tmp_path, c
     assert captured.out.strip() == "0 corrected, 1 skipped (already done), 0 failed"
     assert outputs_of(out) == whole
 
-    # A cut quality PNG is no library error on resume: its SHA-256 differs, the input is redone.
+    # A cut quality PNG is no library error on resume: its SHA-256 is not the one the manifest
+    # records, so it is not provably spherejax's (docs/reliability.md, section 3): one plain line
+    # naming it, the file left as it is; once its owner moves it, the input is redone.
     truncate(out / "in" / "a.quality.png", 0.5)
+    cut = (out / "in" / "a.quality.png").read_bytes()
+    status = cli.main(["-q", "correct", "-c", str(cal), str(tmp_path / "in"), "-o", str(out), "--resume"])
+    captured = capsys.readouterr()
+    assert status == 2 and "a.quality.png" in captured.err and len(captured.err.strip().splitlines()) == 1
+    assert "Traceback" not in captured.err and "libpng" not in captured.err.lower()
+    assert (out / "in" / "a.quality.png").read_bytes() == cut
+    (out / "in" / "a.quality.png").unlink()
     status = cli.main(["-q", "correct", "-c", str(cal), str(tmp_path / "in"), "-o", str(out), "--resume"])
     captured = capsys.readouterr()
     assert status == 0 and captured.err == ""
