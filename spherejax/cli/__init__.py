@@ -64,10 +64,11 @@ spherejax calibration); `measure` replaces only files that begin with its own ou
 --log-file appends only to a log spherejax wrote (spherejax.console) and is none of the command's
 own files (`written_paths`). Anything else in the way is refused in one line naming it.
 
-`correct` and `acquire` stop cleanly on SIGINT (Ctrl-C) or SIGTERM (spherejax.interrupt): at the
-next safe point, with what was finished kept and recorded, nothing half-written left and OUT's
-lock released, one line ("spherejax: interrupted after N of M inputs; run again with --resume")
-and exit status 130 (SIGINT) or 143 (SIGTERM).
+`correct` and `acquire` stop cleanly on SIGINT (Ctrl-C), SIGTERM or SIGHUP (spherejax.interrupt):
+at the next safe point, with what was finished kept and recorded, nothing half-written left and
+OUT's lock released, one line ("spherejax: interrupted after N of M inputs; run again with
+--resume") and exit status 130 (SIGINT), 143 (SIGTERM) or 129 (SIGHUP); the other commands stop
+at the next call of spherejax's own code where raising is safe, with the same statuses.
 """
 
 from __future__ import annotations

@@ -184,8 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
             "Run 'spherejax COMMAND --help' for a command's description, options and examples.\n"
             "Exit status: 0 done; 1 a batch or acquisition with failed inputs; 2 bad input (one line on\n"
             "stderr naming the file, the value and what was expected; nothing written), or standard output\n"
-            "full or closed (after the work, which is kept); 130/143 stopped by SIGINT/SIGTERM; 141 the reader\n"
-            "of standard output went away (after the work, which is kept and recorded)."
+            "full or closed (after the work, which is kept); 130/143/129 stopped by SIGINT/SIGTERM/SIGHUP;\n"
+            "141 the reader of standard output went away (after the work, which is kept and recorded)."
         ),
         formatter_class=_HelpFormatter,
     )
