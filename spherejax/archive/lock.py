@@ -23,6 +23,7 @@ import socket
 from collections.abc import Collection, Iterable, Mapping, Sequence
 
 from .. import io
+from ..io.exclusive_lock import is_lock_file
 from ..io.hashing import sha256_file
 from .discovery import InputSpec, identity
 from .errors import BatchError, link_or
@@ -90,6 +91,15 @@ class OutputLock:
                 os.close(fd)
                 continue
             left = os.pread(fd, 4096, 0)
+            if left and not is_lock_file(left):
+                # A file at the lock's name that no spherejax run wrote (a user's notes, a log):
+                # not ours to write over, nor to remove at the end. An empty file holds nothing to
+                # lose (a run killed between its create and its first write leaves one).
+                os.close(fd)
+                raise BatchError(
+                    self.path, 'is in the way: a file that is not a spherejax lock (it does not begin with '
+                    '{"pid": N, "host": ...})', "OUT's lock file, or nothing, at this name",
+                ) from None
             if left:
                 self.taken_over = _describe_holder(left)
                 self.claimed, self.made = _read_left(fd)

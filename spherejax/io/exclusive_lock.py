@@ -47,6 +47,12 @@ def describe_holder(content: bytes) -> str:
         return "another process"
 
 
+def is_lock_file(content: bytes) -> bool:
+    """Whether a file's first bytes carry the signature of a spherejax lock file (this module's
+    and `correct`'s OUT lock, in every format they have had)."""
+    return _SIGNATURE.match(content) is not None
+
+
 @dataclasses.dataclass
 class HeldLock:
     """A lock file held by this process (`take`).
@@ -155,7 +161,7 @@ def take(path: os.PathLike | str, *, busy: str, expected: str, record: dict | No
             os.close(fd)
             continue
         found = os.pread(fd, _HOLDER_BYTES, 0)
-        if not _SIGNATURE.match(found):
+        if not is_lock_file(found):
             os.close(fd)
             raise SpherejaxFileError(
                 path, "is in the way: a file that is not a spherejax lock (it does not begin with "
@@ -170,4 +176,4 @@ def take(path: os.PathLike | str, *, busy: str, expected: str, record: dict | No
         return HeldLock(path, fd, taken_over)
 
 
-__all__ = ["HeldLock", "describe_holder", "take"]
+__all__ = ["HeldLock", "describe_holder", "is_lock_file", "take"]

@@ -390,3 +390,34 @@ def test_a_mistyped_input_to_a_resumed_batch_changes_nothing_in_out(cal, tmp_pat
     line = _refused(*run(_correct(cal, [inputs, tmp_path / "typo"], out, "--resume"), capsys))
     assert line.startswith(f"spherejax: error: {tmp_path / 'typo'}: no such file or folder")
     assert snapshot(out) == before
+
+
+@pytest.mark.parametrize("content", [b"my notes about this batch\n", b"spherejax 0.9 INFO corrected a.tif\n",
+                                     b'{"owner": "me"}\n'])
+@pytest.mark.parametrize("resume", [False, True])
+def test_a_users_file_at_outs_lock_name_is_refused_not_written_over_or_removed(cal, tmp_path, capsys, content, resume):
+    """OUT's lock file name holding a file no spherejax run wrote (it does not begin with the
+    holder's {"pid": N, "host": ...}): the batch is refused in one line naming it, and the file is
+    left as it was (it was written over, then removed when the run released its lock)."""
+    inputs = _inputs(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    if resume:
+        assert run(_correct(cal, [inputs], out), capsys)[0] == 0
+    (out / lock_module.LOCK_NAME).write_bytes(content)
+    before = snapshot(tmp_path)
+    line = _refused(*run(_correct(cal, [inputs], out, *(["--resume"] if resume else [])), capsys))
+    assert str(out / lock_module.LOCK_NAME) in line and "not a spherejax lock" in line
+    assert snapshot(tmp_path) == before
+
+
+def test_an_empty_file_or_a_lock_a_killed_run_left_at_outs_lock_name_is_taken_over(cal, tmp_path, capsys):
+    """An empty file (a run killed between creating its lock and writing it) and a lock of any
+    earlier format are spherejax's: taken over, and gone when the batch ends."""
+    inputs = _inputs(tmp_path)
+    for left in (b"", b'{"pid": 999999, "host": "lab-pc", "claims": []}\n'):
+        out = tmp_path / f"out{len(left)}"
+        out.mkdir()
+        (out / lock_module.LOCK_NAME).write_bytes(left)
+        assert run(_correct(cal, [inputs], out), capsys)[0] == 0
+        assert not (out / lock_module.LOCK_NAME).exists()

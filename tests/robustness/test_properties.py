@@ -41,6 +41,7 @@ from spherejax_hw.profile import ProfileError, load_profile
 from spherejax import archive, io
 from spherejax._engine import fused
 from spherejax.io import CalibrationFileError, SessionError, SpherejaxFileError
+from spherejax.io.exclusive_lock import is_lock_file
 from tests.helpers import (
     assert_exact_or_close, calibration_entries, division_rtol, write_calibration_entries, write_with_oiio,
 )
@@ -270,20 +271,30 @@ def test_batch_manifest_reader_keeps_every_whole_record(scratch, lines, last_new
 @given(content=st.binary(max_size=300))
 @example(content=b"[" * 100_000)  # RecursionError, which also left the lock held
 @example(content=b'{"pid": 1, "host": "a\\nb"}')  # a newline in the message
-def test_lock_file_left_with_arbitrary_content_is_taken_over(scratch, content):
-    """A lock file that no process holds is taken over whatever it holds, and the previous
-    holder is described in one line (the CLI prints it)."""
+def test_lock_file_left_with_arbitrary_content_is_taken_over_or_refused(scratch, content):
+    """A lock file that no process holds is taken over when it is spherejax's (empty, or
+    beginning with a holder's {"pid": N, "host": ...}), the previous holder described in one
+    line (the CLI prints it); anything else at its name is not spherejax's, so it is refused in
+    one line and left as it was, never written over or removed."""
     out = scratch / "batch-lock"
     out.mkdir(exist_ok=True)
     (out / archive.LOCK_NAME).write_bytes(content)
     lock = archive.OutputLock(out)
+    if content and not io.exclusive_lock.is_lock_file(content):
+        with pytest.raises(archive.BatchError) as refused:
+            lock.acquire()
+        assert "\n" not in str(refused.value) and "not a spherejax lock" in str(refused.value)
+        assert (out / archive.LOCK_NAME).read_bytes() == content
+        (out / archive.LOCK_NAME).unlink()
+        return
     lock.acquire()
     try:
         if content:
             assert isinstance(lock.taken_over, str) and "\n" not in lock.taken_over, repr(lock.taken_over)
         else:
             assert lock.taken_over is None
-        assert json.loads((out / archive.LOCK_NAME).read_text())["pid"] == os.getpid()
+        holder = (out / archive.LOCK_NAME).read_text().splitlines()[0]
+        assert json.loads(holder)["pid"] == os.getpid()
     finally:
         lock.release()
     assert not (out / archive.LOCK_NAME).exists()
