@@ -72,14 +72,32 @@ class FileResult:
         as `to_json` writes it (another writer's line, a damaged file: redone, never trusted).
         `path`: the manifest, for the check's messages."""
         try:
-            checked = check_document(_Record, record, error=located(BatchError, path))
+            checked = check_document(_Record, _validatable(record), error=located(BatchError, path))
         except BatchError:
             return None
+        if len(checked.outputs) != len(record["outputs"]):
+            return None  # two output names alike but for their escapes: not a line spherejax wrote
+        # The names as written: under a locale that is not UTF-8 an input's name carries the lone
+        # surrogates Python decodes its bytes to (os.fsdecode), which pydantic's strings cannot
+        # hold; they were checked in a form without them (`_validatable`), and are kept as they are.
         return cls(
-            name=checked.name, source=checked.input, status=checked.status, input_sha256=checked.input_sha256,
-            outputs=dict(checked.outputs), calibration_checksum=checked.calibration_checksum,
-            software_version=checked.software_version, reason=checked.reason, settings=checked.settings,
+            name=record["name"], source=record["input"], status=checked.status, input_sha256=checked.input_sha256,
+            outputs=dict(zip(record["outputs"], checked.outputs.values())),
+            calibration_checksum=checked.calibration_checksum, software_version=checked.software_version,
+            reason=checked.reason, settings=checked.settings,
         )
+
+
+def _validatable(value):
+    """`value` (a manifest line read as JSON) with every string's lone surrogates written as
+    backslash escapes, for the record check only: same structure, same keys in the same order."""
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
+    if isinstance(value, dict):
+        return {_validatable(key): _validatable(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_validatable(item) for item in value]
+    return value
 
 
 _Status = choice("done", "failed")

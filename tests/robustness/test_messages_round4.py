@@ -291,6 +291,21 @@ def test_correct_and_measure_take_utf8_names_under_the_c_locale(cal, tmp_path):
     assert (tmp_path / "m.csv").read_text(encoding="utf-8").splitlines()[1].startswith("rôt,")
 
 
+def test_a_batch_with_utf8_names_resumes_under_the_c_locale(cal, tmp_path):
+    """Under LC_ALL=C the manifest records "rôt.tif" by the lone surrogates Python decodes its
+    bytes to; the record check refused them (pydantic's strings cannot hold them), so `--resume`
+    never trusted the record and corrected the input again."""
+    _cube(tmp_path / "in" / "rôt.tif")
+    _cube(tmp_path / "in" / "b.tif")
+    argv = ["correct", "-c", cal, tmp_path / "in", "-o", tmp_path / "out"]
+    assert _run(argv, env=C_LOCALE).returncode == 0
+    before = snapshot(tmp_path / "out")
+    result = _run([*argv, "--resume"], env=C_LOCALE)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+    assert result.stdout.strip() == "0 corrected, 2 skipped (already done), 0 failed"
+    assert snapshot(tmp_path / "out") == before
+
+
 @pytest.mark.parametrize("region, problem", [(b"r\xf4t=0,10,0,10", "is not UTF-8 text"),
                                              (b"r\tt=0,10,0,10", "control character")])
 def test_a_region_name_is_refused_for_what_is_wrong_with_it_under_the_c_locale(region, problem, cal, tmp_path):
