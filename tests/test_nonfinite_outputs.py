@@ -1,5 +1,5 @@
-"""Outputs that are not finite are flagged on every kernel (issue 42, reproducer 1's per-pixel
-half): a pixel whose inputs the flags call good but whose reflectance or Lab comes out infinite or
+"""Outputs that are not finite are flagged on every kernel (docs/reliability.md, section 2):
+a pixel whose inputs the flags call good but whose reflectance or Lab comes out infinite or
 NaN (a float raw of 1e38 over a white signal of one count, or an estimator whose product
 overflows float32, such as residual weights of 3e38 in a calibration made without its checks) gets
 `Quality.NONFINITE` and NaN in every output, so that every output is NaN exactly where quality says

@@ -1,5 +1,5 @@
 """Every array a calibration carries is checked where a `Calibration` is built, saved and opened
-(issue 42, reproducers 1 to 3): finite, within the documented sizes (`calibration.MAX_BANDS`,
+(docs/reliability.md, section 1): finite, within the documented sizes (`calibration.MAX_BANDS`,
 `MAX_INDUCING_POINTS`, `MAX_CORRECTION_BYTES_PER_PIXEL`, estimated from the shapes before any
 array is read) and plausible (`PLAUSIBLE_REFLECTANCE`: the white standard's response, the training
 responses' mean and the residual at its inducing points map to reflectance within +-100).
