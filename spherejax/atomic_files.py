@@ -119,6 +119,40 @@ def atomic_file(path: os.PathLike | str, mode: str = "wb", *, encoding: str | No
     fsync_folder(path.parent)
 
 
+def create_whole(path: os.PathLike | str, data: bytes, *, direct_without_links: bool = False) -> bool:
+    """Create `path` holding `data`, never seen empty or torn and never over a file already there:
+    written and fsynced under a temporary sibling, then linked into place (link(2) never replaces
+    a file). Return whether this call created it (False: something was there already).
+
+    On a file system without hard links the link's OSError is raised, unless
+    `direct_without_links`: then `path` is created directly with O_EXCL and written (seen empty
+    for that moment; a log may be, a lock file may not)."""
+    temporary = temp_sibling(path)
+    try:
+        with open_exclusive(temporary) as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        try:
+            os.link(temporary, path)
+        except FileExistsError:
+            return False
+        except OSError:
+            if not direct_without_links:
+                raise
+            try:
+                with open_exclusive(path) as handle:
+                    handle.write(data)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+            except FileExistsError:
+                return False
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+
+
 def write_atomic(path: os.PathLike | str, data: bytes | str) -> None:
     """Write `data` (bytes, or str as UTF-8) to `path` through `atomic_file`."""
     with atomic_file(path, "w" if isinstance(data, str) else "wb") as handle:

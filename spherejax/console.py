@@ -145,23 +145,8 @@ def _create_log(target: pathlib.Path, formatter: logging.Formatter) -> None:
     record = logging.makeLogRecord({"name": log.name, "levelno": logging.DEBUG, "levelname": "DEBUG",
                                     "msg": f"log file created by spherejax {__version__}"})
     line = (formatter.format(record) + "\n").encode("utf-8")
-    temporary = atomic_files.temp_sibling(target)
-    try:
-        with atomic_files.open_exclusive(temporary) as handle:
-            handle.write(line)
-            handle.flush()
-            os.fsync(handle.fileno())
-        try:
-            os.link(temporary, target)
-        except FileExistsError:
-            return  # someone else's since the look: refused or appended to by the check after
-        except OSError:
-            # A file system without hard links: create it directly (O_EXCL: never over a file).
-            with contextlib.suppress(FileExistsError), atomic_files.open_exclusive(target) as handle:
-                handle.write(line)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
+    # Someone else's file at the name since the look: refused or appended to by the check after.
+    atomic_files.create_whole(target, line, direct_without_links=True)
 
 
 def _refuse_command_paths(target: pathlib.Path, paths) -> None:
@@ -178,13 +163,7 @@ def _refuse_command_paths(target: pathlib.Path, paths) -> None:
     label = "--log-file FILE"
     ownership.refuse_overlaps({label: target}, {**paths.inputs, **paths.outputs})
 
-    def identity(path) -> tuple[str, tuple[int, int] | None]:
-        resolved = os.path.realpath(path)
-        try:
-            found = os.stat(resolved)
-        except OSError:
-            return resolved, None
-        return resolved, (found.st_dev, found.st_ino)
+    identity = ownership.path_identity
 
     resolved = os.path.realpath(target)
     holders, folder = [], os.path.dirname(resolved)

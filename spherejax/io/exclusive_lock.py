@@ -29,6 +29,7 @@ import pathlib
 import re
 import socket
 
+from .. import atomic_files
 from .errors import SpherejaxFileError
 
 #: The start of every spherejax lock file: the holder's pid, then its host.
@@ -93,23 +94,6 @@ def _record(extra: dict) -> bytes:
     return (json.dumps(record, ensure_ascii=False) + "\n").encode("utf-8", errors="backslashreplace")
 
 
-def _create(path: pathlib.Path, record: bytes) -> None:
-    """Put a lock file holding `record` at `path`, whole, unless something is there already."""
-    from .. import atomic_files
-
-    temporary = atomic_files.temp_sibling(path)
-    try:
-        with atomic_files.open_exclusive(temporary) as handle:
-            handle.write(record)
-            handle.flush()
-            os.fsync(handle.fileno())
-        with contextlib.suppress(FileExistsError):
-            os.link(temporary, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
-
-
 def take(path: os.PathLike | str, *, busy: str, expected: str, record: dict | None = None) -> HeldLock:
     """Take the exclusive lock on `path` (module docstring), or raise without touching anything.
 
@@ -137,7 +121,7 @@ def take(path: os.PathLike | str, *, busy: str, expected: str, record: dict | No
             fd = open_regular(path, os.O_RDWR)
         except FileNotFoundError:
             try:
-                _create(path, ours)
+                atomic_files.create_whole(path, ours)
             except OSError as error:
                 raise SpherejaxFileError(path, f"cannot be created: {error.strerror or error}", expected) from None
             continue

@@ -36,7 +36,7 @@ from .errors import SpherejaxFileError
 MAX_RECORD_BYTES = 16 << 20
 
 
-def _identity(path: pathlib.Path) -> tuple[str, tuple[int, int] | None]:
+def path_identity(path: pathlib.Path) -> tuple[str, tuple[int, int] | None]:
     """(resolved path, (st_dev, st_ino) or None where nothing is there yet)."""
     resolved = os.path.realpath(path)
     try:
@@ -57,10 +57,10 @@ def refuse_overlaps(outputs: Mapping[str, os.PathLike | str], inputs: Mapping[st
       SpherejaxFileError: naming the output's path, what else it is, and what was expected.
     """
     seen: list[tuple[str, str, tuple[str, tuple[int, int] | None]]] = [
-        (label, str(path), _identity(pathlib.Path(path))) for label, path in inputs.items()
+        (label, str(path), path_identity(pathlib.Path(path))) for label, path in inputs.items()
     ]
     for label, path in outputs.items():
-        resolved, node = _identity(pathlib.Path(path))
+        resolved, node = path_identity(pathlib.Path(path))
         for other_label, other_path, (other_resolved, other_node) in seen:
             if resolved == other_resolved or (node is not None and node == other_node):
                 raise SpherejaxFileError(
@@ -75,7 +75,7 @@ def _holders(resolved: str) -> list[tuple[str, tuple[int, int] | None]]:
     found = []
     parent = os.path.dirname(resolved)
     while True:
-        found.append(_identity(pathlib.Path(parent)))
+        found.append(path_identity(pathlib.Path(parent)))
         above = os.path.dirname(parent)
         if above == parent:
             return found
@@ -101,9 +101,9 @@ def refuse_holding(
     Raises:
       SpherejaxFileError: naming the folder, the input it is or holds, and what was expected.
     """
-    identities = {label: (str(path), _identity(pathlib.Path(path))) for label, path in inputs.items()}
+    identities = {label: (str(path), path_identity(pathlib.Path(path))) for label, path in inputs.items()}
     for label, folder in folders.items():
-        resolved, node = _identity(pathlib.Path(folder))
+        resolved, node = path_identity(pathlib.Path(folder))
 
         def same(other: tuple[str, tuple[int, int] | None]) -> bool:
             return other[0] == resolved or (node is not None and other[1] == node)
@@ -143,14 +143,14 @@ def refuse_nesting(
     Raises:
       SpherejaxFileError: one line naming the folder, how it meets which input, and `expected`.
     """
-    resolved, node = _identity(pathlib.Path(folder))
+    resolved, node = path_identity(pathlib.Path(folder))
     # The folder and every folder above it: an input among them is the folder or holds it.
     around = [(resolved, node), *_holders(resolved)]
     around_paths = {path for path, _ in around}
     around_nodes = {found for _, found in around if found is not None}
     holders_of: dict[str, list] = {}  # an input's parent folder -> its holders (inputs share folders)
     for name, path in inputs.items():
-        other_resolved, other_node = _identity(pathlib.Path(path))
+        other_resolved, other_node = path_identity(pathlib.Path(path))
         if other_resolved == resolved or (node is not None and other_node == node):
             how = "is"
         elif other_resolved in around_paths or (other_node is not None and other_node in around_nodes):
@@ -158,7 +158,7 @@ def refuse_nesting(
         else:
             parent = os.path.dirname(other_resolved)
             if parent not in holders_of:
-                holders_of[parent] = [_identity(pathlib.Path(parent)), *_holders(parent)]
+                holders_of[parent] = [path_identity(pathlib.Path(parent)), *_holders(parent)]
             if not any(path_ == resolved or (node is not None and found == node) for path_, found in holders_of[parent]):
                 continue
             how = "holds"
@@ -273,5 +273,5 @@ def check_output_folder(
 
 __all__ = [
     "refuse_overlaps", "refuse_holding", "refuse_nesting", "refuse_in_the_way", "not_a_calibration", "earlier_run",
-    "check_output_folder",
+    "check_output_folder", "path_identity",
 ]
