@@ -284,3 +284,32 @@ def check_case(case: Case, workspace, cal, tmp_path, capsys) -> list[str]:
         assert case.problem in lines[0], (case.problem, lines[0])
         assert after == before, sorted(set(before) ^ set(after))
     return lines
+
+
+def assert_refused(status: int, err: str, named, *fragments: str) -> str:
+    """Exit status 2, one line naming `named` (the output) with every fragment, no traceback."""
+    assert status == cli.EXIT_BAD_INPUT, err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"spherejax: error: {named}: "), err
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    return lines[0]
+
+
+def run_quietly(argv, capsys) -> tuple[int, str, str]:
+    """`spherejax -q ARGV` in this process: (exit status, stdout, stderr)."""
+    status = cli.main(["-q", *map(str, argv)])
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def refused_unchanged(root: pathlib.Path, argv, capsys, named, *fragments: str) -> str:
+    """Run `argv` (`run_quietly`): exit status 2, one line naming `named` with every fragment, no
+    traceback, nothing on stdout, and everything under `root` as it was; return the line."""
+    before = snapshot(root)
+    status, out, err = run_quietly(argv, capsys)
+    line = assert_refused(status, err, named, *fragments)
+    assert out == ""
+    assert snapshot(root) == before, sorted(set(snapshot(root).items()) ^ set(before.items()))
+    return line

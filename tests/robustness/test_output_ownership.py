@@ -21,28 +21,12 @@ import sys
 
 import pytest
 
-from spherejax import cli, io, simulate
+from spherejax import io, simulate
 from spherejax.io import SpherejaxFileError, ownership
 from tests.helpers import SMALL
 from tests.hw.support import write_profile
-from tests.robustness.catalogue import snapshot
-
-
-def run(argv, capsys) -> tuple[int, str, str]:
-    status = cli.main(["-q", *map(str, argv)])
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
-
-
-def assert_refused(status: int, err: str, named, *fragments: str) -> str:
-    """Exit status 2, one line naming `named` (the output) with every fragment, no traceback."""
-    assert status == cli.EXIT_BAD_INPUT, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(f"spherejax: error: {named}: "), err
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
-    return lines[0]
+from tests.robustness.catalogue import refused_unchanged, snapshot
+from tests.robustness.catalogue import run_quietly as run
 
 
 @pytest.fixture
@@ -51,16 +35,6 @@ def root(workspace, tmp_path) -> pathlib.Path:
     shutil.copytree(workspace / "session", tmp_path / "session")
     shutil.copyfile(workspace / "cal.h5", tmp_path / "cal.h5")
     return tmp_path
-
-
-def refused_unchanged(root: pathlib.Path, argv, capsys, named, *fragments: str) -> str:
-    """Run `argv` in `root` and check a refusal that leaves everything under `root` as it was."""
-    before = snapshot(root)
-    status, out, err = run(argv, capsys)
-    line = assert_refused(status, err, named, *fragments)
-    assert out == ""
-    assert snapshot(root) == before, sorted(set(snapshot(root).items()) ^ set(before.items()))
-    return line
 
 
 # --------------------------------------------------------------------------------------------

@@ -20,31 +20,10 @@ import pytest
 
 import spherejax
 from spherejax import cli, console, io
-from tests.robustness.catalogue import snapshot
+from tests.robustness.catalogue import refused_unchanged
+from tests.robustness.catalogue import run_quietly as run
 
 REGION = "a=2,8,2,8"
-
-
-def run(argv, capsys) -> tuple[int, str, str]:
-    status = cli.main(["-q", *map(str, argv)])
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
-
-
-def refused_unchanged(root: pathlib.Path, argv, capsys, named, *fragments: str) -> str:
-    """Run `argv`: exit status 2, one line naming `named` with every fragment, no traceback, and
-    everything under `root` as it was."""
-    before = snapshot(root)
-    status, out, err = run(argv, capsys)
-    assert status == cli.EXIT_BAD_INPUT, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(f"spherejax: error: {named}: "), err
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
-    assert out == ""
-    assert snapshot(root) == before, sorted(set(snapshot(root).items()) ^ set(before.items()))
-    return lines[0]
 
 
 @pytest.fixture
