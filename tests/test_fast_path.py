@@ -284,7 +284,15 @@ def test_the_jax_numpy_path_does_not_page_fault_image_sized_temporaries(dtype_na
     what else the process has allocated (seen in full test runs: 800 pages a call in float32,
     1,670 in float64; none in a process of its own). At most twice that, a tenth of before."""
     script = FAULTS_SCRIPT.replace("np.float32", f"np.{dtype_name}")
-    env = {**os.environ, fused.SWITCH: "0", "JAX_ENABLE_X64": "1"}
+    # A process of its own, without the test run's shared compilation cache (tests/conftest.py):
+    # in two full runs on Python 3.13 (jax 0.12) the calls faulted 4096 (float32) and 7019
+    # (float64) pages a call, in that file alone or beside others 0 and 1. That cache, which every
+    # child of a full run fills, is the state such a child shares with the others beyond the
+    # environment; the cause was not pinned down further. What is measured here is the steady
+    # state of the calls, which a compilation cache does not change for a user.
+    env = {name: value for name, value in os.environ.items()
+           if not name.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE", "SPHEREJAX_TESTS_COMPILATION"))}
+    env.update({fused.SWITCH: "0", "JAX_ENABLE_X64": "1"})
     out = subprocess.run([sys.executable, "-c", script, "default", "keep"], capture_output=True, text=True, check=True, env=env)
     applied, count = out.stdout.split()
     assert applied == "False"
