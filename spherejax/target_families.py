@@ -101,7 +101,6 @@ import dataclasses
 import colour
 import numpy as np
 
-from .grid import WAVELENGTHS_NM
 from .kubelka_munk import (
     K1_N_1_5,
     MATERIAL_FAMILIES,
@@ -286,10 +285,10 @@ REFERENCE_NOISE = ReferenceNoise()
 #: Per kind: does the reference include the specular component (SCI, d/8), does the camera see
 #: gloss and texture, where is the brightener ("all", "pale", None).
 _KIND_SETTINGS = {
-    "shade_card": dict(sci=False, surface=False, brightener=None),
-    "fluorescent": dict(sci=False, surface=False, brightener="all"),
-    "gloss_texture": dict(sci=True, surface=True, brightener=None),
-    "mixed_real": dict(sci=True, surface=True, brightener="pale"),
+    "shade_card": {"sci": False, "surface": False, "brightener": None},
+    "fluorescent": {"sci": False, "surface": False, "brightener": "all"},
+    "gloss_texture": {"sci": True, "surface": True, "brightener": None},
+    "mixed_real": {"sci": True, "surface": True, "brightener": "pale"},
 }
 
 
@@ -314,8 +313,8 @@ def shade_card_recipes(n: int, rng: np.random.Generator) -> np.ndarray:
     ring = len(SHADE_CARD_RING)
     black = ring
     recipes = np.zeros((n, len(SHADE_CARD_DYES)))
-    n_white = int(round(0.03 * n))
-    n_grey = int(round(0.15 * n))
+    n_white = round(0.03 * n)
+    n_grey = round(0.15 * n)
     n_hue = n - n_white - n_grey
     log_low, log_high = np.log(SHADE_CARD_DEPTH_RANGE)
 

@@ -75,14 +75,14 @@ class TestShapesAndSeeds:
         assert tf.KM_DEFAULT_FAMILY in km.MATERIAL_FAMILIES
 
     @pytest.mark.parametrize("call, message", [
-        (dict(kind="paint"), "kind: expected one of"),
-        (dict(kind=None), "kind: expected one of"),
-        (dict(kind="shade_card", n=0), "n: expected an integer >= 1"),
-        (dict(kind="shade_card", n=2.5), "n: expected an integer >= 1"),
-        (dict(kind="shade_card", n=True), "n: expected an integer >= 1"),
-        (dict(kind="mixed_real", patch_pixels=0), "patch_pixels: expected an integer >= 1"),
-        (dict(kind="km_mixing", patch_pixels="35"), "patch_pixels: expected an integer >= 1"),
-        (dict(kind="km_mixing", family="silk"), "family: expected one of"),
+        ({"kind": "paint"}, "kind: expected one of"),
+        ({"kind": None}, "kind: expected one of"),
+        ({"kind": "shade_card", "n": 0}, "n: expected an integer >= 1"),
+        ({"kind": "shade_card", "n": 2.5}, "n: expected an integer >= 1"),
+        ({"kind": "shade_card", "n": True}, "n: expected an integer >= 1"),
+        ({"kind": "mixed_real", "patch_pixels": 0}, "patch_pixels: expected an integer >= 1"),
+        ({"kind": "km_mixing", "patch_pixels": "35"}, "patch_pixels: expected an integer >= 1"),
+        ({"kind": "km_mixing", "family": "silk"}, "family: expected one of"),
     ])
     def test_bad_arguments_are_refused_in_one_line(self, call, message):
         with pytest.raises(ValueError, match=message) as raised:
