@@ -145,27 +145,39 @@ def test_float32_agrees_with_float64_to_float32_precision():
         assert results[dtype].dtype == dtype
     # Measured: 3e-7 at reflectances of about 0.3-1 (float32's epsilon 1.2e-7).
     np.testing.assert_allclose(np.asarray(results[np.float32], np.float64), np.asarray(results[np.float64]), atol=5e-6)
+    # The held-out estimates of the cross-validation too, on the mean refitted in each fold, where
+    # the local problem is well conditioned; not everywhere: at h = 1 and lambda = 1e-3 an isolated target (its
+    # nearest in-fold neighbour 4.7 whitened units away) is an extrapolation whose weights alpha
+    # cancel in sums 1e4 times larger than the estimate, and float32 then differed by 2e-3 there
+    # (Kubelka-Munk wool, 80 targets, no mean; float64 agreed with a direct solve to 1e-11).
+    weights = _weights_of(random_fold_labels(80, 5)[0])
+    held_out = [local_regression.held_out_local_estimates(V.astype(dtype), R.astype(dtype), weights,
+                                                          mean=_training_mean(V.astype(dtype), R.astype(dtype)),
+                                                          bandwidths=(1.5, 4.0), ridges=(1e-2, 1.0))[0]
+                for dtype in (np.float32, np.float64)]
+    np.testing.assert_allclose(held_out[0], held_out[1], atol=5e-6)  # measured: 6e-7
 
 
 @pytest.mark.parametrize("neighbours", [None, 25])
 def test_gradients_in_v_are_finite_and_match_finite_differences(neighbours):
+    """The gradient of a projection c . r(v) (one reverse pass, so one compilation) against a
+    central difference along three directions, float64."""
     rng = np.random.default_rng(7)
-    V, R = _random_targets(rng, n=50)
+    V, R = _random_targets(rng, n=40)
     mean = estimation.training_estimator(V, R, 1e-3)
-    v = jnp.asarray(V[5] + 0.03)
+    v, c = jnp.asarray(V[5] + 0.03), jnp.asarray(rng.normal(size=31))
 
-    def f(x):
-        return local_regression.local_estimate(x, V, R, bandwidth=1.5, ridge=1e-2, neighbours=neighbours,
-                                               mean=(mean.matrix, mean.offset))
+    def g(x):
+        return jnp.dot(c, local_regression.local_estimate(x, V, R, bandwidth=1.5, ridge=1e-2, neighbours=neighbours,
+                                                          mean=(mean.matrix, mean.offset)))
 
-    J = jax.jit(jax.jacfwd(f))(v)  # (31, 16)
-    assert np.all(np.isfinite(J))
+    gradient = jax.grad(g)(v)
+    assert np.all(np.isfinite(gradient)) and np.any(gradient != 0)
     step = 1e-6
-    for b in (0, 7, 15):
-        e = jnp.zeros(16).at[b].set(step)
-        central = (f(v + e) - f(v - e)) / (2 * step)
-        np.testing.assert_allclose(np.asarray(J[:, b]), np.asarray(central), rtol=1e-5, atol=1e-7)
-    assert np.all(np.isfinite(jax.grad(lambda x: jnp.sum(f(x)))(v)))
+    for direction in rng.normal(size=(3, 16)):
+        d = jnp.asarray(direction)
+        central = (g(v + step * d) - g(v - step * d)) / (2 * step)
+        np.testing.assert_allclose(float(gradient @ d), float(central), rtol=1e-5, atol=1e-8)
 
 
 def test_jitted_equals_eager():
@@ -204,7 +216,7 @@ def _training_mean(V, R, noise_variance=1e-3):
     V, R = jnp.asarray(V), jnp.asarray(R)
     fit = functools.partial(regression._training_fit, V, R, noise_variance=noise_variance, offset=True)
     report = estimation.CrossValidation("training", 0.0, 0.0, (("noise_variance", noise_variance),), "fixed")
-    return estimation.Candidate(report, lambda: fit(jnp.ones(len(V))), jax.vmap(lambda w: fit(w)))
+    return estimation.Candidate(report, lambda: fit(jnp.ones(len(V), V.dtype)), jax.vmap(lambda w: fit(w)))
 
 
 def test_weights_must_hold_out_every_target_once():
