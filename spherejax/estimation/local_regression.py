@@ -100,9 +100,9 @@ LOCAL_RIDGE_GRID = tuple(float(10.0 ** (k / 2.0)) for k in range(-14, 5))
 #: Eigenvalues of the training responses' covariance below this fraction of the largest are taken
 #: as this fraction in the whitening (E9): the floor of `kernel_residual.whitening_of`, so that
 #: both estimators measure distance alike. Measured on the Kubelka-Munk families (as in the module
-#: docstring): floors of 1e-5 to 1e-2 moved the spectral rms by -0.08 to +0.03 of the affine
+#: docstring): floors of 1e-5 to 1e-2 moved the spectral rms by -0.08 to +0.04 of the affine
 #: estimator's, no floor better on all four; a floor of 1 (isotropic distances) made all four
-#: worse by 0.15-0.2.
+#: worse by 0.15-0.22.
 _WHITENING_FLOOR = 1e-8
 
 
@@ -137,8 +137,9 @@ def _whitening(V):
     From the singular value decomposition of the centred responses, not the eigendecomposition
     of their covariance: forming the covariance squares the condition number, and in float32 the
     small eigenvalues of a family's responses (about 1e-6 of the largest on the Kubelka-Munk
-    families) then come out with errors of tens of per cent, which moved held-out estimates by
-    up to 5e-4 in reflectance against float64 (1e-5 from the SVD)."""
+    families) then come out with errors of tens of per cent. Measured (wool, 80 targets, the
+    affine mean, h = 1, lambda = 0.1): held-out estimates in float32 against float64 differed by
+    up to 2.8e-4 in reflectance with the covariance's eigendecomposition, 2.5e-6 with the SVD."""
     n, B = V.shape
     mu = jnp.mean(V, axis=0)
     # Fewer targets than bands: the directions they do not span come with the full V^T factor
