@@ -16,7 +16,11 @@ import pytest
 
 from spherejax import estimation, kubelka_munk
 from spherejax.estimation import kernel_residual, local_regression, regression
-from spherejax.estimation.cross_validation import _weights_of, fold_labels, random_fold_labels
+from spherejax.estimation.cross_validation import (
+    _weights_of,
+    fold_labels,
+    random_fold_labels,
+)
 
 
 def _random_targets(rng, n=60, bands=16):
@@ -195,9 +199,9 @@ def test_a_held_out_estimate_uses_only_the_targets_of_its_fold():
     fold's affine mean), and changes those of the other folds' targets."""
     rng = np.random.default_rng(9)
     V, R = _random_targets(rng, n=40)
-    labels, text = random_fold_labels(40, 4)
+    labels, _text = random_fold_labels(40, 4)
     weights = _weights_of(labels)
-    grids = dict(bandwidths=(1.0, 4.0), ridges=(1e-3, 1.0))
+    grids = {"bandwidths": (1.0, 4.0), "ridges": (1e-3, 1.0)}
     before, own_before = local_regression.held_out_local_estimates(V, R, weights, mean=_training_mean(V, R), **grids)
     j = 11
     R_changed = R.copy()
@@ -233,7 +237,7 @@ def test_weights_must_hold_out_every_target_once():
 ])
 def test_refuses_bad_settings(keyword, value, match):
     V, R = _random_targets(np.random.default_rng(11), n=20)
-    settings = dict(bandwidth=1.0, ridge=0.1)
+    settings = {"bandwidth": 1.0, "ridge": 0.1}
     settings[keyword] = value
     with pytest.raises(ValueError, match=match):
         local_regression.local_estimate(V[:2], V, R, **settings)
