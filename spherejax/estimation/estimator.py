@@ -79,18 +79,76 @@ class WienerEstimator(eqx.Module):
         return wiener(v, self)
 
 
+class ResidualVariance(eqx.Module):
+    """The kernel residual's own uncertainty at a response (E15), a pytree: the predictive
+    variance of the Gaussian-process reading of (E11) (deterministic training conditional,
+    Quinonero-Candela & Rasmussen 2005, Eq. 20), per residual component j = 1..r:
+
+        var_j(v) = s_j^2 (1 - |g|^2) + sum_i C_ji g_i^2,   g = X^T k(v)             (E15)
+
+    with k(v) (m,) the kernel features of (E10), X (m, q) such that X X^T = K_mm^-1 and
+    X^T (K_mn K_nm) X diagonal (gamma_i), C_ji = sigma_j^2 / (lambda_j + gamma_i), s_j^2 and
+    sigma_j^2 the component's signal and noise variances and lambda_j = sigma_j^2 / s_j^2 its
+    ridge (E13-E14). Far from the targets k(v) -> 0 and var_j -> s_j^2 (the prior: the
+    estimator knows nothing there); at a target it falls to about the noise over the targets near it.
+
+    components: P (r, 31), the residual's principal directions (E13): reflectance covariance
+    sum_j var_j P_j P_j^T. prior: s_j^2 (r,). projection: X (m, q). weights: C (r, q).
+    noise: (31,) the per-wavelength variance of a target's reflectance about the fit (its noise
+    sigma_j^2 through P, and the part of the residual beyond rank r), in reflectance squared.
+    """
+
+    components: jax.Array
+    prior: jax.Array
+    projection: jax.Array
+    weights: jax.Array
+    noise: jax.Array
+
+    def __check_init__(self):
+        if self.components.ndim != 2 or self.components.shape[1] != N_WAVELENGTHS:
+            raise ValueError(f"components: expected shape (r, 31), got {tuple(self.components.shape)}")
+        rank = self.components.shape[0]
+        _checks.require_shape("prior", self.prior, (rank,), "one value per component")
+        if self.projection.ndim != 2:
+            raise ValueError(f"projection: expected shape (m, q), got {tuple(self.projection.shape)}")
+        _checks.require_shape("weights", self.weights, (rank, self.projection.shape[1]), "components x q")
+        _checks.require_shape("noise", self.noise, (N_WAVELENGTHS,), "one value per wavelength")
+
+    def astype(self, dtype) -> ResidualVariance:
+        return ResidualVariance(*(x.astype(dtype) for x in (self.components, self.prior, self.projection,
+                                                             self.weights, self.noise)))
+
+    def component_variance(self, features):
+        """var_j (..., r) of (E15) for kernel features k (..., m), never below 0."""
+        dtype = features.dtype
+        g = jnp.matmul(features, self.projection.astype(dtype), precision=_HIGHEST)
+        g2 = g * g
+        known = jnp.sum(g2, axis=-1, keepdims=True)
+        variance = (self.prior.astype(dtype) * (1.0 - known)
+                    + jnp.matmul(g2, self.weights.astype(dtype).T, precision=_HIGHEST))
+        return jnp.maximum(variance, 0.0)
+
+    def reflectance_variance(self, features):
+        """The residual's variance per wavelength (..., 31) for kernel features k (..., m)."""
+        P = self.components.astype(features.dtype)
+        return jnp.matmul(self.component_variance(features), P * P, precision=_HIGHEST)
+
+
 class KernelResidual(eqx.Module):
     """The residual term A k(v) of (E8-E10), a pytree: what a calibration adds to its affine
     estimator (`spherejax.Calibration.wiener_residual`).
 
-    centre: mu (B,). whitening: S / l (B, B), rows applied to v - mu. inducing: z / l (m, B).
-    weights: A (31, m). Called on responses (..., B): the residual (..., 31).
+    centre: mu (B,). whitening: S' (B, B), rows applied to v - mu: the whitening with each
+    direction's lengthscale folded in (E9-E10). inducing: z' (m, B). weights: A (31, m).
+    variance: its `ResidualVariance` (E15), or None (a residual fitted before the estimator
+    carried its uncertainty). Called on responses (..., B): the residual (..., 31).
     """
 
     centre: jax.Array
     whitening: jax.Array
     inducing: jax.Array
     weights: jax.Array
+    variance: ResidualVariance | None = None
 
     def __check_init__(self):
         if self.centre.ndim != 1:
@@ -100,19 +158,33 @@ class KernelResidual(eqx.Module):
         if self.inducing.ndim != 2 or self.inducing.shape[1] != bands:
             raise ValueError(f"inducing: expected shape (m, {bands}), got {tuple(self.inducing.shape)}")
         _checks.require_shape("weights", self.weights, (N_WAVELENGTHS, self.inducing.shape[0]), "31 x inducing points")
+        if self.variance is not None and self.variance.projection.shape[0] != self.inducing.shape[0]:
+            raise ValueError(f"variance.projection: expected {self.inducing.shape[0]} rows (one per inducing point), "
+                             f"got {tuple(self.variance.projection.shape)}")
 
     @property
     def bands(self) -> int:
         return int(self.centre.shape[0])
 
     def astype(self, dtype) -> KernelResidual:
-        return KernelResidual(*(x.astype(dtype) for x in (self.centre, self.whitening, self.inducing, self.weights)))
+        return KernelResidual(*(x.astype(dtype) for x in (self.centre, self.whitening, self.inducing, self.weights)),
+                              variance=None if self.variance is None else self.variance.astype(dtype))
+
+    def features(self, v):
+        """k(v) (..., m) of (E10) for responses v (..., B), in v's float dtype."""
+        dtype = v.dtype
+        return kernel_features(v, self.centre.astype(dtype), self.whitening.astype(dtype), self.inducing.astype(dtype))
+
+    def reflectance_variance(self, v):
+        """The residual's own variance per wavelength (..., 31) at responses v (..., B) (E15);
+        zeros without a `variance`."""
+        if self.variance is None:
+            return jnp.zeros((*v.shape[:-1], N_WAVELENGTHS), v.dtype)
+        return self.variance.reflectance_variance(self.features(v))
 
     def __call__(self, v):
         """A k(v) (..., 31) for responses v (..., B), in v's float dtype."""
-        dtype = v.dtype
-        k = kernel_features(v, self.centre.astype(dtype), self.whitening.astype(dtype), self.inducing.astype(dtype))
-        return jnp.matmul(k, self.weights.astype(dtype).T, precision=_HIGHEST)
+        return jnp.matmul(self.features(v), self.weights.astype(v.dtype).T, precision=_HIGHEST)
 
 
 class ResidualKernelEstimator(eqx.Module):
@@ -193,6 +265,7 @@ __all__ = [
     "CrossValidation",
     "KernelResidual",
     "ResidualKernelEstimator",
+    "ResidualVariance",
     "WienerEstimator",
     "as_estimator",
     "kernel_features",
