@@ -132,6 +132,8 @@ class Calibration(eqx.Module):
         itemsize = np.dtype(compute_dtype(self.dark, self)).itemsize
         check_sizes(self.bands, points, itemsize, self.image_shape)
         check_parameters(self, skip=FRAMES)
+        if residual is not None and residual.variance is not None:
+            check_variance(residual.variance)
         if all(_checks.is_concrete(x) for x in (self.coeffs, self.wiener, self.wiener_offset)):
             check_plausible(self.coeffs, self.wiener, self.wiener_offset, residual)
 
@@ -313,6 +315,22 @@ def check_parameters(tree, *, skip: tuple[str, ...] = ()) -> None:
         _checks.require_finite(name, leaf)
 
 
+def check_variance(variance) -> None:
+    """Raise ValueError, one line naming the array, unless the kernel residual's variance
+    (`estimation.ResidualVariance`, E15) has its prior s^2 and noise >= 0: they are variances
+    (a negative one would make the propagated uncertainty the square root of a negative number).
+    Traced values pass."""
+    for name in ("prior", "noise"):
+        values = getattr(variance, name)
+        if not _checks.is_concrete(values):
+            continue
+        values = np.asarray(values, np.float64)
+        bad = np.flatnonzero(~(values >= 0))
+        if bad.size:
+            raise ValueError(f"wiener_residual.variance.{name}: {values.flat[bad[0]]:.6g} at index {int(bad[0])}; "
+                             "expected variances >= 0")
+
+
 def _residual_term(inducing, weights, u) -> np.ndarray:
     """A k (n, 31) at whitened responses u (n, B), float64 (E8-E10 with the lengthscale folded)."""
     # |u - z|^2 expanded as `estimation.kernel_features` does: no (n, m, B) temporary.
@@ -403,4 +421,4 @@ def patch_bounding_box(patch) -> tuple[int, int, int, int] | None:
 
 __all__ = [
     "FRAMES", "MAX_BANDS", "MAX_CORRECTION_BYTES_PER_PIXEL", "MAX_INDUCING_POINTS", "PARAMETERS", "PLAUSIBLE_REFLECTANCE",
-    "check_parameters", "check_plausible", "check_sizes", "correction_bytes_per_pixel", "Calibration", "compute_dtype", "saturation_level", "patch_bounding_box"]
+    "check_parameters", "check_plausible", "check_variance", "check_sizes", "correction_bytes_per_pixel", "Calibration", "compute_dtype", "saturation_level", "patch_bounding_box"]

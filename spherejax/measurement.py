@@ -5,13 +5,16 @@ A spectrophotometer averages the light of its aperture and computes colour from 
 spectrum. `measure` does the same over a region of the image: the mean of the per-pixel
 reflectances (the estimate is affine, so this is the estimate of the mean Stage II response),
 then Lab of that mean under an illuminant. With a `NoiseModel`, the first-order covariance of
-both (`spherejax.uncertainty`, N1-N7), source by source:
+both (`spherejax.uncertainty`, N1-N8), source by source:
 
     pixel sources (sample, dark and white frames' noise, N1-N3): independent between pixels, so
       Cov(mean) = Σ_i w_i² J_i Σ_i J_iᵀ, which falls as 1 / (number of pixels);
     common sources (the white-patch ratio, the white standard, Stage II, the estimator, N4-N7):
       the same draw for every pixel, so the mean moves with the mean sensitivity,
-      Cov(mean) = J̄ Σ J̄ᵀ, which no region size averages away.
+      Cov(mean) = J̄ Σ J̄ᵀ, which no region size averages away;
+    the kernel residual's own variance (N8, a kernel estimator that carries it): the residual
+      is one function for every pixel, so its error at the region's mean response is the
+      error of the region's reflectance, Σ_j var_j(v̄) P_j P_jᵀ (E15), whatever the region's size.
 
 The region's pixels are weighted equally; pixels `correct` flags (saturated, non-finite, no flat
 field) are left out and counted.
@@ -220,6 +223,10 @@ def _region_statistics(raw_f, pixel_weights, p, p_u, constants: PixelConstants, 
         if noise.estimator_covariance is not None:
             scale = uncertainty.estimator_scale(mean_v_tilde, noise.estimator_covariance)
             budget[ESTIMATOR_SOURCE] = scale * noise.estimator_covariance.residual.astype(raw_f.dtype)
+        if residual is not None and residual.variance is not None:
+            # The region's reflectance is the estimate at its mean response (above): the
+            # residual's own uncertainty there, not the mean of the pixels' (E15).
+            budget[uncertainty.RESIDUAL_SOURCE] = uncertainty.residual_covariance(mean_v_tilde, residual)
     mean = estimate(mean_v_tilde)
     pixel_reflectance = estimate(v_tilde)
     spread = jnp.sqrt(jnp.sum(w[..., None] * (pixel_reflectance - mean) ** 2, axis=(0, 1)))

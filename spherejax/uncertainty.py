@@ -21,6 +21,15 @@ What is propagated (`NoiseModel`), per band b, in raw counts:
           the fit (`spherejax.polynomial.Stage2Fit.covariance`)
     N7  the reflectance estimator's parameters, from a finite set of targets
           (`spherejax.estimation.EstimatorCovariance`): Cov(r | x) = (x̃ᵀ G x̃) Σ_res
+    N8  the kernel residual's own predictive variance (E15 of `spherejax.estimation.estimator`,
+          `ResidualVariance`), where the calibration's estimator is the kernel one and carries
+          it (`Calibration.wiener_residual.variance`): at each pixel's v_tilde,
+          Cov(r) = Σ_j var_j(v_tilde) P_j P_jᵀ, so var(r_w) = Σ_j var_j P_jw² and
+          Cov(XYZ) = Σ_j var_j (P_jᵀ T)ᵀ (P_jᵀ T), T the tristimulus weights (31, 3). Not part of
+          the `NoiseModel`: it comes with the estimator, and is added whenever a noise model asks
+          for uncertainties. Its `noise` (the scatter of a target's measured reflectance about
+          the fit) is not added: it is the reference instrument's noise and the residual beyond
+          rank r, not an uncertainty of this estimate
 
 Bands are exposed separately, so N1-N6 are independent between bands, and the first three
 steps of the path act band by band: each source's effect on the Stage II response v_tilde is a
@@ -29,8 +38,8 @@ source give every source's standard deviation of v_tilde (..., B); the linear Wi
 carries them to reflectance and XYZ through its Jacobian (its matrix, taken with `jax.jacfwd`),
 and `jax.jvp` of `xyz_to_lab` at each pixel gives the 3 x 3 Jacobian of Lab.
 
-N1-N3 differ from pixel to pixel and average down over a region (`spherejax.measure`); N4-N7
-are common to every pixel of an image (N4) or of every image (N5-N7) and do not.
+N1-N3 differ from pixel to pixel and average down over a region (`spherejax.measure`); N4-N8
+are common to every pixel of an image (N4) or of every image (N5-N8) and do not.
 
 What first order leaves out, and where it breaks down (docs/uncertainty.md has the Monte Carlo
 comparison): ΔE00 near 0 (its distribution is a folded one, not Gaussian, and its derivative
@@ -64,7 +73,10 @@ PIXEL_SOURCES = ("sample frame", "dark frame", "white frame")
 COMMON_SOURCES = ("white-patch ratio", "white standard", "Stage II coefficients")
 #: The estimator's term (N7) acts on the reflectance, not on v_tilde.
 ESTIMATOR_SOURCE = "reflectance estimator"
-SOURCES = (*PIXEL_SOURCES, *COMMON_SOURCES, ESTIMATOR_SOURCE)
+#: The kernel residual's own variance (N8), on the reflectance too; only with a kernel estimator
+#: that carries it (`Calibration.wiener_residual.variance`).
+RESIDUAL_SOURCE = "kernel residual"
+SOURCES = (*PIXEL_SOURCES, *COMMON_SOURCES, ESTIMATOR_SOURCE, RESIDUAL_SOURCE)
 
 
 def _positive(name: str, x, *, minimum: float = 0.0, strict: bool = True) -> None:
@@ -349,6 +361,35 @@ def _kernel_estimate_variances(v_tilde, variance, j_affine, weights, residual):
     return reflectance_var, xyz_cov
 
 
+def residual_variances(v_tilde, residual, weights):
+    """N8: (reflectance variance (..., 31), XYZ covariance (..., 3, 3)) of the kernel residual's
+    own uncertainty at responses v_tilde (..., B) (E15), for a `KernelResidual` whose `variance`
+    is not None and tristimulus weights T (31, 3):
+
+        var(r_w) = Σ_j var_j(v) P_jw²,   Cov(XYZ) = Σ_j var_j(v) (P_jᵀ T)ᵀ (P_jᵀ T)
+
+    with P (r, 31) the residual's components and var_j (..., r) their predictive variances
+    (`ResidualVariance.component_variance`). The components are independent Gaussian processes
+    (E13-E15), hence a sum of rank-one terms."""
+    variance = residual.variance
+    component_var = variance.component_variance(residual.features(v_tilde))  # (..., r)
+    P = variance.components.astype(v_tilde.dtype)
+    reflectance_var = jnp.matmul(component_var, P * P, precision=_HIGHEST)
+    P_xyz = jnp.matmul(P, weights, precision=_HIGHEST)  # (r, 3): each component's XYZ
+    pairs = (P_xyz[:, :, None] * P_xyz[:, None, :]).reshape(P.shape[0], 9)
+    xyz_cov = jnp.matmul(component_var, pairs, precision=_HIGHEST).reshape(*component_var.shape[:-1], 3, 3)
+    return reflectance_var, xyz_cov
+
+
+def residual_covariance(v_tilde, residual):
+    """N8's full reflectance covariance (..., 31, 31) at responses v_tilde (..., B): Σ_j var_j(v)
+    P_j P_jᵀ (`residual_variances`; a region's mean, `spherejax.measure`)."""
+    variance = residual.variance
+    component_var = variance.component_variance(residual.features(v_tilde))
+    P = variance.components.astype(v_tilde.dtype)
+    return jnp.einsum("...j,jw,jx->...wx", component_var, P, P, precision=_HIGHEST)
+
+
 def lab_jacobian(xyz, white_xyz):
     """(..., 3, 3) ∂Lab/∂XYZ at every pixel: `xyz_to_lab` linearised once (`jax.linearize`),
     then one tangent per column (the map acts pixel by pixel, so a tangent of e_i at every pixel
@@ -380,7 +421,7 @@ def estimator_scale(v_tilde, estimator_covariance: EstimatorCovariance):
 
 
 def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
-    """Per-pixel standard uncertainties of reflectance and the covariance of Lab (N1-N7).
+    """Per-pixel standard uncertainties of reflectance and the covariance of Lab (N1-N8).
 
     Args:
       raw_f: (..., H, W, B) float; good: (..., H, W, 1) bool, the pixels `correct` keeps; p,
@@ -391,6 +432,9 @@ def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
 
     Returns:
       (reflectance_u (..., H, W, 31), lab_covariance (..., H, W, 3, 3)); NaN where not `good`.
+      With a kernel residual that carries its variance (`constants.wiener_residual.variance`),
+      its own uncertainty at each pixel's v_tilde (N8) is added; without one, nothing of N8 is
+      traced (the same program as before).
     """
     dark, white, coeffs = constants.dark, constants.white, constants.coeffs
     wiener, wiener_offset, weights = constants.wiener, constants.wiener_offset, constants.tristimulus_weights
@@ -420,6 +464,11 @@ def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
         reflectance_var = reflectance_var + scale * jnp.diagonal(residual)
         xyz_residual = jnp.matmul(weights.T, jnp.matmul(residual, weights, precision=_HIGHEST), precision=_HIGHEST)
         xyz_cov = xyz_cov + scale[..., None] * xyz_residual
+    residual = constants.wiener_residual
+    if residual is not None and residual.variance is not None:
+        own_reflectance_var, own_xyz_cov = residual_variances(v_tilde, residual, weights)
+        reflectance_var = reflectance_var + own_reflectance_var
+        xyz_cov = xyz_cov + own_xyz_cov
 
     xyz = jnp.matmul(v_tilde, j_xyz.T, precision=_HIGHEST) + jnp.matmul(wiener_offset, weights, precision=_HIGHEST)
     if constants.wiener_residual is not None:
@@ -466,12 +515,15 @@ __all__ = [
     "PIXEL_SOURCES",
     "COMMON_SOURCES",
     "ESTIMATOR_SOURCE",
+    "RESIDUAL_SOURCE",
     "check_noise",
     "band_problem",
     "patch_ratio_std",
     "band_tangents",
     "coefficient_variance",
     "linear_jacobians",
+    "residual_variances",
+    "residual_covariance",
     "lab_jacobian",
     "congruence_3x3",
     "estimator_scale",

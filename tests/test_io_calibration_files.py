@@ -113,7 +113,7 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert loaded.illuminant == "A" and loaded.observer == calibration.observer
     assert loaded.saturation == saturation and type(loaded.saturation) is type(saturation)
 
-    assert header["format"] == "spherejax-calibration" and header["format_version"] == 5
+    assert header["format"] == "spherejax-calibration" and header["format_version"] == 6
     assert header["noise_model"] is None  # none given (tests/test_noise_model_files.py: one given)
     assert header["software_version"] == sj.__version__
     assert header["instrument_id"] == "sim-sphere-1" and header["band_centres_nm"] == BANDS
@@ -128,7 +128,7 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert header["arrays"]["wiener_offset"]["shape"] == [31]
     assert header["arrays"]["wiener_offset"]["dtype"] == np.dtype(dtype).str
     assert "r0" in header["arrays"]["wiener_offset"]["description"]
-    # An affine estimator: a kernel residual of m = 0 inducing points (format version 5).
+    # An affine estimator: a kernel residual of m = 0 inducing points (format version 5 on), no variance arrays.
     assert [header["arrays"][name]["shape"] for name in RESIDUAL] == [[B], [B, B], [0, B], [31, 0]]
     assert loaded.wiener_residual is None
     for name, entry in header["arrays"].items():
@@ -412,11 +412,11 @@ def test_load_calibration_dataset_of_the_wrong_dtype(calibration_path):
 
 
 def test_load_calibration_version_in_the_other_container(calibration_path, tmp_path):
-    """Format versions 4 and 5 are HDF5, versions 1 to 3 an .npz: either in the other is refused."""
+    """Format versions 4 on are HDF5, versions 1 to 3 an .npz: either in the other is refused."""
     entries = calibration_entries(calibration_path)
-    rewrite_file(tmp_path / "v5.npz", entries, container="npz")
-    with refused(CalibrationFileError, tmp_path / "v5.npz", r"is an \.npz archive of format version 5 \(expected HDF5 from"):
-        io.load_calibration(tmp_path / "v5.npz")
+    rewrite_file(tmp_path / "v6.npz", entries, container="npz")
+    with refused(CalibrationFileError, tmp_path / "v6.npz", r"is an \.npz archive of format version 6 \(expected HDF5 from"):
+        io.load_calibration(tmp_path / "v6.npz")
     entries = {k: v for k, v in entries.items() if k not in RESIDUAL}
     header = {**header_of(calibration_entries(calibration_path)), "format_version": 3}
     header["arrays"] = {k: v for k, v in header["arrays"].items() if k not in RESIDUAL}
@@ -435,11 +435,11 @@ def test_load_calibration_wrong_format(calibration_path):
 
 def test_load_calibration_newer_version(calibration_path):
     entries = calibration_entries(calibration_path)
-    header = {**header_of(entries), "format_version": 6, "new_field": "whatever a newer one adds"}
+    header = {**header_of(entries), "format_version": 7, "new_field": "whatever a newer one adds"}
     rewrite_file(calibration_path, entries, header)
     match = (
-        "is spherejax-calibration format version 6, newer than spherejax 0.1.0 reads "
-        r"\(expected format version 5 or older; upgrade spherejax"
+        "is spherejax-calibration format version 7, newer than spherejax 0.1.0 reads "
+        r"\(expected format version 6 or older; upgrade spherejax"
     )
     with refused(CalibrationFileError, calibration_path, match):
         io.load_calibration(calibration_path)
@@ -657,7 +657,7 @@ def test_old_version_3_npz_gives_the_same_calibration(tmp_path, rng, monkeypatch
     written = write_older(old, calibration, 3)
     (from_new, _), (from_old, header) = io.load_calibration(new), io.load_calibration(old, band_centres_nm=BANDS)
     assert header == written and header["format_version"] == 3
-    for name in (name for name in io.CALIBRATION_ARRAYS if name not in RESIDUAL):
+    for name in (name for name in io.CALIBRATION_ARRAYS if not name.startswith("wiener_residual")):
         assert np.asarray(getattr(from_old, name)).tobytes() == np.asarray(getattr(from_new, name)).tobytes(), name
     assert from_old.wiener_residual is None and from_new.wiener_residual is None
     assert (from_old.illuminant, from_old.observer, from_old.saturation) == (from_new.illuminant, from_new.observer, from_new.saturation)

@@ -107,16 +107,19 @@ and a region is
 Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
 camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
 
-Calibration file (format "spherejax-calibration", version 5)
+Calibration file (format "spherejax-calibration", version 6)
 ------------------------------------------------------------
 An HDF5 file (h5py; told by its first 8 bytes, b"\\x89HDF\\r\\n\\x1a\\n", not its name,
 conventionally .h5) whose root group holds one dataset per array of a `Calibration`
     dark (H, W, B), white (H, W, B), patch (H, W) bool, coeffs (B, 4), wiener (31, B),
     wiener_offset (31,), wiener_residual_centre (B,), wiener_residual_whitening (B, B),
     wiener_residual_inducing (m, B), wiener_residual_weights (31, m)
+and, optionally (all five or none), wiener_residual_variance_components (r, 31),
+    wiener_residual_variance_prior (r,), wiener_residual_variance_projection (m, q),
+    wiener_residual_variance_weights (r, q), wiener_residual_variance_noise (31,)
 each with its meaning as the string attribute "description", and nothing else; and the root's
 attribute "header", a string of UTF-8 JSON:
-    {"format": "spherejax-calibration", "format_version": 5, "software_version",
+    {"format": "spherejax-calibration", "format_version": 6, "software_version",
      "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
      "saturation": number or null, "created": UTC ISO 8601,
      "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
@@ -129,7 +132,8 @@ storage). Read it with ``json.loads(h5py.File(path)["/"].attrs["header"])`` and
 the header JSON without the "checksum" field, serialised with sorted keys, separators "," and ":"
 and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
 wiener, wiener_offset, wiener_residual_centre, wiener_residual_whitening, wiener_residual_inducing,
-wiener_residual_weights, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
+wiener_residual_weights and, when present, wiener_residual_variance_components, _prior,
+_projection, _weights and _noise, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
 the array's raw bytes in C order (as h5py reads the dataset: a bool patch is one byte per
 pixel, 0 or 1). It is computed from the parsed header, so the stored JSON's layout does not
 matter, and it is the same in both containers. "metadata" is free JSON from the writer
@@ -141,6 +145,11 @@ k_j(v) = exp(-|S (v - mu) - z_j|^2 / 2), mu the "wiener_residual_centre", S the
 "wiener_residual_whitening" (the lengthscale folded in), z_j the rows of
 "wiener_residual_inducing" and A the "wiener_residual_weights". An affine estimator has m = 0
 (no inducing point: k and A k are empty and zero) and zeros for mu and S.
+The "wiener_residual_variance_*" arrays are the residual's own predictive variance (E15,
+`spherejax.estimation.ResidualVariance`: P, s^2, X, C and the targets' scatter), which the
+uncertainties add (`spherejax.uncertainty`, N8): var_j(v) = s_j^2 (1 - |g|^2) + sum_i C_ji g_i^2,
+g = X^T k(v), and Cov(r) = sum_j var_j P_j P_j^T; m >= 1, 1 <= r <= 31, q <= m, prior and noise
+finite and >= 0.
 
 "noise_model" (optional; absent or null: none) is the camera's noise and the calibration's
 uncertainties for per-pixel uncertainties (`spherejax.uncertainty.NoiseModel`, as its
@@ -157,12 +166,13 @@ every value back exactly):
        estimator's sampling covariance, `spherejax.EstimatorCovariance`), or null}
 All numbers finite. Only "gain_e_per_count" and "read_noise_counts" are required inside it.
 
-Older versions are still read (whole). Version 4 is version 5 without the four
+Older versions are still read (whole). Version 5 is version 6 without the variance's five
+arrays (a residual without its variance; any found there are refused). Version 4 is version 5 without the four
 "wiener_residual_*" arrays (an affine estimator), in the header's "arrays" and in the checksum.
 Version 3 is version 4 in an .npz archive
 (`numpy.savez`, no pickled objects; told by its first bytes, b"PK\\x03\\x04"), read with
 `numpy.load(allow_pickle=False)`: one .npy member per array and "header", a uint8 array of the
-same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Versions 4 and 5 are HDF5
+same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Versions 4 to 6 are HDF5
 only and versions 1 to 3 .npz only.
 Version 2 is version 3 without "noise_model" (no noise model;
 a null one is read as absent, any other is refused).

@@ -23,7 +23,7 @@ from .documents import (
 from .errors import CalibrationFileError, _one_line, _show
 
 CALIBRATION_FORMAT = "spherejax-calibration"
-CALIBRATION_FORMAT_VERSION = 5
+CALIBRATION_FORMAT_VERSION = 6
 #: Arrays of a calibration file in checksum order, with the description stored in its header.
 CALIBRATION_ARRAYS = {
     "dark": "dark frame (H, W, B) in raw counts, subtracted in the flat field (Eq. 10)",
@@ -44,15 +44,34 @@ CALIBRATION_ARRAYS = {
     "wiener_residual_weights": "kernel residual, A (31, m): reflectance = wiener @ v_tilde + wiener_offset "
     "+ A @ exp(-|S (v_tilde - mu) / l - z_j / l|^2 / 2) (E8; m = 0 for an affine estimator; new in format "
     "version 5)",
+    # The kernel residual's own uncertainty (E15, `estimation.ResidualVariance`): optional, all five or none.
+    "wiener_residual_variance_components": "kernel residual's predictive variance, P (r, 31): the residual's r "
+    "principal directions; its reflectance covariance is sum_j var_j P_j P_j^T (E13, E15; optional, new in "
+    "format version 6)",
+    "wiener_residual_variance_prior": "kernel residual's predictive variance, s^2 (r,) >= 0: each component's "
+    "signal variance, its variance far from the targets (E15; optional, new in format version 6)",
+    "wiener_residual_variance_projection": "kernel residual's predictive variance, X (m, q): X X^T = K_mm^-1, "
+    "g = X^T k(v_tilde) (E15; optional, new in format version 6)",
+    "wiener_residual_variance_weights": "kernel residual's predictive variance, C (r, q): var_j = s_j^2 "
+    "(1 - |g|^2) + sum_i C_ji g_i^2 (E15; optional, new in format version 6)",
+    "wiener_residual_variance_noise": "kernel residual's predictive variance, (31,) >= 0: a target's scatter "
+    "about the fit per wavelength, reflectance squared (E15; optional, new in format version 6)",
 }
 #: The arrays of a kernel residual (`estimation.KernelResidual`: centre, whitening, inducing,
 #: weights), in that order; m = 0 rows of inducing points for an affine estimator.
 RESIDUAL_ARRAYS = ("wiener_residual_centre", "wiener_residual_whitening", "wiener_residual_inducing", "wiener_residual_weights")
-_AFFINE_ARRAYS = tuple(name for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS)
+#: The arrays of the kernel residual's predictive variance (`estimation.ResidualVariance`:
+#: components, prior, projection, weights, noise), in that order: format version 6 on, optional
+#: (a file holds all five, or none: a residual without its variance, or an affine estimator).
+VARIANCE_ARRAYS = tuple(f"wiener_residual_variance_{field}" for field in ("components", "prior", "projection", "weights", "noise"))
+_AFFINE_ARRAYS = tuple(name for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS + VARIANCE_ARRAYS)
+#: The arrays every file of the current format version holds.
+_REQUIRED_ARRAYS = _AFFINE_ARRAYS + RESIDUAL_ARRAYS
 #: The arrays of an older calibration format version, where they differ from CALIBRATION_ARRAYS.
 _OLDER_CALIBRATION_ARRAYS = {
     1: tuple(name for name in _AFFINE_ARRAYS if name != "wiener_offset"),
     **dict.fromkeys((2, 3, 4), _AFFINE_ARRAYS),
+    5: _REQUIRED_ARRAYS,
 }
 #: The calibration format version that added the header's "noise_model".
 _NOISE_MODEL_SINCE = 3
@@ -65,9 +84,13 @@ _MAX_HEADER_BYTES = 16 << 20
 
 def _calibration_arrays(header: Mapping) -> tuple[str, ...]:
     """The names of the arrays a calibration file of the header's format version holds, in
-    checksum order (version 1 has no wiener_offset). Call after the version was checked."""
+    checksum order (version 1 has no wiener_offset; from version 6 on, the residual's variance
+    arrays that the header's "arrays" lists). Call after the version was checked."""
     version = header.get("format_version", CALIBRATION_FORMAT_VERSION)
-    return _OLDER_CALIBRATION_ARRAYS.get(version, tuple(CALIBRATION_ARRAYS))
+    if version in _OLDER_CALIBRATION_ARRAYS:
+        return _OLDER_CALIBRATION_ARRAYS[version]
+    listed = header.get("arrays", {})
+    return _REQUIRED_ARRAYS + tuple(name for name in VARIANCE_ARRAYS if name in listed)
 
 
 def _array_entry(name: str, array: np.ndarray) -> dict:
@@ -102,11 +125,20 @@ class _ArraysV2(_ArraysV1):
     wiener_offset: _Entry
 
 
-class _Arrays(_ArraysV2):
+class _ArraysV5(_ArraysV2):
     wiener_residual_centre: _Entry
     wiener_residual_whitening: _Entry
     wiener_residual_inducing: _Entry
     wiener_residual_weights: _Entry
+
+
+class _Arrays(_ArraysV5):
+    # Absent (the default) when the residual carries no variance; never null.
+    wiener_residual_variance_components: _Entry = None
+    wiener_residual_variance_prior: _Entry = None
+    wiener_residual_variance_projection: _Entry = None
+    wiener_residual_variance_weights: _Entry = None
+    wiener_residual_variance_noise: _Entry = None
 
 
 class _CalibrationHeader(Document):
@@ -135,8 +167,13 @@ class _CalibrationHeaderV2(_CalibrationHeader):
     arrays: Annotated[_ArraysV2, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[2])}")]
 
 
+class _CalibrationHeaderV5(_CalibrationHeader):
+    arrays: Annotated[_ArraysV5, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[5])}")]
+
+
 #: The header's document of each older format version (the current one: _CalibrationHeader).
-_OLDER_HEADERS = {1: _CalibrationHeaderV1, 2: _CalibrationHeaderV2, 3: _CalibrationHeaderV2, 4: _CalibrationHeaderV2}
+_OLDER_HEADERS = {1: _CalibrationHeaderV1, 2: _CalibrationHeaderV2, 3: _CalibrationHeaderV2, 4: _CalibrationHeaderV2,
+                  5: _CalibrationHeaderV5}
 
 
 def _check_calibration_header(path, header) -> None:
@@ -195,6 +232,13 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
     _check_calibration_header(path, header)
     names = _calibration_arrays(header)
     version = header["format_version"]
+    listed = [name for name in VARIANCE_ARRAYS if name in names]
+    if listed and len(listed) != len(VARIANCE_ARRAYS):
+        raise CalibrationFileError(
+            path, f"header.arrays lists {listed} of the kernel residual's variance but not "
+            f"{[name for name in VARIANCE_ARRAYS if name not in listed]}",
+            f"all of {list(VARIANCE_ARRAYS)} or none",
+        )
     missing = [name for name in names if name not in arrays]
     if missing:
         raise CalibrationFileError(
@@ -249,6 +293,8 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
         check_sizes(len(bands), points, 4, arrays["dark"].shape[:2])
     except ValueError as error:
         raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
+    if VARIANCE_ARRAYS[0] in names:
+        _check_variance_shapes(path, points, *(arrays[name].shape for name in VARIANCE_ARRAYS))
 
 
 
@@ -274,6 +320,38 @@ def _check_residual_shapes(path, bands: int, centre, whitening, inducing, weight
                 path, f"array {name!r} has shape {list(shape)}",
                 f"a kernel residual of the {bands} bands: centre ({bands},), whitening ({bands}, {bands}), "
                 f"inducing (m, {bands}) and weights (31, m), m >= 0 (0: an affine estimator)",
+            )
+
+
+def _check_variance_shapes(path, m: int, components, prior, projection, weights, noise) -> None:
+    """The residual variance's arrays fit the residual's m inducing points (m >= 1: an affine
+    estimator has no variance), the 31 wavelengths, one rank r <= 31 and one q <= m (E15)."""
+    expected_text = (f"a kernel residual's variance for its {m} inducing points: components (r, 31), prior (r,), "
+                     f"projection ({m}, q), weights (r, q) and noise (31,), 1 <= r <= 31, 0 <= q <= {m}")
+    if m == 0:
+        raise CalibrationFileError(
+            path, f"array {VARIANCE_ARRAYS[0]!r} holds a kernel residual's variance with no inducing point (m = 0)",
+            "no variance arrays for an affine estimator",
+        )
+    r = components[0] if len(components) == 2 else -1
+    q = projection[1] if len(projection) == 2 else -1
+    expected = {VARIANCE_ARRAYS[0]: (r, N_WAVELENGTHS), VARIANCE_ARRAYS[1]: (r,), VARIANCE_ARRAYS[2]: (m, q),
+                VARIANCE_ARRAYS[3]: (r, q), VARIANCE_ARRAYS[4]: (N_WAVELENGTHS,)}
+    for name, shape in zip(VARIANCE_ARRAYS, (components, prior, projection, weights, noise)):
+        if tuple(shape) != expected[name] or not 1 <= r <= N_WAVELENGTHS or not 0 <= q <= m:
+            raise CalibrationFileError(path, f"array {name!r} has shape {list(shape)}", expected_text)
+
+
+def check_variance_values(path, prior: np.ndarray, noise: np.ndarray) -> None:
+    """The residual variance's prior s^2 and noise are variances: finite and >= 0 (E15). One line
+    naming the dataset, the first value found outside and what was expected."""
+    for name, values in ((VARIANCE_ARRAYS[1], prior), (VARIANCE_ARRAYS[4], noise)):
+        values = np.asarray(values, np.float64)
+        bad = np.flatnonzero(~(values >= 0))  # NaN too
+        if bad.size:
+            raise CalibrationFileError(
+                path, f"array {name!r} holds {values.flat[bad[0]]:.6g} at index {int(bad[0])} ({bad.size} entries "
+                "not finite and >= 0)", "variances: finite numbers >= 0",
             )
 
 

@@ -28,8 +28,9 @@ from ..uncertainty import NoiseModel
 # `_utc_now` and `IN_MEMORY_BYTES` here. The block sizes `_READ_BLOCK` and `_CHUNK_BYTES` are read
 # in `calibration_hdf5` (patch them there) and are not re-exported, so a patch here fails loudly.
 from .calibration_checks import (
-    CALIBRATION_ARRAYS, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, RESIDUAL_ARRAYS, _HDF5_SINCE, _array_entry,
-    _check_calibration_contents, _check_no_residual, _decode_header, _require_usable_patch, noise_model_of,
+    CALIBRATION_ARRAYS, CALIBRATION_FORMAT, CALIBRATION_FORMAT_VERSION, RESIDUAL_ARRAYS, VARIANCE_ARRAYS, _HDF5_SINCE,
+    _array_entry, _check_calibration_contents, _check_no_residual, _decode_header, _require_usable_patch,
+    check_variance_values, noise_model_of,
 )
 from .calibration_hdf5 import (
     _EXPECTED_FILE, _StoredArray, _checksum, _container, _hdf5_errors, _index_hdf5, _write_hdf5,
@@ -93,7 +94,8 @@ def save_calibration(
     with _reraise_invalid(path):
         # Built calibrations were checked; one made by jax.tree_util.tree_map never was.
         calibration.check_values()
-    arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS}
+    arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS
+              if name not in RESIDUAL_ARRAYS + VARIANCE_ARRAYS}
     arrays.update(_residual_arrays(calibration))
     header = {
         "format": CALIBRATION_FORMAT,
@@ -120,7 +122,8 @@ def save_calibration(
 
 def _residual_arrays(calibration: Calibration) -> dict[str, np.ndarray]:
     """The kernel residual's arrays as stored (`RESIDUAL_ARRAYS`): the calibration's, or those of
-    no residual (m = 0 inducing points, zeros) for an affine estimator."""
+    no residual (m = 0 inducing points, zeros) for an affine estimator; and its variance's
+    (`VARIANCE_ARRAYS`) when it carries one (E15)."""
     residual = calibration.wiener_residual
     if residual is None:
         bands, dtype = calibration.bands, np.asarray(calibration.wiener).dtype
@@ -128,7 +131,12 @@ def _residual_arrays(calibration: Calibration) -> dict[str, np.ndarray]:
                   np.zeros((N_WAVELENGTHS, 0), dtype))
     else:
         values = (residual.centre, residual.whitening, residual.inducing, residual.weights)
-    return {name: np.asarray(value) for name, value in zip(RESIDUAL_ARRAYS, values)}
+    arrays = {name: np.asarray(value) for name, value in zip(RESIDUAL_ARRAYS, values)}
+    variance = None if residual is None else residual.variance
+    if variance is not None:
+        values = (variance.components, variance.prior, variance.projection, variance.weights, variance.noise)
+        arrays.update({name: np.asarray(value) for name, value in zip(VARIANCE_ARRAYS, values)})
+    return arrays
 
 
 def _native(array: np.ndarray) -> np.ndarray:
@@ -184,6 +192,8 @@ class CalibrationFile:
                 # and naming the array as the file does; new arrays are covered without a list.
                 if name not in _FRAME_ARRAYS:
                     require_finite(name, self._value(name))
+            if VARIANCE_ARRAYS[0] in arrays:
+                check_variance_values(path, self._value(VARIANCE_ARRAYS[1]), self._value(VARIANCE_ARRAYS[4]))
             self.patch_box = patch_bounding_box(self._value("patch"))
             if self.patch_box is None:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
@@ -213,13 +223,17 @@ class CalibrationFile:
     def _small_arrays(self) -> dict:
         """What every part of the calibration shares: coeffs, wiener, wiener_offset and the
         estimator's kernel residual (None when the file has none: format version 4 and older,
-        or m = 0)."""
+        or m = 0), with its variance (None when the file has none: format version 5 and older,
+        or a residual stored without it)."""
         small = {name: self._value(name) for name in ("coeffs", "wiener", "wiener_offset")}
         residual = None
         if RESIDUAL_ARRAYS[0] in self._arrays and self._arrays["wiener_residual_inducing"].shape[0] > 0:
-            from ..estimation import KernelResidual
+            from ..estimation.estimator import KernelResidual, ResidualVariance
 
-            residual = KernelResidual(*(jnp.asarray(self._value(name)) for name in RESIDUAL_ARRAYS))
+            variance = None
+            if VARIANCE_ARRAYS[0] in self._arrays:
+                variance = ResidualVariance(*(jnp.asarray(self._value(name)) for name in VARIANCE_ARRAYS))
+            residual = KernelResidual(*(jnp.asarray(self._value(name)) for name in RESIDUAL_ARRAYS), variance=variance)
         return {**small, "wiener_residual": residual}
 
     @property

@@ -37,18 +37,25 @@ FIELD_OF = {
     "coeffs": ("coeffs",), "wiener": ("wiener",), "wiener_offset": ("wiener_offset",),
     "wiener_residual_centre": ("wiener_residual", "centre"), "wiener_residual_whitening": ("wiener_residual", "whitening"),
     "wiener_residual_inducing": ("wiener_residual", "inducing"), "wiener_residual_weights": ("wiener_residual", "weights"),
+    **{f"wiener_residual_variance_{name}": ("wiener_residual", "variance", name)
+       for name in ("components", "prior", "projection", "weights", "noise")},
 }
 PARAMETER_ARRAYS = [name for name in io.CALIBRATION_ARRAYS if name not in calibration_hdf5._FRAME_ARRAYS]
 
 
 def kernel_calibration(rng=None) -> sj.Calibration:
-    """A plausible calibration with a kernel residual of 8 inducing points."""
+    """A plausible calibration with a kernel residual of 8 inducing points and its variance (E15,
+    rank 2)."""
     rng = np.random.default_rng(11) if rng is None else rng
     patch = np.zeros((H, W), bool)
     patch[2:5, 2:5] = True
+    variance = estimation.estimator.ResidualVariance(*(jnp.asarray(x, jnp.float32) for x in (
+        rng.normal(size=(2, 31)), rng.uniform(1e-6, 1e-5, 2), rng.normal(size=(8, 8)), rng.uniform(0, 1e-6, (2, 8)),
+        np.full(31, 1e-7))))
     residual = estimation.KernelResidual(
         jnp.asarray(rng.uniform(0.2, 0.6, B), jnp.float32), jnp.asarray(np.eye(B) * 3.0, jnp.float32),
         jnp.asarray(rng.normal(size=(8, B)), jnp.float32), jnp.asarray(rng.normal(scale=0.05, size=(31, 8)), jnp.float32),
+        variance=variance,
     )
     return sj.Calibration(
         dark=rng.uniform(50, 60, (H, W, B)).astype(np.float32), white=rng.uniform(9000, 12000, (H, W, B)).astype(np.float32),
@@ -65,9 +72,15 @@ def with_array(calibration: sj.Calibration, name: str, value: np.ndarray, *, che
     if checked:
         if len(field) == 1:
             return dataclasses.replace(calibration, **{field[0]: value})
-        residual = dataclasses.replace(calibration.wiener_residual, **{field[1]: jnp.asarray(value)})
+        if len(field) == 3:  # the residual's variance
+            variance = dataclasses.replace(calibration.wiener_residual.variance, **{field[2]: jnp.asarray(value)})
+            residual = dataclasses.replace(calibration.wiener_residual, variance=variance)
+        else:
+            residual = dataclasses.replace(calibration.wiener_residual, **{field[1]: jnp.asarray(value)})
         return dataclasses.replace(calibration, wiener_residual=residual)
-    target = getattr(calibration, field[0]) if len(field) == 1 else getattr(calibration.wiener_residual, field[1])
+    target = calibration
+    for part in field:
+        target = getattr(target, part)
     return jax.tree_util.tree_map(lambda leaf: jnp.asarray(value) if leaf is target else leaf, calibration)
 
 
@@ -119,8 +132,8 @@ def one_line(error) -> str:
 # ------------------------------------------------------------------------------------ finite
 
 def test_every_parameter_array_of_the_file_is_covered():
-    """The arrays damaged below are every array of a calibration file but the frames: the seven of
-    format version 5 (if the format grows, FIELD_OF must name the new array's field)."""
+    """The arrays damaged below are every array of a calibration file but the frames: the twelve of
+    format version 6 (if the format grows, FIELD_OF must name the new array's field)."""
     assert set(PARAMETER_ARRAYS) == set(FIELD_OF)
 
 
