@@ -24,7 +24,8 @@ from .errors import CalibrationFileError, _one_line, _show
 
 CALIBRATION_FORMAT = "spherejax-calibration"
 CALIBRATION_FORMAT_VERSION = 6
-#: Arrays of a calibration file in checksum order, with the description stored in its header.
+#: Arrays every calibration file of the current format version holds, in checksum order, with the
+#: description stored in its header (the optional ones: `VARIANCE_DESCRIPTIONS`).
 CALIBRATION_ARRAYS = {
     "dark": "dark frame (H, W, B) in raw counts, subtracted in the flat field (Eq. 10)",
     "white": "white-standard frame (H, W, B) in raw counts at the samples' exposure (Eq. 10)",
@@ -44,7 +45,10 @@ CALIBRATION_ARRAYS = {
     "wiener_residual_weights": "kernel residual, A (31, m): reflectance = wiener @ v_tilde + wiener_offset "
     "+ A @ exp(-|S (v_tilde - mu) / l - z_j / l|^2 / 2) (E8; m = 0 for an affine estimator; new in format "
     "version 5)",
-    # The kernel residual's own uncertainty (E15, `estimation.ResidualVariance`): optional, all five or none.
+}
+#: The optional arrays of a calibration file, stored after CALIBRATION_ARRAYS in checksum order: the
+#: kernel residual's own uncertainty (E15, `estimation.ResidualVariance`), all five or none.
+VARIANCE_DESCRIPTIONS = {
     "wiener_residual_variance_components": "kernel residual's predictive variance, P (r, 31): the residual's r "
     "principal directions; its reflectance covariance is sum_j var_j P_j P_j^T (E13, E15; optional, new in "
     "format version 6)",
@@ -63,10 +67,12 @@ RESIDUAL_ARRAYS = ("wiener_residual_centre", "wiener_residual_whitening", "wiene
 #: The arrays of the kernel residual's predictive variance (`estimation.ResidualVariance`:
 #: components, prior, projection, weights, noise), in that order: format version 6 on, optional
 #: (a file holds all five, or none: a residual without its variance, or an affine estimator).
-VARIANCE_ARRAYS = tuple(f"wiener_residual_variance_{field}" for field in ("components", "prior", "projection", "weights", "noise"))
-_AFFINE_ARRAYS = tuple(name for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS + VARIANCE_ARRAYS)
+VARIANCE_ARRAYS = tuple(VARIANCE_DESCRIPTIONS)
+#: Every array a calibration file may hold, with its description.
+ARRAY_DESCRIPTIONS = {**CALIBRATION_ARRAYS, **VARIANCE_DESCRIPTIONS}
+_AFFINE_ARRAYS = tuple(name for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS)
 #: The arrays every file of the current format version holds.
-_REQUIRED_ARRAYS = _AFFINE_ARRAYS + RESIDUAL_ARRAYS
+_REQUIRED_ARRAYS = tuple(CALIBRATION_ARRAYS)
 #: The arrays of an older calibration format version, where they differ from CALIBRATION_ARRAYS.
 _OLDER_CALIBRATION_ARRAYS = {
     1: tuple(name for name in _AFFINE_ARRAYS if name != "wiener_offset"),
@@ -98,7 +104,7 @@ def _array_entry(name: str, array: np.ndarray) -> dict:
     return {
         "shape": list(array.shape),
         "dtype": array.dtype.str,
-        "description": CALIBRATION_ARRAYS[name],
+        "description": ARRAY_DESCRIPTIONS[name],
     }
 
 

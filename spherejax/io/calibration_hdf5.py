@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import interrupt
 from ..atomic_files import atomic_file
-from .calibration_checks import CALIBRATION_ARRAYS, _calibration_arrays
+from .calibration_checks import ARRAY_DESCRIPTIONS, _calibration_arrays
 from .documents import _canonical_json, _readable_json
 from .errors import CalibrationFileError, SpherejaxFileError, _show
 from .library_messages import hdf5_problem, library_detail
@@ -410,7 +410,7 @@ def _write_hdf5(path: pathlib.Path, header: dict, arrays: Mapping[str, np.ndarra
                 stored.attrs["header"] = _readable_json(header)  # a UTF-8 string: h5dump shows the JSON
                 for name, array in arrays.items():
                     chunks = _row_chunks(array.shape, array.dtype.itemsize) if name in _FRAME_ARRAYS else None
-                    stored.create_dataset(name, data=array, chunks=chunks).attrs["description"] = CALIBRATION_ARRAYS[name]
+                    stored.create_dataset(name, data=array, chunks=chunks).attrs["description"] = ARRAY_DESCRIPTIONS[name]
             if keeping.error is not None:
                 raise keeping.error
             # A safe point before the rename: a stop that came while HDF5 wrote (only recorded

@@ -40,7 +40,8 @@ FIELD_OF = {
     **{f"wiener_residual_variance_{name}": ("wiener_residual", "variance", name)
        for name in ("components", "prior", "projection", "weights", "noise")},
 }
-PARAMETER_ARRAYS = [name for name in io.CALIBRATION_ARRAYS if name not in calibration_hdf5._FRAME_ARRAYS]
+PARAMETER_ARRAYS = [name for name in (*io.CALIBRATION_ARRAYS, *io.calibration_checks.VARIANCE_ARRAYS)
+                    if name not in calibration_hdf5._FRAME_ARRAYS]
 
 
 def kernel_calibration(rng=None) -> sj.Calibration:
