@@ -39,7 +39,8 @@ carries them to reflectance and XYZ through its Jacobian (its matrix, taken with
 and `jax.jvp` of `xyz_to_lab` at each pixel gives the 3 x 3 Jacobian of Lab.
 
 N1-N3 differ from pixel to pixel and average down over a region (`spherejax.measure`); N4-N8
-are common to every pixel of an image (N4) or of every image (N5-N8) and do not.
+are common to every pixel of an image (N4) or of every image (N5-N8) and do not (N8 is one
+function for every pixel, its variance taken at each pixel's response).
 
 What first order leaves out, and where it breaks down (docs/uncertainty.md has the Monte Carlo
 comparison): ΔE00 near 0 (its distribution is a folded one, not Gaussian, and its derivative
@@ -464,9 +465,9 @@ def pixel_uncertainty(raw_f, good, p, p_std, constants, noise: NoiseModel):
         reflectance_var = reflectance_var + scale * jnp.diagonal(residual)
         xyz_residual = jnp.matmul(weights.T, jnp.matmul(residual, weights, precision=_HIGHEST), precision=_HIGHEST)
         xyz_cov = xyz_cov + scale[..., None] * xyz_residual
-    residual = constants.wiener_residual
-    if residual is not None and residual.variance is not None:
-        own_reflectance_var, own_xyz_cov = residual_variances(v_tilde, residual, weights)
+    kernel = constants.wiener_residual
+    if kernel is not None and kernel.variance is not None:
+        own_reflectance_var, own_xyz_cov = residual_variances(v_tilde, kernel, weights)
         reflectance_var = reflectance_var + own_reflectance_var
         xyz_cov = xyz_cov + own_xyz_cov
 
