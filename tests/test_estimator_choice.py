@@ -5,6 +5,8 @@ estimator only where cross-validation shows a real gain over the best affine met
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -52,7 +54,8 @@ def nonlinear():
 
 def test_auto_takes_the_kernel_estimator_exactly_when_the_rule_says(nonlinear, monkeypatch):
     """The same targets, the same reports, the choice moved only by the thresholds: above the
-    gain the cross-validation shows, the affine estimator, with the kernel's report last."""
+    gain the cross-validation shows, the affine estimator, with the kernel's report after the
+    affine methods' and the local method's (reported, never taken) last."""
     V, R = nonlinear
     chosen = estimation.fit_wiener(V, R)
     assert isinstance(chosen, estimation.ResidualKernelEstimator) and chosen.method == "kernel"
@@ -62,8 +65,9 @@ def test_auto_takes_the_kernel_estimator_exactly_when_the_rule_says(nonlinear, m
     monkeypatch.setattr(estimation, "KERNEL_MIN_GAIN", settings["gain"] + 0.01)
     affine = estimation.fit_wiener(V, R)
     assert isinstance(affine, estimation.WienerEstimator) and affine.method == chosen.affine.method
-    assert [c.method for c in affine.cross_validation][-1] == "kernel"
-    assert affine.cross_validation[-1] == chosen.cross_validation[0]
+    assert [c.method for c in affine.cross_validation][-2:] == ["kernel", "local"]
+    assert affine.cross_validation[-2] == chosen.cross_validation[0]
+    assert affine.cross_validation[-1] == chosen.cross_validation[-1]
     np.testing.assert_array_equal(np.asarray(affine.matrix), np.asarray(chosen.affine.matrix))
     monkeypatch.setattr(estimation, "KERNEL_MIN_GAIN", 0.05)
     monkeypatch.setattr(estimation, "KERNEL_MIN_Z", settings["paired_z"] + 1)
@@ -79,8 +83,9 @@ def test_targets_an_affine_map_explains_keep_the_affine_estimator():
     R = 0.2 + V @ rng.normal(scale=0.05, size=(16, 31)) + rng.normal(scale=0.01, size=(150, 31))
     estimator = sj.fit_wiener(V, R)
     assert isinstance(estimator, estimation.WienerEstimator)
-    kernel = estimator.cross_validation[-1]
+    kernel, local = estimator.cross_validation[-2:]
     assert kernel.method == "kernel" and kernel.folds == "5 folds of targets drawn at random (seed 0)"
+    assert local.method == "local" and local.folds == kernel.folds
     settings = dict(kernel.settings)
     assert settings["gain"] < estimation.KERNEL_MIN_GAIN or settings["paired_z"] < estimation.KERNEL_MIN_Z
 
@@ -122,6 +127,11 @@ def test_the_report_table_names_the_kernel_estimator_s_own_folds(nonlinear):
                         "5 folds of targets drawn at random (seed 0))")
     kernel_line = next(line for line in lines if line.startswith("* kernel"))
     assert "gain=" in kernel_line and "paired_z=" in kernel_line and "folds=" not in kernel_line
-    affine_lines = [line for line in lines[2:] if not line.startswith("* kernel")]
+    # The lengthscales as their range; every (m, r) tried stays in the file's report, not the table.
+    assert re.search(r"lengthscales=[0-9.e+-]+\.\.[0-9.e+-]+,", kernel_line) and "tried=" not in kernel_line
+    affine_lines = [line for line in lines[2:] if line.startswith(("  training", "  model"))]
     assert len(affine_lines) == 2
     assert all(line.endswith(", folds=5 folds of spectrally alike targets (k-means)") for line in affine_lines)
+    assert all(f"cost_per_pixel={31 * V.shape[1]}," in line for line in affine_lines)
+    local_line = lines[-1]  # the local method, on the kernel's folds: no folds= of its own
+    assert local_line.startswith("  local") and "folds=" not in local_line and len(lines) == 2 + 4

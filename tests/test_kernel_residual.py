@@ -136,12 +136,15 @@ def test_a_nonlinear_map_is_recovered_where_the_affine_estimator_cannot_follow()
     tried = {(m, r): rms for m, r, rms in settings["tried"]}
     assert tried[settings["inducing_points"], settings["rank"]] == report[0].spectral_rms
     assert report[0].spectral_rms <= min(tried.values()) * (1 + kernel_residual.CHEAPER_WITHIN)
-    assert settings["cost_per_pixel"] == kernel_residual.residual_multiply_adds(V.shape[1], settings["inducing_points"], settings["rank"])
+    assert settings["cost_per_pixel"] == 31 * V.shape[1] + kernel_residual.residual_multiply_adds(
+        V.shape[1], settings["inducing_points"], settings["rank"])
     assert report[0].folds == "leave one group out (5 groups)"  # groups given: held out whole, as the affine methods'
     # "auto" takes it: a gain far beyond KERNEL_MIN_GAIN, z far beyond KERNEL_MIN_Z.
     assert settings["gain"] > 0.5 and settings["paired_z"] > 5
     chosen = estimation.fit_wiener(V, R, groups=folds)
     assert chosen.method == "kernel"
+    assert [r.method for r in chosen.cross_validation] == ["kernel", *(r.method for r in affine.cross_validation), "local"]
+    assert all(dict(r.settings)["cost_per_pixel"] >= 31 * V.shape[1] for r in chosen.cross_validation)
     np.testing.assert_array_equal(np.asarray(chosen.kernel.weights), np.asarray(kernel.kernel.weights))
     low, high = estimation.gp_hyperparameters.LENGTHSCALE_BOUNDS
     assert len(settings["lengthscales"]) == V.shape[1] and all(low <= x <= high for x in settings["lengthscales"])

@@ -158,17 +158,25 @@ def wiener_report_table(report) -> str:
     lines = [
         f"reflectance estimator: {report.wiener_method} (cross-validated on {report.targets} targets, "
         f"{tried[0]['folds']})",
-        f"  {'method':<10} {'spectral rms':>12} {'mean ΔE00 D65':>14}  settings",
+        f"  {'method':<10} {'spectral rms':>12} {'mean ΔE00 D65':>14}  settings (cost_per_pixel: multiply-adds a pixel)",
     ]
     for entry in tried:
         chosen = "*" if entry["method"] == report.wiener_method else " "
-        settings = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry["settings"].items())
+        settings = ", ".join(_setting_text(k, v) for k, v in entry["settings"].items() if k != "tried")
         if entry["folds"] != tried[0]["folds"]:  # the kernel estimator's own folds (random, not k-means)
             settings += f", folds={entry['folds']}"
         lines.append(
             f"{chosen} {entry['method']:<10} {entry['spectral_rms']:>12.5f} {entry['delta_e_d65']:>14.3f}  {settings}"
         )
     return "\n".join(lines)
+
+
+def _setting_text(name: str, value) -> str:
+    """One setting of a method's report as the table shows it: numbers to 3 digits, a list of
+    numbers (the kernel estimator's lengthscales or ridges) as its range."""
+    if isinstance(value, (list, tuple)) and value and all(isinstance(x, (int, float)) for x in value):
+        return f"{name}={min(value):.3g}..{max(value):.3g}"
+    return f"{name}={value:.3g}" if isinstance(value, float) else f"{name}={value}"
 
 
 def _save_calibration(path, calibration, report, session, marks=None) -> None:

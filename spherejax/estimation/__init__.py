@@ -52,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _checks
+from ..grid import N_WAVELENGTHS
 from .covariance import EstimatorCovariance, estimator_covariance
 from .cross_validation import (
     DEFAULT_FOLDS,
@@ -90,6 +91,7 @@ from .kernel_residual import (
     cross_validate_kernel,
     kernel_gain,
 )
+from .local_regression import cross_validate_local
 from .regression import RELATIVE_NOISE_GRID, _training_fit, training_estimator
 
 #: Method name -> its fit at regularisers chosen by cross-validation (`cross_validation`):
@@ -216,13 +218,19 @@ def fit_estimator(
     _check_determined(V, R, "a Wiener estimator")
     _check_inducing_points(inducing_points)
     scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, offset)
-    affine_reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
+    affine_reports = tuple(_in_response_units(candidate.cross_validation, scale, V.shape[1]) for candidate in ranked)
     if method == "auto" and offset and V.shape[0] >= KERNEL_MIN_TARGETS:
+        local_weights, local_text = _kernel_folds(V, weights, folds_text, groups, folds)
         kernel = _kernel_candidate(V, R, weights, folds_text, ranked[0], groups, folds, inducing_points)
+        # The local method (`local_regression`) is cross-validated beside the others on the
+        # kernel estimator's folds and reported, never taken: applying it costs every pixel a
+        # weighted fit over the targets (~45 000 multiply-adds at 200 targets, 80x the affine
+        # estimator's 31 B), far beyond the kernel contract's 3x.
+        local = cross_validate_local(V, R, local_weights, local_text, mean=ranked[0]).cross_validation
         settings = dict(kernel.cross_validation.settings)
         if settings["gain"] >= KERNEL_MIN_GAIN and settings["paired_z"] >= KERNEL_MIN_Z:
-            return _kernel_estimator(kernel, affine_reports, ranked[0], scale)
-        affine_reports = (*affine_reports, kernel.cross_validation)
+            return _kernel_estimator(kernel, (*affine_reports, local), ranked[0], scale)
+        affine_reports = (*affine_reports, kernel.cross_validation, local)
     W, r0 = ranked[0].fit()
     return WienerEstimator(W / scale, r0, method=ranked[0].cross_validation.method, cross_validation=affine_reports)
 
@@ -286,7 +294,7 @@ def fit_kernel_estimator(
     _check_determined(V, R, "a kernel estimator")
     scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, True)
     kernel = _kernel_candidate(V, R, weights, folds_text, ranked[0], groups, folds, inducing_points)
-    affine_reports = tuple(_in_response_units(candidate.cross_validation, scale) for candidate in ranked)
+    affine_reports = tuple(_in_response_units(candidate.cross_validation, scale, V.shape[1]) for candidate in ranked)
     return _kernel_estimator(kernel, affine_reports, ranked[0], scale)
 
 
@@ -301,11 +309,19 @@ def _kernel_candidate(V, R, weights, folds_text, mean: Candidate, groups, folds,
     the targets' material, which lie among them: on the Kubelka-Munk families (200 targets) the
     k-means folds showed a gain of 3-8 % for a kernel estimator that lowered the spectral rms of
     200 new samples of the family by 30-38 %; folds drawn at random showed 21-38 %."""
+    weights, folds_text = _kernel_folds(V, weights, folds_text, groups, folds)
+    return cross_validate_kernel(V, R, weights, folds_text, mean,
+                                 inducing_points=None if inducing_points is None else int(inducing_points))
+
+
+def _kernel_folds(V, weights, folds_text, groups, folds):
+    """(fold weights (F, n), description) of the kernel estimator's cross-validation: the affine
+    methods' where groups are given, else `folds` folds of targets drawn at random
+    (`_kernel_candidate` says why)."""
     if groups is None:
         labels, folds_text = random_fold_labels(V.shape[0], folds)
         weights = _weights_of(labels)
-    return cross_validate_kernel(V, R, weights, folds_text, mean,
-                                 inducing_points=None if inducing_points is None else int(inducing_points))
+    return weights, folds_text
 
 
 def _check_inducing_points(inducing_points) -> None:
@@ -335,10 +351,12 @@ def _unit_scale(V) -> float:
     return 1.0 if not rms > 0 else float(2.0 ** np.round(np.log2(rms)))
 
 
-def _in_response_units(report: CrossValidation, scale: float) -> CrossValidation:
-    """A report of a fit on responses / scale, with sigma^2 back in the caller's units."""
+def _in_response_units(report: CrossValidation, scale: float, bands: int) -> CrossValidation:
+    """An affine method's report of a fit on responses / scale of B bands, with sigma^2 back in
+    the caller's units and the multiply-adds per pixel of applying it (31 B: every report says
+    what its estimator costs a pixel)."""
     settings = tuple((k, v * scale**2 if k == "noise_variance" else v) for k, v in report.settings)
-    return dataclasses.replace(report, settings=settings)
+    return dataclasses.replace(report, settings=(*settings, ("cost_per_pixel", N_WAVELENGTHS * bands)))
 
 
 __all__ = [

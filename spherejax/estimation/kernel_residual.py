@@ -55,6 +55,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from ..grid import N_WAVELENGTHS
 from .cross_validation import Candidate, _delta_e_d65
 from .estimator import CrossValidation, KernelResidual, ResidualKernelEstimator, ResidualVariance, kernel_features
 from .gp_hyperparameters import fit_hyperparameters
@@ -192,7 +193,8 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
     targets it did not see. The report's settings hold the mean, m, r, the lengthscales (whitened
     units), the ridges, every (m, r) tried with its held-out rms, the mean's own held-out spectral
     rms on the same folds ("mean_spectral_rms"), the gain over it and paired z (`kernel_gain`), and
-    the multiply-adds per pixel of applying the residual ("cost_per_pixel")."""
+    the multiply-adds per pixel of applying the estimator, affine mean (31 B) and residual
+    ("cost_per_pixel"; the m exponentials come on top)."""
     dtype = V.dtype
     V64, R64 = np.asarray(V, np.float64), np.asarray(R, np.float64)
     n, bands = V64.shape
@@ -245,7 +247,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
                   ("hyperparameters_converged", bool(hyper.converged)),
                   ("tried", tuple((int(k[0]), int(k[1]), v) for k, v in sorted(tried.items()))),
                   ("mean_spectral_rms", float(np.sqrt(np.mean((mean_held_out - R64) ** 2)))),
-                  ("gain", gain), ("paired_z", z), ("cost_per_pixel", residual_multiply_adds(bands, m, r))),
+                  ("gain", gain), ("paired_z", z), ("cost_per_pixel", N_WAVELENGTHS * bands + residual_multiply_adds(bands, m, r))),
         folds=folds_text,
     )
 
