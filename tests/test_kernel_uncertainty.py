@@ -358,3 +358,46 @@ def test_float32_gives_the_float64_variance(family_fit):
         double = np.asarray(residual.reflectance_variance(jnp.asarray(responses)))
         got = np.asarray(single.reflectance_variance(jnp.asarray(responses, jnp.float32)), np.float64)
         assert np.all(np.abs(got - double) <= 0.02 * double), np.max(np.abs(got - double) / double)
+
+
+@pytest.mark.slow
+def test_the_fitted_kernel_estimators_variance_covers_held_out_targets(kernel_scene, tmp_path):
+    """`fit_kernel_estimator` fills the variance (E14-E15, marginal likelihood, pivoted-Cholesky
+    inducing points): on km_mixing (200 targets of seed 0, 200 of seed 1 held out) the held-out
+    errors over sqrt(latent + noise) are covered as a unit normal's, the latent part is what
+    covers them (the noise alone much less), the variance at another material is far above the
+    one at the targets and never above the prior; and a calibration carrying it round trips through
+    its file into the same propagated uncertainty. Measured (fit ~17 s on 2 cores): 92.9 % within
+    1.96, standard deviation 1.11, least per wavelength 83.5 %, noise alone 75.5 %; mean latent
+    variance 2.5e-8 at the targets, 1.4e-6 at fluorescent whites (medians 414x), prior 2.3e-6."""
+    from spherejax import estimation, io
+
+    V, R = target_family("km_mixing", 200, 0)
+    estimator = estimation.fit_kernel_estimator(V, R)
+    kernel = estimator.kernel
+    assert kernel.variance is not None
+    held_out, truth = target_family("km_mixing", 200, 1)
+    errors = truth - np.asarray(estimator(jnp.asarray(held_out)))
+    latent = np.asarray(kernel.reflectance_variance(jnp.asarray(held_out)))
+    noise = np.asarray(kernel.variance.noise)
+    within = np.abs(errors / np.sqrt(latent + noise)) < 1.96
+    assert 0.89 <= within.mean() <= 0.97, within.mean()
+    assert 0.95 <= np.std(errors / np.sqrt(latent + noise)) <= 1.25
+    assert within.mean(axis=0).min() >= 0.75, within.mean(axis=0)
+    assert np.mean(np.abs(errors / np.sqrt(noise)) < 1.96) < 0.85
+    other, _ = target_family("fluorescent", 200, 1)
+    at_targets = np.asarray(kernel.reflectance_variance(jnp.asarray(V)))
+    away = np.asarray(kernel.reflectance_variance(jnp.asarray(other)))
+    prior = np.einsum("j,jw->w", np.asarray(kernel.variance.prior), np.asarray(kernel.variance.components) ** 2)
+    assert np.median(away.mean(axis=1)) > 30 * np.median(at_targets.mean(axis=1))
+    assert np.all(away <= prior * (1 + 1e-9) + 1e-18)
+
+    raw, scene_calibration, _, _, _ = kernel_scene
+    calibration = dataclasses.replace(scene_calibration, wiener=estimator.matrix, wiener_offset=estimator.offset,
+                                      wiener_residual=kernel)
+    path = tmp_path / "fitted.h5"
+    io.save_calibration(path, calibration, instrument_id="sphere-1", band_centres_nm=list(range(400, 701, 20)))
+    loaded, _ = io.load_calibration(path)
+    model = sj.NoiseModel(gain=1.2, read_noise=5.0)
+    a, b = sj.correct(raw, calibration, noise=model), sj.correct(raw, loaded, noise=model)
+    assert np.asarray(a.reflectance_u).tobytes() == np.asarray(b.reflectance_u).tobytes()
