@@ -244,7 +244,7 @@ class Calibration(eqx.Module):
 MAX_BANDS = 256
 
 #: The most inducing points m of a kernel residual (`estimation.KernelResidual`, E10). The fit
-#: makes at most max(`estimation.kernel_residual.INDUCING_POINT_COUNTS`) (96); applying m points costs every
+#: makes at most max(`estimation.kernel_residual.INDUCING_POINT_COUNTS`) (64); applying m points costs every
 #: pixel (B + 9) m multiply-adds and, on the jax.numpy path, 8 m bytes of working memory. 1024 is
 #: the most the GPU kernel applies (`spherejax._engine.gpu_residual.MAX_INDUCING_POINTS`) and 16
 #: times what the fit made (64): a 192 x 272 frame then takes about a second and 0.5 GB, where 32 768

@@ -222,10 +222,10 @@ def test_held_out_targets_of_a_kubelka_munk_family_are_estimated_better_than_by_
     """What it is for: the default estimator ("auto"), trained on one family's targets, takes the
     kernel estimator, and on other recipes of that family (a second draw) its spectral rms is at
     most 0.75x the affine estimator's (its mean, what "auto" took before) on every family
-    (measured 0.47-0.66; the single-lengthscale fit before the marginal likelihood: 0.62-0.70).
-    On the other three families it stays within 2 % of the affine estimator on at least 11 of
-    the 12 pairs and within 5 % on all (measured: 0.93-1.01, and 1.037 on wool acid -> paper
-    direct; before: 0.97-1.021)."""
+    (measured 0.57-0.70 with at most 64 inducing points; the single-lengthscale fit before the
+    marginal likelihood: 0.62-0.70). On the other three families it is no worse than the affine
+    estimator on at least 10 of the 12 pairs and within 2 % on all (measured: 0.948-1.006;
+    before: 0.97-1.021)."""
     train = kubelka_munk.km_family_responses(seed=0, n=200)
     test = kubelka_munk.km_family_responses(seed=1, n=200)
 
@@ -239,4 +239,4 @@ def test_held_out_targets_of_a_kubelka_munk_family_are_estimated_better_than_by_
     ratios = {name: rms(e, name) / rms(e.affine, name) for name, e in chosen.items()}
     assert max(ratios.values()) <= 0.75, ratios
     across = {(a, b): rms(chosen[a], b) / rms(chosen[a].affine, b) for a in train for b in train if a != b}
-    assert sum(r <= 1.02 for r in across.values()) >= 11 and max(across.values()) < 1.05, across
+    assert sum(r <= 1.0 for r in across.values()) >= 10 and max(across.values()) < 1.02, across

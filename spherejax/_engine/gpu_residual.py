@@ -32,7 +32,7 @@ Bound. `MAX_INDUCING_POINTS` (1024): what the kernel reads of the residual per p
 (B + 1 + 32) x 4 bytes per inducing point (196 B at B = 16), re-read by every program from the
 SM's L1 (256 KiB on an H100, shared with the registers' spills and the other programs' inputs):
 up to 1024 points (196 KiB) it fits there, beyond that every program would stream it from L2.
-The fit makes m <= 96 (`kernel_residual.INDUCING_POINT_COUNTS`); a file may hold more.
+The fit makes m <= 64 (`kernel_residual.INDUCING_POINT_COUNTS`); a file may hold more.
 
 Precision: float32 products at Precision.HIGHEST (Triton's IEEE input precision, no TF32), as the
 affine product; `pixel_outputs_pallas(residual_precision=...)` takes another (e.g.

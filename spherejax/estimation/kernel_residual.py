@@ -61,16 +61,18 @@ from .estimator import CrossValidation, KernelResidual, ResidualKernelEstimator,
 from .gp_hyperparameters import fit_hyperparameters
 
 #: The inducing-point counts m the cross-validation chooses among (those up to the number of
-#: targets, and all the targets where there are fewer than the largest). Per pixel, applying the
-#: residual costs about (B + r) m multiply-adds and m exponentials; the largest count is the
-#: speed bound: a calibration's `correct` at most 3x the affine one's on every kernel of the
-#: kernel contract (benchmarks/bench_kernel_contract.py; benchmarks/README.md records the ratio
-#: at each count). Measured held out (train 200 targets, test 200 others of the family), spectral
-#: rms over the best affine estimator's, marginal-likelihood hyperparameters, rank 8, m = 48 / 64
-#: / 96 / 200 (every target): cotton reactive 0.63 / 0.56 / 0.47 / 0.44, wool acid 0.65 / 0.51 /
-#: 0.44 / 0.40 (Kubelka-Munk); shade_card 0.88 / 0.88 / 0.87 / 0.87, mixed_real 0.83 / 0.81 /
-#: 0.80 / 0.80 (`target_families`).
-INDUCING_POINT_COUNTS = (32, 48, 64, 80, 96)
+#: targets: every target an inducing point where there are fewer than the largest). Per pixel,
+#: applying the residual costs about (B + r) m multiply-adds and m exponentials; the largest
+#: count is the speed bound, a calibration's `correct` at most 3x the affine one's on every
+#: kernel of the kernel contract: at m = 64 it is 2.2-2.6x on AVX-512 and AVX2 (Zen 4, 2 cores,
+#: benchmarks/bench_kernel_contract.py, benchmarks/README.md), and the kernel's time grows
+#: about linearly in m, so that 96 would be about 3x. The bound costs accuracy: held out (train
+#: 200 targets, test 200 others of the family), spectral rms over the best affine estimator's,
+#: rank 8, lengthscales bounded at 8, m = 48 / 64 / 96 / 200 (every target): cotton reactive 0.63
+#: / 0.56 / 0.47 / 0.44, wool acid 0.65 / 0.51 / 0.44 / 0.40 (Kubelka-Munk); shade_card 0.88 /
+#: 0.88 / 0.87 / 0.87, mixed_real 0.83 / 0.81 / 0.80 / 0.80 (`target_families`). A faster
+#: kernel buys it back: raise the largest count with it.
+INDUCING_POINT_COUNTS = (16, 32, 48, 64)
 
 #: The ranks r of the residual (E12-E13) the cross-validation chooses among. The fused CPU kernel
 #: applies A at rank 8 or less (spherejax._engine.fused.RESIDUAL_RANK, the same 8): 8 m + 8 x 34
