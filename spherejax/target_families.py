@@ -35,11 +35,12 @@ Every kind but "km_mixing" also gives the reference reflectances a spectrophotom
 (`REFERENCE_NOISE`); the camera's noise is the simulator's (`simulated_targets.render_targets`)
 for region means over `patch_pixels` pixels (as `kubelka_munk.km_family_responses` renders them:
 the instrument's frame counts times `patch_pixels`; 1225 = the paper's 35 x 35 px regions).
-Held out (fit_wiener on seed 0, tested on seed 1, n = 200 each, 1225 px), spectral rms of "auto" /
-"training": km_mixing 0.00054 (kernel) / 0.00087, shade_card 0.0018 / 0.0018, fluorescent 0.0019
-(kernel) / 0.0021, gloss_texture 0.0074 / 0.0074, mixed_real 0.0078 / 0.0078. Against the
-noise-free reference the shade card's is 0.0010: the spectrophotometer's noise is most of what it
-adds; the gloss the camera cannot see, (1 - f) g k1 = 0.7-3.7 % per target, most of gloss_texture's.
+Held out (the best affine estimator of fit_wiener on seed 0, tested on seed 1, n = 200 each,
+1225 px), spectral rms: km_mixing 0.00087, shade_card 0.0018, fluorescent 0.0022, gloss_texture
+0.0024, mixed_real 0.0037 (every candidate estimator on every kind: benchmarks/bench_wiener.py).
+Against the noise-free reference the shade card's is 0.0010: the spectrophotometer's noise is most
+of what it adds; the part of the surface reflection the camera cannot see, (1 - f) g k1 (about
+2 % reflectance, varying by 0.2 % between targets), much of gloss_texture's.
 
 Fluorescence (the brightener), Kubelka-Munk two-flux with a source, S the same at every
 wavelength (K/S in units of S), per target, excitation μ, emission λ:
