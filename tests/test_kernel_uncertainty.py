@@ -209,6 +209,27 @@ def test_a_residual_without_variance_changes_nothing(kernel_scene):
         assert a.tobytes() == b.tobytes(), name
 
 
+def test_strips_and_float32_carry_the_residual_variance(kernel_scene):
+    """Rows of a calibration (`Calibration.rows`, a strip corrected with the whole image's p and
+    u(p)) carry the variance and give the whole image's uncertainties of those rows; a float32
+    calibration (uint16 frames' compute dtype) gives the float64 ones to float32's precision."""
+    raw, calibration, _, _, _ = kernel_scene
+    model = sj.NoiseModel(gain=1.2, read_noise=5.0, dark_frames=16, white_frames=8)
+    whole = sj.correct(raw, calibration, noise=model)
+    p, p_u = sj.patch_ratio(raw, calibration), sj.patch_ratio_u(raw, calibration, model)
+    rows = calibration.rows(2, 5)
+    assert rows.wiener_residual.variance is calibration.wiener_residual.variance
+    strip = sj.correct(raw[2:5], rows, p=p, p_u=p_u, noise=model)
+    np.testing.assert_allclose(np.asarray(strip.reflectance_u), np.asarray(whole.reflectance_u)[2:5], rtol=1e-12)  # measured 1.9e-16
+    np.testing.assert_allclose(np.asarray(strip.lab_u), np.asarray(whole.lab_u)[2:5], rtol=1e-12)
+    single = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+                                    calibration)
+    got = sj.correct(raw.astype(np.float32), single, noise=model)
+    outside = ~np.asarray(calibration.patch)
+    # measured: 1.0e-6 relative at most (float32's unit round-off is 6e-8)
+    np.testing.assert_allclose(np.asarray(got.reflectance_u)[outside], np.asarray(whole.reflectance_u)[outside], rtol=2e-5)
+
+
 def _region_mask(calibration):
     mask = np.zeros(calibration.image_shape, bool)
     mask[3:6, 2:6] = True
