@@ -3,7 +3,7 @@
 Zou et al. (2019) reconstruct reflectance with a 31 x 16 matrix computed from 144 colour targets
 of known reflectance by Wiener estimation (Section 2 and their ref. [21]). The estimators here are
 affine in the response, r = W v + r0 (E1), or that plus a kernel regression of what it leaves
-(E8-E12), which dyed materials need (their reflectances lie on a curved set, Kubelka-Munk).
+(E8-E15), which dyed materials need (their reflectances lie on a curved set, Kubelka-Munk).
 Real responses carry an offset (a residual dark level, stray light) and noise that differs by
 band, and a lab's targets never match its samples exactly; both methods model that. As
 colour-science's `colour.recovery` does, one module per method, named after its reference where
@@ -27,8 +27,14 @@ The modules, each importing only those listed above it:
   cross_validation  the folds (groups held out in turn, k-means clusters of spectrally alike
                     targets, or targets drawn at random), each affine method's regularisers
                     chosen on them (`Candidate`), their ranking, `estimate_system`.
-  kernel_residual   "kernel": the fit of the residual kernel estimator on an affine mean, its
-                    lengthscale and ridge cross-validated (E9-E12), `kernel_gain`.
+  gp_hyperparameters the kernel estimator's lengthscales (one per whitened direction) and each
+                    residual component's signal and noise, by marginal likelihood (E14,
+                    optimistix), `fit_hyperparameters`.
+  kernel_residual   "kernel": the fit of the residual kernel estimator on an affine mean: its
+                    components, inducing points, weights and own variance, the count of inducing
+                    points and the rank chosen by held-out accuracy (E9-E15), `kernel_gain`.
+  local_regression  "local": locally weighted regression of the affine residual, cross-validated
+                    and reported beside the others, never chosen (its cost per pixel).
   covariance        the sampling covariance of an affine estimator from its training set (C1).
   _offset_free      the offset-free baseline estimators (no r0): the training form's sigma^2 by
                     leave-one-out and the uncentred model-based matrix of a known system; not
@@ -159,7 +165,7 @@ def fit_estimator(
 ) -> WienerEstimator | ResidualKernelEstimator:
     """A reflectance estimator from targets of known reflectance: affine (r = W v + r0, E1) or,
     where its targets show what an affine map cannot follow, the residual kernel estimator
-    (r = W v + r0 + A k(v), E8-E12). `fit_wiener` is this function.
+    (r = W v + r0 + A k(v), E8-E15). `fit_wiener` is this function.
 
     Args:
       responses: corrected camera responses of the targets, shape (n, B) (144 targets in the
