@@ -366,3 +366,21 @@ def make_fused_case(height, width, bands, *, raw_dtype=np.uint16, images=(), see
         wiener_offset=wiener_offset,
     )
     return raw, calibration
+
+
+def tiny_frames():
+    """A 6 x 7 x 16 float64 scene of the uncertainty tests, drawn with seed 3: (rng (for more
+    draws after these), the Monte Carlo scene `monte_carlo.noise_scene(block=2)` (its Wiener
+    estimator), raw, dark, white, patch (the 2 x 2 white patch, raw there 1.1 x the white))."""
+    from spherejax import monte_carlo as mc
+
+    rng = np.random.default_rng(3)
+    height, width, bands = 6, 7, 16
+    scene = mc.noise_scene(block=2)
+    dark = 100.0 + rng.normal(0, 2, (height, width, bands))
+    white = dark + rng.uniform(9000, 12000, (height, width, bands))
+    raw = dark + (white - dark) * rng.uniform(0.03, 1.0, (height, width, bands)) * 1.1
+    patch = np.zeros((height, width), bool)
+    patch[:2, :2] = True
+    raw[patch] = dark[patch] + (white[patch] - dark[patch]) * 1.1
+    return rng, scene, raw, dark, white, patch

@@ -32,6 +32,8 @@ from spherejax.estimation.estimator import KernelResidual, ResidualVariance
 from spherejax.polynomial import PAPER_TABLE_2
 from spherejax.target_families import target_family
 
+from .helpers import tiny_frames
+
 #: Pixel noise off: the gain's shot term and the read noise ~ 0, so a pixel's propagated variance
 #: is the estimator's own.
 SILENT = {"gain": 1e12, "read_noise": 0.0}
@@ -110,15 +112,8 @@ def kernel_scene():
     calibration carries a kernel residual with its variance, fitted on 20 of its own pixels'
     Stage II responses (nudged), every target an inducing point: (raw, calibration, v_tilde,
     training responses (n, B), the residual's model (l, S, mu, P, signal, noise))."""
-    rng = np.random.default_rng(3)
-    height, width, bands = 6, 7, 16
-    scene = mc.noise_scene(block=2)
-    dark = 100.0 + rng.normal(0, 2, (height, width, bands))
-    white = dark + rng.uniform(9000, 12000, (height, width, bands))
-    raw = dark + (white - dark) * rng.uniform(0.03, 1.0, (height, width, bands)) * 1.1
-    patch = np.zeros((height, width), bool)
-    patch[:2, :2] = True
-    raw[patch] = dark[patch] + (white[patch] - dark[patch]) * 1.1
+    rng, scene, raw, dark, white, patch = tiny_frames()
+    bands = raw.shape[-1]
     affine = sj.Calibration(dark=dark, white=white, patch=patch, coeffs=np.asarray(PAPER_TABLE_2, np.float64),
                             wiener=scene.wiener, wiener_offset=scene.wiener_offset)
     v_tilde = np.asarray(sj.correct(raw, affine, intermediates=True).v_stage2)

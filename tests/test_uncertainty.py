@@ -22,7 +22,7 @@ from spherejax import monte_carlo as mc
 from spherejax import simulate, uncertainty
 from spherejax.polynomial import PAPER_TABLE_2
 
-from .helpers import ON_CPU
+from .helpers import ON_CPU, tiny_frames
 
 GAIN, READ, FRAMES = 1.2, 5.0, {"dark": 16, "white": 8, "sample": 4}
 
@@ -40,15 +40,7 @@ def scene():
 @pytest.fixture(scope="module")
 def tiny():
     """A 6 x 7 float64 image with a 2 x 2 white patch, Table 2's Stage II and a real estimator."""
-    rng = np.random.default_rng(3)
-    height, width, bands = 6, 7, 16
-    scene = mc.noise_scene(block=2)
-    dark = 100.0 + rng.normal(0, 2, (height, width, bands))
-    white = dark + rng.uniform(9000, 12000, (height, width, bands))
-    raw = dark + (white - dark) * rng.uniform(0.03, 1.0, (height, width, bands)) * 1.1
-    patch = np.zeros((height, width), bool)
-    patch[:2, :2] = True
-    raw[patch] = dark[patch] + (white[patch] - dark[patch]) * 1.1
+    rng, scene, raw, dark, white, patch = tiny_frames()
     calibration = sj.Calibration(
         dark=dark, white=white, patch=patch, coeffs=np.asarray(PAPER_TABLE_2, np.float64),
         wiener=scene.wiener, wiener_offset=scene.wiener_offset,
