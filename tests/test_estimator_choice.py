@@ -135,3 +135,12 @@ def test_the_report_table_names_the_kernel_estimator_s_own_folds(nonlinear):
     assert all(f"cost_per_pixel={31 * V.shape[1]}," in line for line in affine_lines)
     local_line = lines[-1]  # the local method, on the kernel's folds: no folds= of its own
     assert local_line.startswith("  local") and "folds=" not in local_line and len(lines) == 2 + 4
+
+
+def test_the_local_method_is_left_out_beyond_its_target_bound(nonlinear, monkeypatch):
+    """Past `LOCAL_MAX_TARGETS` targets auto does not cross-validate the local method (its n^2
+    work); below it, it reports it last."""
+    V, R = nonlinear
+    assert estimation.fit_wiener(V, R).cross_validation[-1].method == "local"
+    monkeypatch.setattr(estimation, "LOCAL_MAX_TARGETS", len(V) - 1)
+    assert "local" not in {c.method for c in estimation.fit_wiener(V, R).cross_validation}
