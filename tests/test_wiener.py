@@ -257,12 +257,16 @@ class TestCrossValidation:
         """Every method is reported with its held-out errors, the chosen one first: the affine
         methods on the k-means folds, the best of them the estimator's affine part, and the kernel
         estimator on it (99 targets: more than KERNEL_MIN_TARGETS), taken exactly when its gain
-        and paired z pass KERNEL_MIN_GAIN and KERNEL_MIN_Z."""
+        and paired z pass KERNEL_MIN_GAIN and KERNEL_MIN_Z; the local method last, on the
+        kernel's folds, reported only; every report with its cost per pixel."""
         V, R = families[0]["TM-30 CES"]
         assert len(V) >= estimation.KERNEL_MIN_TARGETS
         estimator = sj.fit_wiener(V, R)
         reports = {c.method: c for c in estimator.cross_validation}
-        assert set(reports) == {"training", "model", "kernel"} and len(estimator.cross_validation) == 3
+        assert set(reports) == {"training", "model", "kernel", "local"} and len(estimator.cross_validation) == 4
+        assert estimator.cross_validation[-1].method == "local"  # reported, never taken
+        assert reports["local"].folds == reports["kernel"].folds
+        assert all(dict(c.settings)["cost_per_pixel"] >= 31 * V.shape[1] for c in estimator.cross_validation)
         assert estimator.method == estimator.cross_validation[0].method
         for c in estimator.cross_validation:
             assert 0 < c.spectral_rms < 0.05 and 0 < c.delta_e_d65 < 5
