@@ -242,7 +242,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
                key=lambda key: (key[0] * (bands + key[1]), key[1]))
     gain, z = kernel_gain(mean_held_out, estimates[m, r], R64)
     result = CrossValidation(
-        method="kernel", spectral_rms=tried[m, r], delta_e_d65=_delta_e_d65(estimates[m, r], R64),
+        method="kernel", spectral_rms=tried[m, r], delta_e_d65=_delta_e_d65(estimates[m, r], R),
         settings=(("mean", affine.cross_validation.method), ("inducing_points", int(m)), ("rank", int(r)),
                   ("lengthscales", tuple(float(x) for x in hyper.lengthscales)),
                   ("ridges", tuple(float(x) for x in ridges[:r])),
