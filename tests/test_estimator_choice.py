@@ -5,7 +5,11 @@ estimator only where cross-validation shows a real gain over the best affine met
 
 from __future__ import annotations
 
+import os
+import pathlib
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -144,3 +148,23 @@ def test_the_local_method_is_left_out_beyond_its_target_bound(nonlinear, monkeyp
     assert estimation.fit_wiener(V, R).cross_validation[-1].method == "local"
     monkeypatch.setattr(estimation, "LOCAL_MAX_TARGETS", len(V) - 1)
     assert "local" not in {c.method for c in estimation.fit_wiener(V, R).cross_validation}
+
+
+def test_a_kernel_fit_without_x64_warns_of_nothing():
+    """Without JAX's x64 (a user's default), fitting the kernel estimator in float32 warns of
+    nothing: its report's ΔE00 once took a float64 copy of the reflectances, which JAX truncated
+    with a UserWarning in every `calibrate`."""
+    script = (
+        "import warnings, numpy as np\n"
+        "warnings.simplefilter('error')\n"
+        "from spherejax import estimation\n"
+        "from tests.helpers import nonlinear_targets\n"
+        "V, R = nonlinear_targets(np.random.default_rng(3), 120)\n"
+        "e = estimation.fit_kernel_estimator(V.astype(np.float32), R.astype(np.float32))\n"
+        "print(e.kernel.weights.dtype)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
+                         cwd=pathlib.Path(__file__).resolve().parent.parent)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["float32"]
