@@ -190,10 +190,10 @@ def fit_hyperparameters(U, C, weights=None, *, seed: int = 0) -> Hyperparameters
 
 
 __all__ = [
-    "Hyperparameters",
     "LENGTHSCALE_BOUNDS",
     "MAX_LIKELIHOOD_TARGETS",
     "NOISE_FLOOR",
+    "Hyperparameters",
     "fit_hyperparameters",
     "negative_log_likelihood",
     "squared_distances",

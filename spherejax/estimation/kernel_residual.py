@@ -57,7 +57,13 @@ import numpy as np
 
 from ..grid import N_WAVELENGTHS
 from .cross_validation import Candidate, _delta_e_d65
-from .estimator import CrossValidation, KernelResidual, ResidualKernelEstimator, ResidualVariance, kernel_features
+from .estimator import (
+    CrossValidation,
+    KernelResidual,
+    ResidualKernelEstimator,
+    ResidualVariance,
+    kernel_features,
+)
 from .gp_hyperparameters import fit_hyperparameters
 
 #: The inducing-point counts m the cross-validation chooses among (those up to the number of
@@ -262,7 +268,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
         beyond = np.var(E - mean - C @ P, axis=0)
         variance = residual_variance(K_nm, K_mm, P, hyper.signal[:r], hyper.noise[:r], ridges[:r], beyond)
         whitening = S / hyper.lengthscales[:, None]
-        as_dtype = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+        as_dtype = lambda x: jnp.asarray(x, dtype)
         return (as_dtype(W), as_dtype(r0 + mean), as_dtype(mu), as_dtype(whitening), as_dtype(X[order]),
                 as_dtype(A), variance.astype(dtype))
 
@@ -310,15 +316,15 @@ def kernel_gain(mean_held_out, kernel_held_out, reflectances) -> tuple[float, fl
 __all__ = [
     "CHEAPER_WITHIN",
     "INDUCING_POINT_COUNTS",
-    "KernelResidual",
     "RANKS",
     "RESIDUAL_RANK",
+    "KernelResidual",
     "ResidualKernelEstimator",
     "ResidualVariance",
     "cross_validate_kernel",
     "inducing_order",
-    "kernel_gain",
     "kernel_features",
+    "kernel_gain",
     "residual_multiply_adds",
     "residual_variance",
     "whitening_of",
