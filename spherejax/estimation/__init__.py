@@ -132,8 +132,8 @@ def validate_method(method, name: str = "method", names: tuple[str, ...] = METHO
 #: fraction below the best affine method's (on the same folds), and `KERNEL_MIN_Z` says the
 #: targets show it together. Why 2 %: the gain must pay for up to 3x the affine estimator's time
 #: per pixel in `correct` (`kernel_residual.INDUCING_POINT_COUNTS`) and for what it may cost on a
-#: material other than its targets' (at most 1.08x the affine estimator's rms over 56 pairs of the
-#: Kubelka-Munk and `target_families` kinds, 6 pairs above 1.01, benchmarks/bench_wiener.py). At
+#: material other than its targets' (0.904-1.006x the affine estimator's rms over the 56 pairs of
+#: the Kubelka-Munk and `target_families` sets, benchmarks/bench_wiener.py). At
 #: 5 %, as before, auto refused gains that held on new samples: shade_card's cross-validation
 #: showed 3.2 % (z 4.4) for a kernel estimator that lowered 200 new samples' rms by 11 %, and real
 #: materials' forced kernel estimators gained 1-5 % where auto took the affine one.
@@ -232,15 +232,15 @@ def fit_estimator(
     scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, offset)
     affine_reports = tuple(_in_response_units(candidate.cross_validation, scale, V.shape[1]) for candidate in ranked)
     if method == "auto" and offset and V.shape[0] >= KERNEL_MIN_TARGETS:
-        local_weights, local_text = _kernel_folds(V, weights, folds_text, groups, folds)
-        kernel = _kernel_candidate(V, R, weights, folds_text, ranked[0], groups, folds, inducing_points)
+        kernel_weights, kernel_text = _kernel_folds(V, weights, folds_text, groups, folds)
+        kernel = _kernel_candidate(V, R, kernel_weights, kernel_text, ranked[0], inducing_points)
         # The local method (`local_regression`) is cross-validated beside the others on the
         # kernel estimator's folds and reported, never taken: applying it costs every pixel a
         # weighted fit over the targets (~45 000 multiply-adds at 200 targets, 80x the affine
         # estimator's 31 B), far beyond the kernel contract's 3x.
         local = ()
         if V.shape[0] <= LOCAL_MAX_TARGETS:
-            local = (cross_validate_local(V, R, local_weights, local_text, mean=ranked[0]).cross_validation,)
+            local = (cross_validate_local(V, R, kernel_weights, kernel_text, mean=ranked[0]).cross_validation,)
         settings = dict(kernel.cross_validation.settings)
         if settings["gain"] >= KERNEL_MIN_GAIN and settings["paired_z"] >= KERNEL_MIN_Z:
             return _kernel_estimator(kernel, (*affine_reports, *local), ranked[0], scale)
@@ -307,15 +307,22 @@ def fit_kernel_estimator(
         raise ValueError("fit_kernel_estimator: cross-validation needs concrete data, not traced values")
     _check_determined(V, R, "a kernel estimator")
     scale, V, R, weights, folds_text, ranked = _affine_candidates(V, R, method, groups, folds, sensitivity, True)
-    kernel = _kernel_candidate(V, R, weights, folds_text, ranked[0], groups, folds, inducing_points)
+    kernel = _kernel_candidate(V, R, *_kernel_folds(V, weights, folds_text, groups, folds), ranked[0], inducing_points)
     affine_reports = tuple(_in_response_units(candidate.cross_validation, scale, V.shape[1]) for candidate in ranked)
     return _kernel_estimator(kernel, affine_reports, ranked[0], scale)
 
 
-def _kernel_candidate(V, R, weights, folds_text, mean: Candidate, groups, folds, inducing_points) -> Candidate:
-    """The kernel estimator's `Candidate` on the affine `mean`: cross-validated over the affine
-    methods' folds (`weights`, `folds_text`) where groups are given (a group held out whole), else
-    over `folds` folds of targets drawn at random (`random_fold_labels`).
+def _kernel_candidate(V, R, weights, folds_text, mean: Candidate, inducing_points) -> Candidate:
+    """The kernel estimator's `Candidate` on the affine `mean`, cross-validated over its folds
+    (`weights`, `folds_text`: `_kernel_folds`)."""
+    return cross_validate_kernel(V, R, weights, folds_text, mean,
+                                 inducing_points=None if inducing_points is None else int(inducing_points))
+
+
+def _kernel_folds(V, weights, folds_text, groups, folds):
+    """(fold weights (F, n), description) of the kernel estimator's cross-validation (and the
+    local method's): the affine methods' where groups are given (a group held out whole), else
+    `folds` folds of targets drawn at random (`random_fold_labels`).
 
     Why not the affine methods' k-means folds: they hold out clusters of alike colours, which
     asks how an estimator extrapolates to colours the targets lack, the question for an affine
@@ -323,15 +330,6 @@ def _kernel_candidate(V, R, weights, folds_text, mean: Candidate, groups, folds,
     the targets' material, which lie among them: on the Kubelka-Munk families (200 targets) the
     k-means folds showed a gain of 3-8 % for a kernel estimator that lowered the spectral rms of
     200 new samples of the family by 30-38 %; folds drawn at random showed 21-38 %."""
-    weights, folds_text = _kernel_folds(V, weights, folds_text, groups, folds)
-    return cross_validate_kernel(V, R, weights, folds_text, mean,
-                                 inducing_points=None if inducing_points is None else int(inducing_points))
-
-
-def _kernel_folds(V, weights, folds_text, groups, folds):
-    """(fold weights (F, n), description) of the kernel estimator's cross-validation: the affine
-    methods' where groups are given, else `folds` folds of targets drawn at random
-    (`_kernel_candidate` says why)."""
     if groups is None:
         labels, folds_text = random_fold_labels(V.shape[0], folds)
         weights = _weights_of(labels)
