@@ -66,7 +66,8 @@ def residual_constants(residual, weights, bands: int):
       -|u - z_j|^2 / 2 = Y_j . v + c_j - |u|^2 / 2;
     factor (M, 8): G^T, basis (8, 34): [P | P^T weights]^T, from A's singular value
       decomposition at rank RESIDUAL_RANK (A = P G, P = U Sigma, G = V^T): exact for the fit's A
-      (`residual_fits`);
+      (`residual_fits`); components below A's round-off zero in both (the kernel counts G's
+      columns in use: rank 4 or less takes half the multiply-adds);
     D and M: d and m rounded up to multiples of 8 (the kernel takes rows in eights), the padding
     zero (a padding inducing point has factor 0). None (an affine estimator): no rows, nothing
     applied.
@@ -83,8 +84,13 @@ def residual_constants(residual, weights, bands: int):
     inducing = _padded_rows(jnp.concatenate([Y, c[:, None]], axis=1), RESIDUAL_ROWS)
     U, singular, Vt = jnp.linalg.svd(A, full_matrices=False)
     rank = min(RESIDUAL_RANK, singular.shape[0])
-    P = jnp.pad(U[:, :rank] * singular[:rank], ((0, 0), (0, RESIDUAL_RANK - rank)))  # (31, 8)
-    G = jnp.pad(Vt[:rank], ((0, RESIDUAL_RANK - rank), (0, 0)))  # (8, m)
+    # Components below A's float32 round-off (numpy's matrix_rank tolerance) are zeroed: weights
+    # of rank r (the fit's A has rank r by construction, E12) keep only r, and the kernel runs
+    # its half-rank code where r <= 4 (call.cc counts G's columns in use).
+    tolerance = singular[0] * max(A.shape) * jnp.finfo(jnp.float32).eps
+    kept = singular[:rank] > tolerance
+    P = jnp.pad(jnp.where(kept, U[:, :rank] * singular[:rank], 0.0), ((0, 0), (0, RESIDUAL_RANK - rank)))  # (31, 8)
+    G = jnp.pad(jnp.where(kept[:, None], Vt[:rank], 0.0), ((0, RESIDUAL_RANK - rank), (0, 0)))  # (8, m)
     factor = _padded_rows(G.T, RESIDUAL_ROWS)
     basis = jnp.concatenate([P.T, jnp.matmul(P.T, f32(weights), precision=hi)], axis=1)
     return whitening, inducing, factor, basis

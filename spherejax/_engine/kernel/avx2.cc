@@ -168,11 +168,12 @@ SPHEREJAX_AVX2_TARGET inline Ymm2 operator-(float a, Ymm2 b) {
 }
 SPHEREJAX_AVX2_TARGET inline Ymm2& operator+=(Ymm2& a, Ymm2 b) { return a = a + b; }
 
-// e^min(x, 0) of 8 lanes, with as few multiply-adds as exp_nonpositive allows (measured: the
-// exponentials take a sixth of the residual's time): x log2(e) = n + f, n floored at -125 so
+// 2^min(t, 0) of 8 lanes (e^x with x log2(e) = t folded into the constants, fused_correct.h,
+// Problem), with as few multiply-adds as exp2_nonpositive allows (measured: the exponentials take
+// a sixth of the residual's time): t = n + f, n floored at -125 so
 // that no result is subnormal, rounded to nearest by adding 1.5 x 2^23, which leaves n in the low
 // bits of the sum; 2^f by a polynomial of degree 5 fitted for the least relative error on
-// [-1/2, 1/2] (7.5e-8, 2.3e-7 evaluated in float32: as close as exp_nonpositive's Taylor
+// [-1/2, 1/2] (7.5e-8, 2.3e-7 evaluated in float32: as close as exp2_nonpositive's Taylor
 // polynomial of degree 6); and 2^n added to its exponent bits as the integer n << 23, the sum's
 // low bits shifted up (the bits above them shift out). min and max take the NaN-carrying operand
 // second, which they return when either is NaN, and a NaN's shifted bits are 0: a NaN stays NaN.
@@ -181,12 +182,11 @@ SPHEREJAX_AVX2_TARGET inline Ymm2& operator+=(Ymm2& a, Ymm2 b) { return a = a + 
 // chain of about 12 dependent operations (measured on a Zen 4, 200 inducing points: four side by
 // side took an eighth less time than two).
 template <int N>
-SPHEREJAX_AVX2_TARGET inline void exp_nonpositive_avx2(__m256* x) {
+SPHEREJAX_AVX2_TARGET inline void exp2_nonpositive_avx2(__m256* x) {
   const __m256 magic = _mm256_set1_ps(12582912.0f);
   __m256 t[N], shifted[N], f[N], p[N];
   for (int k = 0; k < N; ++k) {
-    const __m256 scaled = _mm256_mul_ps(_mm256_min_ps(_mm256_setzero_ps(), x[k]), _mm256_set1_ps(1.44269504088896341f));
-    t[k] = _mm256_max_ps(_mm256_set1_ps(-125.0f), scaled);
+    t[k] = _mm256_max_ps(_mm256_set1_ps(-125.0f), _mm256_min_ps(_mm256_setzero_ps(), x[k]));
   }
   for (int k = 0; k < N; ++k) shifted[k] = _mm256_add_ps(t[k], magic);
   for (int k = 0; k < N; ++k) f[k] = _mm256_sub_ps(t[k], _mm256_sub_ps(shifted[k], magic));
@@ -221,11 +221,11 @@ struct Avx2Lanes {
   }
 
   // n is a multiple of kResidualRows: two vectors, four registers, at a time.
-  SPHEREJAX_AVX2_TARGET static inline void exp(V* k, int64_t n) {
+  SPHEREJAX_AVX2_TARGET static inline void exp2(V* k, int64_t n) {
     static_assert(kResidualRows % 2 == 0, "inducing points in pairs");
     for (int64_t j = 0; j < n; j += 2) {
       __m256 x[4] = {k[j].lo, k[j].hi, k[j + 1].lo, k[j + 1].hi};
-      exp_nonpositive_avx2<4>(x);
+      exp2_nonpositive_avx2<4>(x);
       k[j] = V{x[0], x[1]}, k[j + 1] = V{x[2], x[3]};
     }
   }
@@ -327,9 +327,7 @@ SPHEREJAX_AVX2_TARGET inline void residual_block_avx2_16(const Problem& pr, int6
   alignas(32) float tilde[kMaxBands][kBlock];
   stage2_of_block<Raw, Avx2Stage2>(pr, first, count, rows, quality);
   Avx2Lanes::columns(rows, kLanes, tilde);
-  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Avx2Lanes::kWidth) {
-    residual_of<Avx2Lanes>(pr, kLanes, tilde, lane0, out);
-  }
+  residual_of_block<Avx2Lanes>(pr, kLanes, tilde, out);
   Avx2Lanes::write_rows(out, kBlock, reflectance);
 }
 

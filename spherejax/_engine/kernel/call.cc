@@ -125,12 +125,33 @@ std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, 
   }
   float* bias_row = prepared->padded_bias.get();
   for (int64_t k = 0; k < kPadded; ++k) bias_row[k] = k < kOutputs ? offsets[k] : 0.0f;
+  int64_t rank = 0;
   if (residual.inducing_rows > 0) {
     prepared->basis = aligned_vectors(3 * kResidualRank);
-    if (!prepared->basis) throw std::bad_alloc();
+    // The whitening and inducing rows in base 2 (Problem): u scaled by sqrt(log2 e) makes |u|^2 / 2
+    // log2 e times itself, and the inducing rows by log2 e the rest of each exponent.
+    const int64_t width = bands + 1;
+    const int64_t whitening_floats = residual.whitened_rows * width, inducing_floats = residual.inducing_rows * width;
+    prepared->whitening = aligned_vectors((whitening_floats + kLanes - 1) / kLanes);
+    prepared->inducing = aligned_vectors((inducing_floats + kLanes - 1) / kLanes);
+    if (!prepared->basis || !prepared->whitening || !prepared->inducing) throw std::bad_alloc();
+    constexpr double kLog2e = 1.4426950408889634;
+    const float root_log2e = static_cast<float>(std::sqrt(kLog2e));
+    for (int64_t i = 0; i < whitening_floats; ++i) prepared->whitening[i] = residual.whitening[i] * root_log2e;
+    for (int64_t i = 0; i < inducing_floats; ++i) {
+      prepared->inducing[i] = static_cast<float>(residual.inducing[i] * kLog2e);
+    }
     for (int64_t r = 0; r < kResidualRank; ++r) {
       float* row = prepared->basis.get() + 3 * kLanes * r;
       for (int64_t k = 0; k < kPadded; ++k) row[k] = k < kOutputs ? residual.basis[r * kOutputs + k] : 0.0f;
+    }
+    // The ranks in use: the last column of G (factor) with a value that is not zero. The caller
+    // zeroes the components its weights do not have (fused_constants.residual_constants), and a
+    // residual of rank 4 or less then runs the half-rank code (residual_of<..., 4>).
+    for (int64_t j = 0; j < residual.inducing_rows; ++j) {
+      for (int64_t r = rank; r < kResidualRank; ++r) {
+        if (residual.factor[j * kResidualRank + r] != 0.0f) rank = r + 1;
+      }
     }
   }
 
@@ -152,8 +173,9 @@ std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, 
   for (int k = 0; k < 3; ++k) pr.inverse_white[k] = 1.0f / wxyz[k];
   pr.whitened_rows = residual.inducing_rows > 0 ? residual.whitened_rows : 0;
   pr.inducing_rows = residual.inducing_rows;
-  pr.whitening = residual.whitening;
-  pr.inducing = residual.inducing;
+  pr.residual_rank = rank <= kResidualRank / 2 ? kResidualRank / 2 : kResidualRank;
+  pr.whitening = prepared->whitening.get();
+  pr.inducing = prepared->inducing.get();
   pr.factor = residual.factor;
   pr.basis = reinterpret_cast<const Vec*>(prepared->basis.get());
   pr.reflectance = reflectance;

@@ -62,6 +62,7 @@ struct Prepared {
   std::unique_ptr<uint8_t[]> image_bad;
   std::unique_ptr<float[], FreeAligned> padded, padded_bias;
   std::unique_ptr<float[], FreeAligned> basis;  // the kernel residual's, padded to whole vectors
+  std::unique_ptr<float[], FreeAligned> whitening, inducing;  // the kernel residual's, in base 2 (Problem)
 };
 
 // The kernel residual of a call (fused_correct.h, residual_of), as its caller passes it:

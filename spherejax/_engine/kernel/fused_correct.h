@@ -115,8 +115,12 @@ struct Problem {
   // The kernel residual (residual_of), absent when inducing_rows is 0: whitening (whitened_rows,
   // B + 1), inducing (inducing_rows, B + 1), factor (inducing_rows, kResidualRank) floats, row-major;
   // basis kResidualRank x 3 Vecs (rows padded to 48 like the projection's). whitened_rows and
-  // inducing_rows multiples of kResidualRows.
-  int64_t whitened_rows, inducing_rows;
+  // inducing_rows multiples of kResidualRows. The whitening and inducing rows are the caller's
+  // scaled by sqrt(log2 e) and log2 e (call.cc, prepare): the sums come out as exponents of 2,
+  // which saves the exponential one multiplication a point. residual_rank: the factor's leading
+  // columns in use, kResidualRank or kResidualRank / 2 (the rest zero), so that a residual of
+  // rank 4 or less takes half the multiply-adds of g.
+  int64_t whitened_rows, inducing_rows, residual_rank;
   const float* whitening;
   const float* inducing;
   const float* factor;
@@ -174,22 +178,22 @@ SPHEREJAX_INLINE Vec abs_lanes(Vec x) {
   return x;
 }
 
-// min(max(x, -87), 0) lane by lane, as min(a, b) = (a + b - |a - b|) / 2: GCC turns vector-
+// min(max(t, -125), 0) lane by lane, as min(a, b) = (a + b - |a - b|) / 2: GCC turns vector-
 // extension comparisons into scalar code (avx512.cc), and this needs none. The jax.numpy path
-// clips at 0 as well (round-off can make -|u - z|^2 / 2 positive); -87 keeps e^x normal
-// (exp_nonpositive), where jax's e^-87 = 1.6e-38 is as good as nothing. NaN stays NaN.
-SPHEREJAX_INLINE Vec clip_exponent(Vec x) {
-  const Vec below_zero = 0.5f * (x - abs_lanes(x));
-  return 0.5f * ((below_zero - 87.0f) + abs_lanes(below_zero + 87.0f));
+// clips the exponent at 0 as well (round-off can make -|u - z|^2 / 2 positive); -125 (base 2,
+// e^-86.6) keeps 2^t normal (exp2_nonpositive), where jax's e^-87 = 1.6e-38 is as good as
+// nothing. NaN stays NaN.
+SPHEREJAX_INLINE Vec clip_exponent2(Vec t) {
+  const Vec below_zero = 0.5f * (t - abs_lanes(t));
+  return 0.5f * ((below_zero - 125.0f) + abs_lanes(below_zero + 125.0f));
 }
 
-// e^x for x in [-87, 0], lane by lane: x log2(e) = n + f with n an integer (rounded to nearest by
-// the 1.5 x 2^23 trick) and |f| <= 1/2, 2^f by its Taylor polynomial of degree 6 (relative error
-// below 1.3e-7: (ln 2 / 2)^7 / 7!), and 2^n put into the exponent bits (n >= -126: a normal
-// float). Written out because libm's expf does not vectorise; within 2 ulp of jax's float32 exp
-// (tests/test_fused.py).
-SPHEREJAX_INLINE Vec exp_nonpositive(Vec x) {
-  const Vec t = x * 1.44269504088896341f;
+// 2^t for t in [-125, 0], lane by lane (e^x with x log2(e) = t folded into the constants, call.cc):
+// t = n + f with n an integer (rounded to nearest by the 1.5 x 2^23 trick) and |f| <= 1/2, 2^f by
+// its Taylor polynomial of degree 6 (relative error below 1.3e-7: (ln 2 / 2)^7 / 7!), and 2^n put
+// into the exponent bits (n >= -125: a normal float). Written out because libm's exp2f does not
+// vectorise (tests/test_fused_residual.py compares the kernel with jax's exp).
+SPHEREJAX_INLINE Vec exp2_nonpositive(Vec t) {
   const Vec magic = Vec{} + 12582912.0f;
   const Vec n = (t + magic) - magic;
   const Vec f = t - n;
@@ -218,9 +222,9 @@ SPHEREJAX_INLINE Vec exp_nonpositive(Vec x) {
 //                       kResidualRank);
 //   static V load(const float* from), static void store(float* to, V x)
 //                       kWidth floats from and to memory on a kWidth * 4-byte boundary;
-//   static void exp(V* k, int64_t n)
-//                       k[j] = e^min(k[j], 0) lane by lane for j < n, NaN kept (the kernel
-//                       values k(v), a chunk at a time);
+//   static void exp2(V* k, int64_t n)
+//                       k[j] = 2^min(k[j], 0) lane by lane for j < n, NaN kept (the kernel
+//                       values k(v) from their exponents in base 2, a chunk at a time);
 //   static void columns(const float (*rows)[kMaxBands], int64_t B, float (*columns)[kBlock])
 //                       a block's v_tilde, rows[pixel][band], as columns[band][pixel];
 //   static void write_rows(const float (*out)[kBlock], int64_t count, float* to)
@@ -247,7 +251,7 @@ SPHEREJAX_INLINE void add_band_products(const float (*tilde)[kBlock], int64_t fi
 // N outputs o0 .. o0 + N - 1 of [reflectance | XYZ] for kWidth pixels, one a lane (residual_of):
 // bias + v_tilde . projection (the affine estimate, as correct_block computes it pixel by pixel)
 // + g . basis (the kernel residual P G k(v)), into out[o][first + lane].
-template <int N, typename Lanes, typename V = typename Lanes::V>
+template <int N, int Rank, typename Lanes, typename V = typename Lanes::V>
 SPHEREJAX_INLINE void outputs_of(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
                                  const V* g, int64_t o0, float (*out)[kBlock]) {
   const float* basis = reinterpret_cast<const float*>(pr.basis) + o0;
@@ -257,7 +261,7 @@ SPHEREJAX_INLINE void outputs_of(const Problem& pr, int64_t B, const float (*til
   for (int q = 0; q < N; ++q) acc[q] = V{} + bias[q];
   add_band_products<N, Lanes>(tilde, first, B, reinterpret_cast<const float*>(pr.projection) + o0, 1, kPadded, acc);
 #pragma GCC unroll 8
-  for (int64_t r = 0; r < kResidualRank; ++r) {
+  for (int64_t r = 0; r < Rank; ++r) {
 #pragma GCC unroll 8
     for (int q = 0; q < N; ++q) acc[q] += g[r] * basis[r * kPadded + q];
   }
@@ -279,7 +283,18 @@ constexpr int64_t kInducingChunk = 32;
 //   basis (8, 48):        row r = [P_r | weights^T P_r]
 // it computes -|u - z_j|^2 / 2 = Y_j . v + c_j - |u|^2 / 2, k_j = exp of it (clipped at 0 as the
 // jax.numpy path clips), g = sum_j k_j G^T_j and the outputs bias + v . projection + g . basis.
-// Padding rows are zero (a padding inducing point has factor 0).
+// Padding rows are zero (a padding inducing point has factor 0). The Problem's rows carry log2 e
+// (Problem: whitening, inducing), so the sums are the exponents in base 2 and k_j = 2^sum. Rank:
+// the columns of G in use (Problem::residual_rank, 4 or 8): the multiply-adds of g are Rank a
+// point, and the outputs' Rank more a pixel.
+//
+// What a point costs a pixel: B multiply-adds for its sum, 5 for its exponential's polynomial
+// (AVX2, AVX-512; a sixth, the multiplication by log2 e, is folded into the constants) and Rank
+// for g. The multiply-adds are the whole time of the loop: on a Zen 4 core, 0.56-0.62 ns a pixel
+// a point at rank 8 (single thread, 16 bands, before log2 e was folded in), against 0.54 ns for
+// those multiply-adds alone at the 7.0 G ymm multiply-adds a second measured on that core; so no
+// exact kernel applies more points in the time, and the count of inducing points a calibration
+// may take follows from it (spherejax/estimation/kernel_residual.py, SPEED_BOUND_POINTS).
 //
 // Why lanes over pixels: one pixel's work is a chain of dependent sums (|u|^2 before every
 // k_j, every k_j before g), which one pixel at a time left the FMA units waiting (measured:
@@ -292,14 +307,14 @@ constexpr int64_t kInducingChunk = 32;
 // and g's accumulators stay live across the whole loop; in one pass, a step's sums, the
 // exponentials in flight and g outgrow AVX2's 16 registers. Apart, each pass holds only its own
 // accumulators, and the exponentials of a chunk are independent of each other.
-template <typename Lanes>
+template <typename Lanes, int Rank>
 SPHEREJAX_INLINE void residual_of(const Problem& pr, int64_t B, const float (*tilde)[kBlock], int64_t first,
                                   float (*out)[kBlock]) {
   using V = typename Lanes::V;
   constexpr int kWhitening = Lanes::kWhiteningStep, kInducing = Lanes::kInducingStep;
-  constexpr int kRank = Lanes::kRankStep, kOut = Lanes::kOutputStep;
-  static_assert(kResidualRows % kWhitening == 0 && kResidualRows % kInducing == 0 &&
-                    kResidualRank % kRank == 0 && kInducingChunk % kResidualRows == 0,
+  constexpr int kRank = Lanes::kRankStep < Rank ? Lanes::kRankStep : Rank, kOut = Lanes::kOutputStep;
+  static_assert(kResidualRows % kWhitening == 0 && kResidualRows % kInducing == 0 && Rank % kRank == 0 &&
+                    Rank <= kResidualRank && kInducingChunk % kResidualRows == 0,
                 "steps that divide the rows and the rank");
   const int64_t D = pr.whitened_rows, M = pr.inducing_rows, width = B + 1;
   V squared = {};
@@ -313,7 +328,7 @@ SPHEREJAX_INLINE void residual_of(const Problem& pr, int64_t B, const float (*ti
     for (int q = 0; q < kWhitening; ++q) squared += u[q] * u[q];
   }
   const V half = 0.5f * squared;
-  V g[kResidualRank] = {};
+  V g[Rank] = {};
   for (int64_t j0 = 0; j0 < M; j0 += kInducingChunk) {
     const int64_t n = std::min(kInducingChunk, M - j0);  // a multiple of kResidualRows
     V k[kInducingChunk];
@@ -326,8 +341,8 @@ SPHEREJAX_INLINE void residual_of(const Problem& pr, int64_t B, const float (*ti
 #pragma GCC unroll 8
       for (int q = 0; q < kInducing; ++q) k[j + q] = s[q];
     }
-    Lanes::exp(k, n);
-    for (int r0 = 0; r0 < kResidualRank; r0 += kRank) {
+    Lanes::exp2(k, n);
+    for (int r0 = 0; r0 < Rank; r0 += kRank) {
       V acc[kRank];
 #pragma GCC unroll 8
       for (int r = 0; r < kRank; ++r) acc[r] = g[r0 + r];
@@ -340,9 +355,24 @@ SPHEREJAX_INLINE void residual_of(const Problem& pr, int64_t B, const float (*ti
       for (int r = 0; r < kRank; ++r) g[r0 + r] = acc[r];
     }
   }
-  for (int64_t o0 = 0; o0 + kOut <= kOutputs; o0 += kOut) outputs_of<kOut, Lanes>(pr, B, tilde, first, g, o0, out);
+  for (int64_t o0 = 0; o0 + kOut <= kOutputs; o0 += kOut) outputs_of<kOut, Rank, Lanes>(pr, B, tilde, first, g, o0, out);
   if constexpr (kOutputs % kOut != 0) {
-    outputs_of<kOutputs % kOut, Lanes>(pr, B, tilde, first, g, kOutputs - kOutputs % kOut, out);
+    outputs_of<kOutputs % kOut, Rank, Lanes>(pr, B, tilde, first, g, kOutputs - kOutputs % kOut, out);
+  }
+}
+
+// residual_of for every pixel of a block, kWidth at a time, at the call's rank (Problem).
+template <typename Lanes>
+SPHEREJAX_INLINE void residual_of_block(const Problem& pr, int64_t B, const float (*tilde)[kBlock],
+                                        float (*out)[kBlock]) {
+  if (pr.residual_rank <= kResidualRank / 2) {
+    for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Lanes::kWidth) {
+      residual_of<Lanes, kResidualRank / 2>(pr, B, tilde, lane0, out);
+    }
+  } else {
+    for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Lanes::kWidth) {
+      residual_of<Lanes, kResidualRank>(pr, B, tilde, lane0, out);
+    }
   }
 }
 
@@ -361,8 +391,8 @@ struct GenericLanes {
   }
   static SPHEREJAX_INLINE void store(float* to, Vec x) { std::memcpy(to, &x, sizeof x); }
 
-  static SPHEREJAX_INLINE void exp(Vec* k, int64_t n) {
-    for (int64_t j = 0; j < n; ++j) k[j] = exp_nonpositive(clip_exponent(k[j]));
+  static SPHEREJAX_INLINE void exp2(Vec* k, int64_t n) {
+    for (int64_t j = 0; j < n; ++j) k[j] = exp2_nonpositive(clip_exponent2(k[j]));
   }
 
   static SPHEREJAX_INLINE void write_rows(const float (*out)[kBlock], int64_t count, float* to) {
@@ -603,7 +633,7 @@ SPHEREJAX_INLINE void correct_block_with_residual(const Problem& pr, int64_t fir
   uint8_t quality[kBlock];
   stage2_of_block<Raw, Stage2>(pr, first, count, rows, quality);
   Lanes::columns(rows, B, tilde);
-  for (int64_t lane0 = 0; lane0 < kBlock; lane0 += Lanes::kWidth) residual_of<Lanes>(pr, B, tilde, lane0, out);
+  residual_of_block<Lanes>(pr, B, tilde, out);
   Lanes::write_rows(out, count, pr.reflectance + first * kReflectance);
   finish_block(pr, first, count, out + kReflectance, quality, residual_block_suspect(out, count, quality));
 }
