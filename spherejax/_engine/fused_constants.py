@@ -87,8 +87,11 @@ def residual_constants(residual, weights, bands: int):
     # Components below A's float32 round-off (numpy's matrix_rank tolerance) are zeroed: weights
     # of rank r (the fit's A has rank r by construction, E12) keep only r, and the kernel runs
     # its half-rank code where r <= 4 (call.cc counts G's columns in use).
+    # A that overflows float32 (weights near 3e38, which only an unchecked tree_map can bring)
+    # keeps every component, so that its non-finite values reach the outputs and are flagged
+    # rather than dropped.
     tolerance = singular[0] * max(A.shape) * jnp.finfo(jnp.float32).eps
-    kept = singular[:rank] > tolerance
+    kept = (singular[:rank] > tolerance) | ~jnp.isfinite(tolerance)
     P = jnp.pad(jnp.where(kept, U[:, :rank] * singular[:rank], 0.0), ((0, 0), (0, RESIDUAL_RANK - rank)))  # (31, 8)
     G = jnp.pad(jnp.where(kept[:, None], Vt[:rank], 0.0), ((0, RESIDUAL_RANK - rank), (0, 0)))  # (8, m)
     factor = _padded_rows(G.T, RESIDUAL_ROWS)
