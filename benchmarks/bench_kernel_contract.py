@@ -13,9 +13,16 @@ What it measures (the issue's targets in brackets), all in one run, as same-run 
      affine call's fraction of the all-threads copy floor [>= 35 %].
   3. The reference: numpy + colour-science of the affine twin (`reference.reference_correct`),
      checked against spherejax's affine result before any timing.
+  4. The costliest residual a fit may make (the largest of `kernel_residual.INDUCING_POINT_COUNTS`
+     at the largest of `RANKS`) [<= 3x], and any other counts and ranks asked for with
+     `--residuals` (e.g. 80r8,96r4,128r8: what a larger bound would cost), each built on the
+     default's whitening with inducing points drawn again near its own and weights of that rank
+     (the kernel's time does not depend on the values: it has no data-dependent step), against
+     the same affine twin, timed in a round of their own (after the reference in one round they
+     read 4-5x, from the reference's memory traffic).
 
 Every row names the CPU model and its widest instruction set. Run:
-    python benchmarks/bench_kernel_contract.py [--size 1024] [--repeats 9] [--json FILE]
+    python benchmarks/bench_kernel_contract.py [--size 1024] [--repeats 9] [--residuals 80r8,96r4] [--json FILE]
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import numpy as np
 
 import spherejax
 from spherejax._engine import fused
+from spherejax.estimation import KernelResidual, kernel_residual
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from harness import copy_bandwidth, cpu_info, machine_info, time_interleaved, write_record  # noqa: E402
@@ -56,6 +64,27 @@ def default_calibration(folder: str, seed: int) -> spherejax.Calibration:
             raise SystemExit("bench_kernel_contract: spherejax calibrate failed")
     with spherejax.io.open_calibration(calibration) as opened:
         return opened.calibration()
+
+
+def residual_at(residual: KernelResidual, m: int, r: int, seed: int) -> KernelResidual:
+    """A residual of m inducing points and weights of rank r on `residual`'s whitening: inducing
+    points its own, drawn again with a perturbation of 0.3 whitened units, weights of its scale."""
+    rng = np.random.default_rng(seed)
+    Z0, A0 = np.asarray(residual.inducing, np.float64), np.asarray(residual.weights, np.float64)
+    Z = Z0[rng.integers(0, len(Z0), size=m)] + rng.normal(scale=0.3, size=(m, residual.bands))
+    A = rng.normal(size=(31, r)) @ rng.normal(size=(r, m)) * (np.std(A0) / np.sqrt(r))
+    return KernelResidual(*(np.asarray(x, np.float32) for x in (residual.centre, residual.whitening, Z, A)))
+
+
+def residual_sizes(text: str) -> list[tuple[int, int]]:
+    """[(m, r)]: the costliest a fit makes, then those of `--residuals` ("80r8,96r4")."""
+    sizes = [(max(kernel_residual.INDUCING_POINT_COUNTS), max(kernel_residual.RANKS))]
+    for item in filter(None, text.split(",")):
+        m, _, r = item.partition("r")
+        if not (m.isdigit() and r.isdigit() and int(m) > 0 and 0 < int(r) <= 8):
+            raise SystemExit(f"bench_kernel_contract: --residuals: expected items like 80r8 (m >= 1, rank 1-8), got {item!r}")
+        sizes.append((int(m), int(r)))
+    return sizes
 
 
 @contextlib.contextmanager
@@ -84,6 +113,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--copy-mib", type=int, default=256)
+    parser.add_argument("--residuals", default="", help="more residual sizes to time, e.g. 80r8,96r4")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
 
@@ -108,6 +138,8 @@ def main(argv=None) -> int:
         saturation=SATURATION, wiener_residual=made.wiener_residual,
     )
     affine = dataclasses.replace(kernel, wiener_residual=None)
+    sized = {f"m{m} r{r}": dataclasses.replace(kernel, wiener_residual=residual_at(made.wiener_residual, m, r, args.seed))
+             for m, r in residual_sizes(args.residuals)}
     raw = inputs["raw"]
     xyz_weights, whitepoint_xy = reference_constants()
 
@@ -142,11 +174,17 @@ def main(argv=None) -> int:
                 "kernel": lambda: jax.block_until_ready(spherejax.correct(raw, kernel).lab),
                 "reference": run_reference,
             }, args.repeats)
+            by_size = time_interleaved({
+                "affine": lambda: jax.block_until_ready(spherejax.correct(raw, affine).lab),
+                **{label: (lambda c=c: jax.block_until_ready(spherejax.correct(raw, c).lab)) for label, c in sized.items()},
+            }, args.repeats)
         t = {name: timed[name]["median_s"] for name in timed}
         rows.append({
             "variant": variant, "kernel_modes": modes, "median_s": t, "max_abs_vs_definition": error,
             "kernel_over_affine": t["kernel"] / t["affine"], "reference_over_kernel": t["reference"] / t["kernel"],
             "reference_over_affine": t["reference"] / t["affine"], "affine_copy_floor_fraction": floor_s / t["affine"],
+            "sizes_over_affine": {label: by_size[label]["median_s"] / by_size["affine"]["median_s"] for label in sized},
+            "sizes_round_median_s": {name: by_size[name]["median_s"] for name in by_size},
         })
 
     residual = made.wiener_residual
@@ -159,7 +197,8 @@ def main(argv=None) -> int:
         t = row["median_s"]
         print(f"{machine[:48]:<48} {row['variant']:<8} {1e3 * t['affine']:9.1f} {1e3 * t['kernel']:9.1f} "
               f"{1e3 * t['reference']:8.0f} {row['kernel_over_affine']:8.2f} {row['reference_over_kernel']:8.1f} "
-              f"{row['reference_over_affine']:8.1f} {100 * row['affine_copy_floor_fraction']:5.1f}%")
+              f"{row['reference_over_affine']:8.1f} {100 * row['affine_copy_floor_fraction']:5.1f}%  "
+              + ", ".join(f"{label} {ratio:.2f}x" for label, ratio in row["sizes_over_affine"].items()))
     print(f"copy floor {1e3 * floor_s / megapixels:.1f} ms/MP ({BYTES_PER_PIXEL} bytes a pixel at the all-threads copy bandwidth)")
     if args.json:
         write_record(args.json, {

@@ -176,12 +176,14 @@ def np_fit(V, R, method):
     return (*out[name][1], name, out[name][2])
 
 
-def np_kernel_final_fit(V, R, W, r0, lengthscales, ridges, inducing_points: int):
+def np_kernel_final_fit(V, R, W, r0, lengthscales, ridges, noise, inducing_points: int):
     """The kernel estimator's final fit on all the targets (E9, E11-E13), written again with numpy,
     given its hyperparameters: the lengthscales (B,) of the whitened directions, one ridge per
-    residual component (r,), and m. Returns (A (31, m), the offset r0 + the residuals' mean (31,)).
-    The affine mean W (31, B), r0 (31,) is spherejax's (checked against `np_fit` above); the
-    inducing points are the same pivoted-Cholesky order (`kernel_residual.inducing_order`)."""
+    residual component (r,), every component's noise variance (E14; as many as the fit's largest
+    rank), and m. Returns (A (31, m), the offset r0 + the residuals' mean (31,)). The affine mean
+    W (31, B), r0 (31,) is spherejax's (checked against `np_fit` above); the inducing points are
+    the same forward-selection order (`kernel_residual.inducing_order`, on the components in units
+    of their noise)."""
     mu = V.mean(axis=0)
     eigenvalues, Q = np.linalg.eigh(np.cov((V - mu).T, bias=True))
     eigenvalues = np.maximum(eigenvalues, 1e-8 * eigenvalues.max())
@@ -189,9 +191,10 @@ def np_kernel_final_fit(V, R, W, r0, lengthscales, ridges, inducing_points: int)
     E = R - (V @ W.T + r0)
     mean = E.mean(axis=0)
     _, _, Vt = np.linalg.svd(E - mean, full_matrices=False)
-    P = Vt[: len(ridges)]  # (E13): the residual's leading principal directions (r, 31)
+    P = Vt[: len(noise)]  # (E13): the residual's leading principal directions (largest rank, 31)
     C = (E - mean) @ P.T
-    Z = X[kernel_residual.inducing_order(X, inducing_points)]
+    Z = X[kernel_residual.inducing_order(X, C / np.sqrt(np.asarray(noise)), inducing_points)]
+    P, C = P[: len(ridges)], C[:, : len(ridges)]
     K_nm = np.exp(-0.5 * np.sum((X[:, None, :] - Z[None]) ** 2, axis=2))  # (E10)
     K_mm = np.exp(-0.5 * np.sum((Z[:, None, :] - Z[None]) ** 2, axis=2))
     m = len(Z)
@@ -208,7 +211,7 @@ def kernel_fit_timing(V, R, repeats: int) -> tuple[dict, list[str]]:
     settings = dict(ours.cross_validation[0].settings)
     m, ridges = settings["inducing_points"], settings["ridges"]
     W, r0 = np.asarray(ours.affine.matrix), np.asarray(ours.affine.offset)
-    A, offset = np_kernel_final_fit(V, R, W, r0, settings["lengthscales"], ridges, m)
+    A, offset = np_kernel_final_fit(V, R, W, r0, settings["lengthscales"], ridges, settings["noise"], m)
     failures = []
     for label, a, b in (("weights A", ours.kernel.weights, A), ("offset", ours.affine.offset, offset)):
         a = np.asarray(a)
@@ -226,7 +229,7 @@ def kernel_fit_timing(V, R, repeats: int) -> tuple[dict, list[str]]:
                              repeats)
     final = time_interleaved({
         "spherejax": lambda: jax.block_until_ready(candidate.fit()[5]),
-        "numpy": lambda: np_kernel_final_fit(V, R, W, r0, settings["lengthscales"], ridges, m),
+        "numpy": lambda: np_kernel_final_fit(V, R, W, r0, settings["lengthscales"], ridges, settings["noise"], m),
     }, repeats)
     return {
         "targets": len(V), "compile_s": compile_s, "fit_kernel_estimator": whole["fit_kernel_estimator"],

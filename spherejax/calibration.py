@@ -247,7 +247,7 @@ MAX_BANDS = 256
 #: makes at most max(`estimation.kernel_residual.INDUCING_POINT_COUNTS`) (64); applying m points costs every
 #: pixel (B + 9) m multiply-adds and, on the jax.numpy path, 8 m bytes of working memory. 1024 is
 #: the most the GPU kernel applies (`spherejax._engine.gpu_residual.MAX_INDUCING_POINTS`) and 16
-#: times what the fit made (64): a 192 x 272 frame then takes about a second and 0.5 GB, where 32 768
+#: times what the fit makes (64): a 192 x 272 frame then takes about a second and 0.5 GB, where 32 768
 #: points (a 13 MB file) took 51 s and 11.5 GB.
 MAX_INDUCING_POINTS = 1024
 

@@ -101,7 +101,11 @@ def test_few_targets_or_no_offset_keep_auto_affine_and_kernel_may_still_be_asked
     no_offset = estimation.fit_wiener(V, R, offset=False)
     assert isinstance(no_offset, estimation.WienerEstimator) and "kernel" not in {c.method for c in no_offset.cross_validation}
     asked = estimation.fit_estimator(V[:30], R[:30], method="kernel")
-    assert asked.method == "kernel" and dict(asked.cross_validation[0].settings)["inducing_points"] == 30
+    settings = dict(asked.cross_validation[0].settings)
+    # With fewer targets than a count, every target an inducing point is tried (30); forward
+    # selection's 16 may fit as well, and then the cheaper is taken.
+    assert asked.method == "kernel" and {m for m, _, _ in settings["tried"]} == {16, 30}
+    assert settings["inducing_points"] in (16, 30)
     assert estimation.fit_wiener is estimation.fit_estimator and sj.fit_estimator is estimation.fit_estimator
 
 

@@ -132,8 +132,9 @@ def validate_method(method, name: str = "method", names: tuple[str, ...] = METHO
 #: fraction below the best affine method's (on the same folds), and `KERNEL_MIN_Z` says the
 #: targets show it together. Why 2 %: the gain must pay for up to 3x the affine estimator's time
 #: per pixel in `correct` (`kernel_residual.INDUCING_POINT_COUNTS`) and for what it may cost on a
-#: material other than its targets' (0.904-1.006x the affine estimator's rms over the 56 pairs of
-#: the Kubelka-Munk and `target_families` sets, benchmarks/bench_wiener.py). At
+#: material other than its targets' (0.86-1.08x the affine estimator's rms over the 56 pairs of
+#: the Kubelka-Munk and `target_families` sets, within 5 % of the published Wiener estimator on
+#: 52: benchmarks/bench_wiener.py). At
 #: 5 %, as before, auto refused gains that held on new samples: shade_card's cross-validation
 #: showed 3.2 % (z 4.4) for a kernel estimator that lowered 200 new samples' rms by 11 %, and real
 #: materials' forced kernel estimators gained 1-5 % where auto took the affine one.

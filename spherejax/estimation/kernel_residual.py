@@ -32,10 +32,22 @@ component (Rasmussen & Williams 2006, Section 8.3.1; Quinonero-Candela & Rasmuss
 
 K_nm (n, m) the kernel between targets and inducing points, K_mm (m, m) between inducing points,
 eps a jitter of 1e-8 x m. With every target an inducing point (m = n), (E11) is the exact
-Gaussian-process posterior mean. The inducing points are targets chosen by pivoted Cholesky of the
-kernel matrix (`inducing_order`: each next one the target the chosen ones explain least, Fine &
-Scheinberg 2001; Harbrecht, Peters & Schneider 2012), a nested order, so that every count m is a
-prefix of it. m and r are chosen by held-out accuracy (`INDUCING_POINT_COUNTS`, `RANKS`).
+Gaussian-process posterior mean. The inducing points are targets chosen by forward selection
+(`inducing_order`: orthogonal least squares, Chen, Cowan & Grant 1991; each next the target whose
+kernel column, orthogonal to the chosen ones', explains most of the components C, each in units
+of its noise), a nested order, so that every count m is a prefix of it. m and r are chosen by
+held-out accuracy (`INDUCING_POINT_COUNTS`, `RANKS`) among those the speed bound admits
+(`within_speed_bound`).
+
+Why forward selection and not an unsupervised choice. Pivoted Cholesky of the kernel matrix
+(Fine & Scheinberg 2001; the round before this one) spreads the points over every direction the
+kernel sees, the camera's noise directions included; the residual of a dyed family changes fast
+in a few places. Held out (200 targets, 200 others, ratio to the best affine estimator's rms), m
+= 64: Kubelka-Munk cotton / wool / polyester / paper 0.51 / 0.55 / 0.53 / 0.65 by forward
+selection against 0.57 / 0.61 / 0.70 / 0.67 by pivoted Cholesky; at m = 96 0.46 / 0.50 / 0.49 /
+0.65, where every target an inducing point (m = 200) gives 0.43 / 0.51 / 0.48 / 0.61; at m =
+64 the shade-card, fluorescent and gloss families within 0.7 % of every target's and the mixed
+one within 2.1 % (`target_families`).
 
 Applying it is two matrix products and an exponential per pixel, B m + r m + r x 34 + B^2
 multiply-adds and m exponentials (the fused CPU kernel, spherejax._engine.fused.residual_constants,
@@ -67,18 +79,36 @@ from .estimator import (
 from .gp_hyperparameters import fit_hyperparameters
 
 #: The inducing-point counts m the cross-validation chooses among (those up to the number of
-#: targets: every target an inducing point where there are fewer than the largest). Per pixel,
-#: applying the residual costs about (B + r) m multiply-adds and m exponentials; the largest
-#: count is the speed bound, a calibration's `correct` at most 3x the affine one's on every
-#: kernel of the kernel contract: at m = 64 it is 2.2-2.6x on AVX-512 and AVX2 (Zen 4, 2 cores,
-#: benchmarks/bench_kernel_contract.py, benchmarks/README.md), and the kernel's time grows
-#: about linearly in m, so that 96 would be about 3x. The bound costs accuracy: held out (train
-#: 200 targets, test 200 others of the family), spectral rms over the best affine estimator's,
-#: rank 8, lengthscales bounded at 8, m = 48 / 64 / 96 / 200 (every target): cotton reactive 0.63
-#: / 0.56 / 0.47 / 0.44, wool acid 0.65 / 0.51 / 0.44 / 0.40 (Kubelka-Munk); shade_card 0.88 /
-#: 0.88 / 0.87 / 0.87, mixed_real 0.83 / 0.81 / 0.80 / 0.80 (`target_families`). A faster
-#: kernel buys it back: raise the largest count with it.
+#: targets: every target an inducing point where there are fewer than the largest), with the
+#: ranks `RANKS`, as far as the speed bound admits them (`within_speed_bound`).
 INDUCING_POINT_COUNTS = (16, 32, 48, 64)
+
+#: The speed bound: a kernel calibration's `correct` at most 3x its affine twin's (the kernel
+#: contract). The fused CPU kernel applies each inducing point at the multiply-add rate of the core
+#: (kernel/fused_correct.h, residual_of: B multiply-adds for its sum, 5 for its exponential and r
+#: for the weights; 0.56-0.60 ns a pixel a point at rank 8 on a Zen 4 core against 0.54 for those
+#: multiply-adds alone), so no exact kernel applies more points in that time: the bound is on the
+#: multiply-adds a pixel (`residual_operations`), at most those of `SPEED_BOUND_POINTS` points at
+#: rank `SPEED_BOUND_RANK`, which for 16 bands admits m <= 48 at rank 8 and m <= 64 at rank 4.
+#: Through `correct` (2 Zen 4 cores, 1024^2 x 16, `python benchmarks/bench_kernel_contract.py
+#: --residuals 64r4,80r8,96r4,128r8`, benchmarks/README.md), against the affine twin on AVX-512 /
+#: AVX2 / generic code: 64 points at rank 4 2.61 / 2.79 / 2.58x; beyond the bound, 64 at rank 8
+#: 2.88 / 3.01 / 2.76x, 80 at rank 8 3.12 / 3.29 / 3.00x, 128 at rank 8 3.96 / 4.20 / 3.77x (the
+#: affine call at 55-59 % of the copy floor: the faster it is, the larger these ratios). What
+#: the bound costs, held out (200 targets, 200 others; ratio to the best affine estimator's rms;
+#: forward selection, rank 8): Kubelka-Munk cotton / wool / polyester / paper 0.58 / 0.60 / 0.57
+#: / 0.69 at m = 48 and 0.51 / 0.55 / 0.53 / 0.65 at m = 64, against 0.43 / 0.51 / 0.48 / 0.61
+#: with every target (m = 200); the shade-card, fluorescent and gloss families within 2.2 % of
+#: every target's at m = 48, the mixed one within 3.4 %.
+SPEED_BOUND_POINTS, SPEED_BOUND_RANK = 64, 4
+
+#: Forward selection (`inducing_order`) considers at most this many targets as inducing points:
+#: its working matrix is n x this many float64 (80 MB for 10 000 targets).
+SELECTION_CANDIDATES = 1000
+
+#: Multiply-adds of one exponential in the fused kernel (its polynomial of degree 5 and the
+#: product with 2^n): part of `residual_operations`.
+EXPONENTIAL_MULTIPLY_ADDS = 6
 
 #: The ranks r of the residual (E12-E13) the cross-validation chooses among. The fused CPU kernel
 #: applies A at rank 8 or less (spherejax._engine.fused.RESIDUAL_RANK, the same 8): 8 m + 8 x 34
@@ -125,27 +155,54 @@ def _kernel(X, Y) -> np.ndarray:
     return np.exp(-0.5 * np.maximum(squared, 0.0))
 
 
-def inducing_order(X: np.ndarray, m: int) -> np.ndarray:
+def inducing_order(X: np.ndarray, Y: np.ndarray, m: int) -> np.ndarray:
     """The indices (min(m, n),) of the targets X (n, d) (whitened, divided by the lengthscales)
-    that pivoted Cholesky of their kernel matrix picks first: each next the target whose kernel
-    row the ones before explain least (the largest diagonal of the Schur complement). A nested
-    order; it stops early where the rest are explained to round-off."""
+    that forward selection picks first for the targets' values Y (n, r) (each column in units of
+    its noise): each next the target whose kernel column k_i = k(X, x_i), made orthogonal to the
+    columns chosen before, explains most of Y (the largest |q_i^T Y|^2 / |q_i|^2: orthogonal least
+    squares, Chen, Cowan & Grant 1991, IEEE Trans. Neural Networks 2(2)). A nested order; it
+    stops early where the remaining columns lie within round-off of the chosen ones' span.
+    O(n c m) time and n c memory for c = min(n, `SELECTION_CANDIDATES`) candidates: beyond that
+    many targets the candidates are that many of them drawn at random (fixed seed), every target
+    still counting in the fit they are chosen by."""
     X = np.asarray(X, np.float64)
-    n = len(X)
-    m = min(int(m), n)
-    diagonal = np.ones(n)
-    rows = np.zeros((m, n))
-    order = []
-    for k in range(m):
-        i = int(np.argmax(diagonal))
-        if diagonal[i] <= 1e-12:
+    candidates = np.arange(len(X))
+    if len(X) > SELECTION_CANDIDATES:
+        candidates = np.sort(np.random.default_rng(0).choice(len(X), SELECTION_CANDIDATES, replace=False))
+    remaining = _kernel(X, X[candidates])  # column i: k_i, made orthogonal to the chosen columns step by step
+    unexplained = np.array(Y, np.float64, copy=True, ndmin=2).reshape(len(X), -1)
+    original = np.sum(remaining * remaining, axis=0)
+    squared = original.copy()
+    order: list[int] = []
+    for _ in range(min(int(m), len(candidates))):
+        # A column within round-off of the span (its norm a 1e-10 part of what it was) is never
+        # taken: its direction is noise.
+        usable = squared > 1e-10 * original
+        usable[order] = False
+        if not usable.any():
             break
+        score = np.where(usable, np.sum((remaining.T @ unexplained) ** 2, axis=1) / np.where(usable, squared, 1.0), -1.0)
+        i = int(np.argmax(score))
         order.append(i)
-        row = (_kernel(X[i:i + 1], X)[0] - rows[:k, i] @ rows[:k]) / np.sqrt(diagonal[i])
-        rows[k] = row
-        diagonal = np.maximum(diagonal - row * row, 0.0)
-        diagonal[order] = 0.0
-    return np.asarray(order, np.int64)
+        q = remaining[:, i] / np.sqrt(squared[i])
+        unexplained -= np.outer(q, q @ unexplained)
+        remaining -= np.outer(q, q @ remaining)
+        squared = np.sum(remaining * remaining, axis=0)
+    return candidates[np.asarray(order, np.int64)]
+
+
+def residual_operations(bands: int, inducing_points: int, rank: int) -> int:
+    """Multiply-adds per pixel of applying a kernel residual, its exponentials counted
+    (`residual_multiply_adds` and `EXPONENTIAL_MULTIPLY_ADDS` each): what the fused kernel's time
+    follows (`SPEED_BOUND_POINTS`)."""
+    return residual_multiply_adds(bands, inducing_points, rank) + EXPONENTIAL_MULTIPLY_ADDS * int(inducing_points)
+
+
+def within_speed_bound(bands: int, inducing_points: int, rank: int) -> bool:
+    """Whether m inducing points at rank r keep `correct` within the speed bound for B bands: at
+    most the multiply-adds of `SPEED_BOUND_POINTS` at `SPEED_BOUND_RANK` (`residual_operations`)."""
+    return residual_operations(bands, inducing_points, rank) <= residual_operations(
+        bands, SPEED_BOUND_POINTS, SPEED_BOUND_RANK)
 
 
 def _components(E, w, rank):
@@ -191,15 +248,17 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
     (the cheapest within `CHEAPER_WITHIN` of it); returns a `cross_validation.Candidate` whose
     `fit()` gives the estimator's arrays (W, r0, mu, S', z', A, variance) on all the targets.
 
-    inducing_points: None (default) chooses m among `INDUCING_POINT_COUNTS`; an integer fixes it
-    (at most the number of targets).
+    inducing_points: None (default) chooses m among `INDUCING_POINT_COUNTS` within the speed
+    bound (`within_speed_bound`); an integer fixes it (at most the number of targets; every rank
+    is then tried, whatever it costs).
 
     The hyperparameters (E14) are fitted once, on all the targets, and shared by the folds (a fit
     per fold would cost five; they are 16 lengthscales and 2 r variances, which the held-out
     reflectances hardly move); the affine mean, the residual's mean and components and the
     weights are refitted in each fold, so the held-out errors are those of the estimator on
     targets it did not see. The report's settings hold the mean, m, r, the lengthscales (whitened
-    units), the ridges, every (m, r) tried with its held-out rms, the mean's own held-out spectral
+    units), the ridges, each component's noise variance ("noise", E14, as many as the largest
+    rank), every (m, r) tried with its held-out rms, the mean's own held-out spectral
     rms on the same folds ("mean_spectral_rms"), the gain over it and paired z (`kernel_gain`), and
     the multiply-adds per pixel of applying the estimator, affine mean (31 B) and residual
     ("cost_per_pixel"; the m exponentials come on top)."""
@@ -221,11 +280,16 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
 
     counts = sorted({min(c, n) for c in INDUCING_POINT_COUNTS}) if inducing_points is None else [min(int(inducing_points), n)]
     ranks = sorted({min(r, rank_max) for r in RANKS})
+    # The pairs tried: those within the speed bound, or every rank at a count the caller fixed.
+    pairs = [(m, r) for m in counts for r in ranks if inducing_points is not None or within_speed_bound(bands, m, r)]
+    counts = sorted({m for m, _ in pairs})
+    # Forward selection weighs each component in units of its noise (inducing_order).
+    noise_units = 1.0 / np.sqrt(np.asarray(hyper.noise, np.float64)[:rank_max])
 
     W_folds, r0_folds = (np.asarray(x, np.float64) for x in affine.fit_folds(jnp.asarray(folds, dtype)))
     affine_held = np.einsum("fwb,nb->fnw", W_folds, V64) + r0_folds[:, None, :]
     mean_held_out = np.sum(held_out[..., None] * affine_held, axis=0)
-    estimates = {(m, r): np.zeros_like(R64) for m in counts for r in ranks}
+    estimates = {pair: np.zeros_like(R64) for pair in pairs}
     for f in range(len(folds)):
         w = folds[f]
         E_f = R64 - affine_held[f]
@@ -234,24 +298,27 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
         # has no data near it, and (E11) with a small ridge gives it a large, arbitrary weight
         # there (measured: held-out rms 1.3x the mean's where new samples showed 0.5x).
         training = np.flatnonzero(w > 0)
-        fold_order = training[inducing_order(X[training], max(counts))]
+        fold_order = training[inducing_order(X[training], C_f[training] * noise_units, max(counts))]
         K_fold = _kernel(X, X[fold_order])
         for m in counts:
             K_nm, K_mm = K_fold[:, :m], K_fold[fold_order[:m], :m]
             a = _component_weights(K_nm, K_mm, C_f, w, ridges[:rank_max])
             for r in ranks:
+                if (m, r) not in estimates:
+                    continue
                 estimate = affine_held[f] + mean_f + K_nm @ (P_f[:r].T @ a[:r]).T
                 estimates[m, r] += held_out[f][:, None] * estimate
     tried = {key: float(np.sqrt(np.mean((value - R64) ** 2))) for key, value in estimates.items()}
     best = min(tried.values())
     m, r = min((key for key, rms in tried.items() if rms <= best * (1.0 + CHEAPER_WITHIN)),
-               key=lambda key: (key[0] * (bands + key[1]), key[1]))
+               key=lambda key: (residual_operations(bands, *key), key[1]))
     gain, z = kernel_gain(mean_held_out, estimates[m, r], R64)
     result = CrossValidation(
         method="kernel", spectral_rms=tried[m, r], delta_e_d65=_delta_e_d65(estimates[m, r], R),
         settings=(("mean", affine.cross_validation.method), ("inducing_points", int(m)), ("rank", int(r)),
                   ("lengthscales", tuple(float(x) for x in hyper.lengthscales)),
                   ("ridges", tuple(float(x) for x in ridges[:r])),
+                  ("noise", tuple(float(x) for x in np.asarray(hyper.noise)[:rank_max])),
                   ("hyperparameters_converged", bool(hyper.converged)),
                   ("tried", tuple((int(k[0]), int(k[1]), v) for k, v in sorted(tried.items()))),
                   ("mean_spectral_rms", float(np.sqrt(np.mean((mean_held_out - R64) ** 2)))),
@@ -261,7 +328,7 @@ def cross_validate_kernel(V, R, weights, folds_text: str, affine, *, inducing_po
 
     def fit():
         mean, P, C = _components(E, np.ones(n), r)
-        order = inducing_order(X, m)
+        order = inducing_order(X, C_all * noise_units, m)
         K_nm, K_mm = _kernel(X, X[order]), _kernel(X[order], X[order])
         a = _component_weights(K_nm, K_mm, C, np.ones(n), ridges[:r])
         A = P.T @ a
@@ -315,9 +382,13 @@ def kernel_gain(mean_held_out, kernel_held_out, reflectances) -> tuple[float, fl
 
 __all__ = [
     "CHEAPER_WITHIN",
+    "EXPONENTIAL_MULTIPLY_ADDS",
     "INDUCING_POINT_COUNTS",
     "RANKS",
     "RESIDUAL_RANK",
+    "SELECTION_CANDIDATES",
+    "SPEED_BOUND_POINTS",
+    "SPEED_BOUND_RANK",
     "KernelResidual",
     "ResidualKernelEstimator",
     "ResidualVariance",
@@ -326,6 +397,8 @@ __all__ = [
     "kernel_features",
     "kernel_gain",
     "residual_multiply_adds",
+    "residual_operations",
     "residual_variance",
     "whitening_of",
+    "within_speed_bound",
 ]
