@@ -134,7 +134,10 @@ def negative_log_likelihood(raw, args):
         alpha = jax.scipy.linalg.cho_solve((factor, True), c * w)
         return 0.5 * jnp.dot(c * w, alpha) + jnp.sum(jnp.log(jnp.diagonal(factor)))
 
-    total = jnp.sum(jax.vmap(one, in_axes=(1, 0, 0))(C, signal, noise))
+    # One component after another (lax.map), not vmap: a batch of r Choleskys of n x n is a LAPACK
+    # call large enough for jaxlib < 0.12 to share out to XLA's thread pool, which can hang the
+    # program with another such call in flight (small_solve); one matrix at a time never does.
+    total = jnp.sum(jax.lax.map(lambda args: one(*args), (C.T, signal, noise)))
     return total / jnp.maximum(jnp.sum(w), 1.0)
 
 

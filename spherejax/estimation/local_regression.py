@@ -81,6 +81,7 @@ from ..grid import N_WAVELENGTHS
 from ._targets import _check_training
 from .cross_validation import Candidate, _best, _delta_e_d65
 from .estimator import _HIGHEST, CrossValidation
+from .small_solve import spd_solve
 
 #: Candidate bandwidths h of (E13), in whitened response units (1 = one standard deviation of the
 #: training responses along each principal direction; two targets lie about sqrt(2 B) = 5.7 apart,
@@ -185,7 +186,8 @@ def _correction_at_ridge(system, w, E, ridge):
     """sum_i alpha_i e_i (31,) of (E15) at the ridge lambda, from `_centred_system`'s arrays."""
     total, xbar, Xc, gram = system
     G = gram + (ridge * total) * jnp.eye(gram.shape[0], dtype=gram.dtype)
-    z = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(G, lower=True), -xbar)
+    # Not jax.scipy.linalg.cho_solve: batched LAPACK calls can hang jaxlib < 0.12 (small_solve).
+    z = spd_solve(G, -xbar)
     alpha = w * (1.0 / total + jnp.matmul(Xc, z, precision=_HIGHEST))
     return jnp.matmul(alpha, E, precision=_HIGHEST)
 
