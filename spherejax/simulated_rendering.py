@@ -28,15 +28,44 @@ from .simulated_instrument import InstrumentModel
 from .simulated_layout import Material
 
 
-def _glare_kernel_fft(shape: tuple[int, int], core_px: float) -> jax.Array:
-    """rFFT of a normalised long-tailed PSF, 1 / (1 + (r / r0)²)^1.5, on the zero-padded grid."""
+def glare_kernel_fft(shape: tuple[int, int], core_px) -> jax.Array:
+    """rFFT of a normalised long-tailed PSF, 1 / (1 + (r / r0)²)^1.5, r0 = core_px, on the
+    zero-padded grid (2H, 2W) of an image of `shape` (H, W). A jax array or tracer core_px
+    gives a kernel differentiable in it (`spherejax.twin` fits it)."""
     height, width = 2 * shape[0], 2 * shape[1]
     y = np.fft.fftfreq(height) * height
     x = np.fft.fftfreq(width) * width
     r2 = y[:, None] ** 2 + x[None, :] ** 2
-    kernel = (1.0 + r2 / core_px**2) ** -1.5
-    kernel /= kernel.sum()
-    return jnp.asarray(np.fft.rfft2(kernel), dtype=jnp.complex64)
+    if isinstance(core_px, (int, float, np.number)):
+        # A number: in float64 numpy, as the simulator has always rendered (same frames).
+        kernel = (1.0 + r2 / float(core_px) ** 2) ** -1.5
+        return jnp.asarray(np.fft.rfft2(kernel / kernel.sum()), dtype=jnp.complex64)
+    kernel = (1.0 + jnp.asarray(r2, jnp.asarray(core_px).dtype) / core_px**2) ** -1.5
+    return jnp.fft.rfft2(kernel / jnp.sum(kernel))
+
+
+def glare(image, kernel_fft, stray):
+    """(1 - stray) image + stray (PSF * image): veiling glare on images (..., H, W), the PSF's
+    rFFT from `glare_kernel_fft`; light spread beyond the frame is lost."""
+    height, width = image.shape[-2:]
+    padded = jnp.fft.rfft2(image, s=(2 * height, 2 * width))
+    spread = jnp.fft.irfft2(padded * kernel_fft, s=(2 * height, 2 * width))[..., :height, :width]
+    return (1.0 - stray) * image + stray * spread
+
+
+def vignette(shape: tuple[int, int], vignetting):
+    """(H, W) relative irradiance of a cos⁴ fall-off whose corners lose `vignetting` (0..1):
+    (1 + t r²)^-2 with r the distance from the centre over the half diagonal, t chosen so that
+    r = 1 gives 1 - vignetting. numpy float64 for a number, jax.numpy (differentiable) for an
+    array or tracer (`spherejax.twin` fits it)."""
+    height, width = shape
+    y, x = np.mgrid[0:height, 0:width].astype(float)
+    cy, cx = (height - 1) / 2, (width - 1) / 2
+    r2 = (np.hypot(y - cy, x - cx) / np.hypot(cy, cx)) ** 2
+    if not isinstance(vignetting, (int, float, np.number)):
+        r2 = jnp.asarray(r2, jnp.asarray(vignetting).dtype)
+    tan_corner2 = (1.0 - vignetting) ** -0.5 - 1.0
+    return (1.0 + tan_corner2 * r2) ** -2
 
 
 @jax.jit
@@ -58,10 +87,7 @@ def _render_rates(material_map, reflectances, couplings, holder_mask, beta, band
     spectral = reflectances * (couplings[:, None] * first[None] + later[None])  # (M, L)
     per_material = spectral @ band_weights.T  # (M, 16)
     image = beta * jnp.moveaxis(per_material[material_map], -1, 0)  # (16, H, W)
-    height, width = image.shape[-2:]
-    padded = jnp.fft.rfft2(image, s=(2 * height, 2 * width))
-    glare = jnp.fft.irfft2(padded * glare_fft, s=(2 * height, 2 * width))[:, :height, :width]
-    return (1.0 - stray) * image + stray * glare
+    return glare(image, glare_fft, stray)
 
 
 @jax.jit
@@ -94,7 +120,7 @@ class _Renderer:
         self.band_weights = jnp.asarray(instrument.band_weights(), dtype=jnp.float32)
         self.wall = jnp.asarray(instrument.wall_reflectance(), dtype=jnp.float32)
         self.alphas = jnp.asarray(instrument.port_fractions(), dtype=jnp.float32)
-        self.glare_fft = _glare_kernel_fft(image_shape, instrument.stray_light_core_px)
+        self.glare_fft = glare_kernel_fft(image_shape, instrument.stray_light_core_px)
         self.flux_scale = None  # set by calibrate_exposures
         self.exposure = None
         self.clock_s = 0.0
@@ -105,14 +131,11 @@ class _Renderer:
         y, x = np.mgrid[0:height, 0:width].astype(float)
         cy, cx = (height - 1) / 2, (width - 1) / 2
         half_diagonal = np.hypot(cy, cx)
-        r = np.hypot(y - cy, x - cx) / half_diagonal
-        # cos⁴ law with the field angle chosen so the corners fall by `vignetting`.
-        tan_corner2 = (1.0 - self.instrument.vignetting) ** -0.5 - 1.0
-        vignette = (1.0 + tan_corner2 * r**2) ** -2
+        fall_off = np.asarray(vignette(self.image_shape, self.instrument.vignetting))
         angles = self.rng.uniform(0, 2 * np.pi, 16)
         slopes = self.instrument.filter_gradient * self.rng.uniform(0.5, 1.0, 16)
         along = ((x - cx)[None] * np.cos(angles)[:, None, None] + (y - cy)[None] * np.sin(angles)[:, None, None]) / half_diagonal
-        return vignette[None] * (1.0 + slopes[:, None, None] * along)
+        return fall_off[None] * (1.0 + slopes[:, None, None] * along)
 
     def rates(self, material_map: np.ndarray, materials: list[Material]) -> jax.Array:
         reflectances = np.stack([m.reflectance + m.fluorescence * self.instrument.fluorescence_emission() for m in materials])

@@ -21,7 +21,7 @@ import spherejax
 from spherejax import cli, console, io, simulate
 from tests.helpers import SMALL
 
-COMMANDS = ("demo", "simulate", "calibrate", "evaluate", "study", "correct", "acquire", "measure")
+COMMANDS = ("demo", "simulate", "twin", "calibrate", "evaluate", "study", "correct", "acquire", "measure")
 
 
 def run(argv, capsys):

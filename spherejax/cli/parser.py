@@ -9,7 +9,7 @@ import sys
 from . import number_types as numbers
 from .correct_command import cmd_correct
 from .measure_command import cmd_measure
-from .session_commands import cmd_calibrate, cmd_demo, cmd_evaluate, cmd_simulate, cmd_study
+from .session_commands import cmd_calibrate, cmd_demo, cmd_evaluate, cmd_simulate, cmd_study, cmd_twin
 from .shared import EXIT_BAD_INPUT, LOSSES, WIENER_METHODS, _one_line
 
 #: Entry-point group through which installed packages add commands, each entry point a function
@@ -243,7 +243,25 @@ Simulate the paper's experiment on a physical model of the sphere, lamp, filters
     simulate.add_argument("out_positional", nargs="?", metavar="OUT", action=_Output,
                           help="the session folder as a positional argument: the old spelling of -o/--out, deprecated")
     simulate.add_argument("--seed", type=SEED, default=0, help="simulation seed, 0..2**63 - 1 (default 0)")
+    simulate.add_argument("--instrument", metavar="FILE", default=None,
+                          help="the instrument to simulate: a file `spherejax twin` wrote (or one written by hand "
+                               "with some of its fields); default the paper's instrument")
     simulate.set_defaults(run=cmd_simulate)
+
+    twin = _command(commands, "twin", summary="fit the simulator's instrument to a session (a digital twin)",
+                    description="""
+Fit the simulator's physical parameters to a session's frames (spherejax.twin): the camera's gain
+and read noise from the dark and white frames, vignetting, filter gradients and veiling glare from
+the white frame, the sphere wall's reflectance and the lamp's flicker from the white patch across
+the captures. Writes FILE (JSON, a new file) for `spherejax simulate --instrument FILE`, with
+what each statistic left; the other parameters keep the paper's instrument's values.""",
+                    examples="""
+  spherejax twin session -o instrument.json
+  spherejax simulate -o like-my-lab --instrument instrument.json""")
+    twin.add_argument("session", metavar="SESSION", help="session folder (manifest.json and frames/)")
+    add_output_option(twin, dest="output", metavar="FILE", required=True,
+                      help="instrument file to write (JSON; a new file, never over one)")
+    twin.set_defaults(run=cmd_twin)
 
     calibrate = _command(commands, "calibrate", summary="fit Stage II and the reflectance estimator from a session",
                          description="""

@@ -1,4 +1,4 @@
-"""The commands on a session: simulate, calibrate, evaluate, study and demo."""
+"""The commands on a session: simulate, twin, calibrate, evaluate, study and demo."""
 
 from __future__ import annotations
 
@@ -23,13 +23,37 @@ def cmd_simulate(args) -> int:
     if args.out is None and args.out_positional is None:
         raise ValueError("no session folder given (expected -o/--out DIR, the session folder to create)")
     out = pathlib.Path(args.out if args.out is not None else args.out_positional)
+    instrument = None if args.instrument is None else io.load_instrument(args.instrument)
     io.check_new_session_folder(out)  # before minutes of simulation, not after
     check_writable(out, "-o DIR", folder=False)  # staged beside it, then renamed into place
     with Steps(1, args.quiet) as progress:
         progress.start(f"simulating a session into {out}")
-        session = io.write_simulated_session(out, seed=args.seed)
+        session = io.write_simulated_session(out, seed=args.seed, instrument=instrument)
         progress.done(f"{len(session.frames)} captures")
     return 0
+
+
+def cmd_twin(args) -> int:
+    from .. import io, twin
+
+    session = io.load_session(args.session)
+    twin.check_session(session)  # before the progress line: a refusal is one line
+    output = pathlib.Path(args.output)
+    if os.path.lexists(output):  # before the fit, not after: spherejax never replaces a file
+        raise io.InstrumentFileError(output, "exists", "a new file name: spherejax does not replace a file")
+    if output.resolve() in {p.resolve() for p in _inputs(session).values()}:
+        raise io.InstrumentFileError(output, "is one of the session's files", "a new file outside the session's files")
+    check_writable(output, "-o FILE", folder=False)
+    with Steps(1, args.quiet) as progress:
+        progress.start(f"fitting the simulator's instrument to {args.session}")
+        fit = twin.fit_twin(session)
+        progress.done(", ".join(f"{name} {_parameter_text(fit.fitted[name])}" for name in twin.FITTED_PARAMETERS))
+    io.save_instrument(output, fit.instrument, fitted=twin.FITTED_PARAMETERS, report=fit.report, session=session.path)
+    return 0
+
+
+def _parameter_text(value: float) -> str:
+    return f"{value:.4g}"
 
 
 def cmd_calibrate(args) -> int:

@@ -40,6 +40,8 @@ The package's modules, one job each (their names are all available here):
     calibration_hdf5   the calibration file's HDF5 layout: writing, indexing before reading (every
                        declared byte stored), reads by rows and blocks, the checksum
     calibration_npz    the .npz calibration files of format versions 1 to 3 (read only)
+    instruments        simulated-instrument files: `save_instrument` (spherejax twin),
+                       `load_instrument` (spherejax simulate --instrument)
 
 Camera frame
 ------------
@@ -236,8 +238,13 @@ from .calibration_files import (
 )
 from .spectral_layout import reflectance_channel_names, wavelengths_of_channels
 from .quality_png import open_quality_png, read_quality_png, write_quality_png
+from .instruments import INSTRUMENT_FORMAT, InstrumentFileError, load_instrument, save_instrument
 
 __all__ = [
+    "INSTRUMENT_FORMAT",
+    "InstrumentFileError",
+    "load_instrument",
+    "save_instrument",
     "temp_sibling",
     "is_temp_sibling",
     "refuse_overlaps",
