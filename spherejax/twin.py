@@ -8,13 +8,15 @@ Three statistics of a session, each with the part of the simulator's model that 
    median absolute deviation, which ignores edges): an average of n frames of a pixel with e
    electrons has  var_DN = e / (n g) + σ_r² / (n g²) + 1/12  (shot, read noise, the ADC's
    rounding), g = full_well_e / saturation e- per DN. The dark frame gives σ_r² / g², the white
-   frame's bands (at their different levels) give 1 / g: one least-squares line, closed form.
+   frame's bands (at their different levels) give 1 / g: one least-squares line, closed form
+   (not an iterative fit: the model is linear in σ_r² / g² and 1 / g).
 2. The white frame's shape (vignetting, filter_gradient, stray_light_fraction,
    stray_light_core_px). The white standard on the holder (its certificate in the session's
    metadata), the mount and the white patch in the strip beside it, rendered through the
    simulator's own optics (`simulated_rendering.vignette`, a linear filter gradient per band,
    `glare`) and fitted to the dark-subtracted white frame (2 x 2 pixel means, relative
-   residuals) by BFGS (optimistix) through the differentiable model. Glare shows where the
+   residuals) by BFGS (optimistix) through the differentiable model (`fit_white_frame` says how
+   the per-band coefficients are solved inside the loss). Glare shows where the
    standard meets the dark strip and the frame's edge, vignetting as a radial fall-off.
 3. The sphere (wall_reflectance_400nm, wall_reflectance_700nm, lamp_fluctuation). Across the
    sample and target captures, the white patch ratio p (Eq. 16; the glare the fitted optics put
@@ -42,6 +44,7 @@ import numpy as np
 import optimistix as optx
 
 from .estimation.small_solve import spd_solve
+from .evaluate import DEFAULT_WHITE_REFLECTANCE
 from .grid import WAVELENGTHS_NM
 from .simulated_instrument import FINE_WAVELENGTHS_NM, InstrumentModel
 from .simulated_rendering import glare, glare_kernel_fft, vignette
@@ -276,13 +279,14 @@ MIN_CAPTURES = 4
 
 
 def check_session(session, base: InstrumentModel | None = None) -> None:
-    """Raise ValueError, one line naming the manifest, unless `fit_twin` can fit `session`: its
-    white standard's certificate (metadata "white_standard_reflectance", 31 values in (0, 1]),
-    the base instrument's band count, MIN_CAPTURES sample or target captures."""
+    """Raise ValueError, one line naming the manifest, unless `fit_twin` can fit `session`: the
+    white standard's certificate, where the metadata has one ("white_standard_reflectance", 31
+    values in (0, 1]; without it `evaluate`'s DEFAULT_WHITE_REFLECTANCE), the base instrument's
+    band count, MIN_CAPTURES sample or target captures."""
     base = base or InstrumentModel()
     certificate = session.metadata.get("white_standard_reflectance")
     values = np.asarray(certificate if isinstance(certificate, list) else [], dtype=object)
-    if (values.shape != (len(WAVELENGTHS_NM),) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+    if certificate is not None and (values.shape != (len(WAVELENGTHS_NM),) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
             or not all(0.0 < float(v) <= 1.0 for v in values)):
         raise ValueError(f"{session.manifest_path}: metadata \"white_standard_reflectance\" is {certificate!r} (expected the "
                          f"white standard's {len(WAVELENGTHS_NM)} reflectances at 400..700 nm, each in (0, 1])")
@@ -296,12 +300,15 @@ def check_session(session, base: InstrumentModel | None = None) -> None:
 
 def fit_twin(session, base: InstrumentModel | None = None) -> TwinFit:
     """The simulator's instrument fitted to `session` (a `spherejax.io.Session`): statistics 1-3
-    of the module docstring. The session needs its dark and white frames, sample or target
-    captures on backgrounds of different brightness (at least 4), and the white standard's
-    certificate (metadata "white_standard_reflectance", 31 values at 400..700 nm)."""
+    of the module docstring. The session needs its dark and white frames and sample or target
+    captures on backgrounds of different brightness (`check_session`); the white standard's
+    certificate (metadata "white_standard_reflectance", 31 values at 400..700 nm) where it has
+    one, else `evaluate.DEFAULT_WHITE_REFLECTANCE` (the report says which)."""
     base = base or InstrumentModel()
     check_session(session, base)
-    certificate = session.metadata["white_standard_reflectance"]
+    certificate = session.metadata.get("white_standard_reflectance")
+    if certificate is None:  # as `spherejax evaluate` takes it
+        certificate = np.full(len(WAVELENGTHS_NM), DEFAULT_WHITE_REFLECTANCE)
     weights = base.band_weights()
     standard_bands = _band_means(np.interp(FINE_WAVELENGTHS_NM, WAVELENGTHS_NM, np.asarray(certificate, float)), weights)
     dark_info, white_info = session.frames_with("dark")[0], session.frames_with("white")[0]
@@ -336,6 +343,7 @@ def fit_twin(session, base: InstrumentModel | None = None) -> TwinFit:
     }
     instrument = dataclasses.replace(base, **fitted)
     report = {
+        "white_standard": "certificate" if "white_standard_reflectance" in session.metadata else f"default {DEFAULT_WHITE_REFLECTANCE}",
         "noise": {k: noise[k] for k in ("gain_e_per_dn", "full_well_e", "read_noise_e")},
         "white_frame": optics,
         "sphere": sphere,

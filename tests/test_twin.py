@@ -214,15 +214,27 @@ def test_twin_stopped_by_a_signal_writes_nothing(known_session_small, tmp_path, 
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_session_without_the_standards_certificate_is_refused(known_session_small, tmp_path, capsys):
+def test_a_damaged_certificate_of_the_standard_is_refused(known_session_small, tmp_path, capsys):
     manifest = json.loads(known_session_small.manifest_path.read_text())
-    del manifest["metadata"]["white_standard_reflectance"]
+    manifest["metadata"]["white_standard_reflectance"] = manifest["metadata"]["white_standard_reflectance"][:30]
     copy = tmp_path / "session"
     shutil.copytree(known_session_small.path, copy)
     (copy / "manifest.json").write_text(json.dumps(manifest))
     status, _, err = run(["twin", str(copy), "-o", str(tmp_path / "i.json")], capsys)
-    assert_refused(status, err, "white_standard_reflectance")
+    assert_refused(status, err, "white_standard_reflectance", "31 reflectances")
     assert not (tmp_path / "i.json").exists()
+
+
+def test_a_session_without_a_certificate_takes_evaluates_default_white(known_session_small, monkeypatch):
+    """As `spherejax evaluate` does (an acquired session need not carry the certificate)."""
+    from spherejax import evaluate
+
+    metadata = {k: v for k, v in known_session_small.metadata.items() if k != "white_standard_reflectance"}
+    session = dataclasses.replace(known_session_small, metadata=metadata)
+    twin.check_session(session)
+    fit = twin.fit_twin(session)
+    assert fit.report["white_standard"] == f"default {evaluate.DEFAULT_WHITE_REFLECTANCE}"
+    assert 0.9 < fit.fitted["wall_reflectance_700nm"] < 1.0
 
 
 def test_simulate_refuses_a_bad_instrument_file_before_creating_the_session(tmp_path, capsys):
