@@ -4,8 +4,8 @@ fitted to a session's frames, so that `spherejax simulate --instrument` renders 
 Three statistics of a session, each with the part of the simulator's model that explains it:
 
 1. Noise (full_well_e, read_noise_e). Per band, the variance of the dark frame's and the white
-   frame's pixels about their neighbours (second differences, which cancel the smooth flat field;
-   median absolute deviation, which ignores edges): an average of n frames of a pixel with e
+   frame's pixels about their neighbours (second differences, which cancel the smooth flat field,
+   clipped at 5 robust sigmas, which leaves edges out): an average of n frames of a pixel with e
    electrons has  var_DN = e / (n g) + σ_r² / (n g²) + 1/12  (shot, read noise, the ADC's
    rounding), g = full_well_e / saturation e- per DN. The dark frame gives σ_r² / g², the white
    frame's bands (at their different levels) give 1 / g: one least-squares line, closed form
@@ -19,7 +19,7 @@ Three statistics of a session, each with the part of the simulator's model that 
    the per-band coefficients are solved inside the loss). Glare shows where the
    standard meets the dark strip and the frame's edge, vignetting as a radial fall-off.
 3. The sphere (wall_reflectance_400nm, wall_reflectance_700nm, lamp_fluctuation). Across the
-   sample and target captures, the white patch ratio p (Eq. 16; the glare the fitted optics put
+   sample and target captures, the white patch ratio p (Eqs. 14-15; the glare the fitted optics put
    on the patch taken out) against the holder's mean reflectance ρ̄ (Stage I's estimate):
    Eq. 9 gives  p = c_b (1 - k_s ρ_w) / (1 - k_r ρ_w),  k = α_ww + α_wsp α_spw ρ̄, with the
    port fractions α of the sphere's geometry and ρ_w(λ) the simulator's wall curve through its
@@ -29,9 +29,10 @@ Three statistics of a session, each with the part of the simulator's model that 
 
 Everything else (the sphere's geometry, the filters, the lamp spectrum, the camera's bit depth,
 the materials) keeps the base instrument's values (`fit_twin(base=...)`, the default
-`InstrumentModel()`). What is not modelled is not fitted: a real camera's fixed-pattern noise
-inflates the white frame's variance (statistic 1 then overstates the shot noise: measure the
-gain with a photon-transfer series instead, docs/instrument.md).
+`InstrumentModel()`). What the simulator does not model is not fitted: a real camera's
+photo-response non-uniformity (fixed pattern) adds to the white frame's variance, and statistic 1
+then overstates the shot noise and understates the gain; for such a camera give `calibrate` the
+gain of a photon-transfer measurement (--gain) rather than the twin's.
 """
 
 from __future__ import annotations
@@ -90,7 +91,8 @@ def fit_noise(dark: np.ndarray, white: np.ndarray, holder, frames_dark: int, fra
     """{"full_well_e", "read_noise_e", "gain_e_per_dn", "dark_variance" (B,), "white_variance"
     (B,), "white_level" (B,)} from the dark and white frames (H, W, B) in DN, statistic 1."""
     r0, r1, c0, c1 = holder
-    inner = (slice(r0 + _EDGE_PX, r1 - _EDGE_PX), slice(c0 + _EDGE_PX, c1 - _EDGE_PX))
+    edge = _EDGE_PX if min(r1 - r0, c1 - c0) > 4 * _EDGE_PX else 0
+    inner = (slice(r0 + edge, r1 - edge), slice(c0 + edge, c1 - edge))
     bands = dark.shape[-1]
     dark_var = np.array([_noise_variance(dark[..., b].astype(float)) for b in range(bands)])
     white_var = np.array([_noise_variance(white[inner][..., b].astype(float)) for b in range(bands)])
@@ -100,6 +102,12 @@ def fit_noise(dark: np.ndarray, white: np.ndarray, holder, frames_dark: int, fra
     # frames_white (var_w - 1/12) - σ_r²/g² = level / g: a line through the origin.
     y = frames_white * (white_var - rounding) - read_over_gain2
     inverse_gain = float(np.dot(level, y) / np.dot(level, level))
+    # Shot noise at least twice the ADC's rounding in the brightest band (4 x its variance): any
+    # camera's white frame at tens of percent of full scale has tens of counts of it.
+    if not (np.isfinite(inverse_gain) and inverse_gain > 0.0 and np.all(level > 0) and np.max(white_var) > 4.0 * rounding):
+        raise ValueError(f"the white frame's noise does not grow with its level (shot noise {inverse_gain:.3g} DN per DN "
+                         "of signal): expected a camera's frames, with their noise (a simulated session without noise "
+                         "has none to fit)")
     gain = 1.0 / inverse_gain
     return {
         "gain_e_per_dn": gain, "full_well_e": gain * float(saturation), "read_noise_e": float(np.sqrt(read_over_gain2) * gain),
@@ -278,16 +286,18 @@ def _patch_glare(frame_bhw: np.ndarray, patch_mask: np.ndarray, stray: float, co
 MIN_CAPTURES = 4
 
 
-def check_session(session, base: InstrumentModel | None = None) -> None:
+def check_session(session, base: InstrumentModel | None = None) -> dict:
     """Raise ValueError, one line naming the manifest, unless `fit_twin` can fit `session`: the
     white standard's certificate, where the metadata has one ("white_standard_reflectance", 31
     values in (0, 1]; without it `evaluate`'s DEFAULT_WHITE_REFLECTANCE), the base instrument's
-    band count, MIN_CAPTURES sample or target captures."""
+    band count, MIN_CAPTURES sample or target captures, frames with noise. Returns statistic 1
+    (`fit_noise`), which the last check computes."""
     base = base or InstrumentModel()
     certificate = session.metadata.get("white_standard_reflectance")
-    values = np.asarray(certificate if isinstance(certificate, list) else [], dtype=object)
-    if certificate is not None and (values.shape != (len(WAVELENGTHS_NM),) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-            or not all(0.0 < float(v) <= 1.0 for v in values)):
+    values = certificate if isinstance(certificate, list) else []
+    usable = (len(values) == len(WAVELENGTHS_NM)
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 < v <= 1.0 for v in values))
+    if certificate is not None and not usable:
         raise ValueError(f"{session.manifest_path}: metadata \"white_standard_reflectance\" is {certificate!r} (expected the "
                          f"white standard's {len(WAVELENGTHS_NM)} reflectances at 400..700 nm, each in (0, 1])")
     if session.bands != len(base.filters()):
@@ -296,6 +306,19 @@ def check_session(session, base: InstrumentModel | None = None) -> None:
     if len(captures) < MIN_CAPTURES:
         raise ValueError(f"{session.manifest_path}: has {len(captures)} sample or target captures (expected at least "
                          f"{MIN_CAPTURES}: the white patch against backgrounds of different brightness)")
+    return _session_noise(session, base)  # its refusal too, before any long work
+
+
+def _session_noise(session, base: InstrumentModel) -> dict:
+    """Statistic 1 (`fit_noise`) of a session's dark and white frames; its refusal names the
+    manifest."""
+    dark_info, white_info = session.frames_with("dark")[0], session.frames_with("white")[0]
+    try:
+        return fit_noise(session.dark().astype(np.float64), session.white().astype(np.float64), session.holder,
+                         int(dark_info.metadata.get("frames_averaged", base.frames_averaged_dark)),
+                         int(white_info.metadata.get("frames_averaged", base.frames_averaged_white)), session.saturation)
+    except ValueError as error:
+        raise ValueError(f"{session.manifest_path}: {error}") from None
 
 
 def fit_twin(session, base: InstrumentModel | None = None) -> TwinFit:
@@ -305,20 +328,14 @@ def fit_twin(session, base: InstrumentModel | None = None) -> TwinFit:
     certificate (metadata "white_standard_reflectance", 31 values at 400..700 nm) where it has
     one, else `evaluate.DEFAULT_WHITE_REFLECTANCE` (the report says which)."""
     base = base or InstrumentModel()
-    check_session(session, base)
+    noise = check_session(session, base)
     certificate = session.metadata.get("white_standard_reflectance")
     if certificate is None:  # as `spherejax evaluate` takes it
         certificate = np.full(len(WAVELENGTHS_NM), DEFAULT_WHITE_REFLECTANCE)
     weights = base.band_weights()
     standard_bands = _band_means(np.interp(FINE_WAVELENGTHS_NM, WAVELENGTHS_NM, np.asarray(certificate, float)), weights)
-    dark_info, white_info = session.frames_with("dark")[0], session.frames_with("white")[0]
+    white_info = session.frames_with("white")[0]
     dark, white = session.dark().astype(np.float64), session.white().astype(np.float64)
-
-    def averaged(info, default):
-        return int(info.metadata.get("frames_averaged", default))
-
-    noise = fit_noise(dark, white, session.holder, averaged(dark_info, base.frames_averaged_dark),
-                      averaged(white_info, base.frames_averaged_white), session.saturation)
     optics = fit_white_frame(white, dark, session.holder, session.white_patch, base)
 
     captures = [f for f in session.frames if f.role in ("sample", "target")]

@@ -237,6 +237,14 @@ def test_a_session_without_a_certificate_takes_evaluates_default_white(known_ses
     assert 0.9 < fit.fitted["wall_reflectance_700nm"] < 1.0
 
 
+def test_a_session_without_noise_is_refused_in_one_line(tmp_path, capsys):
+    design = simulate.ExperimentDesign(training_backgrounds=2, training_patches=3, test_backgrounds=1, test_patches=3, targets=16)
+    quiet = io.write_simulated_session(tmp_path / "quiet", seed=1, instrument=InstrumentModel(noise=False), design=design)
+    status, _, err = run(["twin", str(quiet.path), "-o", str(tmp_path / "i.json")], capsys)
+    assert_refused(status, err, str(quiet.manifest_path), "noise")
+    assert not (tmp_path / "i.json").exists()
+
+
 def test_simulate_refuses_a_bad_instrument_file_before_creating_the_session(tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"format": "spherejax-instrument", "format_version": 1, "instrument": {"vignetting": -0.1}}))
