@@ -173,7 +173,7 @@ def assert_refused(status, err, *fragments):
 
 @pytest.mark.slow
 def test_twin_writes_what_simulate_renders(known_session, known_fit, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(twin, "fit_twin", lambda session: known_fit)  # fitted above: the command's own path
+    monkeypatch.setattr(twin, "fit_twin", lambda session, base=None: known_fit)  # fitted above: the command's own path
     out = tmp_path / "instrument.json"
     status, _, err = run(["twin", str(known_session.path), "-o", str(out)], capsys)
     assert status == 0, err
@@ -189,7 +189,7 @@ def test_twin_writes_what_simulate_renders(known_session, known_fit, tmp_path, c
 def test_twin_refuses_an_existing_output_before_any_work(known_session_small, tmp_path, capsys, monkeypatch):
     out = tmp_path / "taken.json"
     out.write_text("someone's file")
-    monkeypatch.setattr(twin, "fit_twin", lambda session: pytest.fail("fitted before refusing"))
+    monkeypatch.setattr(twin, "fit_twin", lambda session, base=None: pytest.fail("fitted before refusing"))
     status, _, err = run(["twin", str(known_session_small.path), "-o", str(out)], capsys)
     assert_refused(status, err, str(out), "exists")
     assert out.read_text() == "someone's file"
@@ -204,7 +204,7 @@ def test_twin_refuses_to_write_over_the_sessions_manifest(known_session_small, c
 
 
 def test_twin_stopped_by_a_signal_writes_nothing(known_session_small, tmp_path, capsys, monkeypatch):
-    def interrupted(session):
+    def interrupted(session, base=None):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(twin, "fit_twin", interrupted)
@@ -235,6 +235,37 @@ def test_a_session_without_a_certificate_takes_evaluates_default_white(known_ses
     fit = twin.fit_twin(session)
     assert fit.report["white_standard"] == f"default {evaluate.DEFAULT_WHITE_REFLECTANCE}"
     assert 0.9 < fit.fitted["wall_reflectance_700nm"] < 1.0
+
+
+def test_twin_starts_from_the_base_instrument_it_is_given(known_session_small, tmp_path, capsys, monkeypatch):
+    """--instrument BASE: what the twin does not fit (here the sphere's size) is the base's, and
+    the fit itself is made with it (the wall's statistic uses the sphere's port fractions)."""
+    io.save_instrument(tmp_path / "base.json", InstrumentModel(sphere_diameter_m=0.4, vignetting=0.1))
+    given = []
+
+    def recording(session, base=None):
+        given.append(base)
+        instrument = dataclasses.replace(base, vignetting=0.3)
+        return twin.TwinFit(instrument, {name: getattr(instrument, name) for name in twin.FITTED_PARAMETERS}, {})
+
+    monkeypatch.setattr(twin, "fit_twin", recording)
+    status, _, err = run(["twin", str(known_session_small.path), "-o", str(tmp_path / "i.json"),
+                          "--instrument", str(tmp_path / "base.json")], capsys)
+    assert status == 0, err
+    assert given == [InstrumentModel(sphere_diameter_m=0.4, vignetting=0.1)]
+    assert io.load_instrument(tmp_path / "i.json") == InstrumentModel(sphere_diameter_m=0.4, vignetting=0.3)
+
+
+def test_fit_twin_keeps_the_bases_unfitted_fields_and_uses_its_geometry(known_session, known_fit):
+    """The paper's sphere 20 % smaller: the fields the twin does not fit come from the base, and
+    the wall it fits follows the port fractions (Eq. 9: where the holder is a larger share of
+    the sphere, the background moves the light more, and the same white patch ratios mean a
+    darker wall)."""
+    base = dataclasses.replace(InstrumentModel(), sphere_diameter_m=0.4)
+    fit = twin.fit_twin(known_session, base)
+    assert fit.instrument.sphere_diameter_m == 0.4
+    assert fit.fitted["wall_reflectance_700nm"] < known_fit.fitted["wall_reflectance_700nm"] - 0.005
+    assert fit.fitted["vignetting"] == pytest.approx(known_fit.fitted["vignetting"], rel=1e-6)
 
 
 def test_a_session_without_noise_is_refused_in_one_line(tmp_path, capsys):

@@ -257,10 +257,14 @@ the captures. Writes FILE (JSON, a new file) for `spherejax simulate --instrumen
 what each statistic left; the other parameters keep the paper's instrument's values.""",
                     examples="""
   spherejax twin session -o instrument.json
+  spherejax twin session -o instrument.json --instrument my-sphere.json   # a sphere of other size
   spherejax simulate -o like-my-lab --instrument instrument.json""")
     twin.add_argument("session", metavar="SESSION", help="session folder (manifest.json and frames/)")
     add_output_option(twin, dest="output", metavar="FILE", required=True,
                       help="instrument file to write (JSON; a new file, never over one)")
+    twin.add_argument("--instrument", metavar="BASE", default=None,
+                      help="the instrument the fit starts from (an instrument file): the fields the twin does not "
+                           "fit, such as the sphere's size and ports, keep its values; default the paper's instrument")
     twin.set_defaults(run=cmd_twin)
 
     calibrate = _command(commands, "calibrate", summary="fit Stage II and the reflectance estimator from a session",

@@ -37,7 +37,8 @@ def cmd_twin(args) -> int:
     from .. import io, twin
 
     session = io.load_session(args.session)
-    twin.check_session(session)  # before the progress line: a refusal is one line
+    base = None if args.instrument is None else io.load_instrument(args.instrument)
+    twin.check_session(session, base)  # before the progress line: a refusal is one line
     output = pathlib.Path(args.output)
     # Before the fit, not after. Every input exists, so this also keeps the session's own files.
     if os.path.lexists(output):
@@ -45,7 +46,7 @@ def cmd_twin(args) -> int:
     check_writable(output, "-o FILE", folder=False)
     with Steps(1, args.quiet) as progress:
         progress.start(f"fitting the simulator's instrument to {args.session}")
-        fit = twin.fit_twin(session)
+        fit = twin.fit_twin(session, base)
         progress.done(", ".join(f"{name} {_parameter_text(fit.fitted[name])}" for name in twin.FITTED_PARAMETERS))
     io.save_instrument(output, fit.instrument, fitted=twin.FITTED_PARAMETERS, report=fit.report, session=session.path)
     return 0
