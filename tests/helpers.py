@@ -384,3 +384,30 @@ def tiny_frames():
     patch[:2, :2] = True
     raw[patch] = dark[patch] + (white[patch] - dark[patch]) * 1.1
     return rng, scene, raw, dark, white, patch
+
+
+# --- the command line, in process ---------------------------------------------------------
+
+
+def run_cli(argv, capsys):
+    """(exit status, stdout, stderr) of `spherejax ARGV` run in this process."""
+    from spherejax import cli
+
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def assert_refused(status, err, *fragments):
+    """A bad input's refusal: exit status 2 and one line "spherejax: error: ..." holding every
+    fragment, no traceback."""
+    from spherejax import cli
+
+    assert status == cli.EXIT_BAD_INPUT
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("spherejax: error: ")
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+

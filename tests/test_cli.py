@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from spherejax import cli, io, simulate
-from tests.helpers import SMALL, calibration_entries, write_calibration_entries
+from tests.helpers import SMALL, assert_refused, calibration_entries, write_calibration_entries
+from tests.helpers import run_cli as run
 
 
 
@@ -22,25 +23,9 @@ from tests.helpers import SMALL, calibration_entries, write_calibration_entries
 # calibration file, made once for the run.
 
 
-def run(argv, capsys):
-    status = cli.main(argv)
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
-
-
 def snapshot(folder: pathlib.Path) -> dict:
     """Every file under `folder` with its size and modification time."""
     return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
-
-
-def assert_refused(status, err, *fragments):
-    assert status == cli.EXIT_BAD_INPUT
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("spherejax: error: ")
-    assert "Traceback" not in err
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
 
 
 class TestCommands:

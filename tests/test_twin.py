@@ -11,8 +11,9 @@ import shutil
 import numpy as np
 import pytest
 
-from spherejax import cli, io, simulate, twin
+from spherejax import io, simulate, twin
 from spherejax.simulate import InstrumentModel
+from tests.helpers import assert_refused, run_cli as run
 
 #: An instrument unlike the paper's in every parameter the twin fits.
 KNOWN = InstrumentModel(
@@ -155,20 +156,6 @@ def test_saving_never_replaces_a_file(tmp_path):
 
 
 # ---- the command line ---------------------------------------------------------------------------
-
-
-def run(argv, capsys):
-    status = cli.main(argv)
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
-
-
-def assert_refused(status, err, *fragments):
-    assert status == cli.EXIT_BAD_INPUT
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("spherejax: error: ") and "Traceback" not in err, err
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
 
 
 @pytest.mark.slow
