@@ -18,7 +18,6 @@ from tests.helpers import SMALL, assert_refused, calibration_entries, write_cali
 from tests.helpers import run_cli as run
 
 
-
 # `workspace` (tests/conftest.py): a small simulated session of the SMALL design and its
 # calibration file, made once for the run.
 
