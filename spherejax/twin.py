@@ -271,10 +271,10 @@ def fit_sphere(ratios: np.ndarray, holder_means: np.ndarray, standard_bands: np.
     }
 
 
-def _patch_glare(frame_bhw: np.ndarray, patch_mask: np.ndarray, stray: float, core: float) -> np.ndarray:
+def _patch_glare(frame_bhw: np.ndarray, patch_mask: np.ndarray, stray: float, kernel) -> np.ndarray:
     """(B,) mean over the white patch of the glare the fitted optics add there, from the frame
-    itself (first order: the glare of the glare is left in)."""
-    kernel = glare_kernel_fft(frame_bhw.shape[-2:], float(core))
+    itself (first order: the glare of the glare is left in); kernel: the fitted PSF's
+    `glare_kernel_fft`, made once for every frame."""
     spread = np.asarray(glare(jnp.asarray(frame_bhw, jnp.float32), kernel, 1.0))
     return stray * (spread[:, patch_mask] - frame_bhw[:, patch_mask]).mean(axis=1)
 
@@ -290,9 +290,16 @@ def check_session(session, base: InstrumentModel | None = None) -> dict:
     """Raise ValueError, one line naming the manifest, unless `fit_twin` can fit `session`: the
     white standard's certificate, where the metadata has one ("white_standard_reflectance", 31
     values in (0, 1]; without it `evaluate`'s DEFAULT_WHITE_REFLECTANCE), the base instrument's
-    band count, MIN_CAPTURES sample or target captures, frames with noise. Returns statistic 1
-    (`fit_noise`), which the last check computes."""
+    band count, MIN_CAPTURES sample or target captures, frames with noise (the last, statistic 1,
+    is `fit_noise`'s; it is returned)."""
     base = base or InstrumentModel()
+    _check_session_record(session, base)
+    # Its refusal too before any long work (the command line's progress line starts after it).
+    return _session_noise(session, base, session.dark().astype(np.float64), session.white().astype(np.float64))
+
+
+def _check_session_record(session, base: InstrumentModel) -> None:
+    """`check_session`'s checks of what the manifest records (no frame read)."""
     certificate = session.metadata.get("white_standard_reflectance")
     values = certificate if isinstance(certificate, list) else []
     usable = (len(values) == len(WAVELENGTHS_NM)
@@ -306,15 +313,14 @@ def check_session(session, base: InstrumentModel | None = None) -> dict:
     if len(captures) < MIN_CAPTURES:
         raise ValueError(f"{session.manifest_path}: has {len(captures)} sample or target captures (expected at least "
                          f"{MIN_CAPTURES}: the white patch against backgrounds of different brightness)")
-    return _session_noise(session, base)  # its refusal too, before any long work
 
 
-def _session_noise(session, base: InstrumentModel) -> dict:
-    """Statistic 1 (`fit_noise`) of a session's dark and white frames; its refusal names the
-    manifest."""
+def _session_noise(session, base: InstrumentModel, dark: np.ndarray, white: np.ndarray) -> dict:
+    """Statistic 1 (`fit_noise`) of the session's dark and white frames (H, W, B) float64; its
+    refusal names the manifest."""
     dark_info, white_info = session.frames_with("dark")[0], session.frames_with("white")[0]
     try:
-        return fit_noise(session.dark().astype(np.float64), session.white().astype(np.float64), session.holder,
+        return fit_noise(dark, white, session.holder,
                          int(dark_info.metadata.get("frames_averaged", base.frames_averaged_dark)),
                          int(white_info.metadata.get("frames_averaged", base.frames_averaged_white)), session.saturation)
     except ValueError as error:
@@ -328,26 +334,28 @@ def fit_twin(session, base: InstrumentModel | None = None) -> TwinFit:
     certificate (metadata "white_standard_reflectance", 31 values at 400..700 nm) where it has
     one, else `evaluate.DEFAULT_WHITE_REFLECTANCE` (the report says which)."""
     base = base or InstrumentModel()
-    noise = check_session(session, base)
+    _check_session_record(session, base)
+    dark, white = session.dark().astype(np.float64), session.white().astype(np.float64)
+    noise = _session_noise(session, base, dark, white)
     certificate = session.metadata.get("white_standard_reflectance")
     if certificate is None:  # as `spherejax evaluate` takes it
         certificate = np.full(len(WAVELENGTHS_NM), DEFAULT_WHITE_REFLECTANCE)
     weights = base.band_weights()
     standard_bands = _band_means(np.interp(FINE_WAVELENGTHS_NM, WAVELENGTHS_NM, np.asarray(certificate, float)), weights)
     white_info = session.frames_with("white")[0]
-    dark, white = session.dark().astype(np.float64), session.white().astype(np.float64)
     optics = fit_white_frame(white, dark, session.holder, session.white_patch, base)
 
     captures = [f for f in session.frames if f.role in ("sample", "target")]
     patch_mask = session.white_patch_mask()
     holder_mask = session.holder_mask()
     white_bhw = np.moveaxis(white - dark, -1, 0) / white_info.exposure_s[:, None, None]
-    white_patch = white_bhw[:, patch_mask].mean(axis=1) - _patch_glare(white_bhw, patch_mask, optics["stray_light_fraction"], optics["stray_light_core_px"])
+    stray, kernel = optics["stray_light_fraction"], glare_kernel_fft(white_bhw.shape[-2:], float(optics["stray_light_core_px"]))
+    white_patch = white_bhw[:, patch_mask].mean(axis=1) - _patch_glare(white_bhw, patch_mask, stray, kernel)
     flat = np.where(white_bhw > 0, white_bhw, np.nan)
     ratios, means = [], []
     for info in captures:
         frame = np.moveaxis(session.read(info).astype(np.float64) - dark, -1, 0) / info.exposure_s[:, None, None]
-        patch = frame[:, patch_mask].mean(axis=1) - _patch_glare(frame, patch_mask, optics["stray_light_fraction"], optics["stray_light_core_px"])
+        patch = frame[:, patch_mask].mean(axis=1) - _patch_glare(frame, patch_mask, stray, kernel)
         p = white_patch / patch
         ratios.append(p)
         means.append(np.nanmean(frame[:, holder_mask] / flat[:, holder_mask], axis=1) * p * standard_bands)
