@@ -13,6 +13,9 @@ the paper's (Zou et al. 2019), original / Stage I / Stage II:
     + coupling      that, with the default non-Lambertian first-bounce spread
     + fluorescence  that, with the default whitening-agent fluorescence
     default         everything (`InstrumentModel()`), what `spherejax demo` simulates
+    + translucency  the default with the small patches and targets as single translucent
+                    layers (sample_layer_scattering_power 3, still 3x a single woven layer's)
+                    over what lies beneath them: why the default keeps them opaque
 
 Run: python benchmarks/simulator_ablation.py [--seed N] [--json FILE]. About a minute per row on
 2 cores. docs/results.md records its output.
@@ -53,6 +56,7 @@ def configurations() -> dict[str, InstrumentModel]:
         "+ coupling": dataclasses.replace(world, non_lambertian_spread=default.non_lambertian_spread),
         "+ fluorescence": dataclasses.replace(world, fluorescence_strength=default.fluorescence_strength),
         "default": default,
+        "+ translucency": dataclasses.replace(default, sample_layer_scattering_power=3.0),
     }
 
 

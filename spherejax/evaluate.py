@@ -2,7 +2,7 @@
 
 How every figure is computed (Zou et al. 2019, Section 5, made exact):
 
-- Responses. Every annotated patch region of a capture is averaged (35 x 35 px, bad pixels left
+- Responses. Every annotated patch region of a capture is averaged (the paper's 35 x 35 px; bad pixels left
   out) at four stages, all from the same v (Eq. 10) and p (Eq. 15) that `correct` computes:
   original = v; Stage I = p v (Eq. 17); Stage II = Eq. 23 with the calibration's coefficients;
   Markov = R / R_W with R the Markov model's reflectance (`spherejax.markov`, κ fitted on the

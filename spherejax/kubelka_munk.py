@@ -90,7 +90,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .grid import WAVELENGTHS_NM
-from .simulate import FINE_WAVELENGTHS_NM, InstrumentModel
+from .simulated_instrument import FINE_WAVELENGTHS_NM, InstrumentModel
 from .simulated_targets import render_targets
 
 #: spherejax's d:0° sphere excludes the specular component (module docstring): Eq. (4) with k1' = 0.
@@ -136,6 +136,36 @@ def reflectance_from_ks(ks: np.ndarray) -> np.ndarray:
     """
     ks = np.asarray(ks, np.float64)
     return 1.0 / (1.0 + ks + np.sqrt(ks * ks + 2.0 * ks))
+
+
+def layer_over_background(reflectance_inf: np.ndarray, scattering_power, reflectance_background: np.ndarray) -> np.ndarray:
+    """Reflectance of a layer of finite thickness over a background, Kubelka (1948) Eq. (7):
+
+      R = (1 - R_g (a - b coth(b S X))) / (a - R_g + b coth(b S X)),
+      a = (1 / R_inf + R_inf) / 2,  b = (1 / R_inf - R_inf) / 2,
+
+    with R_inf the layer's reflectance when thick enough that the background does not show
+    (what a spectrophotometer reads of a specimen folded to opacity, AATCC EP6 / ISO 105-J01),
+    S X its scattering power (scattering coefficient times thickness, dimensionless) and R_g the
+    background's reflectance. R -> R_inf as S X -> inf; R -> R_g as S X -> 0. b coth(b S X) is
+    evaluated as b / tanh(b S X), which tends to 1 / (S X) for a non-absorbing layer (b -> 0).
+
+    Args:
+      reflectance_inf: R_inf in (0, 1], any shape (clipped to [1e-4, 1 - 1e-9]).
+      scattering_power: S X > 0, broadcastable (a number for a layer whose S does not depend on
+        wavelength: fibres far larger than the wavelength scatter alike across the visible).
+      reflectance_background: R_g in [0, 1], broadcastable.
+
+    Returns:
+      R, the broadcast shape, between R_inf and R_g.
+    """
+    r_inf = np.clip(np.asarray(reflectance_inf, np.float64), 1e-4, 1.0 - 1e-9)
+    sx = np.asarray(scattering_power, np.float64)
+    r_g = np.asarray(reflectance_background, np.float64)
+    a = 0.5 * (1.0 / r_inf + r_inf)
+    b = 0.5 * (1.0 / r_inf - r_inf)
+    b_coth = b / np.tanh(b * sx)
+    return (1.0 - r_g * (a - b_coth)) / (a - r_g + b_coth)
 
 
 def saunderson(
@@ -510,6 +540,7 @@ __all__ = [
     "inverse_saunderson",
     "km_family_responses",
     "ks_from_reflectance",
+    "layer_over_background",
     "mixture_ks",
     "on_reflectance_grid",
     "reflectance_from_ks",

@@ -33,7 +33,7 @@ The simulator is a module per job; every public name is importable from here:
 `simulate_experiment` builds the paper's experiment (Section 4-5): grey patches on uniform
 backgrounds at several positions (training), coloured patches on patterned backgrounds (test),
 a 144-target chart of known reflectance (Wiener training), the reference white patch beside the
-holder in every frame, 35 x 35 pixel averaging regions. `session_contents` gives it as a
+holder in every frame, 0.5 cm patches averaged over their centres. `session_contents` gives it as a
 session's contents, which `spherejax.io.write_simulated_session` writes to disk.
 """
 

@@ -26,7 +26,7 @@ import zlib
 
 import numpy as np
 
-from . import spectra
+from . import kubelka_munk, spectra
 from .grid import WAVELENGTHS_NM
 from .simulated_instrument import FINE_WAVELENGTHS_NM, InstrumentModel
 
@@ -40,10 +40,16 @@ class ExperimentDesign:
 
     pixels_per_cm: 24 -- the 10 x 8 cm holder images to 240 x 192 px (the paper's camera has far
       more pixels; this keeps a session near 70 MB).
-    patch_px: 42 -- small patches of 1.75 cm: the paper's 0.5 cm patch is what its camera saw as
-      more than 35 x 35 px; here the patch must hold the 35 x 35 px averaging region with a
-      margin against glare at its edges.
-    region_px: 35 -- the paper's averaging region.
+    patch_px: 12 -- the paper's small patches, 0.5 cm (Section 4). Their size matters: the veiling
+      glare a patch's centre gets from its background falls as the patch grows (for this PSF,
+      the share of it from beyond a radius R is 1 / sqrt(1 + (R / core)^2)), so a larger patch
+      than the paper's understates what Stage I leaves (1.75 cm patches, as here until this was
+      found, left 0.0020 in Table 1 where 0.5 cm patches leave 0.0047).
+    region_px: 4 -- the paper's averaging region, 35 x 35 of its camera's pixels in the patch's
+      centre: its QImaging QI695 (2750 x 2200 px) imaging the 10 x 8 cm holder and the white
+      patch beside it samples about 230-270 px/cm, so the region spans ~0.14 cm, 28 % of the
+      patch's width, 4 px here. Its mean has ~9x the noise of the paper's 1225-pixel mean: on
+      seed 0 Table 1's Stage II is 0.0011 with noise and 0.0008 without (docs/results.md).
     white_patch_px: 24, strip_px: 32 -- the reference white patch on a black mount beside the
       holder, in every frame (Fig. 2).
     training_patches: 9, training_backgrounds: 10 -- Section 4's n_p and n_b.
@@ -56,8 +62,8 @@ class ExperimentDesign:
     """
 
     pixels_per_cm: float = 24.0
-    patch_px: int = 42
-    region_px: int = 35
+    patch_px: int = 12
+    region_px: int = 4
     white_patch_px: int = 24
     strip_px: int = 32
     training_patches: int = 9
@@ -137,6 +143,27 @@ def _spread_by_brightness(items, count):
     order = sorted(items, key=lambda item: float(np.mean(item[1])))
     picks = np.round(np.linspace(0, len(order) - 1, count)).astype(int)
     return [order[i] for i in picks]
+
+
+def _lay_over(layer: Material, beneath: np.ndarray, table: list, instrument: InstrumentModel) -> np.ndarray:
+    """Lay a single layer of `layer` over the materials `beneath` (an index map into `table`):
+    appends to `table` one material per material beneath, the layer as it reads over that one
+    (`kubelka_munk.layer_over_background`, the layer's scattering power
+    `instrument.sample_layer_scattering_power`; its coupling and fluorescence stay the layer's),
+    and returns the index map of the layer's pixels. A scattering power of 0 lays an opaque layer:
+    one material, the layer itself."""
+    if instrument.sample_layer_scattering_power == 0.0:
+        table.append(layer)
+        return np.full(beneath.shape, len(table) - 1, np.int32)
+    out = np.empty(beneath.shape, np.int32)
+    for index in np.unique(beneath):
+        under = table[int(index)]
+        seen = kubelka_munk.layer_over_background(
+            layer.reflectance, instrument.sample_layer_scattering_power, under.reflectance
+        )
+        table.append(dataclasses.replace(layer, reflectance=seen))
+        out[beneath == index] = len(table) - 1
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -286,13 +313,14 @@ def experiment_layout(seed: int = 0, instrument: InstrumentModel | None = None, 
 
     def patch_scene(frame_id, set_name, background_name, holder_map, table, patches, shift):
         """Place `patches` on a background at rotated slots."""
+        beneath = holder_map
         holder_map = holder_map.copy()
         table = list(table)
         regions = []
         for k, patch in enumerate(patches):
             r, c = slots[(k + shift) % len(slots)]
-            table.append(patch)
-            holder_map[r : r + design.patch_px, c : c + design.patch_px] = len(table) - 1
+            window = (slice(r, r + design.patch_px), slice(c, c + design.patch_px))
+            holder_map[window] = _lay_over(patch, beneath[window], table, instrument)
             regions.append({
                 "name": patch.name, "patch": patch.name,
                 "region": _centred_region(r, c, design.patch_px, design.region_px),
@@ -336,8 +364,8 @@ def experiment_layout(seed: int = 0, instrument: InstrumentModel | None = None, 
     for k, target in enumerate(targets):
         r = top + (k // per_row) * design.target_px
         c = left + (k % per_row) * design.target_px
-        table.append(target)
-        chart[r : r + design.target_px, c : c + design.target_px] = len(table) - 1
+        window = (slice(r, r + design.target_px), slice(c, c + design.target_px))
+        chart[window] = _lay_over(target, np.zeros((design.target_px, design.target_px), np.int32), table, instrument)
         regions.append({
             "name": f"t{k:03d}", "patch": target.name,
             "region": _centred_region(r, c, design.target_px, design.target_region_px),

@@ -29,7 +29,7 @@ import numpy as np
 
 from . import spectra
 from .grid import N_BANDS, WAVELENGTHS_NM
-from .simulate import FINE_WAVELENGTHS_NM, InstrumentModel
+from .simulated_instrument import FINE_WAVELENGTHS_NM, InstrumentModel
 
 #: Default additive offset, as a fraction of the white standard's signal: 0.5 % is a typical
 #: residual of dark subtraction plus stray light in a sphere with a dark-corrected camera.

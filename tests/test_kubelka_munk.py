@@ -449,3 +449,37 @@ class TestWhatAnEstimatorCanLearn:
         # measured: affine 2.8e-3 to 3.2e-3 (the noise), gain 2.0 % (paper) to 4.2 % (wool)
         assert all(gain < 0.1 for gain in gains.values()), gains
         assert all(affine > 2e-3 for affine, _ in result.values()), result
+
+
+# --- a layer over a background (Kubelka 1948) ------------------------------------------------------
+
+
+@pytest.mark.parametrize("r_inf", [0.03, 0.2, 0.5, 0.9, 0.999])
+def test_layer_over_background_limits(r_inf):
+    """Thick layers hide the background, vanishing ones are the background, and a background
+    equal to R_inf cannot be told from more of the layer."""
+    backgrounds = np.linspace(0.0, 1.0, 11)
+    assert np.allclose(km.layer_over_background(r_inf, 1e6, backgrounds), r_inf, atol=1e-9)
+    assert np.allclose(km.layer_over_background(r_inf, 1e-7, backgrounds), backgrounds, atol=1e-5)
+    for sx in (0.1, 1.0, 5.0):
+        assert km.layer_over_background(r_inf, sx, r_inf) == pytest.approx(r_inf, rel=1e-9)
+
+
+def test_two_layers_are_one_layer_twice_as_thick():
+    """Kubelka's layers compose: S X over (S X over R_g) equals 2 S X over R_g, for absorbing and
+    non-absorbing layers alike (b -> 0 takes the 1 / (S X) limit of b coth)."""
+    rng = np.random.default_rng(3)
+    r_inf = rng.uniform(0.02, 0.999, 200)
+    r_g = rng.uniform(0.0, 1.0, 200)
+    sx = rng.uniform(0.2, 6.0, 200)
+    once = km.layer_over_background(r_inf, sx, km.layer_over_background(r_inf, sx, r_g))
+    assert np.allclose(once, km.layer_over_background(r_inf, 2 * sx, r_g), rtol=1e-9, atol=1e-12)
+
+
+def test_a_white_layer_over_black_follows_its_transmittance():
+    """A layer that does not absorb (R_inf = 1) over black reflects S X / (1 + S X) and
+    transmits the rest (Kubelka 1948, K = 0), and over any background lies between it and 1."""
+    for sx in (0.5, 2.0, 8.0):
+        assert km.layer_over_background(1.0, sx, 0.0) == pytest.approx(sx / (1.0 + sx), rel=1e-6)
+        over = km.layer_over_background(1.0, sx, np.linspace(0, 1, 5))
+        assert np.all(np.diff(over) > 0) and np.all(over <= 1.0 + 1e-12)

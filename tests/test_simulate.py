@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import spherejax as sj
+from spherejax import kubelka_munk as km
 from spherejax import simulate
 
 SMALL = simulate.ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=16)
@@ -122,4 +123,34 @@ def test_layout(experiment):
             assert 0 <= a0 < a1 <= height and 0 <= b0 < b1 <= experiment.holder[3]
     training = [f for f in experiment.frames if f.set == "training"]
     assert len({f.background for f in training}) == SMALL.training_backgrounds
-    assert all(r["region"][1] - r["region"][0] == 35 for f in training for r in f.regions)
+    assert all(r["region"][1] - r["region"][0] == SMALL.region_px for f in training for r in f.regions)
+    # The paper's patches: 0.5 cm (Section 4), the region in their centre.
+    assert SMALL.patch_px / SMALL.pixels_per_cm == pytest.approx(0.5, abs=0.01)
+
+
+def test_patches_are_opaque_unless_a_scattering_power_is_given():
+    """By default a patch is the patch wherever it lies; a translucent one (a scattering power
+    S X > 0) reads, over each material beneath it, as Kubelka's layer over that material: on a
+    uniform background one material, on a patterned one one per stripe beneath."""
+    design = simulate.ExperimentDesign(training_backgrounds=3, training_patches=3, test_backgrounds=2, test_patches=3, targets=4)
+    thin_instrument = dataclasses.replace(simulate.InstrumentModel(), sample_layer_scattering_power=2.0)
+    opaque = simulate.experiment_layout(seed=0, design=design)
+    thin = simulate.experiment_layout(seed=0, design=design, instrument=thin_instrument)
+    shown = []
+    for name in ("train-bg01-g0", "test-bg01-g0"):
+        for region in opaque.scenes[name].regions:
+            patch = opaque.materials[region["patch"]]
+            r0, r1, c0, c1 = region["region"]
+            scene = opaque.scenes[name]
+            assert [scene.table[i] for i in np.unique(scene.holder_map[r0:r1, c0:c1])] == [patch]
+            scene = thin.scenes[name]
+            seen = [scene.table[i] for i in np.unique(scene.holder_map[r0:r1, c0:c1])]
+            assert all(m.name == patch.name and m.coupling == patch.coupling for m in seen)
+            backgrounds = [m for m in scene.table if not m.name.startswith(("BabelColor", "ColorChecker"))]
+            expected = [km.layer_over_background(patch.reflectance, 2.0, m.reflectance) for m in backgrounds]
+            for m in seen:
+                assert any(np.allclose(m.reflectance, e) for e in expected)
+                shown.append(np.max(np.abs(m.reflectance - patch.reflectance)))
+            if name.startswith("train"):  # a uniform background
+                assert len(seen) == 1 and len(backgrounds) == 1
+    assert max(shown) > 0.02  # a light patch shows its background (a black one hides it)

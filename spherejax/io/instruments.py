@@ -92,6 +92,7 @@ class _Instrument(Document):
     frames_averaged_white: integer(1, 10000) = None
     frames_averaged_sample: integer(1, 10000) = None
     band_interval_s: _positive("seconds") = None
+    sample_layer_scattering_power: Annotated[number(ge=0.0, le=1000.0), Expect("a scattering power S X, 0 (opaque) or > 0, at most 1000")] = None
     noise: Annotated[bool, Expect("true or false")] = None
 
     @pydantic.model_validator(mode="after")
