@@ -298,6 +298,49 @@ def irradiance(transport: SphereTransport, wall, cells, baffle=None):
 
 
 @dataclasses.dataclass(frozen=True)
+class IncidentLight:
+    """Where the light on one cell of the sample plane comes from (`incident_light`).
+
+    directions: (N + 1, 3) unit vectors from the cell's centre to every element and, last, to the
+      entrance port's diffuser (plane frame: z along the plane's normal, into the sphere);
+    total: (K, N + 1) the irradiance each contributes per band (W m^-2 for unit diffuser
+      exitance): F_cj ρ_j H_j, and the diffuser's direct light H0_c;
+    first: (K, N + 1) the part of it that left the diffuser at most one reflection before:
+      F_cj ρ_j H0_j, and H0_c (what Eq. 1 calls the first reflection).
+    """
+
+    directions: np.ndarray
+    total: jax.Array
+    first: jax.Array
+
+
+def incident_light(transport: SphereTransport, wall, cells, cell: tuple[int, int], baffle=None) -> IncidentLight:
+    """The light on plane cell `cell` (row, col) by direction, for a scene: wall (K,), cells (K,
+    rows, cols) and baffle as `irradiance`. Its `total` sums to the cell's irradiance. A sample's
+    reading along its normal under it: `textile_brdf.normal_view_reading`."""
+    wall = jnp.asarray(wall)
+    baffle_rho = wall if baffle is None else jnp.asarray(baffle)
+    cells = jnp.asarray(cells)
+    H = irradiance(transport, wall, cells, baffle)  # (K, N)
+    rho = _reflectances(transport, wall, cells, baffle_rho)
+    rows, cols = transport.geometry.plane_cells
+    index = int(np.ravel_multi_index(cell, (rows, cols)))
+    centres = transport.elements.centres
+    port = transport.geometry.entrance_port_centre
+    towards = np.concatenate([centres, port[None]]) - centres[index]
+    distance = np.linalg.norm(towards, axis=1)
+    distance[index] = 1.0
+    directions = towards / distance[:, None]
+    directions[index] = (0.0, 0.0, 1.0)  # the cell itself: F_cc = 0, any unit vector
+    F_row = jnp.asarray(transport.F[index], H.dtype)
+    H0 = jnp.asarray(transport.H0, H.dtype)
+    direct = jnp.broadcast_to(H0[index], (H.shape[0], 1))
+    total = jnp.concatenate([F_row[None] * rho * H, direct], axis=1)
+    first = jnp.concatenate([F_row[None] * rho * H0[None], direct], axis=1)
+    return IncidentLight(directions, total, first)
+
+
+@dataclasses.dataclass(frozen=True)
 class PlaneTransport:
     """The sphere reduced to its sample plane, for one wall (and baffle) reflectance per band:
 
@@ -392,11 +435,13 @@ __all__ = [
     "PLANE",
     "WALL",
     "Elements",
+    "IncidentLight",
     "PlaneTransport",
     "SphereGeometry",
     "SphereTransport",
     "diffuser_irradiance",
     "form_factors",
+    "incident_light",
     "cell_means",
     "irradiance",
     "pixel_irradiance",
