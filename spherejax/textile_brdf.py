@@ -12,10 +12,12 @@ The BRDF, f(l, v) in sr^-1, l and v unit vectors to the light and the viewer, n 
   body           (1 - s) f_d, a rough diffuse term (Oren & Nayar 1994, "Generalization of
                  Lambert's reflectance model", SIGGRAPH '94, the qualitative model, their
                  Eq. 30): V-cavities whose slopes have standard deviation σ (rad),
-                   f_d = ρ/π [A + B max(0, cos(φ_v - φ_l)) sin α tan β],
+                   f_d = ρ/π [A + B max(0, cos(φ_v - φ_l)) sin α tan β
+                              + 0.17 ρ σ² / (σ² + 0.13) (1 - cos(φ_v - φ_l) (2β/π)²)],
                    A = 1 - σ² / (2 (σ² + 0.33)),  B = 0.45 σ² / (σ² + 0.09),
                    α = max(θ_l, θ_v),  β = min(θ_l, θ_v);
-                 σ = 0 is Lambert's law.
+                 the last term is their inter-reflection inside the cavities (Eq. 31), the
+                 texture's inter-reflection; σ = 0 is Lambert's law.
   sheen          (Estevez & Kulla 2017, "Production friendly microfacet sheen BRDF", the
                  "Charlie" distribution of fibres standing off the surface, with the visibility
                  term of Neubelt & Pettineo 2013, "Crafting a next-gen material pipeline for
@@ -33,7 +35,7 @@ textile fibres, 1.5-1.7: cotton ~1.55, wool ~1.55, polyester 1.54-1.72; Morton &
 range of the parameter).
 
 What it shows (tests/test_textile_brdf.py): along the normal the rough-diffuse term does not
-depend on where the light comes from (β = 0), so a sample's reading under a sphere departs from
+depend on where the light comes from (β = 0: A ρ/π + 0.17 ρ² σ²/(σ² + 0.13)/π), so a sample's reading under a sphere departs from
 a Lambertian one only through its sheen, by a grey offset that scales with the light like the
 reflectance does. Under the paper's sphere the holder's light moves between directions by at
 most 0.04 % when the background changes, so the reading relative to a Lambertian one changes by
@@ -64,8 +66,9 @@ class TextileBRDF:
 
 
 def oren_nayar(albedo, sigma, light, view):
-    """Oren-Nayar qualitative BRDF (sr^-1) for unit vectors light, view (..., 3), n = +z; albedo
-    ρ broadcastable against their leading shape. Reciprocal in light and view; σ = 0 is ρ/π."""
+    """Oren-Nayar BRDF (sr^-1), the qualitative model with the cavities' inter-reflection, for
+    unit vectors light, view (..., 3), n = +z; albedo ρ broadcastable against their leading
+    shape. Reciprocal in light and view; σ = 0 is ρ/π."""
     light, view = jnp.asarray(light), jnp.asarray(view)
     cos_l, cos_v = jnp.clip(light[..., 2], 0.0, 1.0), jnp.clip(view[..., 2], 0.0, 1.0)
     sin_l, sin_v = jnp.sqrt(1.0 - cos_l**2), jnp.sqrt(1.0 - cos_v**2)
@@ -79,7 +82,13 @@ def oren_nayar(albedo, sigma, light, view):
     # = the smaller sine over the larger cosine.
     sin_alpha = jnp.maximum(sin_l, sin_v)
     tan_beta = jnp.minimum(sin_l, sin_v) / jnp.maximum(jnp.maximum(cos_l, cos_v), 1e-12)
-    return jnp.asarray(albedo) / jnp.pi * (a + b * jnp.maximum(0.0, cos_dphi) * sin_alpha * tan_beta)
+    albedo = jnp.asarray(albedo)
+    single = a + b * jnp.maximum(0.0, cos_dphi) * sin_alpha * tan_beta
+    # Light reflected twice inside a cavity (their Eq. 31 with β the smaller polar angle):
+    # ρ² rather than ρ, so a textured surface's reflection is not linear in its albedo.
+    beta = jnp.arcsin(jnp.clip(jnp.minimum(sin_l, sin_v), 0.0, 1.0))
+    twice = 0.17 * albedo * sigma2 / (sigma2 + 0.13) * (1.0 - cos_dphi * (2.0 * beta / jnp.pi) ** 2)
+    return albedo / jnp.pi * (single + twice)
 
 
 def sheen(strength, roughness, light, view):
