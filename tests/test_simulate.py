@@ -92,6 +92,40 @@ def test_glare_lifts_a_dark_patch_on_a_bright_background():
     assert on_bright == pytest.approx(on_dark, rel=2e-3)
 
 
+def test_a_smaller_patch_gets_more_glare_from_its_background():
+    """Why the simulated patches are the paper's 0.5 cm: the share of the long-tailed glare PSF
+    that reaches a patch's centre from beyond it falls as the patch grows, so after Stage I a
+    black patch's lift from a dark to a bright background is larger for a 12 px (0.5 cm) patch
+    than for a 42 px (1.75 cm) one, and close to what the PSF predicts for each."""
+    instrument = dataclasses.replace(simulate.InstrumentModel(), noise=False, non_lambertian_spread=0.0, fluorescence_strength=0.0)
+
+    def lift(patch_px, region_px):
+        design = simulate.ExperimentDesign(training_backgrounds=2, training_patches=3, test_backgrounds=1, test_patches=1,
+                                           targets=4, patch_px=patch_px, region_px=region_px)
+        exp = simulate.simulate_experiment(seed=0, instrument=instrument, design=design)
+        dark, white = frame(exp, "dark").pixels, frame(exp, "white").pixels
+        r0, r1, c0, c1 = exp.white_patch
+        patch = np.zeros(exp.image_shape, bool)
+        patch[r0:r1, c0:c1] = True
+        means = []
+        for fid in ("train-bg00-g0", "train-bg01-g0"):
+            f = frame(exp, fid)
+            darkest = min(f.regions, key=lambda r: np.mean(r["reflectance"]))
+            a0, a1, b0, b1 = darkest["region"]
+            v = np.asarray(sj.stage1(sj.flat_field(f.pixels, dark, white), sj.white_patch_ratio(f.pixels, dark, white, patch)))
+            means.append(v[a0:a1, b0:b1].mean(axis=(0, 1)))
+        return np.mean(means[1] - means[0])
+
+    small, large = lift(12, 4), lift(42, 35)  # measured: 0.0143 and 0.0068, a ratio of 2.1
+    assert small > 1.3 * large > 0
+    # The PSF's share from beyond a radius R at the centre is 1 / sqrt(1 + (R / core)^2): for
+    # R = 6 px and 21 px and an 8 px core, 0.80 and 0.36, a ratio of 2.2; a square patch and a
+    # region of finite size put the measured ratio a little below that.
+    core = instrument.stray_light_core_px
+    predicted = (1 + (21 / core) ** 2) ** 0.5 / (1 + (6 / core) ** 2) ** 0.5
+    assert 1.3 < small / large < predicted
+
+
 def test_fluorescent_background_peaks_near_440nm():
     instrument = simulate.InstrumentModel()
     emission = instrument.fluorescence_emission()
