@@ -86,6 +86,7 @@ class SimulatedExperiment:
     exposure_s: np.ndarray
     frames: list[SimulatedFrame]
     materials: dict[str, Material]
+    band_transforms: np.ndarray  # (16, 2, 3): where each band's image lies (`band_geometry`)
 
 
 def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None, design: ExperimentDesign | None = None) -> SimulatedExperiment:
@@ -117,7 +118,7 @@ def simulate_experiment(seed: int = 0, instrument: InstrumentModel | None = None
     return SimulatedExperiment(
         instrument=instrument, design=design, seed=seed, image_shape=layout.image_shape,
         holder=(0, layout.holder_shape[0], 0, layout.holder_shape[1]), white_patch=layout.white_patch,
-        exposure_s=exposure, frames=frames, materials=layout.materials,
+        exposure_s=exposure, frames=frames, materials=layout.materials, band_transforms=renderer.band_transforms,
     )
 
 
@@ -174,6 +175,7 @@ def session_contents(experiment: SimulatedExperiment) -> dict:
         holder=list(experiment.holder),
         frames=frames,
         metadata=metadata,
+        band_transforms=experiment.band_transforms,
     )
 
 

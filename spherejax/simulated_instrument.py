@@ -65,6 +65,25 @@ class InstrumentModel:
     frames_averaged_dark: 16, frames_averaged_white: 8, frames_averaged_sample: 4 -- averaging
       of docs/instrument.md's protocol (10-25 for darks).
     band_interval_s: 3.0 -- wheel move (~2.5 s) plus exposures, per band.
+    filter_thickness_mm: 3.0, filter_thickness_tolerance_mm: 0.1, filter_refractive_index: 1.5 --
+      mounted 25 mm interference filters are a few millimetres of glass (fused silica 1.46,
+      borosilicate 1.52), made to a tenth of a millimetre or so; no two in a wheel are alike.
+    filter_tilt_deg: 0.5 -- how far a filter may sit tilted in its bore of the wheel (each is
+      drawn within ±this per seed); a tilted plate displaces the image (`band_geometry`).
+    filter_wedge_arcsec: 30 -- the parallelism catalogue bandpass filters are specified to.
+    filter_to_sensor_mm: 15 -- a wheel between a C-mount lens and the sensor lies within the
+      mount's 17.526 mm flange distance.
+    image_distance_mm: 55, magnification: 0.109 -- a 50 mm lens at the paper's field: the QI695's
+      12.5 mm sensor (2750 px of 4.54 µm) across ~11.5 cm (the holder and the white patch beside
+      it); v = f (1 + m) for a thin lens.
+    lens_lateral_colour_per_nm: 2e-6 -- the magnification's change per nm of wavelength, 0.06 %
+      across 400-700 nm: a few micrometres at the field's edge, a corrected lens's lateral colour.
+    band_misregistration_px: 0 -- the largest displacement of any band from the reference band
+      (560 nm) over the frame, in frame pixels: the filters' and lens's maps (`band_geometry`)
+      rescaled to it; 0 renders the bands in register. As the parameters above make them it is
+      0.2-0.5 frame pixels at 24 px/cm (2-5 of the QI695's; seeds 0-3); `spherejax simulate
+      --band-misregistration PX` sets it. 0 by default while `calibrate` does not yet register
+      bands: a default instrument out of register would put fringes in every corrected cube.
     sample_layer_scattering_power: 0 -- the Kubelka scattering power S X (scattering coefficient
       times thickness) of the small patches and chart targets as single layers over what lies
       beneath them (`kubelka_munk.layer_over_background`); 0 lays them opaque, as the paper's
@@ -117,6 +136,16 @@ class InstrumentModel:
     frames_averaged_white: int = 8
     frames_averaged_sample: int = 4
     band_interval_s: float = 3.0
+    filter_thickness_mm: float = 3.0
+    filter_thickness_tolerance_mm: float = 0.1
+    filter_refractive_index: float = 1.5
+    filter_tilt_deg: float = 0.5
+    filter_wedge_arcsec: float = 30.0
+    filter_to_sensor_mm: float = 15.0
+    image_distance_mm: float = 55.0
+    magnification: float = 0.109
+    lens_lateral_colour_per_nm: float = 2e-6
+    band_misregistration_px: float = 0.0
     sample_layer_scattering_power: float = 0.0
     noise: bool = True
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import band_geometry
 from .simulated_instrument import InstrumentModel
 from .simulated_layout import Material
 
@@ -69,12 +70,14 @@ def vignette(shape: tuple[int, int], vignetting):
 
 
 @jax.jit
-def _render_rates(material_map, reflectances, couplings, holder_mask, beta, band_weights, wall, alphas, glare_fft, stray):
+def _render_rates(material_map, reflectances, couplings, holder_mask, beta, band_weights, wall, alphas, glare_fft, stray, band_samples=None):
     """Noise-free signal rate of every band (e-/s up to one scale), shape (16, H, W).
 
     material_map (H, W) int32 indexes reflectances (M, L) and couplings (M,); holder_mask
     (H, W) bool; beta (16, H, W); band_weights (16, L); wall (L,); alphas (3,); glare_fft
-    the PSF's rFFT on the padded grid; stray the glare fraction.
+    the PSF's rFFT on the padded grid; stray the glare fraction; band_samples: (indices,
+    weights), each (16, 9, H W), how each band's pixels integrate the scene (the band's geometry,
+    `band_geometry.box_weights`), None when the bands are in register.
     """
     alpha_ww, alpha_wsp, alpha_spw = alphas[0], alphas[1], alphas[2]
     counts = jnp.zeros(reflectances.shape[0], reflectances.dtype).at[material_map].add(holder_mask.astype(reflectances.dtype))
@@ -86,8 +89,15 @@ def _render_rates(material_map, reflectances, couplings, holder_mask, beta, band
     # factor, the diffuse later bounces as for a Lambertian surface.
     spectral = reflectances * (couplings[:, None] * first[None] + later[None])  # (M, L)
     per_material = spectral @ band_weights.T  # (M, 16)
-    image = beta * jnp.moveaxis(per_material[material_map], -1, 0)  # (16, H, W)
-    return glare(image, glare_fft, stray)
+    if band_samples is None:
+        scene = jnp.moveaxis(per_material[material_map], -1, 0)  # (16, H, W)
+    else:
+        # Each band's pixel integrates the scene, constant on each reference pixel, over its
+        # footprint: exact overlaps, no interpolation.
+        indices, weights = band_samples
+        seen = per_material.T[jnp.arange(16)[:, None, None], material_map.reshape(-1)[indices]]  # (16, 9, H W)
+        scene = jnp.sum(seen * weights, axis=1).reshape(beta.shape)
+    return glare(beta * scene, glare_fft, stray)
 
 
 @jax.jit
@@ -103,6 +113,15 @@ def _expose(rates, exposure, lamp, key, read_noise, dark_current, gain, bias, sa
     read = read_noise / jnp.sqrt(frames) * jax.random.normal(key_read, electrons.shape, electrons.dtype)
     dn = (electrons + noise * (shot + read)) / gain + bias
     return jnp.clip(jnp.round(dn), 0, saturation).astype(jnp.uint16).transpose(1, 2, 0)
+
+
+def _band_samples(transforms: np.ndarray, image_shape: tuple[int, int]):
+    """`band_geometry.box_weights` as jax arrays (int32 indices, float32 weights), None when every
+    band is in register (the frames then are exactly what they were before bands could move)."""
+    if np.array_equal(transforms, np.broadcast_to(np.eye(2, 3), transforms.shape)):
+        return None
+    indices, weights = band_geometry.box_weights(transforms, image_shape)
+    return jnp.asarray(indices), jnp.asarray(weights, jnp.float32)
 
 
 class _Renderer:
@@ -121,6 +140,9 @@ class _Renderer:
         self.wall = jnp.asarray(instrument.wall_reflectance(), dtype=jnp.float32)
         self.alphas = jnp.asarray(instrument.port_fractions(), dtype=jnp.float32)
         self.glare_fft = glare_kernel_fft(image_shape, instrument.stray_light_core_px)
+        pixels_per_cm = holder_shape[0] / (instrument.holder_height_m * 100.0)
+        self.band_transforms = band_geometry.band_transforms(instrument, image_shape, pixels_per_cm, seed)
+        self.band_samples = _band_samples(self.band_transforms, image_shape)
         self.flux_scale = None  # set by calibrate_exposures
         self.exposure = None
         self.clock_s = 0.0
@@ -150,6 +172,7 @@ class _Renderer:
             self.alphas,
             self.glare_fft,
             jnp.float32(self.instrument.stray_light_fraction),
+            self.band_samples,
         )
 
     def calibrate_exposures(self, white_rates: jax.Array) -> np.ndarray:

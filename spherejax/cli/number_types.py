@@ -58,6 +58,9 @@ MAX_STEPS_MAX = 100_000
 GAIN_MIN, GAIN_MAX = 1e-4, 1e4
 #: One frame's read noise in counts rms, at most the full scale of a 16-bit frame.
 READ_NOISE_MAX = 65536.0
+#: `simulate --band-misregistration`: the largest band displacement, frame pixels. 50 moves a
+#: band a quarter of the default 192-row frame, far beyond any filter wheel's few pixels.
+BAND_MISREGISTRATION_MAX = 50.0
 #: The white standard's relative standard uncertainty: 1 is 100 %.
 WHITE_REFLECTANCE_U_MAX = 1.0
 #: `measure --reference L,a,b`: L* 0..200 and a*, b* -500..500, wider than any surface colour
@@ -170,7 +173,7 @@ class BadNumber(SystemExit):
 
 __all__ = [
     "VALUE_FIRST", "EXPECTED_FIRST", "SEED_MAX", "FRAMES_MAX", "MAX_STEPS_MAX", "GAIN_MIN", "GAIN_MAX",
-    "READ_NOISE_MAX", "WHITE_REFLECTANCE_U_MAX", "RESPONSE_WEIGHT_MAX", "REFERENCE_L_RANGE", "REFERENCE_AB_RANGE", "NumberError", "NumberType", "BadNumber",
+    "READ_NOISE_MAX", "BAND_MISREGISTRATION_MAX", "WHITE_REFLECTANCE_U_MAX", "RESPONSE_WEIGHT_MAX", "REFERENCE_L_RANGE", "REFERENCE_AB_RANGE", "NumberError", "NumberType", "BadNumber",
     "integer", "positive_integer", "non_negative_integer", "positive_number", "non_negative_number", "number_in",
     "shown",
 ]

@@ -126,6 +126,7 @@ def add_output_option(parser, *, dest: str, metavar: str, help: str, required: b
 
 # The type of each numeric option, by what its number is (`number_types`: one kind each).
 SEED = numbers.non_negative_integer("the simulation's seed", maximum=numbers.SEED_MAX)
+MISREGISTRATION = numbers.number_in("the largest band displacement in pixels", minimum=0.0, maximum=numbers.BAND_MISREGISTRATION_MAX)
 GAIN = numbers.number_in("electrons per count", minimum=numbers.GAIN_MIN, maximum=numbers.GAIN_MAX)
 GAIN_RANGE = f"{numbers.shown(numbers.GAIN_MIN)}..{numbers.shown(numbers.GAIN_MAX)}"  # for --help
 READ_NOISE = numbers.number_in("one frame's read noise in counts rms", minimum=0.0, maximum=numbers.READ_NOISE_MAX)
@@ -238,7 +239,8 @@ Simulate the paper's experiment on a physical model of the sphere, lamp, filters
 `acquire` writes from the instrument. The same seed gives the same frames.""",
                         examples="""
   spherejax simulate -o session-a
-  spherejax simulate -o session-b --seed 7""")
+  spherejax simulate -o session-b --seed 7
+  spherejax simulate -o session-c --band-misregistration 2   # bands up to 2 px out of register""")
     add_output_option(simulate, dest="out", metavar="DIR", help="session folder to create (new, or empty)")
     simulate.add_argument("out_positional", nargs="?", metavar="OUT", action=_Output,
                           help="the session folder as a positional argument: the old spelling of -o/--out, deprecated")
@@ -246,6 +248,11 @@ Simulate the paper's experiment on a physical model of the sphere, lamp, filters
     simulate.add_argument("--instrument", metavar="FILE", default=None,
                           help="the instrument to simulate: a file `spherejax twin` wrote (or one written by hand "
                                "with some of its fields); default the paper's instrument")
+    simulate.add_argument("--band-misregistration", metavar="PX", type=MISREGISTRATION, default=None,
+                          help="move the bands out of register: each filter's and the lens's map (spherejax.band_geometry) "
+                               "scaled so that the largest displacement from the 560 nm band over the frame is PX pixels, "
+                               f"0..{numbers.shown(numbers.BAND_MISREGISTRATION_MAX)}; the manifest records the maps under "
+                               "\"band_transforms\" (default: the instrument's, 0 for the paper's: in register)")
     simulate.set_defaults(run=cmd_simulate)
 
     twin = _command(commands, "twin", summary="fit the simulator's instrument to a session (a digital twin)",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -24,6 +25,10 @@ def cmd_simulate(args) -> int:
         raise ValueError("no session folder given (expected -o/--out DIR, the session folder to create)")
     out = pathlib.Path(args.out if args.out is not None else args.out_positional)
     instrument = None if args.instrument is None else io.load_instrument(args.instrument)
+    if args.band_misregistration is not None:
+        from ..simulate import InstrumentModel
+
+        instrument = dataclasses.replace(instrument or InstrumentModel(), band_misregistration_px=args.band_misregistration)
     io.check_new_session_folder(out)  # before minutes of simulation, not after
     check_writable(out, "-o DIR", folder=False)  # staged beside it, then renamed into place
     with Steps(1, args.quiet) as progress:

@@ -89,7 +89,12 @@ A folder with ``manifest.json`` and the frame files (`write_session` writes ``fr
       "white_patch": [r0, r1, c0, c1],         reference white patch, rows r0:r1, columns c0:c1
       "holder": [r0, r1, c0, c1],              sample holder (the Markov baseline's holder mean)
       "frames": [frame, ...],
-      "metadata": {...}                        optional, free JSON (e.g. simulator parameters)
+      "metadata": {...},                       optional, free JSON (e.g. simulator parameters)
+      "band_transforms": [[[a, b, c], [d, e, f]], ...]
+                                               optional: B 2 x 3 affine maps, one per band, from
+                                               the reference geometry's pixel coordinates (x =
+                                               column, y = row, pixel centres at integers) to the
+                                               band's; a simulated session records its truth
     }
 
 A frame is an object with

@@ -291,6 +291,26 @@ def numbers(length: int | str, expected: str, *, positive: bool = False):
     return Annotated[list[item], *sized, AfterValidator(_readonly_float64), Expect(expected)]
 
 
+def _affine_maps(values: list) -> np.ndarray:
+    array = np.asarray(values, dtype=np.float64)
+    determinant = array[:, 0, 0] * array[:, 1, 1] - array[:, 0, 1] * array[:, 1, 0]
+    if np.any(determinant <= 0.0):
+        raise ValueError("a map that collapses or mirrors the image")
+    array.setflags(write=False)
+    return array
+
+
+#: One 2 x 3 affine map per band (the context's "bands"), each from the reference geometry's
+#: pixel coordinates (x = column, y = row, pixel centres at integers) to the band's -> (B, 2, 3)
+#: float64, read-only; each invertible and not mirrored.
+BandTransforms = Annotated[
+    list[Annotated[list[Annotated[list[number()], Field(min_length=3, max_length=3)]], Field(min_length=2, max_length=2)]],
+    _length_of("bands"), AfterValidator(_affine_maps),
+    Expect("{bands} 2 x 3 affine maps [[a, b, c], [d, e, f]], one per band, from the reference geometry's pixel "
+           "coordinates (x = column, y = row) to the band's, each with a e - b d > 0"),
+]
+
+
 def _readonly_float64(values: list) -> np.ndarray:
     array = np.asarray(values, dtype=np.float64)
     array.setflags(write=False)

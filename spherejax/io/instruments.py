@@ -92,6 +92,16 @@ class _Instrument(Document):
     frames_averaged_white: integer(1, 10000) = None
     frames_averaged_sample: integer(1, 10000) = None
     band_interval_s: _positive("seconds") = None
+    filter_thickness_mm: _positive("millimetres") = None
+    filter_thickness_tolerance_mm: Annotated[number(ge=0.0), Expect("millimetres, a number >= 0")] = None
+    filter_refractive_index: Annotated[number(gt=1.0, le=3.0), Expect("a refractive index, > 1 and <= 3")] = None
+    filter_tilt_deg: Annotated[number(ge=0.0, le=10.0), Expect("degrees, 0..10")] = None
+    filter_wedge_arcsec: Annotated[number(ge=0.0, le=3600.0), Expect("arc seconds, 0..3600")] = None
+    filter_to_sensor_mm: _positive("millimetres") = None
+    image_distance_mm: _positive("millimetres") = None
+    magnification: Annotated[number(gt=0.0, le=10.0), Expect("a magnification, > 0 and <= 10")] = None
+    lens_lateral_colour_per_nm: Annotated[number(gt=-1.0, lt=1.0), Expect("a relative change per nm, > -1 and < 1")] = None
+    band_misregistration_px: Annotated[number(ge=0.0, le=50.0), Expect("pixels, 0..50")] = None
     sample_layer_scattering_power: Annotated[number(ge=0.0, le=1000.0), Expect("a scattering power S X, 0 (opaque) or > 0, at most 1000")] = None
     noise: Annotated[bool, Expect("true or false")] = None
 

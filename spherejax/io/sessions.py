@@ -19,7 +19,7 @@ from .. import jsontext
 from ..grid import N_WAVELENGTHS
 from ..atomic_files import atomic_file, fsync_folder, temp_sibling
 from .documents import (
-    BandCentres, Document, Expect, ImageRectangle, JsonObject, NonEmptyStr, PositiveNumber, RelativePath, Timestamp,
+    BandCentres, BandTransforms, Document, Expect, ImageRectangle, JsonObject, NonEmptyStr, PositiveNumber, RelativePath, Timestamp,
     _check_format, _json_value, _readable_json, _utc_now, check_document, choice, integer, located, numbers, refuse,
     shape,
 )
@@ -143,6 +143,9 @@ class Session:
       white_patch, holder: (r0, r1, c0, c1) rectangles.
       frames: every `FrameInfo`, in manifest order.
       metadata: free JSON.
+      band_transforms: (B, 2, 3) or None: where each band's image lies, when the session records
+        it (a simulated one: the truth), as 2 x 3 affine maps from the reference geometry's pixel
+        coordinates (x = column, y = row, pixel centres at integers) to the band's.
     """
 
     path: pathlib.Path
@@ -156,6 +159,7 @@ class Session:
     software_version: str
     created: str
     metadata: dict = dataclasses.field(default_factory=dict)
+    band_transforms: np.ndarray | None = None
 
     @property
     def bands(self) -> int:
@@ -229,7 +233,7 @@ class Session:
             "holder": list(self.holder),
             "frames": [frame.to_json() for frame in self.frames],
             "metadata": self.metadata,
-        }
+        } | ({} if self.band_transforms is None else {"band_transforms": self.band_transforms.tolist()})
 
 
 # The manifest as documents (spherejax.io.documents), fields in the order they are checked. The
@@ -295,6 +299,7 @@ class _Manifest(_Geometry):
     software_version: NonEmptyStr
     created: Timestamp
     metadata: JsonObject = pydantic.Field(default_factory=dict)
+    band_transforms: BandTransforms | None = None
 
 
 def _frame_info(frame: _Frame) -> FrameInfo:
@@ -345,6 +350,7 @@ def _parse_manifest(doc, *, manifest_path: pathlib.Path, root: pathlib.Path) -> 
         software_version=manifest.software_version,
         created=manifest.created,
         metadata=manifest.metadata,
+        band_transforms=manifest.band_transforms,
     )
 
 
@@ -461,6 +467,7 @@ def write_session(
     frames: Sequence[tuple[Mapping, np.ndarray]],
     metadata: Mapping | None = None,
     created: str | None = None,
+    band_transforms=None,
 ) -> Session:
     """Write a session folder, all or nothing, and load it back.
 
@@ -472,6 +479,7 @@ def write_session(
         "file" (regions as dicts or `Region`s), its "id" a file name ([A-Za-z0-9._-]+); array is
         (H, W, B) uint16. Files go to frames/<id>.tif with channel names "<nm>nm".
       created: ISO 8601 creation time; default now (UTC). Pass one for reproducible output.
+      band_transforms: (B, 2, 3) where each band's image lies (`Session.band_transforms`), or None.
 
     Returns:
       `load_session(path)`.
@@ -499,6 +507,8 @@ def write_session(
         "frames": [entry for entry, _ in entries],
         "metadata": {} if metadata is None else metadata,
     }
+    if band_transforms is not None:
+        manifest["band_transforms"] = np.asarray(band_transforms, np.float64).tolist()
     # Check with the loader's own rules first, so nothing is written for a manifest it would refuse.
     manifest = _json_value(manifest_path, manifest, SessionError, "the manifest")
     session = _parse_manifest(manifest, manifest_path=manifest_path, root=path)
