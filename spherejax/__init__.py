@@ -29,8 +29,10 @@ Layers. Each module imports only modules of its own layer or of the layers below
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
    a path they open): calibrate, evaluate, study, simulate (the physical simulator and the
    paper's experiment on it, a module per job: simulated_instrument, simulated_layout,
-   simulated_rendering, sphere_radiosity (the sphere as radiosity elements), twin (the simulator
-   fitted to a session)), stripwise, measurement, monte_carlo, simulated_targets, kubelka_munk,
+   simulated_rendering, band_geometry (each band's map, as the filters and lens make it),
+   sphere_radiosity (the sphere as radiosity elements), textile_brdf (textiles off the Lambertian
+   ideal, read under the sphere's light), twin (the simulator fitted to a session)),
+   band_registration (each band's map estimated from a session's frames), stripwise, measurement, monte_carlo, simulated_targets, kubelka_munk,
    target_families (shade cards, brighteners, gloss and texture beside kubelka_munk's mixing sets), figures.
 3. Files and orchestration: io (frames, cubes, sessions, calibration files; io.journal, the
    fsynced JSON-lines journal of a batch's manifest and an acquisition; io.hashing, the one file
