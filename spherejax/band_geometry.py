@@ -31,7 +31,7 @@ tilt, wedge direction and thickness are drawn per seed within the instrument's t
 filters of one wheel are. `band_transforms` gives the 16 matrices, optionally rescaled so that
 the largest displacement over the frame is a given number of pixels (`spherejax simulate
 --band-misregistration PX`); `box_weights` gives, per band, how its pixels integrate the scene
-(the renderer's), `sample_points` where they look in the reference geometry. numpy, float64.
+(the renderer's). numpy, float64.
 """
 
 from __future__ import annotations
@@ -165,19 +165,6 @@ def box_weights(transforms: np.ndarray, image_shape: tuple[int, int]) -> tuple[n
     return indices.reshape(bands, 9, height * width).astype(np.int32), weights.reshape(bands, 9, height * width)
 
 
-def sample_points(transforms: np.ndarray, image_shape: tuple[int, int], supersampling: int = 2) -> np.ndarray:
-    """(B, S², H, W, 2) the points (x, y) of the reference geometry that each band's pixel sees, at
-    S x S points spread over the pixel (x_b ± offsets mapped back through the inverse map)."""
-    height, width = image_shape
-    offsets = (np.arange(supersampling) + 0.5) / supersampling - 0.5
-    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
-    y, x = np.mgrid[0:height, 0:width].astype(float)
-    points = np.stack([x[None] + ox.reshape(-1, 1, 1), y[None] + oy.reshape(-1, 1, 1)], axis=-1)  # (S², H, W, 2)
-    linear = transforms[:, :, :2]
-    inverse = np.linalg.inv(linear)  # (B, 2, 2)
-    return np.einsum("bij,bshwj->bshwi", inverse, points[None] - transforms[:, None, None, None, :, 2])
-
-
 __all__ = [
     "REFERENCE_BAND",
     "REFERENCE_BAND_NM",
@@ -189,5 +176,4 @@ __all__ = [
     "physical_transforms",
     "plate_displacement_mm",
     "rms_displacement",
-    "sample_points",
 ]

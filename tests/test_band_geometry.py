@@ -57,14 +57,31 @@ def test_the_misregistration_sets_the_largest_displacement():
         assert np.max(np.linalg.norm(bg.displacements(transforms, SHAPE), axis=-1)) == pytest.approx(px, rel=1e-12)
 
 
-def test_sample_points_are_where_the_band_looks():
-    """Each band pixel's points, mapped forward, land on that pixel's centre ± a quarter pixel."""
+def test_each_band_pixel_integrates_its_footprint():
+    """box_weights: in register a pixel sees itself alone; shifted by 0.3 px to the right it sees
+    70 % of its own pixel and 30 % of the one to its left; scaled, the shares sum to one and their
+    centre of mass is where the inverse map sends the pixel's centre."""
+    identity = np.broadcast_to(IDENTITY, (1, 2, 3)).copy()
+    indices, weights = bg.box_weights(identity, (6, 8))
+    flat = np.arange(48)
+    np.testing.assert_allclose(np.sum(weights * (indices == flat[None, None]), axis=1), 1.0)
+    shifted = identity.copy()
+    shifted[0, 0, 2] = 0.3
+    indices, weights = bg.box_weights(shifted, (6, 8))
+    pixel = 2 * 8 + 4  # row 2, column 4
+    shares = {int(i): float(w) for i, w in zip(indices[0, :, pixel], weights[0, :, pixel]) if w > 0}
+    assert shares == pytest.approx({pixel: 0.7, pixel - 1: 0.3})
     transforms = bg.band_transforms(dataclasses.replace(simulate.InstrumentModel(), band_misregistration_px=3.0), SHAPE, 24.0, 1)
-    points = bg.sample_points(transforms, SHAPE)  # (16, 4, H, W, 2)
-    forward = np.einsum("bij,bshwj->bshwi", transforms[:, :, :2], points) + transforms[:, None, None, None, :, 2]
+    indices, weights = bg.box_weights(transforms, SHAPE)
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0, rtol=1e-12)
+    rows, cols = np.divmod(indices, SHAPE[1])
+    centre = np.stack([np.sum(weights * cols, axis=1), np.sum(weights * rows, axis=1)], axis=-1)  # (16, H W, 2)
     y, x = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]].astype(float)
-    offsets = forward - np.stack([x, y], axis=-1)[None, None]
-    np.testing.assert_allclose(np.abs(offsets), 0.25, atol=1e-9)
+    band_pixels = np.stack([x.ravel(), y.ravel()], axis=-1)
+    inverse = np.einsum("bij,bnj->bni", np.linalg.inv(transforms[:, :, :2]), band_pixels[None] - transforms[:, None, :, 2])
+    inside = (inverse[..., 0] > 1) & (inverse[..., 0] < SHAPE[1] - 2) & (inverse[..., 1] > 1) & (inverse[..., 1] < SHAPE[0] - 2)
+    # To the footprint's scale: a side of 1/s != 1 covers its end pixels in part, off their centres.
+    np.testing.assert_allclose(centre[inside], inverse[inside], atol=5e-3)
 
 
 def test_rms_displacement_between_maps():
