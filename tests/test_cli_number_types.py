@@ -107,6 +107,7 @@ def subcommand_parsers() -> dict[str, argparse.ArgumentParser]:
 NUMERIC_OPTIONS = {
     ("demo", "--seed"): "an integer 0..9223372036854775807",
     ("simulate", "--seed"): "an integer 0..9223372036854775807",
+    ("simulate", "--band-misregistration"): "a number 0..50",
     ("calibrate", "--gain"): "a number 0.0001..10000",
     ("calibrate", "--read-noise"): "a number 0..65536",
     ("calibrate", "--white-reflectance-u"): "a number 0..1",
