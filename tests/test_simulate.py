@@ -65,30 +65,32 @@ def test_a_dark_sample_darkens_the_sphere(experiment):
     assert np.all(p_dark_background > p_bright_background) and np.all(p_bright_background > 1.0)
 
 
+def darkest_patch_after_stage1(instrument, design):
+    """(on the darkest training background, on the next) Stage I responses (16,) of the darkest
+    training patch of the first group, noise-free instruments: what glare lifts."""
+    exp = simulate.simulate_experiment(seed=0, instrument=instrument, design=design)
+    dark, white = frame(exp, "dark").pixels, frame(exp, "white").pixels
+    r0, r1, c0, c1 = exp.white_patch
+    patch = np.zeros(exp.image_shape, bool)
+    patch[r0:r1, c0:c1] = True
+    means = []
+    for fid in ("train-bg00-g0", "train-bg01-g0"):
+        f = frame(exp, fid)
+        darkest = min(f.regions, key=lambda r: np.mean(r["reflectance"]))
+        a0, a1, b0, b1 = darkest["region"]
+        v = np.asarray(sj.stage1(sj.flat_field(f.pixels, dark, white), sj.white_patch_ratio(f.pixels, dark, white, patch)))
+        means.append(v[a0:a1, b0:b1].mean(axis=(0, 1)))
+    return means
+
+
 def test_glare_lifts_a_dark_patch_on_a_bright_background():
     """Stray light: after Stage I a black patch still reads brighter on a bright background than
     on a dark one; without glare it does not."""
     design = simulate.ExperimentDesign(training_backgrounds=2, training_patches=3, test_backgrounds=1, test_patches=1, targets=4)
-
-    def black_patch_stage1(instrument):
-        exp = simulate.simulate_experiment(seed=0, instrument=instrument, design=design)
-        dark, white = frame(exp, "dark").pixels, frame(exp, "white").pixels
-        r0, r1, c0, c1 = exp.white_patch
-        patch = np.zeros(exp.image_shape, bool)
-        patch[r0:r1, c0:c1] = True
-        out = []
-        for fid in ("train-bg00-g0", "train-bg01-g0"):
-            f = frame(exp, fid)
-            darkest = min(f.regions, key=lambda r: np.mean(r["reflectance"]))
-            a0, a1, b0, b1 = darkest["region"]
-            v = np.asarray(sj.stage1(sj.flat_field(f.pixels, dark, white), sj.white_patch_ratio(f.pixels, dark, white, patch)))
-            out.append(v[a0:a1, b0:b1].mean())
-        return out
-
     no_noise = dataclasses.replace(simulate.InstrumentModel(), noise=False, non_lambertian_spread=0.0, fluorescence_strength=0.0)
-    on_dark, on_bright = black_patch_stage1(no_noise)
+    on_dark, on_bright = (m.mean() for m in darkest_patch_after_stage1(no_noise, design))
     assert on_bright > 1.05 * on_dark
-    on_dark, on_bright = black_patch_stage1(dataclasses.replace(no_noise, stray_light_fraction=0.0))
+    on_dark, on_bright = (m.mean() for m in darkest_patch_after_stage1(dataclasses.replace(no_noise, stray_light_fraction=0.0), design))
     assert on_bright == pytest.approx(on_dark, rel=2e-3)
 
 
@@ -102,19 +104,8 @@ def test_a_smaller_patch_gets_more_glare_from_its_background():
     def lift(patch_px, region_px):
         design = simulate.ExperimentDesign(training_backgrounds=2, training_patches=3, test_backgrounds=1, test_patches=1,
                                            targets=4, patch_px=patch_px, region_px=region_px)
-        exp = simulate.simulate_experiment(seed=0, instrument=instrument, design=design)
-        dark, white = frame(exp, "dark").pixels, frame(exp, "white").pixels
-        r0, r1, c0, c1 = exp.white_patch
-        patch = np.zeros(exp.image_shape, bool)
-        patch[r0:r1, c0:c1] = True
-        means = []
-        for fid in ("train-bg00-g0", "train-bg01-g0"):
-            f = frame(exp, fid)
-            darkest = min(f.regions, key=lambda r: np.mean(r["reflectance"]))
-            a0, a1, b0, b1 = darkest["region"]
-            v = np.asarray(sj.stage1(sj.flat_field(f.pixels, dark, white), sj.white_patch_ratio(f.pixels, dark, white, patch)))
-            means.append(v[a0:a1, b0:b1].mean(axis=(0, 1)))
-        return np.mean(means[1] - means[0])
+        on_dark, on_bright = darkest_patch_after_stage1(instrument, design)
+        return np.mean(on_bright - on_dark)
 
     small, large = lift(12, 4), lift(42, 35)  # measured: 0.0143 and 0.0068, a ratio of 2.1
     assert small > 1.3 * large > 0
