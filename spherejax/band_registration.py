@@ -41,6 +41,7 @@ import numpy as np
 import optimistix as optx
 
 from .band_geometry import REFERENCE_BAND
+from .flatfield import flat_field
 
 #: Tile size and step of the coarse search, pixels.
 TILE_PX, TILE_STEP_PX = 48, 24
@@ -67,13 +68,6 @@ class BandRegistration:
     residual_px: np.ndarray
     tiles: np.ndarray
     reference_band: int
-
-
-def flat_fielded(frame: np.ndarray, dark: np.ndarray, white: np.ndarray) -> np.ndarray:
-    """(H, W, B) float64 (u - d) / (w - d), each band in its own geometry; 0 where w <= d."""
-    signal = frame.astype(np.float64) - dark
-    level = white.astype(np.float64) - dark
-    return np.where(level > 0, signal / np.where(level > 0, level, 1.0), 0.0)
 
 
 def edge_strength(image: np.ndarray) -> float:
@@ -232,7 +226,9 @@ def register_bands(frame: np.ndarray, dark: np.ndarray, white: np.ndarray, refer
       ValueError: a frame without enough structure to register a band (its edges weaker than
         MIN_EDGE_STRENGTH, or fewer than 6 tiles with edges), naming the band.
     """
-    v = flat_fielded(frame, dark, white)
+    # Eq. 10 as everywhere (`flatfield.flat_field`); a pixel whose white is not above its dark
+    # (NaN there) carries no edge.
+    v = np.nan_to_num(np.asarray(flat_field(frame, dark, white), np.float64), nan=0.0)
     height, width, bands = v.shape
     for b in range(bands):
         strength = edge_strength(v[..., b])
@@ -290,7 +286,6 @@ __all__ = [
     "blurred",
     "edge_map",
     "edge_strength",
-    "flat_fielded",
     "global_shift",
     "register_bands",
     "tile_shifts",
