@@ -84,6 +84,6 @@ def test_blurring_keeps_the_mean_and_spreads_a_point_as_a_gaussian():
     image[20, 20] = 1.0
     out = br.blurred(image, 2.0)
     assert out.sum() == pytest.approx(1.0)
-    y, x = np.mgrid[0:41, 0:41]
+    _, x = np.mgrid[0:41, 0:41]
     assert np.sum(out * (x - 20) ** 2) == pytest.approx(4.0, rel=0.02)  # truncated at 3 sigma: 3.95
     np.testing.assert_array_equal(br.blurred(image, 0.0), image)
