@@ -10,7 +10,9 @@
     dark         shutter closed, per band at that band's exposure, dark_frames averaged
     white        the white standard, per band, frames_averaged averaged
     samples      each sample of the plan, per band, frames_averaged averaged, the reference
-                 patch in view
+                 patch in view; the plan's registration target (a [[samples]] entry with role =
+                 "registration", at most one) is taken the same way where it stands in the plan,
+                 the operator asked to put it in place, into the frame of role "registration"
     session      the frames assembled into a spherejax session (`spherejax.io.write_session`)
 
 Nothing is lost on a fault. Work goes to SESSION.partial/ beside SESSION: every band image is
@@ -33,7 +35,7 @@ exposure, frames averaged, time stamp (UTC), sensor temperature, lamp hours and 
 saturated pixels. Averages are rounded to 16-bit counts for the session's frames. Each session
 frame's metadata holds these per band ("bands") and, as a simulated session does, the frames
 averaged for the frame ("frames_averaged": dark_frames for the dark, frames_averaged for the
-white standard and samples; the fewest of its bands should a resumed run have changed them).
+white standard, samples and registration target; the fewest of its bands should a resumed run have changed them).
 The session's metadata "camera" holds the camera's gain ("gain_e_per_count") and read noise
 ("read_noise_counts") when known, for calibrate's noise model: the camera's own (the simulated
 camera's model), else the profile's [noise]; and the profile's white_reflectance_u if given.

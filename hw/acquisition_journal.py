@@ -93,12 +93,21 @@ def _profile_identity(profile: Profile) -> dict:
     identity = {
         "instrument_id": profile.instrument_id,
         "bands": {str(k): list(v) for k, v in profile.bands.items()},
-        "samples": [dataclasses.asdict(s) for s in profile.samples],
+        "samples": [_plan_identity(s) for s in profile.samples],
         "camera": profile.camera.backend,
     }
     if profile.tunable_filter is not None:  # only then: a wheel profile's identity stays as it was
         identity["tunable_filter"] = {"model": profile.tunable_filter.model, "bands": list(profile.band_centres_nm)}
     return identity
+
+
+def _plan_identity(plan) -> dict:
+    """A [[samples]] entry in the profile's identity: its fields, "role" only for the registration
+    target, so that a plan without one is identified as it was before there were roles."""
+    fields = dataclasses.asdict(plan)
+    if fields["role"] == "sample":
+        del fields["role"]
+    return fields
 
 
 def _check_resume(partial: pathlib.Path, profile: Profile) -> None:

@@ -1,7 +1,9 @@
 """The acquisition protocol of docs/instrument.md on connected devices: what is captured, and how.
 
-    plan         `_captures`: dark, white, then the profile's [[samples]] (without them, every
-                 scene of the simulated camera, or one sample), each a `Capture`
+    plan         `_captures`: dark, white, then the profile's [[samples]] in order (without them,
+                 every scene of the simulated camera, or one sample), each a `Capture`; the entry
+                 with role = "registration", if any, is the registration target, taken like a
+                 sample into the session's frame of role "registration"
     warm-up      `_warm_up`: the white standard imaged until the lamp drifts less than
                  warmup_drift_percent over warmup_checks intervals (AcquisitionStopped after
                  warmup_timeout_s)
@@ -39,23 +41,36 @@ from .profile import Profile
 
 @dataclasses.dataclass(frozen=True)
 class Capture:
-    """One session frame to acquire: dark, white or a sample (with its session fields)."""
+    """One session frame to acquire: dark, white, a sample (with its session fields) or the
+    registration target."""
 
     id: str
-    role: str  # "dark", "white", "sample" or "target"
+    role: str  # "dark", "white", "sample", "target" or "registration"
     fields: dict = dataclasses.field(default_factory=dict)  # set, background, regions, ...
     scene: str | None = None  # what the simulated camera renders; None for darks
 
 
+#: What the simulated camera shows for a registration target it has no scene of the same name
+#: for: the chart of colour targets, its scene with the most edges (it renders no checkerboard).
+SIMULATED_REGISTRATION_SCENE = "targets"
+
+
 def _captures(profile: Profile, camera: Camera) -> list[Capture]:
-    """Dark, white, then the sample plan (the profile's [[samples]], or for the simulated
-    camera without one, every capture of the simulated experiment)."""
+    """Dark, white, then the sample plan (the profile's [[samples]], the registration target among
+    them where it stands, or for the simulated camera without one, every capture of the simulated
+    experiment)."""
     captures = [Capture("dark", "dark"), Capture("white", "white", scene="white")]
     if profile.samples:
         # The simulated camera knows where each of its scenes' patches lie: their regions go into
         # the session, so it can be calibrated like a simulated one.
         known = {f["id"]: f for f in camera.scene_frames()} if hasattr(camera, "scene_frames") else None
         for plan in profile.samples:
+            if plan.role == "registration":
+                # Its id is the lab's name for its target; the simulated camera shows the scene of
+                # that name if it has one, else its chart. No regions: nothing is averaged on it.
+                scene = plan.id if known is None or plan.id in known else SIMULATED_REGISTRATION_SCENE
+                captures.append(Capture(plan.id, "registration", scene=scene))
+                continue
             if known is not None and plan.id not in known:
                 raise AcquisitionError(
                     f"{profile.path}: samples id {plan.id!r} is not a scene of the simulated camera "
@@ -232,7 +247,10 @@ def _run_protocol(instrument: Instrument, captures: Sequence[Capture], partial: 
             instrument.shutter.close_shutter()
             frames = config.dark_frames
         else:
-            if capture.role != "white":  # the white standard is in place since the warm-up
+            if capture.role == "registration":
+                operator.ask(f"Place the registration target {capture.id!r} on the sample holder, filling it, "
+                             "flat and in focus")
+            elif capture.role != "white":  # the white standard is in place since the warm-up
                 operator.ask(f"Place sample {capture.id!r} on the sample holder")
             _set_scene(camera, capture.scene)
             instrument.shutter.open_shutter()

@@ -20,10 +20,11 @@ def add_command(commands) -> None:
         description=(
             "Drive the instrument described by an instrument profile (camera, filter wheels or a tunable\n"
             "filter, shutter, lamp) through the acquisition protocol: dark and white frames, the training,\n"
-            "test and target captures the profile lists, each band at its exposure, into a session folder\n"
-            "that calibrate, evaluate and correct read. Operator steps (place the white board, the next\n"
-            "sample) are prompted; --yes answers them. Ctrl-C stops between band images and keeps what was\n"
-            "captured; --resume completes the session without retaking it."
+            "test and target captures and the registration target the profile lists ([[samples]]; role =\n"
+            "\"registration\" marks the registration target, optional), each band at its exposure, into a\n"
+            "session folder that calibrate, evaluate and correct read. Operator steps (place the white\n"
+            "board, the next sample) are prompted; --yes answers them. Ctrl-C stops between band images and\n"
+            "keeps what was captured; --resume completes the session without retaking it."
         ),
         epilog=(
             "examples:\n"

@@ -59,6 +59,10 @@ Optional sections (defaults in `AcquisitionSettings` and `Layout`):
     id = "s001"
     set = "test"              # "training" or "test"
     background = "black velvet"
+    [[samples]]               # optional, at most one: the registration target (docs/instrument.md,
+    id = "checkerboard"       #   "Registration target"), captured like a sample where it stands in
+    role = "registration"     #   the plan, into the session frame of role "registration"; it takes
+                              #   no set or background (role is "sample" by default)
     [noise]                   # the camera's noise, recorded in the session for calibrate's
     gain_e_per_count = 1.04   #   noise model: electrons per count (> 0), and one frame's read
     read_noise_counts = 5.8   #   noise in counts rms (>= 0); give both or neither (a camera
@@ -87,7 +91,8 @@ one `ProfileError` line naming the file and the key: a missing key, an unknown k
 pass silently, nor a camera option the backend does not take), two bands on one slot, a slot beyond
 the wheel's count or on its open slot, a band on a wheel the profile does not define, a path that
 leaves the profile's folder, a [noise] value out of range or one of gain_e_per_count and
-read_noise_counts without the other. The tables are declared as documents
+read_noise_counts without the other, set or background on the registration target or a second
+registration target in [[samples]]. The tables are declared as documents
 (spherejax.io.documents): strict types, so a TOML boolean or float is never taken for an integer.
 """
 
@@ -115,6 +120,8 @@ WHEEL_POSITIONS = {"FW102C": 6, "FW212C": 12}
 SHUTTER_MODELS = ("SC10",)
 CAMERA_BACKENDS = tuple(PROFILE_OPTIONS)
 SETS = ("training", "test")
+#: The roles of a [[samples]] entry: a sample (the default), or the registration target (at most one).
+PLAN_ROLES = ("sample", "registration")
 
 #: The documented limits of the profile's numbers (module docstring): key -> (low, high).
 LIMITS = {
@@ -228,9 +235,13 @@ class NoiseSettings:
 
 @dataclasses.dataclass(frozen=True)
 class SamplePlan:
+    """One [[samples]] entry: a sample (its set and background), or with role "registration" the
+    registration target (set and background None)."""
+
     id: str
-    set: str = "test"
-    background: str = "unknown"
+    set: str | None = "test"
+    background: str | None = "unknown"
+    role: str = "sample"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -408,8 +419,17 @@ class _Lamp(Document):
 
 class _Sample(Document):
     id: _SampleId
-    set: Annotated[Literal[SETS], Expect(f"one of {list(SETS)}")] = "test"
-    background: NonEmptyStr = "unknown"
+    role: Annotated[Literal[PLAN_ROLES], Expect(f"one of {list(PLAN_ROLES)}")] = "sample"
+    set: Annotated[Literal[SETS], Expect(f"one of {list(SETS)}")] | None = None  # None: "test" for a sample
+    background: NonEmptyStr | None = None  # None: "unknown" for a sample
+
+    @pydantic.model_validator(mode="after")
+    def _registration_target_alone(self):
+        if self.role == "registration":
+            for key in ("set", "background"):
+                if getattr(self, key) is not None:
+                    raise refuse("is given for the registration target", f"no {key} on the registration target", (key,))
+        return self
 
 
 class _Noise(Document):
@@ -482,11 +502,16 @@ class _Profile(Document):
 
     @pydantic.model_validator(mode="after")
     def _unique_samples(self):
-        seen = set()
+        seen, registration = set(), None
         for index, sample in enumerate(self.samples):
             if sample.id in seen or sample.id in ("dark", "white"):
                 raise refuse(f"is {sample.id!r}, already taken", "a unique sample id", ("samples", index, "id"))
             seen.add(sample.id)
+            if sample.role == "registration":
+                if registration is not None:
+                    raise refuse(f'is "registration" again (samples[{registration}] is the registration target)',
+                                 "at most one [[samples]] entry with role = \"registration\"", ("samples", index, "role"))
+                registration = index
         return self
 
 
@@ -591,7 +616,11 @@ def load_profile(path) -> Profile:
         ),
         layout=layout,
         lamp_state_file=_inside(path, "lamp.state_file", state_file),
-        samples=tuple(SamplePlan(sample.id, sample.set, sample.background) for sample in doc.samples),
+        samples=tuple(
+            SamplePlan(sample.id, None, None, "registration") if sample.role == "registration"
+            else SamplePlan(sample.id, sample.set or "test", sample.background or "unknown")
+            for sample in doc.samples
+        ),
         noise=NoiseSettings(
             *(None if value is None else float(value) for value in (
                 doc.noise.gain_e_per_count, doc.noise.read_noise_counts, doc.noise.white_reflectance_u
@@ -612,6 +641,7 @@ __all__ = [
     "AcquisitionSettings",
     "Layout",
     "NoiseSettings",
+    "PLAN_ROLES",
     "SamplePlan",
     "Profile",
     "load_profile",

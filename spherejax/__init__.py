@@ -25,7 +25,9 @@ Layers. Each module imports only modules of its own layer or of the layers below
    steps, buffers, allocator; its package docstring says which module does what), grid, spectra, jsontext (a parser of text it is
    given), number_text (numbers in the shortest text of their precision, JSON values and CSV
    tables as text), labelled (the xarray names of the outputs), _checks, atomic_files (the one
-   way every writer puts a file in place, the engine's cache and io's writers alike).
+   way every writer puts a file in place, the engine's cache and io's writers alike),
+   band_resampling (each band's flat-fielded response resampled through its map into the
+   reference band's geometry, before Stage I and II).
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
    a path they open): calibrate, evaluate, study, simulate (the physical simulator and the
    paper's experiment on it, a module per job: simulated_instrument, simulated_layout,
@@ -63,6 +65,7 @@ from .pipeline import (
     QUALITY_NONFINITE as QUALITY_NONFINITE,
     QUALITY_PATCH_UNUSABLE as QUALITY_PATCH_UNUSABLE,
     QUALITY_BELOW_DARK as QUALITY_BELOW_DARK,
+    QUALITY_NOT_COVERED as QUALITY_NOT_COVERED,
     BELOW_DARK_LIMIT as BELOW_DARK_LIMIT,
     QUALITY_SATURATED as QUALITY_SATURATED,
     QUALITY_WHITE_NOT_ABOVE_DARK as QUALITY_WHITE_NOT_ABOVE_DARK,
@@ -116,6 +119,7 @@ __all__ = [
     "QUALITY_NONFINITE",
     "QUALITY_PATCH_UNUSABLE",
     "QUALITY_BELOW_DARK",
+    "QUALITY_NOT_COVERED",
     "BELOW_DARK_LIMIT",
     "QUALITY_SATURATED",
     "QUALITY_WHITE_NOT_ABOVE_DARK",

@@ -17,6 +17,11 @@ disagree about v, p or bad pixels:
    estimator, or that plus the kernel regression of its residuals where the targets show a real
    gain from it; method and regularisers chosen by cross-validation that holds out whole groups
    of targets, e.g. charts or materials, when a manifest field names them).
+0. Bands in register (before all of the above, unless asked not to): each band's map from the
+   reference band's geometry (`band_registration.register_bands`) from the session's registration
+   target if it holds one (role "registration"), else its target chart; the calibration carries
+   the maps (`Calibration.band_transforms`), so every region below is measured on registered
+   pixels, as `correct` will read them.
 5. The noise model (`spherejax.uncertainty.NoiseModel`) for per-pixel uncertainties, when the
    camera's gain and read noise are known (arguments, or the session's metadata "camera"): the
    frames averaged from the frames' metadata "frames_averaged", the Stage II coefficients'
@@ -43,6 +48,8 @@ from .estimation import (
     fit_estimator,
     validate_method,
 )
+from .band_geometry import largest_displacement
+from .band_registration import BandRegistration, register_bands
 from .grid import N_WAVELENGTHS
 from .number_text import json_ready
 
@@ -234,6 +241,8 @@ class CalibrationReport:
     noise_model: NoiseModel | None = None
     #: How the noise model was made, or why there is none (one line each).
     noise_notes: list[str] = dataclasses.field(default_factory=list)
+    #: How the bands were registered (`registration_summary`), or None when they were not.
+    band_registration: dict | None = None
 
     def as_dict(self) -> dict:
         """Plain JSON: the fields, with the noise model as `noise_model_summary` (its numbers
@@ -490,10 +499,60 @@ def build_noise_model(
     return model, notes
 
 
+def registration_frame(session):
+    """The frame the bands are registered from: the session's registration target (role
+    "registration") if it holds one, else its first target capture (a chart: edges in every band
+    across the frame), else None."""
+    targets = session.frames_with(role="target")
+    return session.registration_frame() or (targets[0] if targets else None)
+
+
+def register_session_bands(session, base: Calibration) -> tuple[Calibration, dict]:
+    """(base with the session's band maps, the report's summary of them). Raises ValueError, one
+    line naming the manifest and the frame, when the session has no frame to register from or the
+    frame has too little structure (`band_registration.register_bands`)."""
+    frame = registration_frame(session)
+    if frame is None:
+        raise ValueError(f"{session.manifest_path}: has no registration target or target capture to register the bands "
+                         "by (expected a frame of role \"registration\" or \"target\"; or calibrate with --no-registration)")
+    try:
+        registration = register_bands(session.read(frame), np.asarray(base.dark), np.asarray(base.white))
+    except ValueError as error:
+        raise ValueError(f"{session.manifest_path}: frame {frame.id!r} cannot register the bands: {error} "
+                         "(or calibrate with --no-registration)") from None
+    return dataclasses.replace(base, band_transforms=registration.transforms), registration_summary(
+        session, frame.id, registration)
+
+
+def registration_summary(session, frame_id: str, registration: BandRegistration) -> dict:
+    """The report's record of a registration: the frame, the reference band (index and nm), each
+    band's map (manifest convention), the tiles' residual about it (px), the tiles used, and the
+    largest displacement in the frame (px)."""
+    return {
+        "frame": frame_id,
+        "reference_band": int(registration.reference_band),
+        "reference_band_nm": int(session.band_centres_nm[registration.reference_band]),
+        "band_transforms": json_ready(registration.transforms),
+        "residual_px": json_ready(np.round(registration.residual_px, 4)),
+        "tiles": [int(n) for n in registration.tiles],
+        "largest_displacement_px": round(largest_displacement(registration.transforms, session.image_shape), 4),
+    }
+
+
+def registration_line(report: CalibrationReport) -> str:
+    """One line for the log: how far the bands were apart, or that they were taken as in register."""
+    summary = report.band_registration
+    if summary is None:
+        return "bands: not registered (taken as in register)"
+    residual = np.asarray(summary["residual_px"], float)
+    return (f"bands: registered from frame {summary['frame']!r} to {summary['reference_band_nm']} nm; largest "
+            f"displacement {summary['largest_displacement_px']:.2f} px, tile residual at most {np.nanmax(residual):.2f} px")
+
+
 def calibrate_session(
     session, *, reference: str | None = None, loss: str = "l2", illuminant: str = "D65",
     wiener_method: str = "auto", wiener_groups: str | None = None,
-    gain=None, read_noise=None, white_reflectance_u=None,
+    gain=None, read_noise=None, white_reflectance_u=None, registration: bool = True,
 ):
     """Fit Stage II and the reflectance estimator from a session's training and target captures.
 
@@ -515,6 +574,8 @@ def calibrate_session(
       read_noise: one frame's read noise in counts rms, overriding "read_noise_counts".
       white_reflectance_u: the white standard's relative standard uncertainty, overriding
         "white_reflectance_u" (default 0).
+      registration: estimate each band's map and correct through it (default); False takes the
+        bands as in register and stores no maps (`--no-registration`).
 
     Returns:
       (Calibration, CalibrationReport); report.noise_model is the `NoiseModel` when gain and read
@@ -524,6 +585,9 @@ def calibrate_session(
     check_session(session, reference, wiener_groups)
     base = base_calibration(session)
     _check_white_standard(session, base)
+    registration_record = None
+    if registration:
+        base, registration_record = register_session_bands(session, base)
     training = session.frames_with(role="sample", set="training")
     targets = session.frames_with(role="target")
     measurements = measure_frames(session, training, base)
@@ -568,6 +632,7 @@ def calibrate_session(
         coeffs=coeffs.astype(np.float32), wiener=np.asarray(estimator.matrix, np.float32),
         wiener_offset=np.asarray(estimator.offset, np.float32),
         illuminant=illuminant, saturation=base.saturation, wiener_residual=kernel_residual,
+        band_transforms=base.band_transforms,
     )
     report = CalibrationReport(
         reference_background=reference,
@@ -584,6 +649,7 @@ def calibrate_session(
         unconverged_bands=sorted(fit.problems()),
         noise_model=noise_model,
         noise_notes=noise_notes,
+        band_registration=registration_record,
     )
     return calibration, report
 
@@ -602,4 +668,8 @@ __all__ = [
     "check_noise_arguments",
     "noise_model_summary",
     "noise_model_line",
+    "registration_frame",
+    "register_session_bands",
+    "registration_summary",
+    "registration_line",
 ]

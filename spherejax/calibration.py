@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks, colorimetry
+from . import _checks, band_resampling, colorimetry
 from .estimation.kernel_residual import KernelResidual
 from .grid import N_WAVELENGTHS
 
@@ -66,8 +66,14 @@ class Calibration(eqx.Module):
         `estimation.fit_kernel_estimator`): the estimate is then r = W v_tilde + r0 + A k(v_tilde)
         (E8). None (default): the affine estimator. Every kernel applies it (the kernel
         contract, `spherejax._engine.kernels`).
-      wiener_offset and wiener_residual come last among the fields, so that positional
-      construction keeps its meaning.
+      band_transforms: (B, 2, 3) or None: each band's 2 x 3 affine map from the reference band's
+        geometry to the band's own (x = column, y = row, pixel centres at integers; the session
+        manifest's convention), estimated by `calibrate` (`band_registration`). With maps, every
+        correction resamples each band's flat-fielded response into the reference geometry first
+        (`band_resampling`); None (default, and every calibration made before registration
+        existed): the bands are taken as in register, as before.
+      wiener_offset, wiener_residual and band_transforms come last among the fields, so that
+      positional construction keeps its meaning.
     """
 
     dark: jax.Array = eqx.field(converter=jnp.asarray)
@@ -84,6 +90,9 @@ class Calibration(eqx.Module):
         converter=jnp.asarray, default_factory=lambda: np.zeros(N_WAVELENGTHS, np.float32)
     )
     wiener_residual: KernelResidual | None = None
+    band_transforms: jax.Array | None = eqx.field(
+        converter=lambda x: None if x is None else jnp.asarray(x), default=None
+    )
 
     def __check_init__(self):
         # Unknown names raise here, at construction, rather than at the first correction.
@@ -114,6 +123,8 @@ class Calibration(eqx.Module):
                 raise ValueError(f"wiener_residual: expected an estimation.KernelResidual or None, got {type(self.wiener_residual).__name__}")
             if self.wiener_residual.bands != bands:
                 raise ValueError(f"wiener_residual: expected a residual of the {bands} bands, got one of {self.wiener_residual.bands}")
+        if self.band_transforms is not None:
+            band_resampling.check_transforms(self.band_transforms, bands, (height, width))
         if self.saturation is not None and not float(self.saturation) > 0:
             raise ValueError(f"saturation: expected a level > 0 or None, got {self.saturation!r}")
         self.check_values()
@@ -184,7 +195,7 @@ class Calibration(eqx.Module):
     def __getstate__(self):
         # A pickled calibration (a dask worker's) carries its arrays, never its plans, which
         # hold compiled programs and device memory.
-        return {name: value for name, value in self.__dict__.items() if name not in ("_plans", "_patch_box", "_parts")}
+        return {name: value for name, value in self.__dict__.items() if name not in ("_plans", "_patch_box", "_parts", "_registered")}
 
     def rows(self, row0: int, row1: int) -> Calibration:
         """This calibration for image rows row0:row1 only, without the patch (None).
@@ -214,8 +225,13 @@ class Calibration(eqx.Module):
         def crop():
             # dataclasses.replace carries every other field (the Wiener offset included) and runs
             # the checks again.
+            # Maps, if any, in the crop's own pixel coordinates.
+            transforms = self.band_transforms
+            if transforms is not None:
+                transforms = band_resampling.local_transforms(transforms, row0, col0)
             return dataclasses.replace(self, dark=self.dark[row0:row1, col0:col1],
-                                       white=self.white[row0:row1, col0:col1], patch=None)
+                                       white=self.white[row0:row1, col0:col1], patch=None,
+                                       band_transforms=transforms)
 
         if not _checks.is_concrete(self.dark):  # a traced calibration: its crops are traced too
             return crop()

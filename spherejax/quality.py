@@ -27,6 +27,9 @@ class Quality(enum.IntFlag):
     PATCH_UNUSABLE = 8
     #: raw below the dark level by more than noise allows in some band (`BELOW_DARK_LIMIT`)
     BELOW_DARK = 16
+    #: some band's image does not cover the pixel: bands registered into the reference band's
+    #: geometry (`band_resampling`) and this pixel maps outside some band's frame
+    NOT_COVERED = 32
 
 
 # The names the public API has always exported, as plain ints: JAX takes an int subclass in
@@ -36,6 +39,7 @@ QUALITY_NONFINITE = int(Quality.NONFINITE)
 QUALITY_WHITE_NOT_ABOVE_DARK = int(Quality.WHITE_NOT_ABOVE_DARK)
 QUALITY_PATCH_UNUSABLE = int(Quality.PATCH_UNUSABLE)
 QUALITY_BELOW_DARK = int(Quality.BELOW_DARK)
+QUALITY_NOT_COVERED = int(Quality.NOT_COVERED)
 
 #: The flat-fielded response (Eq. 10) below which a band's raw value is taken as below the dark
 #: level by more than noise allows (`QUALITY_BELOW_DARK`): v < -BELOW_DARK_LIMIT, i.e. raw more
@@ -51,5 +55,5 @@ BELOW_DARK_LIMIT = 0.02
 
 __all__ = [
     "Quality", "QUALITY_SATURATED", "QUALITY_NONFINITE", "QUALITY_WHITE_NOT_ABOVE_DARK", "QUALITY_PATCH_UNUSABLE",
-    "QUALITY_BELOW_DARK", "BELOW_DARK_LIMIT",
+    "QUALITY_BELOW_DARK", "QUALITY_NOT_COVERED", "BELOW_DARK_LIMIT",
 ]

@@ -8,19 +8,24 @@
 
 Both steps are the jitted functions `correct(raw, calibration)` runs on a whole image, on the
 same values, so a strip result is bit for bit the whole-image result (tested at several strip
-heights). Every strip has the same height (the last is padded with rows that are discarded), so
+heights). A calibration with band maps (`Calibration.band_transforms`) reads each strip's rows
+with the native rows around them its registered pixels come from (`band_resampling.read_box`),
+and keeps the strip's own: the whole-image result to float rounding (the maps are applied in the
+strip's own coordinates). Every strip has the same height (the last is padded with rows that are discarded), so
 an image compiles once. Memory: about `BYTES_PER_PIXEL` bytes per pixel of a strip, plus the
 calibration's patch mask (H x W bytes) and what the process holds anyway.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from . import band_resampling
 from .pipeline import correct, patch_ratio, plan
 
 if TYPE_CHECKING:  # for the annotations only: a workflow takes the readers it is given
@@ -82,9 +87,23 @@ def _rows_by_the_whole_plan(cube: io.CubeReader, calibration: io.CalibrationFile
     return plan(calibration.calibration(), (*calibration.image_shape, calibration.bands), dtype=raw.dtype).rows(raw, row0, p)
 
 
+def _registered_rows(cube: io.CubeReader, calibration: io.CalibrationFile, row0: int, row1: int, p):
+    """Rows row0:row1 of an image whose calibration has band maps: the native rows they are
+    interpolated from (`band_resampling.read_box`, the strip grown by the maps' reach) corrected
+    with the calibration's same rows, and the strip's own rows kept."""
+    height, width = calibration.image_shape
+    n0, n1, _, _ = band_resampling.read_box((row0, row1, 0, width), calibration.band_transforms, (height, width))
+    raw = np.ascontiguousarray(cube.read_rows(n0, n1))
+    result = correct(raw, calibration.rows(n0, n1), p=p)
+    keep = slice(row0 - n0, row1 - n0)
+    return dataclasses.replace(result, reflectance=result.reflectance[keep], lab=result.lab[keep],
+                               quality=result.quality[keep])
+
+
 def image_patch_ratio(cube: io.CubeReader, calibration: io.CalibrationFile):
-    """The white-patch ratio p (B,) of a whole image, reading only the patch's rows."""
-    r0, r1, c0, c1 = calibration.patch_box
+    """The white-patch ratio p (B,) of a whole image, reading only the rows of the patch's pixels
+    (and, with band maps, of the pixels around them its registered pixels come from)."""
+    r0, r1, c0, c1 = calibration.patch_read_box
     box = cube.read_rows(r0, r1)[:, c0:c1]
     return patch_ratio(box, calibration.patch_calibration)
 
@@ -126,6 +145,8 @@ def correct_strips(
         # Every strip of every input through the whole calibration's one plan (`Plan.rows`), or for a
         # calibration read from disk by rows, each strip's rows padded to one shape.
         rows_of = _rows_by_the_whole_plan if calibration.in_memory else functools.partial(_correct_rows, height=step)
+        if calibration.band_transforms is not None:
+            rows_of = _registered_rows
         strips = [
             (row0, min(row0 + step, height), functools.partial(rows_of, cube, calibration, row0, min(row0 + step, height), p))
             for row0 in range(0, height, step)

@@ -113,7 +113,7 @@ def test_calibration_round_trip(tmp_path, rng, dtype, saturation):
     assert loaded.illuminant == "A" and loaded.observer == calibration.observer
     assert loaded.saturation == saturation and type(loaded.saturation) is type(saturation)
 
-    assert header["format"] == "spherejax-calibration" and header["format_version"] == 6
+    assert header["format"] == "spherejax-calibration" and header["format_version"] == 7
     assert header["noise_model"] is None  # none given (tests/test_noise_model_files.py: one given)
     assert header["software_version"] == sj.__version__
     assert header["instrument_id"] == "sim-sphere-1" and header["band_centres_nm"] == BANDS
@@ -414,9 +414,9 @@ def test_load_calibration_dataset_of_the_wrong_dtype(calibration_path):
 def test_load_calibration_version_in_the_other_container(calibration_path, tmp_path):
     """Format versions 4 on are HDF5, versions 1 to 3 an .npz: either in the other is refused."""
     entries = calibration_entries(calibration_path)
-    rewrite_file(tmp_path / "v6.npz", entries, container="npz")
-    with refused(CalibrationFileError, tmp_path / "v6.npz", r"is an \.npz archive of format version 6 \(expected HDF5 from"):
-        io.load_calibration(tmp_path / "v6.npz")
+    rewrite_file(tmp_path / "v7.npz", entries, container="npz")
+    with refused(CalibrationFileError, tmp_path / "v7.npz", r"is an \.npz archive of format version 7 \(expected HDF5 from"):
+        io.load_calibration(tmp_path / "v7.npz")
     entries = {k: v for k, v in entries.items() if k not in RESIDUAL}
     header = {**header_of(calibration_entries(calibration_path)), "format_version": 3}
     header["arrays"] = {k: v for k, v in header["arrays"].items() if k not in RESIDUAL}
@@ -435,11 +435,11 @@ def test_load_calibration_wrong_format(calibration_path):
 
 def test_load_calibration_newer_version(calibration_path):
     entries = calibration_entries(calibration_path)
-    header = {**header_of(entries), "format_version": 7, "new_field": "whatever a newer one adds"}
+    header = {**header_of(entries), "format_version": 8, "new_field": "whatever a newer one adds"}
     rewrite_file(calibration_path, entries, header)
     match = (
-        "is spherejax-calibration format version 7, newer than spherejax 0.1.0 reads "
-        r"\(expected format version 6 or older; upgrade spherejax"
+        "is spherejax-calibration format version 8, newer than spherejax 0.1.0 reads "
+        r"\(expected format version 7 or older; upgrade spherejax"
     )
     with refused(CalibrationFileError, calibration_path, match):
         io.load_calibration(calibration_path)

@@ -480,3 +480,67 @@ def test_session_read_checks_the_frame_again(session_path, rng):
     io.write_frame(frame_path, counts(rng, (H, W, 3)))  # replaced after loading
     with refused(SessionError, frame_path, "has 3 channels"):
         session.white()
+
+
+# ---------------------------------------------------------------------------- registration frame
+
+
+def _with_registration(rng, *ids, **fields):
+    """session_frames with a registration-target frame per id, after the samples."""
+    frames = session_frames(rng)
+    for frame_id in ids:
+        frames.insert(4, (frame_dict(frame_id, "registration", metadata={"frames_averaged": 16}, **fields), counts(rng)))
+    return frames
+
+
+def test_session_with_a_registration_frame(tmp_path, rng):
+    frames = _with_registration(rng, "checkerboard")
+    path = tmp_path / "session"
+    written = io.write_session(path, frames=frames, **session_fields())
+    loaded = io.load_session(path)
+    assert loaded.to_manifest() == written.to_manifest() == json.loads((path / "manifest.json").read_text())
+    registration = loaded.registration_frame()
+    assert (registration.id, registration.role) == ("checkerboard", "registration")
+    assert registration.regions == () and registration.set is None and registration.background is None
+    assert registration.metadata == {"frames_averaged": 16}
+    np.testing.assert_array_equal(registration.exposure_s, frames[4][0]["exposure_s"])
+    np.testing.assert_array_equal(loaded.read(registration), frames[4][1])
+    assert loaded.frames_with(role="registration") == (registration,)
+    # What iterates by role is unchanged: the registration frame is no sample nor target.
+    assert [f.id for f in loaded.frames_with(role="sample")] == ["train-bg03-a", "test-bg07"]
+    assert [f.id for f in loaded.frames_with(role="target")] == ["targets-1"]
+    assert [f.id for f in loaded.frames_with(set="training")] == ["train-bg03-a"]
+    assert io.read_frame_metadata(loaded.frame_path(registration))["attributes"]["spherejax:role"] == "registration"
+
+
+def test_a_session_without_a_registration_frame_has_none(session_path):
+    assert io.load_session(session_path).registration_frame() is None
+
+
+def test_write_session_refuses_a_second_registration_frame(tmp_path, rng):
+    path = tmp_path / "session"
+    with refused(SessionError, path / "manifest.json",
+                 r"lists 2 registration frames \(expected at most one with role 'registration'\)"):
+        io.write_session(path, frames=_with_registration(rng, "checkerboard", "siemens-star"), **session_fields())
+    assert listing(tmp_path) == []
+
+
+def _two_registration_frames(manifest):
+    for frame in manifest["frames"][2:4]:  # the two samples, their regions removed
+        frame.update(role="registration")
+        del frame["regions"]
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (_set("frames", 3, "role", value="registration"),
+         r"frames\[3\]\.regions lists 1 regions \(expected none on a registration frame"),
+        (_two_registration_frames, r"lists 2 registration frames \(expected at most one with role 'registration'\)"),
+    ],
+    ids=["regions", "second"],
+)
+def test_load_session_refuses_registration_frames(session_path, edit, match):
+    manifest_path = edit_manifest(session_path, edit)
+    with refused(SessionError, manifest_path, match):
+        io.load_session(session_path)

@@ -85,7 +85,7 @@ def test_the_variance_round_trips_bit_for_bit(tmp_path, rng, dtype):
     calibration = kernel_calibration(rng, dtype)
     path = tmp_path / "kernel.h5"
     header = save(path, calibration)
-    assert header["format_version"] == io.CALIBRATION_FORMAT_VERSION == 6
+    assert header["format_version"] == io.CALIBRATION_FORMAT_VERSION == 7
     assert [header["arrays"][name]["shape"] for name in VARIANCE_ARRAYS] == [[RANK, 31], [RANK], [M, M], [RANK, M], [31]]
     assert all(header["arrays"][name]["dtype"] == np.dtype(dtype).str for name in VARIANCE_ARRAYS)
     loaded, _ = io.load_calibration(path)

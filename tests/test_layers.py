@@ -26,7 +26,7 @@ LAYERS = {
         ["colorimetry", "flatfield", "polynomial", "estimation", "wiener_estimation", "quality", "calibration", "equations",
          "pipeline", "uncertainty", "consistency",
          "markov", "angles", "_engine", "pixel_constants", "correction_result", "grid", "spectra", "jsontext", "noise_document",
-         "noise_bands", "number_text", "labelled", "_checks", "atomic_files"], KERNELS),
+         "noise_bands", "number_text", "labelled", "_checks", "atomic_files", "band_resampling"], KERNELS),
     **dict.fromkeys(
         ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
          "simulated_targets", "kubelka_munk", "target_families", "simulated_instrument", "simulated_layout", "simulated_rendering", "band_geometry", "band_registration", "sphere_radiosity", "textile_brdf", "twin", "figures"], WORKFLOWS),

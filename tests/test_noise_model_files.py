@@ -175,7 +175,7 @@ def test_noise_model_round_trips_bit_for_bit(tmp_path, rng, per_band, dtype):
     model = make_noise_model(rng, per_band=per_band, dtype=dtype)
     path = tmp_path / "cal.h5"
     written = save(path, rng, model)
-    assert written["format_version"] == 6 and written["noise_model"] == model.to_json()
+    assert written["format_version"] == 7 and written["noise_model"] == model.to_json()
 
     calibration, header = io.load_calibration(path, band_centres_nm=BANDS)
     assert header == written and header["noise_model"] == model.to_json()

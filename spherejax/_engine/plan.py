@@ -49,7 +49,7 @@ from ..calibration import Calibration, compute_dtype, saturation_level
 from ..correction_result import CorrectionResult
 from ..grid import N_WAVELENGTHS
 from ..pixel_constants import PatchConstants, PixelConstants
-from . import buffers, fused, gpu_kernel, kernels, steps
+from . import buffers, fused, gpu_kernel, kernels, registered, steps
 
 _log = logging.getLogger(__name__)
 
@@ -532,9 +532,14 @@ def plan_for(calibration: Calibration, shape, dtype) -> Plan:
     kept = calibration.__dict__.get("_plans")  # only a concrete calibration keeps plans
     if kept is not None and (plan := kept.get(key)) is not None:
         return plan
+    make = Plan
+    if calibration.band_transforms is not None:
+        # Bands resampled into the reference geometry first, then the registered calibration's
+        # own plan (`registered`).
+        make = functools.partial(registered.RegisteredPlan, make_plan=plan_for)
     if not _concrete(calibration):
-        return Plan(calibration, shape, dtype)
+        return make(calibration, shape, dtype)
     # Made now even while a trace runs (frames mapped with `jax.vmap`, a caller's `jit`): a kept
     # plan holds the calibration's arrays, never that trace's tracers of them.
     with jax.ensure_compile_time_eval():
-        return calibration._plan(key, lambda: Plan(calibration, shape, dtype))
+        return calibration._plan(key, lambda: make(calibration, shape, dtype))

@@ -211,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--wiener-groups", metavar="FIELD", default=None,
                        help="manifest field naming each target capture's group (a key of its metadata, "
                             "or id, set, background): cross-validation holds out one group at a time")
+        p.add_argument("--no-registration", action="store_true",
+                       help="take the bands as in register: do not estimate each band's map from the session's "
+                            "registration target (or target chart) and store none (default: register them)")
 
     demo = _command(commands, "demo", summary="simulate, calibrate, correct and evaluate the paper's experiment",
                     description="""
@@ -276,14 +279,17 @@ what each statistic left; the other parameters keep the paper's instrument's val
 
     calibrate = _command(commands, "calibrate", summary="fit Stage II and the reflectance estimator from a session",
                          description="""
-Fit Stage II (Eq. 22, or a robust loss) per band from the session's training captures, choose and
-fit the reflectance estimator by cross-validation on its targets, attach the noise model, and write
+Register the bands (each band's map from the 560 nm band's geometry, from the session's
+registration target or its target chart), fit Stage II (Eq. 22, or a robust loss) per band from
+the session's training captures, choose and fit the reflectance estimator by cross-validation on
+its targets, attach the noise model, and write
 one calibration file (HDF5) that `correct`, `measure` and `evaluate -c` read. An existing CAL is
 replaced only with --force, and only when it is a spherejax calibration.""",
                          examples="""
   spherejax calibrate session -o cal.h5
   spherejax calibrate session -o cal.h5 --force --loss huber
-  spherejax calibrate session -o cal.h5 --gain 1.9 --read-noise 3.2""")
+  spherejax calibrate session -o cal.h5 --gain 1.9 --read-noise 3.2
+  spherejax calibrate session -o cal.h5 --no-registration   # bands taken as in register""")
     calibrate.add_argument("session", metavar="SESSION", help="session folder (manifest.json and frames/)")
     add_output_option(calibrate, dest="output", metavar="CAL", required=True, old_spelling=True,
                       help="calibration file to write (HDF5, conventionally .h5)")

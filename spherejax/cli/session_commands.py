@@ -73,6 +73,7 @@ def cmd_calibrate(args) -> int:
         calibration, report = _calibrate(session, args, progress)
     _save_calibration(args.output, calibration, report, session)
     if not args.quiet:
+        print(calibrate.registration_line(report))
         print(calibrate.noise_model_line(report))
     return 0
 

@@ -135,6 +135,7 @@ def _calibrate(session, args, progress):
         # `calibrate`'s numbers (parsed by cli.number_types); the other commands have none.
         gain=getattr(args, "gain", None), read_noise=getattr(args, "read_noise", None),
         white_reflectance_u=getattr(args, "white_reflectance_u", None),
+        registration=not getattr(args, "no_registration", False),
     )
     for band in report.unconverged_bands:
         console.warn(
@@ -191,6 +192,7 @@ def _save_calibration(path, calibration, report, session, marks=None) -> None:
         path, calibration, instrument_id=session.instrument_id,
         band_centres_nm=[int(b) for b in session.band_centres_nm], metadata=metadata,
         noise_model=None if report is None else report.noise_model,
+        band_registration=None if report is None else report.band_registration,
     )
 
 

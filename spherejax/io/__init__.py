@@ -99,7 +99,9 @@ A folder with ``manifest.json`` and the frame files (`write_session` writes ``fr
 
 A frame is an object with
       "id": unique in the session ([A-Za-z0-9._-]+ when written by `write_session`),
-      "role": "dark" | "white" | "sample" | "target" (exactly one dark and one white frame),
+      "role": "dark" | "white" | "sample" | "target" | "registration" (exactly one dark and one
+              white frame; at most one registration frame: a registration target, high-contrast
+              edges across the field, that calibrate registers the bands on; no regions),
       "file": path relative to the folder, inside it (no absolute paths, "..", or links out),
       "exposure_s": B exposure times in seconds, one per band, > 0,
       "timestamp": ISO 8601,

@@ -23,7 +23,7 @@ from .documents import (
 from .errors import CalibrationFileError, _one_line, _show
 
 CALIBRATION_FORMAT = "spherejax-calibration"
-CALIBRATION_FORMAT_VERSION = 6
+CALIBRATION_FORMAT_VERSION = 7
 #: Arrays every calibration file of the current format version holds, in checksum order, with the
 #: description stored in its header (the optional ones: `VARIANCE_DESCRIPTIONS`).
 CALIBRATION_ARRAYS = {
@@ -61,6 +61,16 @@ VARIANCE_DESCRIPTIONS = {
     "wiener_residual_variance_noise": "kernel residual's predictive variance, (31,) >= 0: a target's scatter "
     "about the fit per wavelength, reflectance squared (E15; optional, new in format version 6)",
 }
+#: The optional array of a calibration whose bands were registered (`Calibration.band_transforms`),
+#: stored after the variance's in checksum order: format version 7 on.
+REGISTRATION_DESCRIPTIONS = {
+    "band_transforms": "each band's map from the reference band's geometry (B, 2, 3): 2 x 3 affine matrices in band "
+    "order mapping pixel coordinates of the reference geometry (x = column, y = row, pixel centres at integers) to "
+    "the band's; every correction resamples each band's flat-fielded response through it (optional, new in format "
+    "version 7; absent: the bands are taken as in register)",
+}
+#: The format version that added `REGISTRATION_DESCRIPTIONS` and the header's "band_registration".
+_REGISTRATION_SINCE = 7
 #: The arrays of a kernel residual (`estimation.KernelResidual`: centre, whitening, inducing,
 #: weights), in that order; m = 0 rows of inducing points for an affine estimator.
 RESIDUAL_ARRAYS = ("wiener_residual_centre", "wiener_residual_whitening", "wiener_residual_inducing", "wiener_residual_weights")
@@ -69,7 +79,7 @@ RESIDUAL_ARRAYS = ("wiener_residual_centre", "wiener_residual_whitening", "wiene
 #: (a file holds all five, or none: a residual without its variance, or an affine estimator).
 VARIANCE_ARRAYS = tuple(VARIANCE_DESCRIPTIONS)
 #: Every array a calibration file may hold, with its description.
-ARRAY_DESCRIPTIONS = {**CALIBRATION_ARRAYS, **VARIANCE_DESCRIPTIONS}
+ARRAY_DESCRIPTIONS = {**CALIBRATION_ARRAYS, **VARIANCE_DESCRIPTIONS, **REGISTRATION_DESCRIPTIONS}
 _AFFINE_ARRAYS = tuple(name for name in CALIBRATION_ARRAYS if name not in RESIDUAL_ARRAYS)
 #: The arrays every file of the current format version holds.
 _REQUIRED_ARRAYS = tuple(CALIBRATION_ARRAYS)
@@ -96,7 +106,8 @@ def _calibration_arrays(header: Mapping) -> tuple[str, ...]:
     if version in _OLDER_CALIBRATION_ARRAYS:
         return _OLDER_CALIBRATION_ARRAYS[version]
     listed = header.get("arrays", {})
-    return _REQUIRED_ARRAYS + tuple(name for name in VARIANCE_ARRAYS if name in listed)
+    optional = VARIANCE_ARRAYS + (tuple(REGISTRATION_DESCRIPTIONS) if version >= _REGISTRATION_SINCE else ())
+    return _REQUIRED_ARRAYS + tuple(name for name in optional if name in listed)
 
 
 def _array_entry(name: str, array: np.ndarray) -> dict:
@@ -147,8 +158,13 @@ class _Arrays(_ArraysV5):
     wiener_residual_variance_noise: _Entry = None
 
 
-class _CalibrationHeader(Document):
-    """The header of a calibration file (the docstring of spherejax.io), fields in checking order."""
+class _ArraysV7(_Arrays):
+    # Absent (the default) when the bands were not registered; never null.
+    band_transforms: _Entry = None
+
+
+class _CalibrationHeaderV6(Document):
+    """The header of a calibration file of format version 6 (and, with their own arrays, 1 to 5)."""
 
     format: str
     format_version: int
@@ -165,21 +181,29 @@ class _CalibrationHeader(Document):
     noise_model: Any = None  # checked by noise_model_of: NoiseModel's own document (spherejax.noise_document)
 
 
-class _CalibrationHeaderV1(_CalibrationHeader):
+class _CalibrationHeader(_CalibrationHeaderV6):
+    """The header of a calibration file (the docstring of spherejax.io), fields in checking order."""
+
+    arrays: Annotated[_ArraysV7, Expect(f"an object describing {list(CALIBRATION_ARRAYS)}")]
+    # How the bands were registered (`calibrate`): absent or null when they were not.
+    band_registration: JsonObject | None = None
+
+
+class _CalibrationHeaderV1(_CalibrationHeaderV6):
     arrays: Annotated[_ArraysV1, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[1])}")]
 
 
-class _CalibrationHeaderV2(_CalibrationHeader):
+class _CalibrationHeaderV2(_CalibrationHeaderV6):
     arrays: Annotated[_ArraysV2, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[2])}")]
 
 
-class _CalibrationHeaderV5(_CalibrationHeader):
+class _CalibrationHeaderV5(_CalibrationHeaderV6):
     arrays: Annotated[_ArraysV5, Expect(f"an object describing {list(_OLDER_CALIBRATION_ARRAYS[5])}")]
 
 
 #: The header's document of each older format version (the current one: _CalibrationHeader).
 _OLDER_HEADERS = {1: _CalibrationHeaderV1, 2: _CalibrationHeaderV2, 3: _CalibrationHeaderV2, 4: _CalibrationHeaderV2,
-                  5: _CalibrationHeaderV5}
+                  5: _CalibrationHeaderV5, 6: _CalibrationHeaderV6}
 
 
 def _check_calibration_header(path, header) -> None:
@@ -301,6 +325,11 @@ def _check_calibration_contents(path, header, arrays: Mapping[str, np.ndarray]) 
         raise CalibrationFileError(path, f"does not hold a valid calibration: {error}") from None
     if VARIANCE_ARRAYS[0] in names:
         _check_variance_shapes(path, points, *(arrays[name].shape for name in VARIANCE_ARRAYS))
+    if "band_transforms" in names and tuple(arrays["band_transforms"].shape) != (len(bands), 2, 3):
+        raise CalibrationFileError(
+            path, f"array 'band_transforms' has shape {list(arrays['band_transforms'].shape)}",
+            f"one 2 x 3 affine map per band: [{len(bands)}, 2, 3]",
+        )
 
 
 

@@ -20,6 +20,7 @@ import h5py
 import jax.numpy as jnp
 import numpy as np
 
+from .. import band_resampling
 from ..grid import N_WAVELENGTHS
 from .._checks import require_finite
 from ..calibration import Calibration, patch_bounding_box
@@ -54,7 +55,7 @@ ROWS_KEPT_BYTES = 2 * IN_MEMORY_BYTES
 
 def save_calibration(
     path, calibration: Calibration, *, instrument_id: str, band_centres_nm, metadata=None,
-    noise_model: NoiseModel | None = None,
+    noise_model: NoiseModel | None = None, band_registration: dict | None = None,
 ) -> dict:
     """Write a calibration file (the docstring of spherejax.io), atomically.
 
@@ -70,6 +71,11 @@ def save_calibration(
         `calibrate_session`'s report.noise_model), stored in the header's "noise_model" as its
         `to_json()` (every number read back exactly: `CalibrationFile.noise_model`), or None
         (stored as null).
+      band_registration: how the calibration's band maps were estimated (JSON: the reference
+        band, each band's residual in pixels, the frame used; `calibrate`'s report), stored in the
+        header's "band_registration" with the maps themselves under "band_transforms" (the array
+        "band_transforms" holds them too, bit for bit). None: only the maps, if the calibration has
+        them; a calibration without maps stores neither.
 
     Returns:
       The header written, checksum included.
@@ -97,6 +103,10 @@ def save_calibration(
     arrays = {name: np.asarray(getattr(calibration, name)) for name in CALIBRATION_ARRAYS
               if name not in RESIDUAL_ARRAYS + VARIANCE_ARRAYS}
     arrays.update(_residual_arrays(calibration))
+    registration = None
+    if calibration.band_transforms is not None:
+        arrays["band_transforms"] = np.asarray(calibration.band_transforms)
+        registration = {**(band_registration or {}), "band_transforms": arrays["band_transforms"].tolist()}
     header = {
         "format": CALIBRATION_FORMAT,
         "format_version": CALIBRATION_FORMAT_VERSION,
@@ -111,6 +121,8 @@ def save_calibration(
         "metadata": {} if metadata is None else metadata,
         "noise_model": None if noise_model is None else noise_model.to_json(),
     }
+    if registration is not None:  # absent without maps: such a header reads as format version 6's did
+        header["band_registration"] = registration
     # The checksum is over the header as it will read back from JSON.
     header = _json_value(path, header, CalibrationFileError, "the header")
     header["checksum"] = _checksum(header, arrays)
@@ -157,7 +169,9 @@ class CalibrationFile:
 
     Attributes:
       path: the file. header: its header dict (checksum included).
-      image_shape: (H, W). bands: B. patch_box: (row0, row1, col0, col1) bounding the patch.
+      image_shape: (H, W). bands: B. patch_box: (row0, row1, col0, col1) bounding the patch;
+        patch_read_box: the pixels its white-patch ratio reads (`patch_calibration`).
+      band_transforms: (B, 2, 3) the band maps, or None (the bands taken as in register).
       noise_model: the stored `NoiseModel`, or None (none stored; always None in format
         versions 1 and 2).
     """
@@ -192,12 +206,21 @@ class CalibrationFile:
                 # and naming the array as the file does; new arrays are covered without a list.
                 if name not in _FRAME_ARRAYS:
                     require_finite(name, self._value(name))
+            if "band_transforms" in arrays:
+                band_resampling.check_transforms(self._value("band_transforms"), self.bands, self.image_shape)
             if VARIANCE_ARRAYS[0] in arrays:
                 check_variance_values(path, self._value(VARIANCE_ARRAYS[1]), self._value(VARIANCE_ARRAYS[4]))
             self.patch_box = patch_bounding_box(self._value("patch"))
             if self.patch_box is None:
                 raise ValueError("patch: the mask selects no pixel; expected at least one True entry")
-            self._patch_calibration = self._crop(*self.patch_box)
+            # With band maps, the patch's registered pixels are interpolated from native ones around
+            # it: the crop p is taken from holds them (`band_resampling.read_box`).
+            self.patch_read_box = self.patch_box
+            self.band_transforms = self._value("band_transforms") if "band_transforms" in arrays else None
+            if self.band_transforms is not None:
+                self.patch_read_box = band_resampling.read_box(self.patch_box, self._value("band_transforms"),
+                                                               self.image_shape)
+            self._patch_calibration = self._crop(*self.patch_read_box)
             crop = self._patch_calibration
             _require_usable_patch(path, np.asarray(crop.dark), np.asarray(crop.white), np.asarray(crop.patch))
         if RESIDUAL_ARRAYS[0] in arrays and arrays["wiener_residual_inducing"].shape[0] == 0:
@@ -216,15 +239,16 @@ class CalibrationFile:
     def _crop(self, row0: int, row1: int, col0: int, col1: int) -> Calibration:
         crop = lambda name: np.ascontiguousarray(self._rows(name, row0, row1)[:, col0:col1])  # noqa: E731
         return Calibration(
-            dark=crop("dark"), white=crop("white"), patch=crop("patch"), **self._small_arrays(),
+            dark=crop("dark"), white=crop("white"), patch=crop("patch"), **self._small_arrays(row0, col0),
             **self._calibration_fields,
         )
 
-    def _small_arrays(self) -> dict:
+    def _small_arrays(self, row0: int = 0, col0: int = 0) -> dict:
         """What every part of the calibration shares: coeffs, wiener, wiener_offset and the
         estimator's kernel residual (None when the file has none: format version 4 and older,
         or m = 0), with its variance (None when the file has none: format version 5 and older,
-        or a residual stored without it)."""
+        or a residual stored without it), and the band maps (None when the file has none), in the
+        pixel coordinates of a part whose pixel (0, 0) is the image's (row0, col0)."""
         small = {name: self._value(name) for name in ("coeffs", "wiener", "wiener_offset")}
         residual = None
         if RESIDUAL_ARRAYS[0] in self._arrays and self._arrays["wiener_residual_inducing"].shape[0] > 0:
@@ -234,7 +258,10 @@ class CalibrationFile:
             if VARIANCE_ARRAYS[0] in self._arrays:
                 variance = ResidualVariance(*(jnp.asarray(self._value(name)) for name in VARIANCE_ARRAYS))
             residual = KernelResidual(*(jnp.asarray(self._value(name)) for name in RESIDUAL_ARRAYS), variance=variance)
-        return {**small, "wiener_residual": residual}
+        transforms = None
+        if "band_transforms" in self._arrays:
+            transforms = np.asarray(band_resampling.local_transforms(self._value("band_transforms"), row0, col0))
+        return {**small, "wiener_residual": residual, "band_transforms": transforms}
 
     @property
     def noise_model(self) -> NoiseModel | None:
@@ -243,8 +270,9 @@ class CalibrationFile:
 
     @property
     def patch_calibration(self) -> Calibration:
-        """The calibration cropped to `patch_box`: `pipeline.patch_ratio(raw[r0:r1, c0:c1],
-        patch_calibration)` is the white-patch ratio of the whole image."""
+        """The calibration cropped to `patch_read_box` (r0, r1, c0, c1): `pipeline.patch_ratio(raw[r0:r1,
+        c0:c1], patch_calibration)` is the white-patch ratio of the whole image. `patch_read_box` is
+        `patch_box`, grown by the band maps' reach (`band_resampling.read_box`) when the file has them."""
         return self._patch_calibration
 
     def rows(self, row0: int, row1: int, *, padded_to: int | None = None) -> Calibration:
@@ -270,7 +298,7 @@ class CalibrationFile:
         dark, white = self._rows("dark", row0, row1), self._rows("white", row0, row1)
         if padded_to is not None and padded_to > row1 - row0:
             dark, white = (np.concatenate([x, np.zeros((padded_to - len(x), *x.shape[1:]), x.dtype)]) for x in (dark, white))
-        rows = Calibration(dark=dark, white=white, patch=None, **self._small_arrays(), **self._calibration_fields)
+        rows = Calibration(dark=dark, white=white, patch=None, **self._small_arrays(row0, 0), **self._calibration_fields)
         kept[key] = rows
         while len(kept) > 1 and sum(r.dark.nbytes + r.white.nbytes for r in kept.values()) > ROWS_KEPT_BYTES:
             kept.popitem(last=False)

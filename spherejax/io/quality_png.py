@@ -37,7 +37,7 @@ from .streamed_writer import StreamedImageWriter
 
 _EXPECTED = "a spherejax quality PNG: 8-bit palette indices (or grey values) holding the quality bits"
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: Colour of each bit (RGB, name) and its meaning (pipeline.QUALITY_*; 32, 64 and 128 are not used yet).
+#: Colour of each bit (RGB, name) and its meaning (pipeline.QUALITY_*; 64 and 128 are not used yet).
 BIT_COLOURS = {
     pipeline.QUALITY_SATURATED: ((255, 0, 0), "red", "saturated (raw at or above the saturation level in some band)"),
     pipeline.QUALITY_NONFINITE: ((255, 0, 255), "magenta", "not finite (raw NaN or infinite in some band, float input)"),
@@ -46,7 +46,8 @@ BIT_COLOURS = {
                                       "white patch unusable (its ratio not finite in some band: the whole image)"),
     pipeline.QUALITY_BELOW_DARK: ((0, 255, 0), "green",
                                   "below dark (raw below the dark level by more than noise allows in some band)"),
-    32: ((255, 128, 0), "orange", "not used"),
+    pipeline.QUALITY_NOT_COVERED: ((255, 128, 0), "orange",
+                                   "not covered (bands registered into one geometry: some band's image misses the pixel)"),
     64: ((96, 160, 255), "light blue", "not used"),
     128: ((255, 255, 255), "white", "not used"),
 }

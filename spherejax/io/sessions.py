@@ -30,7 +30,7 @@ from .frames import _FRAME_EXPECTED, _require_frame_shape, frame_spec, read_fram
 SESSION_FORMAT = "spherejax-session"
 SESSION_FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
-ROLES = ("dark", "white", "sample", "target")
+ROLES = ("dark", "white", "sample", "target", "registration")
 SETS = ("training", "test")
 _SAFE_ID = re.compile(r"[A-Za-z0-9._-]+")
 
@@ -90,7 +90,9 @@ class FrameInfo:
 
     Fields:
       id: unique in the session.
-      role: "dark", "white", "sample" or "target".
+      role: "dark", "white", "sample", "target" or "registration" (a registration target: a
+        frame of high-contrast edges across the field that `spherejax calibrate` registers the
+        bands on; no regions).
       file: path of the frame file relative to the session folder (`Session.frame_path`).
       exposure_s: exposure times (B,) in seconds, float64.
       timestamp: ISO 8601.
@@ -210,6 +212,12 @@ class Session:
         """The white-standard frame, (H, W, B) uint16."""
         return self.read(self.frames_with(role="white")[0])
 
+    def registration_frame(self) -> FrameInfo | None:
+        """The frame of role "registration" (at most one; its pixels `read`, (H, W, B) uint16),
+        or None when the session holds none."""
+        frames = self.frames_with(role="registration")
+        return frames[0] if frames else None
+
     def white_patch_mask(self) -> np.ndarray:
         """Boolean (H, W), True on the reference white patch (Eq. 14-15)."""
         return rectangle_mask(self.white_patch, self.image_shape)
@@ -265,7 +273,7 @@ class _Frame(Document):
 
     @pydantic.model_validator(mode="after")
     def _by_role(self):
-        if self.regions and self.role in ("dark", "white"):
+        if self.regions and self.role in ("dark", "white", "registration"):
             raise refuse(f"lists {len(self.regions)} regions", f"none on a {self.role} frame", ("regions",))
         if self.role == "target":
             for index, region in enumerate(self.regions):
@@ -324,6 +332,9 @@ def _check_frame_roles(manifest_path, frames: Sequence[FrameInfo]) -> None:
             raise SessionError(
                 manifest_path, f"lists {count} {role} frames", f"exactly one with role {role!r}"
             )
+    count = sum(frame.role == "registration" for frame in frames)
+    if count > 1:
+        raise SessionError(manifest_path, f"lists {count} registration frames", "at most one with role 'registration'")
 
 
 def _parse_manifest(doc, *, manifest_path: pathlib.Path, root: pathlib.Path) -> Session:
@@ -395,7 +406,8 @@ def load_session(path) -> Session:
     Raises:
       SessionError: a missing folder or manifest; a manifest that is not JSON, not a session,
         of a newer format version, with a missing or mistyped field (named), exposures that do not
-        match the bands, or a bad region; a frame file that is missing, outside the folder, not a
+        match the bands, a bad region, not exactly one dark and one white frame or more than one
+        registration frame; a frame file that is missing, outside the folder, not a
         16-bit image, or of the wrong size or channel count. The message names the file.
     """
     root = pathlib.Path(path)

@@ -543,3 +543,102 @@ def test_every_hw_error_has_one_root():
     public = {name: cls for name, cls in found.items() if not name.rsplit(".", 1)[1].startswith("_")}
     assert len(public) >= 12
     assert [name for name, cls in public.items() if not issubclass(cls, InstrumentError)] == []
+
+
+# ------------------------------------------------------------------------ the registration target
+
+#: The plan's registration target, after its one sample: a name the simulated camera has no scene
+#: of, so it shows its chart of colour targets.
+REGISTRATION_TARGET = '[[samples]]\nid = "checkerboard"\nrole = "registration"\n'
+
+
+def _edge_contrast(image: np.ndarray, holder) -> np.ndarray:
+    """Mean absolute difference of neighbouring pixels along rows on the holder over its mean, (B,)."""
+    r0, r1, c0, c1 = holder
+    held = image[r0:r1, c0:c1].astype(np.float64)
+    return np.abs(np.diff(held, axis=1)).mean(axis=(0, 1)) / held.mean(axis=(0, 1))
+
+
+def test_acquisition_with_a_registration_target(tmp_path):
+    """The plan's registration target is taken like a sample: the operator asked to put it in
+    place, every band at the samples' exposures, frames_averaged averaged, the bands' metadata;
+    the session holds it as its one frame of role "registration", without regions."""
+    profile = write_profile(tmp_path, samples=SAMPLES[:1], extra=REGISTRATION_TARGET)
+    out = tmp_path / "session"
+    with open(tmp_path / "prompts.txt", "w") as prompts:
+        acquire.acquire(profile, out, emulate=True, operator=acquire.Operator(yes=True, stream=prompts),
+                        settings=quiet_settings())
+    assert "Place the registration target 'checkerboard' on the sample holder" in (tmp_path / "prompts.txt").read_text()
+    session = io.load_session(out)
+    assert [(f.id, f.role) for f in session.frames] == [
+        ("dark", "dark"), ("white", "white"), (SAMPLES[0], "sample"), ("checkerboard", "registration")]
+    registration, sample = session.registration_frame(), session.frame(SAMPLES[0])
+    assert registration.id == "checkerboard" and session.frames_with(role="registration") == (registration,)
+    assert registration.regions == () and registration.set is None and registration.background is None
+    np.testing.assert_array_equal(registration.exposure_s, sample.exposure_s)
+    assert registration.metadata["frames_averaged"] == sample.metadata["frames_averaged"] == 2
+    bands = registration.metadata["bands"]
+    assert [b["band_nm"] for b in bands] == BANDS
+    assert [b["exposure_s"] for b in bands] == [b["exposure_s"] for b in sample.metadata["bands"]]
+    assert all(b["frames_averaged"] == 2 and b["saturated_pixels"] == 0 for b in bands)
+    # The simulated camera showed its chart: edges on the holder, far more than the white standard's.
+    assert np.all(_edge_contrast(session.read(registration), session.holder)
+                  > 3 * _edge_contrast(session.white(), session.holder))
+
+
+def test_resume_after_a_stop_during_the_registration_capture_takes_only_what_is_missing(tmp_path, monkeypatch):
+    """SIGTERM once 5 of the registration target's bands are taken (dark, white and the sample
+    before it): the journal keeps them, and --resume takes just its 11 other bands, at the
+    exposures already chosen, into the same registration frame."""
+    from spherejax import interrupt
+    from spherejax_hw import acquisition_protocol
+
+    profile = write_profile(tmp_path, samples=SAMPLES[:1], extra=REGISTRATION_TARGET)
+    out, partial = tmp_path / "s", tmp_path / "s.partial"
+    stop_at = 3 * len(BANDS) + 5
+
+    def progress(done: int, total: int) -> None:
+        assert total == 4 * len(BANDS)
+        if done == stop_at:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    with open(os.devnull, "w") as devnull, pytest.raises(interrupt.Interrupted) as stopped:
+        with interrupt.stop_requests():
+            acquire.acquire(profile, out, emulate=True, operator=acquire.Operator(yes=True, stream=devnull),
+                            settings=quiet_settings(progress))
+    assert (stopped.value.done, stopped.value.total) == (stop_at, 4 * len(BANDS))
+    kept = acquire.Journal(partial).done_images()
+    assert sorted(band for capture, band in kept if capture == "checkerboard") == BANDS[:5]
+    kept_bytes = {key: (partial / record["file"]).read_bytes() for key, record in kept.items()}
+    exposures = acquire.Journal(partial).last("exposures")["exposure_s"]
+
+    taken = []
+    real_take = acquisition_protocol._take_image
+
+    def take(instrument, partial, journal, capture, band, exposure, frames):
+        taken.append((capture.id, band, exposure, frames))
+        real_take(instrument, partial, journal, capture, band, exposure, frames)
+
+    monkeypatch.setattr(acquisition_protocol, "_take_image", take)
+    run_acquire(profile, out, resume=True)
+    assert taken == [("checkerboard", band, exposures[str(band)], 2) for band in BANDS[5:]]
+    session = io.load_session(out)
+    registration = session.registration_frame()
+    assert registration.id == "checkerboard" and [f.role for f in session.frames].count("registration") == 1
+    np.testing.assert_array_equal(registration.exposure_s, session.frame(SAMPLES[0]).exposure_s)
+    for (capture, band), data in kept_bytes.items():  # nothing retaken: the kept images, unchanged
+        plane = session.read(capture)[..., BANDS.index(band)]
+        np.testing.assert_array_equal(plane, np.asarray(_frame_from_bytes(tmp_path, data))[..., 0], err_msg=f"{capture} {band}")
+    assert sorted(os.listdir(tmp_path)) == ["kept.tif", "s", "sphere.toml"]
+
+
+def test_a_plan_without_a_registration_target_keeps_its_identity(tmp_path):
+    """SESSION.partial/profile.json names a [[samples]] entry's role only for the registration
+    target: a work folder left by a run before there were roles resumes as it did."""
+    from spherejax_hw.acquisition_journal import _profile_identity
+    from spherejax_hw.profile import load_profile
+
+    plain = _profile_identity(load_profile(write_profile(tmp_path, samples=SAMPLES[:1])))
+    assert plain["samples"] == [{"id": SAMPLES[0], "set": "training", "background": "bg"}]
+    with_target = _profile_identity(load_profile(write_profile(tmp_path, samples=SAMPLES[:1], extra=REGISTRATION_TARGET)))
+    assert with_target["samples"] == [*plain["samples"], {"id": "checkerboard", "set": None, "background": None, "role": "registration"}]

@@ -156,6 +156,22 @@ def test_optional_sections_parse(folder):
     )
 
 
+def test_a_registration_target_in_the_plan(folder):
+    """role = "registration" marks the plan's registration target, which has no set or
+    background; the other entries are samples, as without a role."""
+    data = example()
+    data["samples"] = [
+        {"id": "s001", "set": "training"},
+        {"id": "checkerboard", "role": "registration"},
+        {"id": "s002", "role": "sample", "background": "black velvet"},
+    ]
+    assert load_profile(write(folder, data)).samples == (
+        SamplePlan("s001", "training", "unknown"),
+        SamplePlan("checkerboard", None, None, "registration"),
+        SamplePlan("s002", "test", "black velvet"),
+    )
+
+
 def test_bands_come_out_in_increasing_order(folder):
     data = example()
     data["bands"] = dict(reversed(list(data["bands"].items())))
@@ -365,6 +381,16 @@ BAD = [
     ("sample-empty-background", _set("samples", value=[{"id": "s1", "background": ""}]), "samples[0].background", "non-empty"),
     ("samples-a-table", _set("samples", value={"id": "s1"}), "samples", "[[samples]] tables"),
     ("samples-not-tables", _set("samples", value=["s1", "s2"]), "samples[0]", "a table"),
+    ("sample-bad-role", _set("samples", value=[{"id": "s1", "role": "target"}]), "samples[0].role", "'registration'"),
+    ("registration-with-set", _set("samples", value=[{"id": "cb", "role": "registration", "set": "test"}]),
+     "samples[0].set", "no set on the registration target"),
+    ("registration-with-background", _set("samples", value=[{"id": "cb", "role": "registration", "background": "grey"}]),
+     "samples[0].background", "no background on the registration target"),
+    ("registration-twice", _set("samples", value=[{"id": "cb", "role": "registration"}, {"id": "s1"},
+                                                  {"id": "star", "role": "registration"}]),
+     "samples[2].role", 'at most one [[samples]] entry with role = "registration"'),
+    ("registration-id-taken", _set("samples", value=[{"id": "s1"}, {"id": "s1", "role": "registration"}]),
+     "samples[1].id", "a unique sample id"),
 ]
 
 
