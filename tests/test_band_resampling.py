@@ -221,3 +221,38 @@ def test_halo_and_read_box_cover_the_reach_of_the_maps():
     local = np.asarray(rs.local_transforms(maps, 7, 3))
     point = np.array([4.0, 5.0, 1.0])
     np.testing.assert_allclose(local[0] @ point, maps[0] @ (point + [3, 7, 0]) - [3, 7], atol=1e-9)
+
+
+@pytest.mark.skipif(not registered.fused_registration.applies(np.uint16, np.float32, B),
+                    reason="the compiled registration is not built here (no C++ compiler at install)")
+@pytest.mark.parametrize("raw_dtype", [np.uint16, np.float32])
+def test_the_compiled_registration_is_the_definition(raw_dtype):
+    """The CPU loop (kernel/register_bands.cc) against `band_resampling.registered_frames`: the
+    same bits on every pixel (saturated, not finite, no flat field, not covered, and a whole-pixel
+    shift whose zero-weight taps fall on flagged pixels), the same values to float rounding, for
+    two images at once."""
+    rng = np.random.default_rng(6)
+    maps = shifted(rng.uniform(-1.5, 1.5, B), rng.uniform(-1.5, 1.5, B), scale=1.0007, angle=4e-4)
+    maps[5, :, 2] = np.round(maps[5, :, 2])  # whole pixels: the right and lower taps weigh 0
+    maps[5, :, :2] = np.eye(2)
+    cal = calibration(maps, saturation=60000.0)
+    dark, white = jnp.asarray(cal.dark), jnp.asarray(cal.white)
+    white = white.at[7, 9, 3].set(50.0)  # no flat field there
+    raw = rendered(maps)[None].repeat(2, axis=0)
+    raw[0, 20, 30, 5] = 60000.0
+    raw[1, 12, 40, 2] = 65000.0
+    if raw_dtype == np.float32:
+        raw[1, 3, 3, 0] = np.nan
+    raw = jnp.asarray(raw.astype(raw_dtype))
+    transforms = jnp.asarray(maps, jnp.float32)
+    signal = rs.registered_white(dark, white, transforms)
+    inverse = registered.fused_registration.inverse_signal(dark, white)
+    got = jax.jit(functools.partial(registered.fused_registration.registered_frames, saturation=60000.0))(
+        raw, dark, white, inverse, transforms, signal)
+    want = rs.registered_frames(raw, dark, white, transforms, signal, saturation=60000.0)
+    np.testing.assert_array_equal(np.asarray(got[1]), np.asarray(want[1]))
+    bits = np.asarray(want[1])
+    expected = [sj.QUALITY_SATURATED, sj.QUALITY_WHITE_NOT_ABOVE_DARK, sj.QUALITY_NOT_COVERED]
+    expected += [sj.QUALITY_NONFINITE] if raw_dtype == np.float32 else []
+    assert all(np.any(bits & bit) for bit in expected)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=2e-6, atol=2e-3)

@@ -25,6 +25,7 @@ import numpy as np
 from .. import _checks, band_resampling
 from ..calibration import Calibration, compute_dtype, saturation_level
 from ..correction_result import CorrectionResult
+from . import fused_registration
 
 _lock = threading.Lock()
 
@@ -57,9 +58,14 @@ def registered_calibration(calibration: Calibration, dtype) -> Calibration:
     return registered
 
 
-@functools.partial(jax.jit, static_argnames=("saturation",))
-def registration_step(raw, dark, white, transforms, registered_signal, *, saturation):
-    """`band_resampling.registered_frames` as one program (dark, white in the compute dtype)."""
+@functools.partial(jax.jit, static_argnames=("saturation", "compiled"))
+def registration_step(raw, dark, white, inverse, transforms, registered_signal, *, saturation, compiled: bool):
+    """`band_resampling.registered_frames` as one program (dark, white in the compute dtype):
+    by the compiled loop on CPU where it applies (`compiled`, `fused_registration`; `inverse` its
+    1 / (white - dark)), else the definition."""
+    if compiled:
+        return fused_registration.registered_frames(raw, dark, white, inverse, transforms, registered_signal,
+                                                    saturation=saturation)
     return band_resampling.registered_frames(raw, dark, white, transforms, registered_signal, saturation=saturation)
 
 
@@ -84,6 +90,10 @@ class RegisteredPlan:
         self.dark = jnp.asarray(calibration.dark).astype(self.compute_dtype)
         self.white = jnp.asarray(calibration.white).astype(self.compute_dtype)
         self.transforms = jnp.asarray(calibration.band_transforms).astype(self.compute_dtype)
+        # The compiled registration on CPU where it applies (`fused_registration.applies`), with
+        # its 1 / (white - dark) made once here.
+        self.compiled = fused_registration.applies(self.dtype, self.compute_dtype, calibration.bands)
+        self.inverse = fused_registration.inverse_signal(self.dark, self.white) if self.compiled else None
         # The registered frames are in the compute dtype whatever the raw's.
         self.inner = make_plan(self.registered, self.shape, self.compute_dtype)
 
@@ -108,8 +118,8 @@ class RegisteredPlan:
     def register(self, raw):
         """(u' (..., H, W, B) registered frames in the compute dtype, their bits (..., H, W) uint8)."""
         self._check_frames(raw)
-        return registration_step(raw, self.dark, self.white, self.transforms, self.registered.white,
-                                 saturation=self.saturation)
+        return registration_step(raw, self.dark, self.white, self.inverse, self.transforms, self.registered.white,
+                                 saturation=self.saturation, compiled=self.compiled)
 
     def patch_ratio(self, raw) -> jax.Array:
         frames, _ = self.register(raw)

@@ -46,8 +46,10 @@
 //   call.h, call.cc  a call: which variants the CPU runs, the variant a call asked for, the
 //                    per-image constants, and the chunks shared out to threads;
 //   ffi_handler.cc   the XLA FFI handler (the custom call of spherejax._engine.fused);
-//   module.cc        the CPython module: handler(), correct_arrays(), supported_variants(),
-//                    capabilities(), ffi_api_version().
+//   register_bands.cc  a second handler, not this kernel: the bands resampled into the reference
+//                    geometry before it (spherejax._engine.fused_registration);
+//   module.cc        the CPython module: handler(), registration_handler(), correct_arrays(),
+//                    supported_variants(), capabilities(), ffi_api_version().
 // No -march anywhere: each variant carries its instruction set as function attributes, and
 // which one runs is chosen per call (call.cc), so one build runs on any x86-64.
 

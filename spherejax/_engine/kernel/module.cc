@@ -19,10 +19,17 @@ using namespace spherejax_fused;
 
 // Defined by XLA_FFI_DEFINE_HANDLER_SYMBOL in ffi_handler.cc (extern "C").
 extern "C" XLA_FFI_Error* SpherejaxFusedCorrect(XLA_FFI_CallFrame* call_frame);
+// Defined by XLA_FFI_DEFINE_HANDLER_SYMBOL in register_bands.cc (extern "C").
+extern "C" XLA_FFI_Error* SpherejaxRegisterBands(XLA_FFI_CallFrame* call_frame);
 
 // handler(): the XLA FFI handler of the fused correction (ffi_handler.cc) as a capsule.
 static PyObject* handler(PyObject*, PyObject*) {
   return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxFusedCorrect), nullptr, nullptr);
+}
+
+// registration_handler(): the XLA FFI handler of the band registration (register_bands.cc).
+static PyObject* registration_handler(PyObject*, PyObject*) {
+  return PyCapsule_New(reinterpret_cast<void*>(&SpherejaxRegisterBands), nullptr, nullptr);
 }
 
 // correct_arrays(raw, raw_is_u16, dark, white, p, coeffs, projection, bias, white_xyz, whitening,
@@ -161,6 +168,8 @@ static PyObject* ffi_api_version(PyObject*, PyObject*) {
 
 static PyMethodDef methods[] = {
     {"handler", handler, METH_NOARGS, "The XLA FFI handler of the fused correction, as a capsule."},
+    {"registration_handler", registration_handler, METH_NOARGS,
+     "The XLA FFI handler of the band registration, as a capsule."},
     {"ffi_api_version", ffi_api_version, METH_NOARGS, "The XLA FFI API version compiled against, (major, minor)."},
     {"correct_arrays", correct_arrays, METH_VARARGS, "The fused correction on C-contiguous buffers, without XLA."},
     {"supported_variants", supported_variants, METH_NOARGS,
