@@ -119,13 +119,16 @@ def rms_displacement(transforms_a: np.ndarray, transforms_b: np.ndarray, image_s
 
 def band_transforms(instrument: InstrumentModel, image_shape: tuple[int, int], pixels_per_cm: float, seed: int) -> np.ndarray:
     """(16, 2, 3) the per-band maps a simulated session renders and records: the physical ones
-    (`physical_transforms`), rescaled so that their largest displacement over the frame is
-    `instrument.band_misregistration_px` when that is given (> 0); identities when it is 0."""
+    (`physical_transforms`), as they are when `instrument.band_misregistration_px` is None (the
+    default), rescaled so that their largest displacement over the frame is that when it is a
+    number > 0; identities when it is 0."""
     identity = np.broadcast_to(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), (len(BAND_CENTRES_NM), 2, 3)).copy()
     target = instrument.band_misregistration_px
     if target == 0.0:
         return identity
     physical = physical_transforms(instrument, image_shape, pixels_per_cm, seed)
+    if target is None:
+        return physical
     largest = largest_displacement(physical, image_shape)
     return identity + (physical - identity) * (target / largest)
 

@@ -78,12 +78,12 @@ class InstrumentModel:
       it); v = f (1 + m) for a thin lens.
     lens_lateral_colour_per_nm: 2e-6 -- the magnification's change per nm of wavelength, 0.06 %
       across 400-700 nm: a few micrometres at the field's edge, a corrected lens's lateral colour.
-    band_misregistration_px: 0 -- the largest displacement of any band from the reference band
-      (560 nm) over the frame, in frame pixels: the filters' and lens's maps (`band_geometry`)
-      rescaled to it; 0 renders the bands in register. As the parameters above make them it is
-      0.2-0.5 frame pixels at 24 px/cm (2-5 of the QI695's; seeds 0-3); `spherejax simulate
-      --band-misregistration PX` sets it. 0 by default while `calibrate` does not yet register
-      bands: a default instrument out of register would put fringes in every corrected cube.
+    band_misregistration_px: None -- the bands' maps as the filter and lens parameters above make
+      them (`band_geometry.physical_transforms`): 0.2-0.5 frame pixels at most over the frame at
+      24 px/cm (2-5 of the QI695's; seeds 0-3), the realistic default now that `calibrate`
+      registers the bands. A number rescales the maps to that largest displacement of any band
+      from the reference band (560 nm), in frame pixels (`spherejax simulate --band-misregistration
+      PX`); 0 renders the bands in register.
     sample_layer_scattering_power: 0 -- the Kubelka scattering power S X (scattering coefficient
       times thickness) of the small patches and chart targets as single layers over what lies
       beneath them (`kubelka_munk.layer_over_background`); 0 lays them opaque, as the paper's
@@ -145,7 +145,7 @@ class InstrumentModel:
     image_distance_mm: float = 55.0
     magnification: float = 0.109
     lens_lateral_colour_per_nm: float = 2e-6
-    band_misregistration_px: float = 0.0
+    band_misregistration_px: float | None = None
     sample_layer_scattering_power: float = 0.0
     noise: bool = True
 

@@ -49,7 +49,13 @@ def test_the_filters_and_lens_misregister_bands_by_fractions_of_a_pixel(seed):
 
 def test_the_misregistration_sets_the_largest_displacement():
     instrument = simulate.InstrumentModel()
-    np.testing.assert_array_equal(bg.band_transforms(instrument, SHAPE, 24.0, 0), np.broadcast_to(IDENTITY, (16, 2, 3)))
+    in_register = dataclasses.replace(instrument, band_misregistration_px=0.0)
+    np.testing.assert_array_equal(bg.band_transforms(in_register, SHAPE, 24.0, 0), np.broadcast_to(IDENTITY, (16, 2, 3)))
+    # The default: the maps as the filters and lens make them (0.2-0.5 px at most, seeds 0-3).
+    for seed in range(4):
+        default = bg.band_transforms(instrument, SHAPE, 24.0, seed)
+        np.testing.assert_array_equal(default, bg.physical_transforms(instrument, SHAPE, 24.0, seed))
+        assert 0.15 < bg.largest_displacement(default, SHAPE) < 0.6
     for px in (0.3, 2.0, 7.5):
         transforms = bg.band_transforms(dataclasses.replace(instrument, band_misregistration_px=px), SHAPE, 24.0, 0)
         assert bg.largest_displacement(transforms, SHAPE) == pytest.approx(px, rel=1e-12)
@@ -102,7 +108,8 @@ def test_each_band_is_rendered_where_its_map_says():
     integrates the scene over its footprint exactly); with the bands in register the frames are
     the same as ever, and the reference band's to a count."""
     design = simulate.ExperimentDesign(training_backgrounds=2, training_patches=3, test_backgrounds=1, test_patches=1, targets=4)
-    optics = dict(noise=False, stray_light_fraction=0.0, vignetting=0.0, filter_gradient=0.0, lamp_fluctuation=0.0, lamp_drift_per_hour=0.0)
+    optics = dict(noise=False, stray_light_fraction=0.0, vignetting=0.0, filter_gradient=0.0, lamp_fluctuation=0.0, lamp_drift_per_hour=0.0,
+                  band_misregistration_px=0.0)
     plain = dataclasses.replace(simulate.InstrumentModel(), **optics)
     moved = dataclasses.replace(plain, band_misregistration_px=1.0)
     reference = simulate.simulate_experiment(seed=4, instrument=plain, design=design)

@@ -23,7 +23,8 @@ def sessions(tmp_path_factory):
     moved = dataclasses.replace(simulate.InstrumentModel(), band_misregistration_px=2.0)
     return {
         "moved": io.write_simulated_session(root / "moved", seed=7, instrument=moved),
-        "in register": io.write_simulated_session(root / "still", seed=3),
+        "in register": io.write_simulated_session(
+            root / "still", seed=3, instrument=dataclasses.replace(simulate.InstrumentModel(), band_misregistration_px=0.0)),
     }
 
 

@@ -255,7 +255,8 @@ Simulate the paper's experiment on a physical model of the sphere, lamp, filters
                           help="move the bands out of register: each filter's and the lens's map (spherejax.band_geometry) "
                                "scaled so that the largest displacement from the 560 nm band over the frame is PX pixels, "
                                f"0..{numbers.shown(numbers.BAND_MISREGISTRATION_MAX)}; the manifest records the maps under "
-                               "\"band_transforms\" (default: the instrument's, 0 for the paper's: in register)")
+                               "\"band_transforms\" (default: the instrument's maps as its filters and lens make them, at most 0.2-0.5 "
+                               "px for the paper's; 0 puts the bands in register)")
     simulate.set_defaults(run=cmd_simulate)
 
     twin = _command(commands, "twin", summary="fit the simulator's instrument to a session (a digital twin)",

@@ -132,7 +132,8 @@ def instrument_document(instrument, *, fitted=(), report=None, session=None) -> 
 
     return {
         "format": INSTRUMENT_FORMAT, "format_version": INSTRUMENT_FORMAT_VERSION,
-        "instrument": dataclasses.asdict(instrument),
+        # A field left at None (the default's own rule, e.g. band_misregistration_px) is left out.
+        "instrument": {k: v for k, v in dataclasses.asdict(instrument).items() if v is not None},
         "fitted": list(fitted), "report": report or {},
         **({"session": str(session)} if session is not None else {}),
         "software_version": __version__, "created": _utc_now(),
