@@ -29,7 +29,7 @@ Layers. Each module imports only modules of its own layer or of the layers below
    band_resampling (each band's flat-fielded response resampled through its map into the
    reference band's geometry, before Stage I and II).
 2. Workflows, arrays and sessions in, results out (a session is an object they are handed, never
-   a path they open): calibrate, evaluate, study, simulate (the physical simulator and the
+   a path they open): calibrate (calibrate_registration: the bands registered for it), evaluate, study, simulate (the physical simulator and the
    paper's experiment on it, a module per job: simulated_instrument, simulated_layout,
    simulated_rendering, band_geometry (each band's map, as the filters and lens make it),
    sphere_radiosity (the sphere as radiosity elements), textile_brdf (textiles off the Lambertian

@@ -296,6 +296,23 @@ def _inverse(matrix: np.ndarray) -> np.ndarray:
     return np.linalg.inv(full)[:2]
 
 
+def flat_fielded(frame: np.ndarray, dark: np.ndarray, white: np.ndarray) -> np.ndarray:
+    """Eq. 10 as everywhere (`flatfield.flat_field`), float64 (H, W, B); a pixel whose white is not
+    above its dark (NaN there) carries no edge: 0."""
+    return np.nan_to_num(np.asarray(flat_field(frame, dark, white), np.float64), nan=0.0)
+
+
+def check_structure(v: np.ndarray) -> None:
+    """Raise ValueError naming the first band whose edges are weaker than MIN_EDGE_STRENGTH in the
+    flat-fielded capture v (H, W, B): nothing there to register it by."""
+    for b in range(v.shape[-1]):
+        strength = edge_strength(v[..., b])
+        if not strength >= MIN_EDGE_STRENGTH:
+            raise ValueError(f"band {b}: its strongest edges change the flat-fielded response by {strength:.2g} a pixel, "
+                             f"expected at least {MIN_EDGE_STRENGTH}: a capture with structure across the frame "
+                             "(a target chart or a patterned sample)")
+
+
 def register_bands(frame: np.ndarray, dark: np.ndarray, white: np.ndarray, reference_band: int = REFERENCE_BAND) -> BandRegistration:
     """Each band's map from `reference_band`'s geometry, from one capture with structure (a chart
     of targets, a patterned sample, a registration target), its session's dark and white frames,
@@ -307,14 +324,9 @@ def register_bands(frame: np.ndarray, dark: np.ndarray, white: np.ndarray, refer
     """
     # Eq. 10 as everywhere (`flatfield.flat_field`); a pixel whose white is not above its dark
     # (NaN there) carries no edge.
-    v = np.nan_to_num(np.asarray(flat_field(frame, dark, white), np.float64), nan=0.0)
+    v = flat_fielded(frame, dark, white)
     height, width, bands = v.shape
-    for b in range(bands):
-        strength = edge_strength(v[..., b])
-        if not strength >= MIN_EDGE_STRENGTH:
-            raise ValueError(f"band {b}: its strongest edges change the flat-fielded response by {strength:.2g} a pixel, "
-                             f"expected at least {MIN_EDGE_STRENGTH}: a capture with structure across the frame "
-                             "(a target chart or a patterned sample)")
+    check_structure(v)
     edges = np.stack([edge_map(v[..., b]) for b in range(bands)])
     weights = np.zeros((height, width))
     weights[BORDER_PX : height - BORDER_PX, BORDER_PX : width - BORDER_PX] = 1.0
@@ -362,7 +374,9 @@ __all__ = [
     "TILE_STEP_PX",
     "BandRegistration",
     "blurred",
+    "check_structure",
     "edge_map",
+    "flat_fielded",
     "edge_strength",
     "global_shift",
     "register_bands",

@@ -185,6 +185,27 @@ def evaluate_session(session, calibration: Calibration) -> Evaluation:
 # Tables as text, CSV and JSON (strings; the command line writes them)
 
 
+#: The step in L* between neighbouring pixels that `material_edges` takes for an edge.
+EDGE_STEP_LSTAR = 3.0
+
+
+def material_edges(lab: np.ndarray, step: float = EDGE_STEP_LSTAR) -> np.ndarray:
+    """(H, W) bool: pixels within one pixel (4-neighbours) of a step of more than `step` in L*
+    between neighbouring pixels of lab (H, W, 3): where misregistered bands put their colour
+    fringes (`benchmarks/bench_registration.py`, tests/test_calibrate_registration.py). A NaN
+    pixel makes no step."""
+    lightness = np.asarray(lab, np.float64)[..., 0]
+    with np.errstate(invalid="ignore"):
+        across = np.abs(np.diff(lightness, axis=1)) > step
+        down = np.abs(np.diff(lightness, axis=0)) > step
+    edges = np.zeros(lightness.shape, bool)
+    edges[:, 1:] |= across
+    edges[:, :-1] |= across
+    edges[1:, :] |= down
+    edges[:-1, :] |= down
+    return edges
+
+
 def format_table(header: list[str], rows: list[list[str]]) -> str:
     """An aligned text table: first column left-aligned, the others right-aligned."""
     widths = [max(len(str(x)) for x in column) for column in zip(header, *rows)]
@@ -255,6 +276,8 @@ def to_json(evaluation: Evaluation) -> str:
 
 
 __all__ = [
+    "EDGE_STEP_LSTAR",
+    "material_edges",
     "STAGES",
     "StageData",
     "Evaluation",

@@ -272,6 +272,12 @@ def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None
     colorimetry.tristimulus_weights(illuminant, observer=calibration.observer)  # unknown names raise here
 
     prepared = plan(calibration, raw.shape, dtype=raw.dtype)  # what `correct` of this frame uses
+    if calibration.band_transforms is not None:
+        # Bands in register first, as `correct` does (`spherejax._engine.registered`): the region
+        # is measured on the registered frames with the registered calibration. A pixel the
+        # registration flags carries a placeholder every kernel flags, so it is left out below.
+        raw, _ = prepared.register(raw)
+        calibration, prepared = prepared.registered, prepared.inner
     p = prepared.patch_ratio(raw)
     p_u = prepared.patch_ratio_u(raw, noise) if noise is not None else jnp.zeros_like(p)
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))

@@ -256,3 +256,18 @@ def test_the_compiled_registration_is_the_definition(raw_dtype):
     expected += [sj.QUALITY_NONFINITE] if raw_dtype == np.float32 else []
     assert all(np.any(bits & bit) for bit in expected)
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=2e-6, atol=2e-3)
+
+
+def test_a_region_is_measured_on_registered_pixels():
+    """`spherejax.measure` with band maps: the region's mean reflectance is the mean of what
+    `correct` gives its pixels, registered."""
+    rng = np.random.default_rng(7)
+    maps = shifted(rng.uniform(-1.5, 1.5, B), rng.uniform(-1.5, 1.5, B))
+    cal = calibration(maps)
+    raw = rendered(maps)
+    mask = np.zeros((H, W), bool)
+    mask[20:30, 30:44] = True
+    measured = sj.measure(raw, cal, mask)
+    corrected = np.asarray(sj.correct(raw, cal).reflectance, np.float64)[mask]
+    assert measured.pixels == mask.sum() and measured.excluded == 0
+    np.testing.assert_allclose(measured.reflectance, corrected.mean(axis=0), rtol=1e-5, atol=1e-6)

@@ -28,7 +28,7 @@ LAYERS = {
          "markov", "angles", "_engine", "pixel_constants", "correction_result", "grid", "spectra", "jsontext", "noise_document",
          "noise_bands", "number_text", "labelled", "_checks", "atomic_files", "band_resampling"], KERNELS),
     **dict.fromkeys(
-        ["calibrate", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
+        ["calibrate", "calibrate_registration", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
          "simulated_targets", "kubelka_munk", "target_families", "simulated_instrument", "simulated_layout", "simulated_rendering", "band_geometry", "band_registration", "sphere_radiosity", "textile_brdf", "twin", "figures"], WORKFLOWS),
     **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "console", "cli", "__main__", "hw"],
                     FILES),

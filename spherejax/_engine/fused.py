@@ -231,15 +231,6 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
     """
     arrays = (raw, dark, white, p, coeffs, wiener, wiener_offset, weights, residual)
 
-    @jax.custom_jvp
-    def outputs(*arrays):
-        return jax.lax.platform_dependent(*arrays, cpu=on_cpu, default=plain)
-
-    @outputs.defjvp
-    def outputs_jvp(primals, tangents):
-        _, tangents_out = jax.jvp(plain, primals, tangents)
-        return outputs(*primals), tangents_out
-
     def on_cpu(raw, dark, white, p, coeffs, wiener, wiener_offset, weights, residual):
         height, width, bands = raw.shape[-3:]
         batch = raw.shape[:-3]
@@ -257,13 +248,29 @@ def correct_pixels(plain: Callable, raw, dark, white, p, coeffs, wiener, wiener_
             quality.reshape(*batch, height, width),
         )
 
+    return compiled_on_cpu(plain, on_cpu, *arrays)
+
+
+def compiled_on_cpu(definition: Callable, on_cpu: Callable, *arrays):
+    """`on_cpu(*arrays)` (a compiled custom call) on CPU and `definition(*arrays)` elsewhere
+    (`jax.lax.platform_dependent`, decided when lowered), with the definition's JVP everywhere:
+    derivatives are the jax.numpy definition's whichever runs."""
+    @jax.custom_jvp
+    def outputs(*arrays):
+        return jax.lax.platform_dependent(*arrays, cpu=on_cpu, default=definition)
+
+    @outputs.defjvp
+    def outputs_jvp(primals, tangents):
+        _, tangents_out = jax.jvp(definition, primals, tangents)
+        return outputs(*primals), tangents_out
+
     return outputs(*arrays)
 
 
 __all__ = [
     "AUTO", "AVX2", "AVX512", "GENERIC", "MARGIN", "MAX_BANDS", "PORTABLE", "PROBE_PIXELS", "PROBE_REPEATS",
     "RAW_DTYPES", "RESIDUAL_RANK", "SWITCH", "SWITCH_VALUES", "TARGET", "VARIANTS", "VARIANT_BANDS", "Measurement",
-    "VariantChoice", "built", "capabilities", "choose_variant", "correct_arrays", "correct_pixels", "enabled",
+    "VariantChoice", "built", "capabilities", "choose_variant", "compiled_on_cpu", "correct_arrays", "correct_pixels", "enabled",
     "kernel_constants", "measure_variants", "measurement", "mode", "register", "residual_constants",
     "residual_fits", "resolve", "supported_variants", "switch", "unavailable_reason", "variant", "variant_code",
 ]

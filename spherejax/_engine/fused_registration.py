@@ -85,16 +85,7 @@ def registered_frames(raw, dark, white, inverse, transforms, registered_signal, 
     def on_cpu(raw, dark, white, inverse, transforms, registered_signal):
         return _ffi(raw, dark, inverse, registered_signal, transforms, saturation=saturation)
 
-    @jax.custom_jvp
-    def outputs(*arrays):
-        return jax.lax.platform_dependent(*arrays, cpu=on_cpu, default=definition)
-
-    @outputs.defjvp
-    def outputs_jvp(primals, tangents):
-        _, tangents_out = jax.jvp(definition, primals, tangents)
-        return outputs(*primals), tangents_out
-
-    return outputs(raw, dark, white, inverse, transforms, registered_signal)
+    return fused.compiled_on_cpu(definition, on_cpu, raw, dark, white, inverse, transforms, registered_signal)
 
 
 __all__ = ["TARGET", "applies", "inverse_signal", "registered_frames"]

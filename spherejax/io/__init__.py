@@ -116,7 +116,7 @@ and a region is
 Rectangles are half-open, like slices: rows r0..r1-1 and columns c0..c1-1. Every frame file is a
 camera frame of shape (H, W, B). Unknown fields are refused (a typo must not pass silently).
 
-Calibration file (format "spherejax-calibration", version 6)
+Calibration file (format "spherejax-calibration", version 7)
 ------------------------------------------------------------
 An HDF5 file (h5py; told by its first 8 bytes, b"\\x89HDF\\r\\n\\x1a\\n", not its name,
 conventionally .h5) whose root group holds one dataset per array of a `Calibration`
@@ -126,13 +126,15 @@ conventionally .h5) whose root group holds one dataset per array of a `Calibrati
 and, optionally (all five or none), wiener_residual_variance_components (r, 31),
     wiener_residual_variance_prior (r,), wiener_residual_variance_projection (m, q),
     wiener_residual_variance_weights (r, q), wiener_residual_variance_noise (31,)
+and, optionally, band_transforms (B, 2, 3) (the bands' maps, `Calibration.band_transforms`),
 each with its meaning as the string attribute "description", and nothing else; and the root's
 attribute "header", a string of UTF-8 JSON:
-    {"format": "spherejax-calibration", "format_version": 6, "software_version",
+    {"format": "spherejax-calibration", "format_version": 7, "software_version",
      "instrument_id", "band_centres_nm": [B integers], "illuminant", "observer",
      "saturation": number or null, "created": UTC ISO 8601,
      "arrays": {name: {"shape": [...], "dtype": "<f4", "description": "..."}},
-     "metadata": {...}, "noise_model": {...} or null, "checksum": "sha256:<64 hex digits>"}
+     "metadata": {...}, "noise_model": {...} or null, "checksum": "sha256:<64 hex digits>",
+     "band_registration": {...} (only with band_transforms)}
 Datasets are stored in the file, unfiltered (no compression), every byte written: dark, white
 and patch in chunks of whole rows (about 1 MiB each), so that rows read without the rest of the
 frame; the others contiguous. Hard links only (no external links, groups, external or virtual
@@ -142,7 +144,7 @@ the header JSON without the "checksum" field, serialised with sorted keys, separ
 and UTF-8 (no ASCII escaping), followed, for each array in the order dark, white, patch, coeffs,
 wiener, wiener_offset, wiener_residual_centre, wiener_residual_whitening, wiener_residual_inducing,
 wiener_residual_weights and, when present, wiener_residual_variance_components, _prior,
-_projection, _weights and _noise, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
+_projection, _weights and _noise, then band_transforms, by the line ``"<name> <dtype.str> <shape as a JSON list>\\n"`` in ASCII and
 the array's raw bytes in C order (as h5py reads the dataset: a bool patch is one byte per
 pixel, 0 or 1). It is computed from the parsed header, so the stored JSON's layout does not
 matter, and it is the same in both containers. "metadata" is free JSON from the writer
@@ -175,13 +177,25 @@ every value back exactly):
        estimator's sampling covariance, `spherejax.EstimatorCovariance`), or null}
 All numbers finite. Only "gain_e_per_count" and "read_noise_counts" are required inside it.
 
-Older versions are still read (whole). Version 5 is version 6 without the variance's five
+"band_transforms" (optional; absent: the bands are taken as in register, as every calibration
+before version 7) holds one 2 x 3 affine matrix per band, in band order, mapping pixel
+coordinates of the reference band's geometry (x = column, y = row, pixel centres at integers) to
+that band's, as the session manifest's "band_transforms" does: each linear part within 0.05 of
+the identity and each band within 50 px of the reference band over the frame. Every correction
+resamples each band's flat-fielded response through it before Stage I (`spherejax.band_resampling`).
+"band_registration" records how the maps were estimated (`calibrate`): "band_transforms" (the
+same maps as JSON), "frame" (the capture they came from), "reference_band" (index) and
+"reference_band_nm", "residual_px" (per band, the rms of its tiles' shifts about the map),
+"tiles" and "largest_displacement_px".
+
+Older versions are still read (whole). Version 6 is version 7 without "band_transforms" and
+"band_registration" (any found there are refused). Version 5 is version 6 without the variance's five
 arrays (a residual without its variance; any found there are refused). Version 4 is version 5 without the four
 "wiener_residual_*" arrays (an affine estimator), in the header's "arrays" and in the checksum.
 Version 3 is version 4 in an .npz archive
 (`numpy.savez`, no pickled objects; told by its first bytes, b"PK\\x03\\x04"), read with
 `numpy.load(allow_pickle=False)`: one .npy member per array and "header", a uint8 array of the
-same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Versions 4 to 6 are HDF5
+same UTF-8 JSON (``bytes(numpy.load(path)["header"]).decode()``). Versions 4 to 7 are HDF5
 only and versions 1 to 3 .npz only.
 Version 2 is version 3 without "noise_model" (no noise model;
 a null one is read as absent, any other is refused).

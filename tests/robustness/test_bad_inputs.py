@@ -137,7 +137,7 @@ CATALOGUE: list[Case] = [
     session_case("targets-all-zero", lambda f: [
         f.replace_frame(m["file"].split("/")[-1], np.zeros_like(f.frame_of("white.tif")))
         for m in json.loads((f.session() / "manifest.json").read_text())["frames"] if m["role"] == "target"
-    ] and f.session() / "manifest.json", "target regions"),
+    ] and f.session() / "manifest.json", "frame 'targets' cannot register the bands"),
     # ---- calibrate: the output
     Case("calibrate-into-read-only-folder", "calibrate",
          lambda f: ((f.tmp / "locked").mkdir() or ["calibrate", str(f.session()), "-o", str(f.tmp / "locked" / "c.h5")],
