@@ -206,6 +206,23 @@ def material_edges(lab: np.ndarray, step: float = EDGE_STEP_LSTAR) -> np.ndarray
     return edges
 
 
+def neighbourhood_delta_e(reflectance: np.ndarray, reference: np.ndarray, illuminant: str = "D65") -> np.ndarray:
+    """(H, W) ΔE00 between the colours of two reflectance cubes (H, W, 31) over each pixel's 3 x 3
+    neighbourhood (means of reflectance, the frame's edge repeated). A colour fringe (bands
+    displaced by a pixel or more) gives a neighbourhood the wrong colour; a sub-pixel blur, which
+    only moves light between neighbours, changes it far less than it changes single pixels
+    (`benchmarks/bench_registration.py` measures both). NaN where either has a NaN there."""
+    def box3(cube):
+        cube = np.asarray(cube, np.float64)
+        padded = np.pad(cube, ((1, 1), (1, 1), (0, 0)), mode="edge")
+        height, width = cube.shape[:2]
+        return sum(padded[i:i + height, j:j + width] for i in range(3) for j in range(3)) / 9.0
+
+    lab = reflectance_to_lab(box3(reflectance), illuminant=illuminant)
+    lab_reference = reflectance_to_lab(box3(reference), illuminant=illuminant)
+    return np.asarray(delta_e_2000(lab, lab_reference), np.float64)
+
+
 def format_table(header: list[str], rows: list[list[str]]) -> str:
     """An aligned text table: first column left-aligned, the others right-aligned."""
     widths = [max(len(str(x)) for x in column) for column in zip(header, *rows)]
@@ -278,6 +295,7 @@ def to_json(evaluation: Evaluation) -> str:
 __all__ = [
     "EDGE_STEP_LSTAR",
     "material_edges",
+    "neighbourhood_delta_e",
     "STAGES",
     "StageData",
     "Evaluation",
