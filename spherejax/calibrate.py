@@ -146,6 +146,17 @@ def _check_white_standard(session, base: Calibration) -> None:
         )
 
 
+def check_frames(session, registration: bool = True) -> None:
+    """Raise ValueError, one line naming the file, unless the session's white standard is usable
+    (`_check_white_standard`) and, with `registration`, it holds a frame to register the bands by
+    (`calibrate_registration.check_registration_frame`): in that order, so that a bad white
+    standard is named as such and not as a chart without edges (its flat field has none). Reads
+    the dark, white and registration frames; the command line calls it before any other work."""
+    _check_white_standard(session, base_calibration(session))
+    if registration:
+        check_registration_frame(session)
+
+
 def _check_patch_ratios(session, frames, measurements: list[RegionMeasurement]) -> None:
     """Raise ValueError naming the first training capture whose white-patch ratio (Eq. 15) is
     not finite: its patch reads no signal above dark, so Stage II cannot be fitted from it."""
@@ -624,6 +635,7 @@ __all__ = [
     "noise_model_summary",
     "noise_model_line",
     "registration_frame",
+    "check_frames",
     "check_registration_frame",
     "register_session_bands",
     "registration_summary",

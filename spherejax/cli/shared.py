@@ -128,8 +128,7 @@ def _calibrate(session, args, progress):
     from .. import calibrate
 
     calibrate.check_session(session, args.reference_background, args.wiener_groups)  # bad input before any work
-    if not getattr(args, "no_registration", False):
-        calibrate.check_registration_frame(session)
+    calibrate.check_frames(session, registration=not getattr(args, "no_registration", False))
     progress.start(f"calibrating from {session.path}")
     calibration, report = calibrate.calibrate_session(
         session, reference=args.reference_background, loss=args.loss, illuminant=args.illuminant,
