@@ -202,6 +202,10 @@ class Calibration(eqx.Module):
 
         For correcting an image in strips: `correct(raw[row0:row1], calibration.rows(row0, row1),
         p=patch_ratio(raw, calibration))` equals rows row0:row1 of `correct(raw, calibration)`.
+        With band maps (`band_transforms`, carried into the rows' own coordinates) a strip's
+        registered pixels come from native rows around it too: correct the rows
+        `band_resampling.read_box` gives and keep the strip's own (`spherejax.stripwise` does);
+        the rows alone leave their first and last rows flagged NOT_COVERED where a map reaches out.
         The same rows give the same object while it is kept (`_part`), and with it its plans.
         """
         height = self.image_shape[0]
