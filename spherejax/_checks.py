@@ -178,6 +178,15 @@ def require_finite(name: str, x) -> None:
         )
 
 
+def require_plan_frames(raw, shape: tuple[int, ...], dtype) -> None:
+    """Raise ValueError, one line, unless raw has a prepared correction's frame shape and dtype
+    (`spherejax._engine.plan.Plan`, `spherejax._engine.registered.RegisteredPlan`)."""
+    found_shape, found_dtype = tuple(getattr(raw, "shape", ())), getattr(raw, "dtype", None)
+    if found_shape != shape or found_dtype != dtype:
+        found = f"shape {found_shape} and dtype {found_dtype}" if found_dtype is not None else type(raw).__name__
+        raise ValueError(f"raw: expected frames of this plan's shape {shape} and dtype {dtype}, got {found}")
+
+
 def is_concrete(x) -> bool:
     """True when `x` holds values now (not a tracer inside jit, grad or vmap)."""
     return not isinstance(x, jax.core.Tracer)

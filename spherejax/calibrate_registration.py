@@ -27,35 +27,42 @@ def registration_frame(session):
     return session.registration_frame() or (targets[0] if targets else None)
 
 
+def _frame_to_register(session):
+    """`registration_frame`, or ValueError (one line naming the manifest) where there is none."""
+    frame = registration_frame(session)
+    if frame is None:
+        raise ValueError(f"{session.manifest_path}: has no registration target or target capture to register the bands "
+                         "by (expected a frame of role \"registration\" or \"target\"; or calibrate with --no-registration)")
+    return frame
+
+
+def _refusal(session, frame, error: ValueError) -> ValueError:
+    """The one-line refusal of a frame that cannot register the bands (`band_registration`'s reason)."""
+    return ValueError(f"{session.manifest_path}: frame {frame.id!r} cannot register the bands: {error} "
+                      "(or calibrate with --no-registration)")
+
+
 def check_registration_frame(session) -> None:
     """Raise ValueError, one line naming the manifest and the frame, unless the session holds a
     frame to register the bands by (`registration_frame`) with edges in every band
     (`band_registration.check_structure`): before any other work (reads that frame, the dark and
     the white)."""
-    frame = registration_frame(session)
-    if frame is None:
-        raise ValueError(f"{session.manifest_path}: has no registration target or target capture to register the bands "
-                         "by (expected a frame of role \"registration\" or \"target\"; or calibrate with --no-registration)")
+    frame = _frame_to_register(session)
     try:
         check_structure(flat_fielded(session.read(frame), session.dark(), session.white()))
     except ValueError as error:
-        raise ValueError(f"{session.manifest_path}: frame {frame.id!r} cannot register the bands: {error} "
-                         "(or calibrate with --no-registration)") from None
+        raise _refusal(session, frame, error) from None
 
 
 def register_session_bands(session, base: Calibration) -> tuple[Calibration, dict]:
     """(base with the session's band maps, the report's summary of them). Raises ValueError, one
     line naming the manifest and the frame, when the session has no frame to register from or the
     frame has too little structure (`band_registration.register_bands`)."""
-    frame = registration_frame(session)
-    if frame is None:
-        raise ValueError(f"{session.manifest_path}: has no registration target or target capture to register the bands "
-                         "by (expected a frame of role \"registration\" or \"target\"; or calibrate with --no-registration)")
+    frame = _frame_to_register(session)
     try:
         registration = register_bands(session.read(frame), np.asarray(base.dark), np.asarray(base.white))
     except ValueError as error:
-        raise ValueError(f"{session.manifest_path}: frame {frame.id!r} cannot register the bands: {error} "
-                         "(or calibrate with --no-registration)") from None
+        raise _refusal(session, frame, error) from None
     return dataclasses.replace(base, band_transforms=registration.transforms), registration_summary(
         session, frame.id, registration)
 

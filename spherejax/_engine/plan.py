@@ -301,10 +301,7 @@ class Plan:
         expected, unless raw has this plan's shape and dtype and p and p_u (when given) one value
         per band of each image. `correct` passes only what it checked; a plan called directly
         (`spherejax.plan`) would otherwise fail inside JAX with a message about its internals."""
-        shape, dtype = tuple(getattr(raw, "shape", ())), getattr(raw, "dtype", None)
-        if shape != self.shape or dtype != self.dtype:
-            raise ValueError(f"raw: expected frames of this plan's shape {self.shape} and dtype {self.dtype}, got "
-                             f"{'shape ' + str(shape) + ' and dtype ' + str(dtype) if dtype is not None else type(raw).__name__}")
+        _checks.require_plan_frames(raw, self.shape, self.dtype)
         expected = (*self.shape[:-3], self.shape[-1])
         for name, value in (("p", p), ("p_u", p_u)):
             if value is not None and tuple(getattr(value, "shape", np.shape(value))) != expected:

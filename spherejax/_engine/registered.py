@@ -109,15 +109,9 @@ class RegisteredPlan:
     def kernel_refusal(self):
         return self.inner.kernel_refusal
 
-    def _check_frames(self, raw) -> None:
-        shape, dtype = tuple(getattr(raw, "shape", ())), getattr(raw, "dtype", None)
-        if shape != self.shape or dtype != self.dtype:
-            raise ValueError(f"raw: expected frames of this plan's shape {self.shape} and dtype {self.dtype}, got "
-                             f"{'shape ' + str(shape) + ' and dtype ' + str(dtype) if dtype is not None else type(raw).__name__}")
-
     def register(self, raw):
         """(u' (..., H, W, B) registered frames in the compute dtype, their bits (..., H, W) uint8)."""
-        self._check_frames(raw)
+        _checks.require_plan_frames(raw, self.shape, self.dtype)
         return registration_step(raw, self.dark, self.white, self.inverse, self.transforms, self.registered.white,
                                  saturation=self.saturation, compiled=self.compiled)
 
