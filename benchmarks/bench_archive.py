@@ -118,7 +118,9 @@ import OpenImageIO as oiio
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from harness import OtherProcessesLoad, machine_info, write_record  # noqa: E402
-from reference import LAB_TOLERANCE, REFLECTANCE_TOLERANCE, SATURATION, reference_constants, reference_correct  # noqa: E402
+from reference import (  # noqa: E402
+    LAB_TOLERANCE, REFLECTANCE_TOLERANCE, SATURATION, numpy_registration, reference_constants, reference_correct,
+)
 
 from spherejax import archive, io  # noqa: E402
 from spherejax.io.envi import IGNORE_VALUE  # noqa: E402
@@ -360,6 +362,8 @@ def load_reference_calibration(path) -> dict:
         arrays["residual"] = tuple(
             stored[f"wiener_residual_{part}"][()].astype(np.float32) for part in ("centre", "whitening", "inducing", "weights")
         ) if "wiener_residual_weights" in stored else None
+        # Bands in register (format 7): the maps `calibrate` estimates by default.
+        arrays["band_transforms"] = stored["band_transforms"][()] if "band_transforms" in stored else None
         header = json.loads(stored.attrs["header"])
     # reference_correct is written for a D65, 14-bit calibration (reference.py's constants).
     if header["illuminant"] != "D65" or header["saturation"] != SATURATION:
@@ -373,14 +377,24 @@ def load_reference_calibration(path) -> dict:
 
 
 def reference_outputs(raw: np.ndarray, calibration: dict) -> dict:
-    """The four output arrays of one raw cube: reflectance, Lab, quality bits, preview."""
+    """The four output arrays of one raw cube: reflectance, Lab, quality bits, preview.
+
+    With band maps the bands are first registered (`reference.numpy_registration`), and the
+    registered frames corrected with dark 0 and white s', as spherejax does."""
+    dark, white, patch = calibration["dark"], calibration["white"], calibration["patch"]
+    if calibration["band_transforms"] is not None:
+        raw, white, quality = numpy_registration(raw, dark, white, calibration["band_transforms"], SATURATION)
+        # Flagged pixels NaN: the reference then leaves them out of the patch and the outputs.
+        raw = np.where((quality == 0)[..., None], raw, np.float32(np.nan))
+        dark = np.zeros_like(white)
+    else:
+        quality = np.where(np.any(raw >= SATURATION, axis=-1), QUALITY_SATURATED, 0).astype(np.uint8)
+        quality[calibration["no_flat_field"]] |= QUALITY_WHITE_NOT_ABOVE_DARK
     result = reference_correct(
-        raw, calibration["dark"], calibration["white"], calibration["patch"], calibration["coeffs"],
+        raw, dark, white, patch, calibration["coeffs"],
         calibration["wiener"], calibration["xyz_weights"], calibration["whitepoint_xy"],
         calibration["wiener_offset"], calibration["residual"],
     )
-    quality = np.where(np.any(raw >= SATURATION, axis=-1), QUALITY_SATURATED, 0).astype(np.uint8)
-    quality[calibration["no_flat_field"]] |= QUALITY_WHITE_NOT_ABOVE_DARK
     # Invalid with no pixel-level reason: the white-patch ratio was not finite.
     quality[~result["valid"] & (quality == 0)] = QUALITY_PATCH_UNUSABLE
     return {

@@ -34,53 +34,13 @@ import jax
 import numpy as np
 
 import spherejax
-from spherejax import band_geometry, band_resampling, calibrate, evaluate, io, simulate
+from spherejax import band_geometry, calibrate, evaluate, io, simulate
 from spherejax._engine import fused
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_kernel_contract import default_calibration, fused_switch  # noqa: E402
 from harness import machine_info, time_interleaved, write_record  # noqa: E402
-from reference import SATURATION, make_inputs, reference_constants, reference_correct  # noqa: E402
-
-
-def numpy_registration(raw, dark, white, maps, saturation):
-    """The registration in NumPy (`band_resampling` is the definition): (u' (H, W, B) float32, the
-    registered white signal s', bits (H, W) uint8)."""
-    height, width, bands = raw.shape
-    raw_f = raw.astype(np.float32)
-    signal = white - dark
-    unusable = ~(signal > 0) | ~np.isfinite(signal)
-    saturated = np.isfinite(raw_f) & (raw_f >= saturation)
-    nonfinite = ~np.isfinite(raw_f)
-    good = ~(unusable | saturated | nonfinite)
-    v = np.where(good, (raw_f - dark) / np.where(unusable, 1, signal), 0).astype(np.float32)
-    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
-    out, s_out = np.empty_like(v), np.empty_like(v)
-    bits = np.zeros((height, width), np.uint8)
-    for b in range(bands):
-        m = maps[b].astype(np.float32)
-        xs, ys = m[0, 0] * x + m[0, 1] * y + m[0, 2], m[1, 0] * x + m[1, 1] * y + m[1, 2]
-        tol = band_resampling.COVERAGE_TOLERANCE_PX
-        covered = (xs >= -tol) & (xs <= width - 1 + tol) & (ys >= -tol) & (ys <= height - 1 + tol)
-        xs, ys = np.clip(xs, 0, width - 1), np.clip(ys, 0, height - 1)
-        x0 = np.minimum(np.floor(xs), width - 2).astype(int)
-        y0 = np.minimum(np.floor(ys), height - 2).astype(int)
-        fx, fy = xs - x0, ys - y0
-        taps = [(y0, x0, (1 - fy) * (1 - fx)), (y0, x0 + 1, (1 - fy) * fx), (y0 + 1, x0, fy * (1 - fx)),
-                (y0 + 1, x0 + 1, fy * fx)]
-        value = sum(w * v[r, c, b] for r, c, w in taps)
-        white_value = sum(w * np.where(unusable, 0, signal)[r, c, b] for r, c, w in taps)
-        touched = {name: np.zeros((height, width), bool) for name in ("sat", "nonfinite", "white")}
-        for r, c, w in taps:
-            touched["sat"] |= saturated[r, c, b] & (w > 0)
-            touched["nonfinite"] |= nonfinite[r, c, b] & (w > 0)
-            touched["white"] |= unusable[r, c, b] & (w > 0)
-        bits |= np.where(touched["sat"], 1, 0).astype(np.uint8) | np.where(touched["nonfinite"], 2, 0).astype(np.uint8)
-        bits |= np.where(touched["white"], 4, 0).astype(np.uint8) | np.where(~covered, 32, 0).astype(np.uint8)
-        out[..., b] = value
-        s_out[..., b] = np.where(covered & ~touched["white"], white_value, 1)
-    frames = np.where((bits == 0)[..., None], out, -1) * s_out
-    return frames.astype(np.float32), s_out.astype(np.float32), bits
+from reference import SATURATION, make_inputs, numpy_registration, reference_constants, reference_correct  # noqa: E402
 
 
 def cost(args, made: spherejax.Calibration) -> dict:
@@ -97,8 +57,8 @@ def cost(args, made: spherejax.Calibration) -> dict:
     weights, whitepoint = reference_constants()
 
     def reference():
-        frames, signal, _ = numpy_registration(raw, inputs["dark"], inputs["white"], maps, SATURATION)
-        return reference_correct(frames, np.zeros_like(signal), signal, inputs["patch"], np.asarray(made.coeffs),
+        frames, signal, bits = numpy_registration(raw, inputs["dark"], inputs["white"], maps, SATURATION)
+        return reference_correct(frames, np.zeros_like(signal), signal, inputs["patch"] & (bits == 0), np.asarray(made.coeffs),
                                  np.asarray(made.wiener), weights, whitepoint, np.asarray(made.wiener_offset))
 
     # Checked before timing: spherejax's registered frames are the reference's.

@@ -14,7 +14,7 @@ warnings.filterwarnings("ignore", message=".*Matplotlib.* related API features a
 import colour  # noqa: E402
 
 import spherejax  # noqa: E402
-from spherejax import spectra  # noqa: E402
+from spherejax import band_resampling, spectra  # noqa: E402
 from spherejax.polynomial import PAPER_TABLE_2  # noqa: E402
 
 BANDS = 16
@@ -199,6 +199,53 @@ def reference_correct(raw, dark, white, patch, coeffs, wiener, xyz_weights, whit
     # would call it, so it is left that way and only the result is cast back.
     lab = colour.XYZ_to_Lab(xyz / 100.0, whitepoint_xy).astype(np.float32)
     return {"reflectance": reflectance, "lab": lab, "valid": valid}
+
+
+def numpy_registration(raw, dark, white, maps, saturation):
+    """Bands in register in NumPy (`spherejax.band_resampling` is the definition).
+
+    raw (H, W, B), dark and white (H, W, B) float32 in each band's own geometry, maps (B, 2, 3)
+    from the reference band's pixel coordinates to each band's (x = column, y = row).
+    Returns (u' (H, W, B) float32, the registered white signal s' (H, W, B) float32, bits (H, W)
+    uint8): Eq. 10's flat-fielded response resampled bilinearly and multiplied back by s', so
+    that `reference_correct(u', 0, s', patch & (bits == 0), ...)` is the registered correction;
+    flagged pixels hold -s' (spherejax's kernels mark them BELOW_DARK, then take these bits).
+    """
+    height, width, bands = raw.shape
+    raw_f = raw.astype(np.float32)
+    signal = white - dark
+    unusable = ~(signal > 0) | ~np.isfinite(signal)
+    saturated = np.isfinite(raw_f) & (raw_f >= saturation)
+    nonfinite = ~np.isfinite(raw_f)
+    good = ~(unusable | saturated | nonfinite)
+    v = np.where(good, (raw_f - dark) / np.where(unusable, 1, signal), 0).astype(np.float32)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    out, s_out = np.empty_like(v), np.empty_like(v)
+    bits = np.zeros((height, width), np.uint8)
+    for b in range(bands):
+        m = maps[b].astype(np.float32)
+        xs, ys = m[0, 0] * x + m[0, 1] * y + m[0, 2], m[1, 0] * x + m[1, 1] * y + m[1, 2]
+        tol = band_resampling.COVERAGE_TOLERANCE_PX
+        covered = (xs >= -tol) & (xs <= width - 1 + tol) & (ys >= -tol) & (ys <= height - 1 + tol)
+        xs, ys = np.clip(xs, 0, width - 1), np.clip(ys, 0, height - 1)
+        x0 = np.minimum(np.floor(xs), width - 2).astype(int)
+        y0 = np.minimum(np.floor(ys), height - 2).astype(int)
+        fx, fy = xs - x0, ys - y0
+        taps = [(y0, x0, (1 - fy) * (1 - fx)), (y0, x0 + 1, (1 - fy) * fx), (y0 + 1, x0, fy * (1 - fx)),
+                (y0 + 1, x0 + 1, fy * fx)]
+        value = sum(w * v[r, c, b] for r, c, w in taps)
+        white_value = sum(w * np.where(unusable, 0, signal)[r, c, b] for r, c, w in taps)
+        touched = {name: np.zeros((height, width), bool) for name in ("sat", "nonfinite", "white")}
+        for r, c, w in taps:
+            touched["sat"] |= saturated[r, c, b] & (w > 0)
+            touched["nonfinite"] |= nonfinite[r, c, b] & (w > 0)
+            touched["white"] |= unusable[r, c, b] & (w > 0)
+        bits |= np.where(touched["sat"], 1, 0).astype(np.uint8) | np.where(touched["nonfinite"], 2, 0).astype(np.uint8)
+        bits |= np.where(touched["white"], 4, 0).astype(np.uint8) | np.where(~covered, 32, 0).astype(np.uint8)
+        out[..., b] = value
+        s_out[..., b] = np.where(covered & ~touched["white"], white_value, 1)
+    frames = np.where((bits == 0)[..., None], out, -1) * s_out
+    return frames.astype(np.float32), s_out.astype(np.float32), bits
 
 
 def reference_constants() -> tuple[np.ndarray, np.ndarray]:
