@@ -62,9 +62,10 @@ def jaxlib_include_dir() -> str:
 #: The kernel's sources, split by job (spherejax/_engine/kernel/fused_correct.h says which is which).
 KERNEL = "spherejax/_engine/kernel"
 KERNEL_SOURCES = [f"{KERNEL}/{name}" for name in
-                  ("generic.cc", "avx512.cc", "avx2.cc", "call.cc", "ffi_handler.cc", "register_bands.cc", "module.cc")]
+                  ("generic.cc", "avx512.cc", "avx2.cc", "call.cc", "ffi_handler.cc", "register_bands.cc", "registered_rows.cc",
+                   "module.cc")]
 #: Headers: a change rebuilds the extension, and they go into the sdist with the sources.
-KERNEL_HEADERS = [f"{KERNEL}/fused_correct.h", f"{KERNEL}/call.h"]
+KERNEL_HEADERS = [f"{KERNEL}/fused_correct.h", f"{KERNEL}/call.h", f"{KERNEL}/band_taps.h"]
 
 setup(
     ext_modules=[

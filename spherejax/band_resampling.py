@@ -111,7 +111,13 @@ def read_box(box: tuple[int, int, int, int], transforms, image_shape: tuple[int,
 def local_transforms(transforms, row0: int, col0: int):
     """The maps of a crop whose pixel (0, 0) is the frame's (row0, col0), in the crop's own pixel
     coordinates, for the reference geometry and every band's alike: A' [x', y', 1] = A [x' + col0,
-    y' + row0, 1] - [col0, row0]. (B, 2, 3), traceable."""
+    y' + row0, 1] - [col0, row0]. (B, 2, 3), traceable; NumPy maps give NumPy maps (float64, and no
+    XLA computation compiled for a few dozen numbers)."""
+    if isinstance(transforms, np.ndarray):
+        origin = np.array([col0, row0], np.float64)
+        local = np.array(transforms, np.float64)
+        local[:, :, 2] = local[:, :, :2] @ origin + local[:, :, 2] - origin
+        return local
     transforms = jnp.asarray(transforms)
     origin = jnp.asarray([col0, row0], transforms.dtype)
     shift = transforms[:, :, :2] @ origin + transforms[:, :, 2] - origin

@@ -158,7 +158,8 @@ def _ffi_call(raw, dark, white, p, coeffs, projection, bias, white_xyz, whitenin
 def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.ndarray, coeffs: np.ndarray,
                    projection: np.ndarray, bias: np.ndarray, white_xyz: np.ndarray, saturation: float | None,
                    kernel_mode: str, out: tuple[np.ndarray, np.ndarray, np.ndarray], threads: int,
-                   residual: tuple[np.ndarray, ...] | None = None) -> None:
+                   residual: tuple[np.ndarray, ...] | None = None,
+                   registration: tuple[np.ndarray, np.ndarray, int, int] | None = None) -> None:
     """The kernel on NumPy arrays, called directly rather than from XLA: the caller's frames are
     read where they lie (no copy into XLA's memory) and the outputs written into `out`.
 
@@ -173,6 +174,11 @@ def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.n
       threads: how many threads share the work (the calling one and threads - 1 more).
       residual: the kernel residual's whitening, inducing, factor and basis float32
         (`residual_constants`), or None for an affine estimator.
+      registration: for a calibration with band maps, (inverse_signal (P, B), maps (B, 2, 3),
+        height, width): raw and dark are then the native frames, inverse_signal their
+        `fused_registration.inverse_signal`, and each row is registered into the reference band's
+        geometry before it is corrected, inside the kernel's own loop (kernel/call.h,
+        register_bands_first; white is not read). None: the frames are corrected as they are.
 
     Raises:
       ValueError: a dtype, shape or layout the kernel does not take, or a variant this CPU does
@@ -196,6 +202,11 @@ def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.n
         "reflectance": (out[0], np.float32, (images, pixels, 31)), "lab": (out[1], np.float32, (images, pixels, 3)),
         "quality": (out[2], np.uint8, (images, pixels)),
     }
+    if registration is not None:
+        inverse, maps, height, width = registration
+        expected["inverse_signal"] = (inverse, np.float32, (pixels, bands))
+        expected["maps"] = (maps, np.float32, (bands, 2, 3))
+        registration = (inverse, maps, int(height), int(width))
     for name, (array, dtype, shape) in expected.items():
         if array.dtype != dtype or array.shape != shape or not array.flags.c_contiguous:
             raise ValueError(f"{name}: expected a C-contiguous {np.dtype(dtype)} array of shape {shape}, "
@@ -205,6 +216,7 @@ def correct_arrays(raw: np.ndarray, dark: np.ndarray, white: np.ndarray, p: np.n
     _fused_correct.correct_arrays(
         raw, raw.dtype == np.uint16, dark, white, p, coeffs, projection, bias, white_xyz, whitening, inducing,
         factor, basis, images, pixels, bands, whitened_rows, inducing_rows, float(level), code, int(threads), *out,
+        registration,
     )
 
 

@@ -52,6 +52,7 @@ def applies(raw_dtype, compute_dtype, bands: int) -> bool:
     return _registered_with_xla()
 
 
+@jax.jit
 def inverse_signal(dark, white):
     """1 / (white - dark) where that is finite and > 0, else 0 (no flat field): (H, W, B)."""
     signal = white - dark

@@ -397,7 +397,8 @@ class Plan:
         rows = calibration.rows(row0, row1)  # kept by the calibration, with its plan
         return plan_for(rows, raw_shape, raw.dtype)(raw, p=p)
 
-    def _correct_directly(self, raw: np.ndarray, p=None, rows: tuple[int, int] | None = None) -> CorrectionResult:
+    def _correct_directly(self, raw: np.ndarray, p=None, rows: tuple[int, int] | None = None,
+                          registration: tuple | None = None) -> CorrectionResult:
         """NumPy frames by the fused kernel called directly (`fused.correct_arrays`), without
         XLA: the same numbers as `_whole` bit for bit (tested), but the kernel reads the frames
         where they lie, where XLA needs them copied into its own memory first (32 MB a megapixel
@@ -406,7 +407,12 @@ class Plan:
         p=p)`: the same kernel and constants as `steps.pixels_step`, so the same bits), or None for
         whole frames: from `steps.patch_ratio_step` on the patch's box of the frames (a small
         copy), the program `_whole` traces into its own. rows: (row0, row1) when raw holds only
-        those rows of the frame (`rows`): the kernel reads their slice of dark and white."""
+        those rows of the frame (`rows`): the kernel reads their slice of dark and white.
+        registration: (dark (P, B), inverse_signal (P, B), maps (B, 2, 3) float32, the saturation
+        level or None) of a calibration with band maps whose registered calibration this plan is
+        (`registered.RegisteredPlan`):
+        raw is then the native frames, which the kernel registers row by row before correcting
+        them (`fused.correct_arrays`); p must be given."""
         if p is None:
             (r0, c0), (h, w) = self.box_origin_host, self.box_shape
             p = steps.patch_ratio_step(
@@ -431,12 +437,16 @@ class Plan:
         dark, white = k["dark"], k["white"]
         if rows is not None:  # row-major pixels: rows row0:row1 are one contiguous slice
             dark, white = (x[rows[0] * width:rows[1] * width] for x in (dark, white))
+        saturation = self.saturation
+        if registration is not None:  # the native frames' dark and saturation level
+            dark, inverse, maps, saturation = registration
+            registration = (inverse, maps, height, width)
         fused.correct_arrays(
             raw.reshape(images, pixels, bands), dark, white, np.asarray(p).reshape(images, bands),
-            k["coeffs"], k["projection"], k["bias"], k["white_xyz"], self.saturation, self.kernel.variant,
+            k["coeffs"], k["projection"], k["bias"], k["white_xyz"], saturation, self.kernel.variant,
             (reflectance.reshape(images, pixels, N_WAVELENGTHS), lab.reshape(images, pixels, 3),
              quality.reshape(images, pixels)),
-            threads=buffers.cpus(), residual=k["residual"],
+            threads=buffers.cpus(), residual=k["residual"], registration=registration,
         )
         outputs = tuple(jax.device_put(view, self.device, may_alias=True) for view, _ in pairs)
         del reflectance, lab, quality  # only the pool and the jax.Arrays refer to the memory now

@@ -6,7 +6,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <mutex>
 #include <new>
+#include <vector>
 
 namespace spherejax_fused {
 
@@ -62,16 +64,108 @@ void correct_range(const Problem& pr, int64_t first, int64_t last) {
   correct_range_generic(pr, first, last);
 }
 
+void Shared::chunk_done() {
+  if (finished.fetch_add(1) + 1 == chunks) {
+    std::lock_guard<std::mutex> lock(mutex);
+    all_done.notify_all();
+  }
+}
+
 void Shared::work() {
+  if (registered) return work_registered();
   const int64_t total = problem.images * problem.pixels;
   for (int64_t chunk; (chunk = next.fetch_add(1)) < chunks;) {
     const int64_t first = chunk * kChunk, last = std::min(total, first + kChunk);
     correct_range(problem, first, last);
-    if (finished.fetch_add(1) + 1 == chunks) {
-      std::lock_guard<std::mutex> lock(mutex);
-      all_done.notify_all();
-    }
+    chunk_done();
   }
+}
+
+namespace {
+
+// Scratch memory kept from call to call: a call's threads are new ones on the direct route
+// (module.cc), and fresh pages of a few megabytes a thread cost the kernel a fifth of its time
+// zeroing them (perf: clear_page). A buffer is taken whole by one thread and given back after.
+struct Scratch {
+  std::vector<float> responses, row;
+  std::vector<uint8_t> bits;
+};
+
+std::mutex scratch_mutex;
+std::vector<std::unique_ptr<Scratch>> scratch_kept;
+
+std::unique_ptr<Scratch> take_scratch() {
+  std::lock_guard<std::mutex> lock(scratch_mutex);
+  if (scratch_kept.empty()) return std::make_unique<Scratch>();
+  std::unique_ptr<Scratch> scratch = std::move(scratch_kept.back());
+  scratch_kept.pop_back();
+  return scratch;
+}
+
+void give_scratch(std::unique_ptr<Scratch> scratch) {
+  std::lock_guard<std::mutex> lock(scratch_mutex);
+  if (scratch_kept.size() < 64) scratch_kept.push_back(std::move(scratch));
+}
+
+}  // namespace
+
+void Shared::work_registered() {
+  const int64_t H = native.height, W = native.width, B = native.bands;
+  // This thread's buffers, reused chunk after chunk: the native responses of a chunk's rows and
+  // their halo, and one registered row with its bits (W B floats: in L2 when the kernel reads it).
+  std::unique_ptr<Scratch> scratch = take_scratch();
+  std::vector<float>& responses = scratch->responses;
+  std::vector<float>& row = scratch->row;
+  std::vector<uint8_t>& bits = scratch->bits;
+  row.resize(static_cast<size_t>(W * B));
+  bits.resize(static_cast<size_t>(W));
+  constexpr uint8_t kPlaceholderBit = 16;  // BELOW_DARK, what the -1 of a flagged pixel sets
+  for (int64_t chunk; (chunk = next.fetch_add(1)) < chunks;) {
+    const int64_t image = chunk / chunks_per_image, k = chunk % chunks_per_image;
+    const int64_t y_first = k * rows_per_chunk, y_last = std::min(H, y_first + rows_per_chunk);
+    const int64_t row0 = std::max<int64_t>(y_first - halo, 0), row1 = std::min<int64_t>(y_last + halo, H);
+    responses.resize(size_t((row1 - row0) * W * B));
+    spherejax_bands::native_responses(native, image, row0, row1, responses.data());
+    for (int64_t y = y_first; y < y_last; ++y) {
+      spherejax_bands::registered_row(native, image, responses.data(), row0, row1, y, -1.0f, row.data(), bits.data());
+      Problem local = problem;
+      const int64_t first = (image * H + y) * W;
+      local.raw = row.data();
+      local.raw_is_u16 = false;
+      local.raw_first = first;
+      correct_range(local, first, first + W);
+      for (int64_t x = 0; x < W; ++x) {
+        if (bits[x] == 0) continue;
+        uint8_t& q = problem.quality[first + x];
+        q = static_cast<uint8_t>((q & ~kPlaceholderBit) | bits[x]);
+      }
+    }
+    chunk_done();
+  }
+  give_scratch(std::move(scratch));
+}
+
+void register_bands_first(Prepared& prepared, const spherejax_bands::NativeFrames& native) {
+  Shared& shared = *prepared.shared;
+  Problem& pr = shared.problem;
+  const int64_t B = pr.bands;
+  prepared.unit_dark = std::make_unique<float[]>(B);  // zeros
+  prepared.unit_white = std::make_unique<float[]>(B);
+  std::fill(prepared.unit_white.get(), prepared.unit_white.get() + B, 1.0f);
+  pr.dark = prepared.unit_dark.get();
+  pr.white = prepared.unit_white.get();
+  pr.calibration_stride = 0;
+  pr.saturation = NAN;
+  shared.registered = true;
+  shared.native = native;
+  shared.native.avx512 = pr.variant == Variant::kAvx512;
+  shared.native.avx2 = pr.variant != Variant::kGeneric;
+  shared.halo = spherejax_bands::halo_rows(native);
+  // 32 rows a chunk: the halo's rows (2-4 beyond each side for maps of a few pixels) computed twice
+  // cost an eighth to a quarter more native responses; more rows would cost cache.
+  shared.rows_per_chunk = 32;
+  shared.chunks_per_image = (native.height + shared.rows_per_chunk - 1) / shared.rows_per_chunk;
+  shared.chunks = pr.images * shared.chunks_per_image;
 }
 
 namespace {
@@ -158,8 +252,10 @@ std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, 
   Problem& pr = prepared->shared->problem;
   pr.raw = raw;
   pr.raw_is_u16 = u16;
+  pr.raw_first = 0;
   pr.dark = dark;
   pr.white = white;
+  pr.calibration_stride = bands;
   pr.images = images;
   pr.pixels = pixels;
   pr.bands = bands;

@@ -12,6 +12,7 @@
 #include <memory>
 #include <mutex>
 
+#include "band_taps.h"
 #include "fused_correct.h"
 
 namespace spherejax_fused {
@@ -46,7 +47,18 @@ struct Shared {
   std::mutex mutex;
   std::condition_variable all_done;
 
+  // A call with band maps (register_bands_first): the native frames, and chunks of rows_per_chunk
+  // rows of one image, each registered row by row into a buffer of its thread's and corrected
+  // from there (work_registered).
+  bool registered = false;
+  spherejax_bands::NativeFrames native;
+  int64_t halo = 0, rows_per_chunk = 0, chunks_per_image = 0;
+
   void work();
+
+ private:
+  void work_registered();
+  void chunk_done();
 };
 
 // One call's Problem and the arrays it points to besides the caller's: the per-image gains,
@@ -63,6 +75,7 @@ struct Prepared {
   std::unique_ptr<float[], FreeAligned> padded, padded_bias;
   std::unique_ptr<float[], FreeAligned> basis;  // the kernel residual's, padded to whole vectors
   std::unique_ptr<float[], FreeAligned> whitening, inducing;  // the kernel residual's, in base 2 (Problem)
+  std::unique_ptr<float[]> unit_dark, unit_white;  // a call with band maps: 0 and 1 in every band
 };
 
 // The kernel residual of a call (fused_correct.h, residual_of), as its caller passes it:
@@ -86,6 +99,16 @@ std::unique_ptr<Prepared> prepare(const void* raw, bool u16, const float* dark, 
                                   const float* offsets, const float* wxyz, int64_t images, int64_t pixels,
                                   int64_t bands, float saturation, Variant variant, const Residual& residual,
                                   float* reflectance, float* lab, uint8_t* quality);
+
+// Makes a prepared call (prepare, with raw, dark and saturation those of the native frames
+// `native`; white unused) one of a calibration with band maps: every row is first registered into
+// the reference band's geometry (band_taps.h: v' and its bits, flagged pixels -1 in every band), then
+// corrected as v' (dark 0, white 1, no saturation level: the registration flagged saturated taps)
+// with the registration's bits in its quality (where it flagged a pixel, they replace the BELOW_DARK
+// that the -1 made, as spherejax.band_resampling.merged_quality does). The same outputs as the
+// registered frames u' = v' s' corrected with dark 0 and white s', to float rounding, without the
+// registered frames written or read back. pixels must be native.height * native.width.
+void register_bands_first(Prepared& prepared, const spherejax_bands::NativeFrames& native);
 
 // Runs the chunks on the calling thread and whatever helpers `schedule` started, then waits for
 // the last chunk.

@@ -46,8 +46,11 @@
 //   call.h, call.cc  a call: which variants the CPU runs, the variant a call asked for, the
 //                    per-image constants, and the chunks shared out to threads;
 //   ffi_handler.cc   the XLA FFI handler (the custom call of spherejax._engine.fused);
-//   register_bands.cc  a second handler, not this kernel: the bands resampled into the reference
-//                    geometry before it (spherejax._engine.fused_registration);
+//   band_taps.h, registered_rows.cc
+//                    the bands resampled into the reference band's geometry: what a call with
+//                    band maps runs before this kernel, row by row (call.cc, work_registered);
+//   register_bands.cc  a second handler, not this kernel: the same registration as a pass of its
+//                    own that writes registered frames (spherejax._engine.fused_registration);
 //   module.cc        the CPython module: handler(), registration_handler(), correct_arrays(),
 //                    supported_variants(), capabilities(), ffi_api_version().
 // No -march anywhere: each variant carries its instruction set as function attributes, and
@@ -102,8 +105,14 @@ typedef float Vec __attribute__((vector_size(kLanes * sizeof(float)), aligned(64
 struct Problem {
   const void* raw;
   bool raw_is_u16;
+  // The flat index (over images and pixels) of raw's first pixel: 0, but for a call with band maps
+  // (call.h, Shared::work_registered), whose raw is one registered row at a time.
+  int64_t raw_first;
   const float* dark;
   const float* white;
+  // Floats from one pixel's dark and white to the next: the band count, but 0 for a call with band
+  // maps, whose registered rows are v' itself (dark 0 and white 1 for every pixel).
+  int64_t calibration_stride;
   int64_t images, pixels, bands;
   float saturation;  // NaN: no saturation check
   Variant variant;   // which code runs (call.cc resolves kBest; never kBest here)
@@ -467,8 +476,9 @@ struct BlockPixels {
 template <typename Raw, typename Stage2>
 SPHEREJAX_INLINE uint8_t stage2_at(const Problem& pr, const BlockPixels& at, float* tilde) {
   const int64_t B = Stage2::kBands ? Stage2::kBands : pr.bands;
-  const Raw* raw = static_cast<const Raw*>(pr.raw) + at.flat(pr) * B;
-  uint8_t q = Stage2::template run<Raw>(pr, raw, pr.dark + at.pixel * B, pr.white + at.pixel * B,
+  const Raw* raw = static_cast<const Raw*>(pr.raw) + (at.flat(pr) - pr.raw_first) * B;
+  const int64_t calibration = at.pixel * pr.calibration_stride;
+  uint8_t q = Stage2::template run<Raw>(pr, raw, pr.dark + calibration, pr.white + calibration,
                                         pr.gain + at.image * B, pr.offset + at.image * B, tilde);
   q |= pr.image_bad[at.image] * 8;
   if (q) std::fill(tilde, tilde + B, NAN);

@@ -40,17 +40,29 @@ static PyObject* registration_handler(PyObject*, PyObject*) {
 // that nothing is read or written outside a buffer, and that this CPU runs the variant (a code of
 // spherejax_fused::Variant: 0 the widest it runs, or VARIANT_AVX512, VARIANT_AVX2, VARIANT_GENERIC).
 // Releases the GIL while it runs.
+//
+// An optional last argument, registration = (inverse_signal, maps, height, width), makes it the call
+// of a calibration with band maps (call.h, register_bands_first): raw and dark are then the native
+// frames (pixels = height * width), inverse_signal (P, B) their 1 / (white - dark) (0 without a flat
+// field), maps (B, 2, 3) float32; white is not read.
 static PyObject* correct_arrays(PyObject*, PyObject* args) {
-  Py_buffer in[12] = {}, out[3] = {};
+  Py_buffer in[12] = {}, out[3] = {}, taps[2] = {};
   int u16 = 0, variant = 0;
-  long long images = 0, pixels = 0, bands = 0, whitened_rows = 0, inducing_rows = 0;
+  long long images = 0, pixels = 0, bands = 0, whitened_rows = 0, inducing_rows = 0, height = 0, width = 0;
   float saturation = 0.0f;
   Py_ssize_t threads = 1;
-  if (!PyArg_ParseTuple(args, "y*py*y*y*y*y*y*y*y*y*y*y*LLLLLfinw*w*w*", &in[0], &u16, &in[1], &in[2], &in[3],
+  PyObject* registration = Py_None;
+  if (!PyArg_ParseTuple(args, "y*py*y*y*y*y*y*y*y*y*y*y*LLLLLfinw*w*w*|O", &in[0], &u16, &in[1], &in[2], &in[3],
                         &in[4], &in[5], &in[6], &in[7], &in[8], &in[9], &in[10], &in[11], &images, &pixels,
                         &bands, &whitened_rows, &inducing_rows, &saturation, &variant, &threads, &out[0], &out[1],
-                        &out[2])) {
+                        &out[2], &registration)) {
     return nullptr;  // PyArg_ParseTuple releases what it had taken
+  }
+  const bool registered = registration != Py_None;
+  if (registered && !PyArg_ParseTuple(registration, "y*y*LL", &taps[0], &taps[1], &height, &width)) {
+    for (auto& buffer : in) PyBuffer_Release(&buffer);
+    for (auto& buffer : out) PyBuffer_Release(&buffer);
+    return nullptr;
   }
   const long long expected_in[12] = {images * pixels * bands * (u16 ? 2 : 4), pixels * bands * 4,
                                      pixels * bands * 4, images * bands * 4, bands * 4 * 4,
@@ -70,6 +82,10 @@ static PyObject* correct_arrays(PyObject*, PyObject* args) {
   residual.factor = static_cast<const float*>(in[10].buf);
   residual.basis = static_cast<const float*>(in[11].buf);
   for (int k = 0; k < 3; ++k) sizes_match &= out[k].len == expected_out[k];
+  if (registered) {
+    sizes_match &= height >= 1 && width >= 1 && height * width == pixels && taps[0].len == pixels * bands * 4 &&
+                   taps[1].len == bands * 6 * 4;
+  }
   const char* refused = nullptr;
   const Variant resolved = resolve_variant(variant, &refused);
   std::unique_ptr<Prepared> prepared;
@@ -81,9 +97,21 @@ static PyObject* correct_arrays(PyObject*, PyObject* args) {
         static_cast<const float*>(in[5].buf), static_cast<const float*>(in[6].buf),
         static_cast<const float*>(in[7].buf), images, pixels, bands, saturation, resolved, residual,
         static_cast<float*>(out[0].buf), static_cast<float*>(out[1].buf), static_cast<uint8_t*>(out[2].buf));
+      if (registered) {
+        spherejax_bands::NativeFrames native;
+        native.raw = in[0].buf;
+        native.u16 = u16 != 0;
+        native.height = height, native.width = width, native.bands = bands;
+        native.dark = static_cast<const float*>(in[1].buf);
+        native.inverse_signal = static_cast<const float*>(taps[0].buf);
+        native.maps = static_cast<const float*>(taps[1].buf);
+        native.saturation = saturation;
+        register_bands_first(*prepared, native);
+      }
     } catch (const std::bad_alloc&) {
       for (auto& buffer : in) PyBuffer_Release(&buffer);
       for (auto& buffer : out) PyBuffer_Release(&buffer);
+      for (auto& buffer : taps) PyBuffer_Release(&buffer);
       return PyErr_NoMemory();
     }
     Shared& shared = *prepared->shared;
@@ -102,6 +130,7 @@ static PyObject* correct_arrays(PyObject*, PyObject* args) {
   }
   for (auto& buffer : in) PyBuffer_Release(&buffer);
   for (auto& buffer : out) PyBuffer_Release(&buffer);
+  for (auto& buffer : taps) PyBuffer_Release(&buffer);
   if (!sizes_match) {
     PyErr_SetString(PyExc_ValueError, wrong_residual != nullptr ? wrong_residual
                                       : "correct_arrays: buffer sizes do not match images, pixels and bands");
