@@ -7,9 +7,18 @@ registered pixels).
                  --Plan(registered calibration)--> reflectance, Lab, quality, p
                  --merged_quality--> quality with the registration's bits
 
+That is the definition, and what traced frames (under `jax.jit`, `jax.grad`, `jax.vmap`), the GPU
+and the jax.numpy path run. Concrete frames on CPU, where the fused kernel corrects them, take a
+shorter way with the same outputs to float rounding: the kernel registers each row into a buffer
+of its thread's and corrects it from there (`RegisteredPlan._correct_directly`; kernel/call.h,
+register_bands_first), so that no registered frame is written to memory or read back. A separate
+registration pass made `correct` 2.4-2.7x slower at 1024 x 1024 x 16; inside the loop it costs a
+third (benchmarks/README.md, "bench_registration.py").
+
 `registered_calibration` makes the registered calibration once per calibration (kept on it, as its
 plans are); `RegisteredPlan` is what `plan_for` returns for a calibration with maps: called as a
-`Plan` is, with the same checks, and p (Eq. 14-15) from the registered frames' patch box.
+`Plan` is, with the same checks, and p (Eq. 14-15) from the registered pixels of the patch's box,
+registered from the native pixels around it only (`patch_box_ratio_step`) for concrete frames.
 """
 
 from __future__ import annotations
