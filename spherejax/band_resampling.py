@@ -28,7 +28,9 @@ patch, Stage II and the estimator unchanged). What every kernel (jax.numpy, fuse
 `spherejax._engine.kernels`) computes of (u' - 0) / s' is v', so the white patch's ratio p (Eq.
 14-15, weighted by the white signal as without registration), Stage I, Stage II and the estimator
 all read registered pixels. With identity maps, u' = u - d and s' = w - d: the same numbers as
-without registration, to float rounding (tested).
+without registration, to float rounding (tested). This is the definition; on CPU the fused kernel
+computes the same outputs (to float rounding) with each row's v' registered inside its own loop,
+never writing u' (`spherejax._engine.registered`, kernel/call.h).
 
 Quality (`quality.Quality`): a registered pixel takes the bits of the native pixels it is
 interpolated from (any of the 2 x 2 with a weight above 0): saturated, not finite, white not above

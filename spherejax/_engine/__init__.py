@@ -10,7 +10,9 @@ Private: nothing here is public API, and names may move between releases.
   its calls take (decided when it is made), and the compiled executables.
 - `registered`: the correction of a calibration with band maps: the bands resampled into the
   reference geometry (`spherejax.band_resampling`), then the registered calibration's own plan;
-  `fused_registration`: that resampling on CPU as a compiled custom call (kernel/register_bands.cc).
+  `fused_registration`: that resampling on CPU as a compiled custom call (kernel/register_bands.cc);
+  concrete frames on CPU are registered inside the fused kernel's own loop instead
+  (kernel/registered_rows.cc, `fused.correct_arrays(registration=...)`).
 - `steps`: the jitted steps (the patch ratio, the per-pixel step with the plan's kernel, both as
   one program, and that program writing into donated outputs).
 - `fused`: the fused CPU kernel's calls, from XLA (custom call, batching rule, JVP) and directly
