@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import threading
-import weakref
 
 import jax
 import jax.numpy as jnp
@@ -120,14 +119,10 @@ class RegisteredPlan:
         self.inverse = fused_registration.inverse_signal(self.dark, self.white) if self.compiled else None
         # The registered frames are in the compute dtype whatever the raw's.
         self.inner = make_plan(self.registered, self.shape, self.compute_dtype)
-        self.make_plan = make_plan
-        # A kept plan refers to its calibration weakly (as `Plan` does: the calibration keeps it).
-        concrete = all(_checks.is_concrete(x) for x in jax.tree_util.tree_leaves(calibration))
-        self._calibration = weakref.ref(calibration) if concrete else (lambda: calibration)
         # Concrete frames on CPU go to the fused kernel with their registration inside its loop
         # (`_correct_directly`) where the kernel corrects them and the compiled registration applies.
-        self.direct = (self.compiled and self.dtype.name in ("uint16", "float32") and self.inner.reads_numpy
-                       and self.inner.kernel.mode is not None and self.inner.kernel.direct)
+        self.direct = (self.compiled and self.inner.reads_numpy and self.inner.kernel.mode is not None
+                       and self.inner.kernel.direct)
         self._native = None  # the kernel's native arrays, made at the first direct call
         self._patch = None  # the patch's read box and what its registration reads (`_patch_read_box`)
 
@@ -181,6 +176,7 @@ class RegisteredPlan:
         crop = lambda x: None if x is None else jax.device_put(np.asarray(x)[r0:r1, c0:c1])  # noqa: E731
         arrays = (crop(self.dark), crop(self.white), crop(self.inverse), local, crop(self.registered.white))
         return (r0, r1, c0, c1), (int(patch_row - r0), int(patch_col - c0)), arrays
+
     def patch_ratio_u(self, raw, noise) -> jax.Array:
         frames, _ = self.register(raw)
         return self.inner.patch_ratio_u(frames, noise)
@@ -198,7 +194,7 @@ class RegisteredPlan:
         (`Plan._correct_directly` with `registration`): no registered frame is written or read
         back, which a separate registration pass costs twice the correction's memory traffic
         (benchmarks/bench_registration.py). The same outputs as the registered frames corrected
-        by the inner plan, to float rounding (tests/test_band_resampling.py)."""
+        by the inner plan, to float rounding (tests/test_registered_kernel.py)."""
         _checks.require_plan_frames(raw, self.shape, self.dtype)
         if p is None:
             p = self.patch_ratio(raw)
