@@ -40,10 +40,11 @@ struct NativeFrames {
   int64_t height = 0, width = 0, bands = 0;
   const float *dark = nullptr, *inverse_signal = nullptr, *maps = nullptr;
   float saturation = NAN;  // NaN: no check (value >= NaN is never true)
-  // Whether the sampler may use AVX-512 (AVX2) where the CPU runs it: false when a caller was asked
-  // for narrower code (the fused kernel's forced variants, SPHEREJAX_FUSED), so that what is measured
-  // as AVX2 runs no AVX-512 instruction.
-  bool avx512 = true, avx2 = true;
+  // Whether the sampler may use AVX-512 (AVX2): set by the caller where the CPU runs it
+  // (spherejax_fused::variant_supported), and not where the caller was asked for narrower code (the
+  // fused kernel's forced variants, SPHEREJAX_FUSED), so that what is measured as AVX2 runs no
+  // AVX-512 instruction.
+  bool avx512 = false, avx2 = false;
 };
 
 // The native rows beyond its own that a registered row reads: the largest vertical displacement

@@ -158,8 +158,9 @@ void register_bands_first(Prepared& prepared, const spherejax_bands::NativeFrame
   pr.saturation = NAN;
   shared.registered = true;
   shared.native = native;
+  // The variant resolve_variant checked against the CPU, and AVX2 under AVX-512's.
   shared.native.avx512 = pr.variant == Variant::kAvx512;
-  shared.native.avx2 = pr.variant != Variant::kGeneric;
+  shared.native.avx2 = pr.variant != Variant::kGeneric && variant_supported(static_cast<int32_t>(Variant::kAvx2));
   shared.halo = spherejax_bands::halo_rows(native);
   // 32 rows a chunk: the halo's rows (2-4 beyond each side for maps of a few pixels) computed twice
   // cost an eighth to a quarter more native responses; more rows would cost cache.

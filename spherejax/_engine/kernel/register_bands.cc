@@ -24,6 +24,7 @@
 #include <vector>
 
 #include "band_taps.h"
+#include "call.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -116,6 +117,8 @@ ffi::Error Register(ffi::ThreadPool pool, ffi::AnyBuffer raw, ffi::Buffer<ffi::F
   r.inverse_signal = inverse_signal.typed_data();
   r.maps = maps.typed_data();
   r.saturation = saturation;
+  r.avx512 = spherejax_fused::variant_supported(static_cast<int32_t>(spherejax_fused::Variant::kAvx512));
+  r.avx2 = spherejax_fused::variant_supported(static_cast<int32_t>(spherejax_fused::Variant::kAvx2));
   reg.registered_signal = registered_signal.typed_data();
   reg.frames = frames->typed_data();
   reg.bits = bits->typed_data();

@@ -1,16 +1,16 @@
 // The fast path of the band registration (band_taps.h): native rows as flat-fielded responses,
-// then registered rows sampled from them with the bands of a pixel side by side, so that one
-// vector of gathers (AVX-512: 16 lanes, AVX2: 8) reads one tap of every band of the pixel.
+// then registered rows sampled from them with the bands of a pixel side by side.
 //
 // Why the bands side by side: the frames are interleaved (pixel-major, band-minor), as the fused
 // correction reads them; sampling band by band along a row would need the native responses and the
 // registered ones transposed into planes and back, which took two thirds of the registration's
-// time in the first version (benchmarks/README.md, "Bands in register").
+// time in the first version (benchmarks/README.md, "Bands in register"). For 16 bands on CPUs with
+// AVX-512 or AVX2, one vector holds a pixel's bands and its taps are masked loads (sample_row_16_*);
+// otherwise the compiler vectorises sample_row as it can.
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <cstring>
 
 #include "band_taps.h"
 
@@ -109,89 +109,19 @@ SPHEREJAX_BANDS_CLONES void sample_row(const RowMaps& maps, const float* __restr
   }
 }
 
-// sample_row for 16 bands (the instrument's) and frames of at least 2 x 2, one pixel's 16 bands a
-// vector (GCC's vector extension: one zmm register with AVX-512, two ymm with AVX2, four xmm
-// otherwise), without gathers: the taps of band b at pixel x lie at ((y0_b - row0) W + x0_b) 16 + b,
-// and the bands whose (y0_b, x0_b) agree (a group: one to a few of them, as the maps displace the
-// bands by different whole pixels) read their four taps from the same four vectors of 16 floats,
-// contiguous. The groups of a pixel are those of the pixel before it moved on by one, but where
-// some band's whole-pixel offset changes (a few times a row): found again only then. The same
-// values as sample_row bit for bit (the same operations on each lane; tests/test_band_resampling.py
-// compares every kernel with the definition).
-typedef float Floats16 __attribute__((vector_size(64), aligned(64)));
-typedef int32_t Ints16 __attribute__((vector_size(64), aligned(64)));
-
-SPHEREJAX_BANDS_CLONES void sample_row_16(const RowMaps& maps, const float* __restrict native, int32_t W, int32_t H,
-                                          int32_t row0, int32_t row1, float* __restrict out) {
-  constexpr int32_t B = 16;
-  const float last_x = static_cast<float>(W - 1), last_y = static_cast<float>(H - 1);
-  Floats16 m0, m2, m3, m5, row_x, row_y;
-  std::memcpy(&m0, maps.m0, 64), std::memcpy(&m2, maps.m2, 64), std::memcpy(&m3, maps.m3, 64);
-  std::memcpy(&m5, maps.m5, 64), std::memcpy(&row_x, maps.row_x, 64), std::memcpy(&row_y, maps.row_y, 64);
-  const Ints16 top_x = Ints16{} + (W - 2), top_y = Ints16{} + (H - 2);
-  // Rows within the buffer: the halo covers every row a map reaches; clamped all the same.
-  const Ints16 first = Ints16{} + row0, last = Ints16{} + (row1 - 2);
-  Ints16 groups[B];        // lane masks (-1 in the group's lanes), one per group
-  int32_t group_offsets[B];  // each group's offset of its (y0, x0) tap in `native`
-  int32_t count = 0;
-  Ints16 previous = Ints16{} - 1;
-  const Ints16 step = Ints16{} + B;
-  for (int32_t x = 0; x < W; ++x) {
-    const float fx_col = static_cast<float>(x);
-    Floats16 xs = m0 * fx_col + row_x + m2;
-    Floats16 ys = m3 * fx_col + row_y + m5;
-    const Ints16 covered = (xs >= -kCoverageTolerance) & (xs <= last_x + kCoverageTolerance) &
-                           (ys >= -kCoverageTolerance) & (ys <= last_y + kCoverageTolerance);
-    xs = xs > 0.0f ? xs : 0.0f;
-    xs = xs < last_x ? xs : last_x;
-    ys = ys > 0.0f ? ys : 0.0f;
-    ys = ys < last_y ? ys : last_y;
-    Ints16 x0 = __builtin_convertvector(xs, Ints16);
-    x0 = x0 < top_x ? x0 : top_x;
-    Ints16 y0 = __builtin_convertvector(ys, Ints16);
-    y0 = y0 < top_y ? y0 : top_y;
-    const Floats16 fx = xs - __builtin_convertvector(x0, Floats16), fy = ys - __builtin_convertvector(y0, Floats16);
-    Ints16 r = y0 > first ? y0 : first;
-    r = r < last ? r : last;
-    const Ints16 offset = ((r - first) * W + x0) * B;
-    const Ints16 moved = previous + step;
-    if (std::memcmp(&offset, &moved, sizeof offset) == 0) {
-      for (int32_t g = 0; g < count; ++g) group_offsets[g] += B;
-    } else {  // some band's whole-pixel offset changed: the groups again
-      int32_t lanes[B];
-      std::memcpy(lanes, &offset, sizeof lanes);
-      uint32_t todo = (1u << B) - 1;
-      count = 0;
-      while (todo) {
-        const int32_t o = lanes[__builtin_ctz(todo)];
-        const Ints16 in_group = offset == o;
-        for (int32_t l = 0; l < B; ++l) todo &= lanes[l] == o ? ~(1u << l) : ~0u;
-        groups[count] = in_group;
-        group_offsets[count++] = o;
-      }
-    }
-    previous = offset;
-    Floats16 t00 = {}, t01 = {}, t10 = {}, t11 = {};
-    for (int32_t g = 0; g < count; ++g) {
-      const float* tap = native + group_offsets[g];
-      Floats16 a, b, c, d;
-      std::memcpy(&a, tap, 64), std::memcpy(&b, tap + B, 64);
-      std::memcpy(&c, tap + W * B, 64), std::memcpy(&d, tap + W * B + B, 64);
-      t00 = groups[g] ? a : t00, t01 = groups[g] ? b : t01, t10 = groups[g] ? c : t10, t11 = groups[g] ? d : t11;
-    }
-    const Floats16 sum = (1 - fy) * (1 - fx) * t00 + (1 - fy) * fx * t01 + fy * (1 - fx) * t10 + fy * fx * t11;
-    const Floats16 result = covered ? sum : Floats16{} + NAN;
-    std::memcpy(out + static_cast<int64_t>(x) * B, &result, sizeof result);
-  }
-}
-
 #pragma GCC pop_options
 
 #if defined(__x86_64__) && defined(__GNUC__)
-// sample_row_16 with AVX-512 intrinsics: GCC compiles the vector extension's comparisons and
-// selects above into scalar code, which left sample_row_16 at twice the correction's time; here
-// they are mask registers, and a group's taps are masked loads. The same operations on each lane
-// as sample_row (max(x, 0) and min(x, last) give what its selects give, NaN included).
+// sample_row for 16 bands (the instrument's) and frames of at least 2 x 2 with AVX-512, one pixel's
+// 16 bands a vector, without gathers: the taps of band b at pixel x lie at ((y0_b - row0) W + x0_b)
+// 16 + b, and the bands whose (y0_b, x0_b) agree (a group: one to a few of them, as the maps
+// displace the bands by different whole pixels) read their four taps by masked loads of the same
+// four runs of 16 contiguous floats. The groups of a pixel are those of the pixel before it moved
+// on by one, but where some band's whole-pixel offset changes (a few times a row): found again only
+// then. The same operations on each lane as sample_row (max(x, 0) and min(x, last) give what its
+// selects give, NaN included). Intrinsics, not GCC's vector extension: GCC 12 compiled the
+// extension's comparisons and selects into scalar code (twice the correction's time), and its own
+// gathers were slower on Zen 4 than the scalar loads it emits without them.
 __attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,fma")))
 void sample_row_16_avx512(const RowMaps& maps, const float* __restrict native, int32_t W, int32_t H, int32_t row0,
                           int32_t row1, float* __restrict out, uint8_t* __restrict not_finite) {
@@ -258,8 +188,8 @@ void sample_row_16_avx512(const RowMaps& maps, const float* __restrict native, i
   }
 }
 
-// sample_row_16 with AVX2 intrinsics, for CPUs without AVX-512 (most lab PCs): each half of the
-// 16 bands (8 lanes) as sample_row_16_avx512 does all of them, with compare vectors for masks,
+// sample_row_16_avx512 with AVX2 intrinsics, for CPUs without AVX-512 (most lab PCs): each half of
+// the 16 bands (8 lanes) as sample_row_16_avx512 does all of them, with compare vectors for masks,
 // movemask to find a half's groups, and blends of full loads for its taps.
 __attribute__((target("avx2,fma")))
 void sample_row_16_avx2(const RowMaps& maps, const float* __restrict native, int32_t W, int32_t H, int32_t row0,
@@ -335,17 +265,6 @@ void sample_row_16_avx2(const RowMaps& maps, const float* __restrict native, int
   }
 }
 
-bool runs_avx2() {
-  static const bool avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  return avx2;
-}
-
-bool runs_avx512() {
-  static const bool avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
-                             __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") &&
-                             __builtin_cpu_supports("fma");
-  return avx512;
-}
 #endif
 
 template <typename Index>
@@ -392,23 +311,20 @@ void registered_row(const NativeFrames& f, int64_t image, const float* native, i
   const RowMaps maps(f, y);
   bool sampled = false;  // true once bits holds the sampler's not-finite flags
   const bool fits = (row1 - row0) * f.width * f.bands < (int64_t(1) << 31);
-  if (fits && f.bands == 16 && f.width >= 2 && f.height >= 2 && row1 - row0 >= 2) {
+  const bool vector_of_bands = fits && f.bands == 16 && f.width >= 2 && f.height >= 2 && row1 - row0 >= 2;
+  const int32_t W = static_cast<int32_t>(f.width), H = static_cast<int32_t>(f.height);
 #if defined(__x86_64__) && defined(__GNUC__)
-    if (f.avx512 && runs_avx512()) {
-        sample_row_16_avx512(maps, native, static_cast<int32_t>(f.width), static_cast<int32_t>(f.height),
-                           static_cast<int32_t>(row0), static_cast<int32_t>(row1), out, bits);
-      sampled = true;
-    } else if (f.avx2 && runs_avx2()) {
-      sample_row_16_avx2(maps, native, static_cast<int32_t>(f.width), static_cast<int32_t>(f.height),
-                         static_cast<int32_t>(row0), static_cast<int32_t>(row1), out, bits);
-      sampled = true;
-    } else
+  if (vector_of_bands && f.avx512) {
+    sample_row_16_avx512(maps, native, W, H, static_cast<int32_t>(row0), static_cast<int32_t>(row1), out, bits);
+    sampled = true;
+  } else if (vector_of_bands && f.avx2) {
+    sample_row_16_avx2(maps, native, W, H, static_cast<int32_t>(row0), static_cast<int32_t>(row1), out, bits);
+    sampled = true;
+  }
 #endif
-    sample_row_16(maps, native, static_cast<int32_t>(f.width), static_cast<int32_t>(f.height),
-                  static_cast<int32_t>(row0), static_cast<int32_t>(row1), out);
-  } else if (fits) {
+  if (!sampled && fits) {
     sample_rows_as<int32_t>(maps, native, f, row0, row1, out);
-  } else {
+  } else if (!sampled) {
     sample_rows_as<int64_t>(maps, native, f, row0, row1, out);
   }
   if (!sampled) {
