@@ -153,3 +153,25 @@ def test_strips_through_the_kernel_give_the_whole_frames_rows():
     keep = slice(4, 17)  # rows 14:27, beyond the maps' reach of the strip's edges
     np.testing.assert_array_equal(np.asarray(strip.quality)[keep], np.asarray(whole.quality)[14:27])
     np.testing.assert_allclose(np.asarray(strip.lab)[keep], np.asarray(whole.lab)[14:27], rtol=1e-5, atol=1e-3)
+
+
+@compiled
+def test_registration_arrays_of_the_wrong_shape_are_refused_in_one_line():
+    """`fused.correct_arrays(registration=...)` names the array, its dtype and shape and the one
+    expected, and writes nothing into the outputs."""
+    rng = np.random.default_rng(12)
+    cal = calibration(16, rng)
+    raw = frames(16, rng, 1, np.uint16)[0]
+    plan = sj.plan(cal, raw.shape)
+    plan(raw)  # makes the plan's arrays
+    dark, inverse, maps, saturation = plan._native
+    k = plan.inner._direct
+    out = (np.full((1, H * W, 31), 7.0, np.float32), np.full((1, H * W, 3), 7.0, np.float32),
+           np.full((1, H * W), 7, np.uint8))
+    for wrong, name in (((inverse, maps[:15], H, W), "maps"), ((inverse[:-1], maps, H, W), "inverse_signal")):
+        with pytest.raises(ValueError, match=f"^{name}: expected a C-contiguous float32 array of shape") as error:
+            fused.correct_arrays(raw.reshape(1, H * W, 16), dark, k["white"], np.ones((1, 16), np.float32),
+                                 k["coeffs"], k["projection"], k["bias"], k["white_xyz"], saturation, fused.AUTO, out,
+                                 threads=1, residual=k["residual"], registration=wrong)
+        assert "\n" not in str(error.value)
+    assert all(np.all(x == 7) for x in out)
