@@ -40,7 +40,8 @@ Layers. Each module imports only modules of its own layer or of the layers below
    fsynced JSON-lines journal of a batch's manifest and an acquisition; io.hashing, the one file
    hash), measurement_files, archive (batch correction, a module per job: discovery, inputs,
    outputs, manifest, lock, batch), cluster, interrupt, console (the command line's messages and
-   progress), cli and __main__ (`python -m spherejax`); and the instrument, hw/ (installed as
+   progress), cli and __main__ (`python -m spherejax`), viewer (the napari plugin and `spherejax
+   view`: a pixel's and a region's readout, the reader, the dock widget; the viewer extra); and the instrument, hw/ (installed as
    spherejax_hw), which uses spherejax and which spherejax never imports: it adds `spherejax
    acquire` to cli through the "spherejax.commands" entry points.
 """

@@ -110,17 +110,7 @@ class Measurement:
             if reference_covariance is None:
                 reference_covariance = reference_lab.lab_covariance
             reference_lab = reference_lab.lab
-        reference = np.asarray(reference_lab, np.float64)
-        if reference.shape != (3,) or not np.all(np.isfinite(reference)):
-            raise ValueError(f"reference_lab: expected three finite numbers L*, a*, b*, got {reference.tolist()}")
-        if reference_covariance is not None:
-            reference_covariance = np.asarray(reference_covariance, np.float64)
-            if reference_covariance.shape != (3, 3):
-                raise ValueError(f"reference_covariance: expected shape (3, 3), got {reference_covariance.shape}")
-        # float64 where x64 is on, float32 otherwise (no dtype request: that would warn).
-        as_jax = lambda x: None if x is None else jnp.asarray(np.asarray(x, np.float64))  # noqa: E731
-        value, u = _delta_e_and_u(as_jax(self.lab), as_jax(self.lab_covariance), as_jax(reference), as_jax(reference_covariance))
-        return float(value), float(u)
+        return delta_e_and_u(self.lab, self.lab_covariance, reference_lab, reference_covariance)
 
     def to_dict(self) -> dict:
         """Plain JSON: the values, standard uncertainties, covariances and the budget, every
@@ -142,6 +132,25 @@ class Measurement:
             "lab_covariance": listed(self.lab_covariance),
             "lab_u_by_source": {name: listed(np.sqrt(np.diag(cov))) for name, cov in self.lab_budget.items()},
         }
+
+
+def delta_e_and_u(lab, lab_covariance, reference_lab, reference_covariance=None) -> tuple[float, float]:
+    """(ΔE00 of `lab` (3,) against `reference_lab` (3,), its first-order standard uncertainty).
+
+    lab_covariance, reference_covariance: (3, 3) or None (exact). u is NaN when `lab_covariance`
+    is None (`Measurement.delta_e`, whose rules these are).
+    """
+    reference = np.asarray(reference_lab, np.float64)
+    if reference.shape != (3,) or not np.all(np.isfinite(reference)):
+        raise ValueError(f"reference_lab: expected three finite numbers L*, a*, b*, got {reference.tolist()}")
+    if reference_covariance is not None:
+        reference_covariance = np.asarray(reference_covariance, np.float64)
+        if reference_covariance.shape != (3, 3):
+            raise ValueError(f"reference_covariance: expected shape (3, 3), got {reference_covariance.shape}")
+    # float64 where x64 is on, float32 otherwise (no dtype request: that would warn).
+    as_jax = lambda x: None if x is None else jnp.asarray(np.asarray(x, np.float64))  # noqa: E731
+    value, u = _delta_e_and_u(as_jax(lab), as_jax(lab_covariance), as_jax(reference), as_jax(reference_covariance))
+    return float(value), float(u)
 
 
 def _lab_and_jacobian(reflectance, illuminant: str, observer: str):
@@ -315,4 +324,49 @@ def measure(raw, calibration: Calibration, mask, noise: NoiseModel | None = None
     )
 
 
-__all__ = ["Measurement", "measure", "COMMON_SOURCES", "PIXEL_SOURCES"]
+def measure_reflectances(reflectance, mask, quality=None, *, illuminant: str = "D65",
+                         observer: str = colorimetry.DEFAULT_OBSERVER) -> Measurement:
+    """Measure a region of a corrected image: `measure`'s values from the per-pixel reflectances.
+
+    `measure` estimates the reflectance at the region's mean response; for an affine estimator
+    (the Wiener forms) that is the mean of the per-pixel reflectances, so a region of an output
+    of `correct` (a file, read back by `spherejax.open_corrected`) gives the same reflectance, Lab,
+    pixel counts and spread without the raw frames. For a kernel estimator (an affine mean plus a
+    nonlinear residual) the two differ by the residual's curvature over the region's spread of
+    responses. What it cannot give is the covariance, which needs the raw frames and a noise
+    model (`measure`).
+
+    Args:
+      reflectance: (H, W, 31) per-pixel reflectances (NaN where `correct` flagged the pixel).
+      mask: (H, W) bool, True on the region.
+      quality: (H, W) quality bits, or None (then only non-finite pixels are left out).
+      illuminant, observer: Lab's (`colorimetry.tristimulus_weights`).
+
+    Returns:
+      `Measurement` without covariances, precision float32 (the files' values). ValueError when
+      every pixel of the region is flagged or not finite, or on bad shapes.
+    """
+    reflectance = np.asarray(reflectance)
+    if reflectance.ndim != 3:
+        raise ValueError(f"reflectance: expected one image (H, W, 31), got shape {reflectance.shape}")
+    mask = _check_mask(mask, reflectance.shape[:2])
+    colorimetry.tristimulus_weights(illuminant, observer=observer)  # unknown names raise here
+    values = reflectance[mask].astype(np.float64)
+    good = np.all(np.isfinite(values), axis=-1)
+    if quality is not None:
+        good &= np.asarray(quality)[mask] == 0
+    pixels, excluded = int(good.sum()), int(good.size - good.sum())
+    if pixels == 0:
+        raise ValueError(
+            f"mask: all {excluded} pixels of the region are flagged or not finite; expected at least one good pixel"
+        )
+    mean = values[good].mean(axis=0)
+    spread = values[good].std(axis=0)  # as `measure`'s: weights 1 / pixels, no Bessel correction
+    lab, _ = _lab_and_jacobian(mean, illuminant, observer)
+    return Measurement(
+        reflectance=mean, lab=lab, illuminant=illuminant, observer=observer, pixels=pixels, excluded=excluded,
+        reflectance_spread=spread, precision=np.dtype(np.float32),
+    )
+
+
+__all__ = ["Measurement", "delta_e_and_u", "measure", "measure_reflectances", "COMMON_SOURCES", "PIXEL_SOURCES"]

@@ -111,3 +111,16 @@ def maybe_jit(request):
         return jax.jit(fn, static_argnames=static_argnames)
 
     return wrap
+
+
+@pytest.fixture(scope="session")
+def corrected_workspace(workspace, tmp_path_factory):
+    """One test capture of `workspace` corrected by the command line with its calibration (which
+    carries calibrate's noise model): {"raw", "calibration", "output" (N.reflectance.exr)}, for
+    the viewer's tests. Read-only, like `workspace`."""
+    from spherejax import cli
+
+    raw = sorted((workspace / "session" / "frames").glob("test-*.tif"))[0]
+    out = tmp_path_factory.mktemp("viewer") / "out"
+    assert cli.main(["-q", "correct", "-c", str(workspace / "cal.h5"), str(raw), "-o", str(out)]) == 0
+    return {"raw": raw, "calibration": workspace / "cal.h5", "output": out / f"{raw.stem}.reflectance.exr"}

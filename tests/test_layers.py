@@ -30,7 +30,8 @@ LAYERS = {
     **dict.fromkeys(
         ["calibrate", "calibrate_registration", "evaluate", "study", "simulate", "stripwise", "measurement", "monte_carlo",
          "simulated_targets", "kubelka_munk", "target_families", "simulated_instrument", "simulated_layout", "simulated_rendering", "band_geometry", "band_registration", "sphere_radiosity", "textile_brdf", "twin", "figures"], WORKFLOWS),
-    **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "console", "cli", "__main__", "hw"],
+    **dict.fromkeys(["io", "measurement_files", "archive", "cluster", "interrupt", "console", "cli", "__main__", "hw",
+                     "viewer"],
                     FILES),
 }
 #: The installed name of the package in the folder hw/.

@@ -9,6 +9,7 @@ import sys
 from . import number_types as numbers
 from .correct_command import cmd_correct
 from .measure_command import cmd_measure
+from .view_command import cmd_view
 from .session_commands import cmd_calibrate, cmd_demo, cmd_evaluate, cmd_simulate, cmd_study, cmd_twin
 from .shared import EXIT_BAD_INPUT, LOSSES, WIENER_METHODS, _one_line
 
@@ -423,4 +424,27 @@ OUT.csv and OUT.json, and with --cgats a CGATS.17 file colour quality-control so
     measure.add_argument("--frames", metavar="N", type=SAMPLE_FRAMES,
                          help="sample frames averaged in INPUT, 1..2**24 (default: the noise model's, else 1)")
     measure.set_defaults(run=cmd_measure)
+
+    view = _command(commands, "view", summary="look at a corrected output in napari: spectra, Lab, quality and ΔE00 at a click",
+                    description="""
+Open an output of `spherejax correct` (N.reflectance.exr or .hdr, any file of its set, or an OUT
+folder) in napari with the spherejax readout docked: the sRGB preview, the quality mask with its
+bits named, the reflectance cube (lazily, a slider per wavelength), and at a click the pixel's
+spectrum, L*a*b* and quality bits, ΔE00 to a reference, and regions measured as `spherejax
+measure` does. With -c CAL and --raw INPUT (the calibration and raw cube it was corrected from,
+checked against the output) values come with their uncertainties. --screenshot renders the
+window off screen into a PNG, with no display (needs the viewer extra, and Xvfb where $DISPLAY is
+unset).""",
+                    examples="""
+  spherejax view out/sample.reflectance.exr
+  spherejax view out/sample.reflectance.exr -c cal.h5 --raw sample.tif
+  spherejax view out/sample.reflectance.exr --screenshot sample.png --pixel 120,200""")
+    view.add_argument("path", metavar="PATH", help="an output of spherejax correct (any file of one input's set, or N), or its OUT folder")
+    view.add_argument("-c", "--calibration", metavar="CAL", help="the calibration the output was corrected with (for uncertainties)")
+    view.add_argument("--raw", metavar="INPUT", help="the raw cube it was corrected from (with -c: uncertainties)")
+    view.add_argument("--illuminant", default=None, choices=["D65", "A", "F2"],
+                      help="illuminant for Lab (default: the output's)")
+    view.add_argument("--screenshot", metavar="FILE.png", help="render the window off screen into FILE.png and exit")
+    view.add_argument("--pixel", metavar="ROW,COL", help="with --screenshot: the pixel the readout shows")
+    view.set_defaults(run=cmd_view)
     return parser

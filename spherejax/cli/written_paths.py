@@ -116,9 +116,18 @@ def _measure(args) -> CommandPaths:
                         outputs=outputs)
 
 
+def _view(args) -> CommandPaths:
+    inputs = {"PATH": _path(args.path)}
+    for label, value in (("the calibration (-c)", args.calibration), ("the raw cube (--raw)", args.raw)):
+        if value is not None:
+            inputs[label] = _path(value)
+    outputs = {} if args.screenshot is None else {"--screenshot FILE": _path(args.screenshot)}
+    return CommandPaths(inputs=inputs, outputs=outputs)
+
+
 _BY_COMMAND = {
     "simulate": _simulate, "calibrate": _calibrate, "evaluate": _evaluate, "study": _study, "demo": _demo,
-    "correct": _correct, "measure": _measure,
+    "correct": _correct, "measure": _measure, "view": _view,
 }
 
 

@@ -171,8 +171,9 @@ def _lab_exr(path: pathlib.Path, shape: tuple[int, int]):
     return _lazy_exr(path, spec, tuple(names.index(label) for label in labelled.LAB_LABELS)), attributes
 
 
-def _stem(path: pathlib.Path) -> pathlib.Path:
-    """N from N, N.reflectance.exr, N.lab.hdr, N.quality.png, ..."""
+def output_stem(path) -> pathlib.Path:
+    """N from N, N.reflectance.exr, N.lab.hdr, N.quality.png, N.preview.png, ..."""
+    path = pathlib.Path(path)
     for suffix in (".reflectance.exr", ".reflectance.hdr", ".reflectance.img", ".lab.exr", ".lab.hdr",
                    ".lab.img", ".quality.png", ".preview.png"):
         if path.name.endswith(suffix):
@@ -201,7 +202,7 @@ def open_corrected(path):
         software version or illuminant named in both), naming both files.
     """
     path = pathlib.Path(path)
-    stem = _stem(path)
+    stem = output_stem(path)
     exr, hdr = stem.with_name(stem.name + ".reflectance.exr"), stem.with_name(stem.name + ".reflectance.hdr")
     if stem == path and path.is_file():
         # A spectral image named otherwise ("scan.exr", "scan.hdr"): read as the reflectance.
@@ -231,4 +232,28 @@ def open_corrected(path):
     return labelled.dataset(arrays, attrs=attributes, wavelengths_nm=wavelengths)
 
 
-__all__ = ["CHUNK_BYTES", "OUTPUT_SET_ATTRIBUTE", "open_corrected", "output_set_id"]
+def read_preview(path, shape: tuple[int, int]) -> np.ndarray:
+    """The sRGB preview N.preview.png of an output of (H, W) `shape`, (H, W, 3) uint8.
+
+    Raises:
+      SpherejaxFileError: not an 8-bit RGB PNG of that size, or damaged pixel data.
+    """
+    path = pathlib.Path(path)
+    spec, _ = _image_header(path)
+    if (spec.height, spec.width) != tuple(shape) or spec.nchannels < 3:
+        raise SpherejaxFileError(path, f"is {spec.height} x {spec.width} with {spec.nchannels} channels",
+                                 f"an RGB preview of the reflectance's {shape[0]} x {shape[1]}")
+    image = oiio.ImageInput.open(library_path(path, "an RGB preview PNG"))
+    if image is None:
+        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), "an RGB preview PNG")
+    try:
+        pixels = image.read_image(0, 0, 0, 3, oiio.UINT8)
+        problem = image.geterror() if pixels is None else None
+    finally:
+        image.close()
+    if pixels is None:
+        raise SpherejaxFileError(path, f"cannot be read: {problem}", "an RGB preview PNG")
+    return np.ascontiguousarray(np.asarray(pixels, np.uint8).reshape(spec.height, spec.width, 3))
+
+
+__all__ = ["CHUNK_BYTES", "OUTPUT_SET_ATTRIBUTE", "open_corrected", "output_set_id", "output_stem", "read_preview"]
