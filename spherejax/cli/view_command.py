@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import pathlib
+import warnings
 
 from .. import interrupt
 from .shared import argument_text
@@ -59,6 +60,8 @@ def cmd_view(args) -> int:
 
     from ..viewer import window
 
+    # napari's, on the Qt 5 binding the extra installs: not the user's to act on.
+    warnings.filterwarnings("ignore", message="System theme detection requires a Qt6 backend", category=UserWarning)
     viewer = window.open_viewer(args.path, calibration=args.calibration, raw=args.raw, show=args.screenshot is None)
     try:
         if pixel is not None:

@@ -12,18 +12,22 @@ the GL in software; no GPU is needed.
 The server lives as long as this process, not shorter: Qt's offscreen platform keeps its GLX
 connection until the QApplication is destroyed, at the interpreter's exit, and an X server gone
 before then ends the process with Xlib's "XIO: fatal IO error" instead of its own exit status.
-The kernel stops it when the process ends, however it ends (PR_SET_PDEATHSIG, SIGTERM: Xvfb
-then removes its lock file and socket itself).
+It stops when the process ends, however it ends: util-linux's `setpriv --pdeathsig TERM` starts
+it (where there is setpriv, as on every Linux with util-linux 2.33 or later), so the kernel sends
+it SIGTERM when this process is gone; Xvfb then removes its lock file and socket itself. (Not a
+preexec_fn calling prctl: that forks through Python's at-fork hooks, which JAX, multithreaded by
+then, warns against. Not Xvfb's -terminate: Qt connects and disconnects before it draws, and the
+server would be gone by then.) Without setpriv the server outlives the process.
 """
 
 from __future__ import annotations
 
-import ctypes
+import contextlib
 import importlib.util
 import os
 import select
 import shutil
-import subprocess
+import signal
 import time
 
 #: Seconds to wait for Xvfb to say which display it took.
@@ -36,8 +40,11 @@ class NoDisplay(OSError):
     """No X server can be had for OpenGL off screen (one line: what is missing, what to do)."""
 
 
-def _start_xvfb() -> tuple[subprocess.Popen, str]:
-    """(the Xvfb process, its DISPLAY), started on a free display number it picks."""
+def _start_xvfb() -> tuple[int, str]:
+    """(the Xvfb process's id, its DISPLAY), started on a free display number it picks.
+
+    By posix_spawn, not subprocess.Popen: a Popen object of a server meant to outlive every
+    Python object here says "subprocess N is still running" at the interpreter's exit."""
     program = shutil.which("Xvfb")
     if program is None:
         raise NoDisplay(
@@ -45,13 +52,17 @@ def _start_xvfb() -> tuple[subprocess.Popen, str]:
             "(expected an X display, or Xvfb on PATH: Debian/Ubuntu apt-get install xvfb)"
         )
     read_end, write_end = os.pipe()
+    setpriv = shutil.which("setpriv")
+    stop_with_us = [setpriv, "--pdeathsig", "TERM"] if setpriv else []
+    argv = [*stop_with_us, program, "-displayfd", str(write_end), "-screen", "0", SCREEN, "-nolisten", "tcp"]
     try:
-        process = subprocess.Popen(
-            [program, "-displayfd", str(write_end), "-screen", "0", SCREEN, "-nolisten", "tcp"],
-            pass_fds=(write_end,), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            start_new_session=True,  # the terminal's Ctrl-C is ours to handle, not the server's
-            preexec_fn=_stop_with_parent,
-        )
+        os.set_inheritable(write_end, True)
+        with open(os.devnull, "rb") as null_in, open(os.devnull, "wb") as null_out:
+            pid = os.posix_spawn(argv[0], argv, os.environ, setsid=True,  # a Ctrl-C is ours, not the server's
+                                 file_actions=[(os.POSIX_SPAWN_DUP2, null_in.fileno(), 0),
+                                               (os.POSIX_SPAWN_DUP2, null_out.fileno(), 1),
+                                               (os.POSIX_SPAWN_DUP2, null_out.fileno(), 2),
+                                               (os.POSIX_SPAWN_CLOSE, read_end)])
     finally:
         os.close(write_end)
     text, deadline = b"", time.monotonic() + START_TIMEOUT_S
@@ -66,30 +77,27 @@ def _start_xvfb() -> tuple[subprocess.Popen, str]:
     finally:
         os.close(read_end)
     if not text.strip().isdigit():
-        _stop(process)
+        _stop(pid)
         raise NoDisplay(f"Xvfb ({program}) did not start (expected it to report a display number within "
                         f"{START_TIMEOUT_S:g} s)")
-    return process, f":{int(text)}"
+    return pid, f":{int(text)}"
 
 
-def _stop_with_parent() -> None:
-    """In the child, before exec: SIGTERM when the process that started it ends (Linux)."""
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(1, 15, 0, 0, 0)  # PR_SET_PDEATHSIG = 1, SIGTERM = 15
+def _stop(pid: int) -> None:
+    """Stop a server that did not start (SIGTERM, then SIGKILL if it hangs) and reap it."""
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGTERM)
+    for _ in range(100):
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return
+        time.sleep(0.1)
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
 
 
-def _stop(process: subprocess.Popen) -> None:
-    """Stop the server (SIGTERM: it removes its lock file and socket), killing it if it hangs."""
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-
-_SERVER: subprocess.Popen | None = None
+_SERVER: int | None = None  # the Xvfb's process id
 
 
 def use_offscreen() -> None:

@@ -35,6 +35,8 @@ from .outputs import write_region_files
 
 #: Name of the Shapes layer whose shapes are the regions.
 REGIONS_LAYER = "regions"
+#: Name of the Points layer marking the pixel read out (a clicked one, or `readout`'s).
+PIXEL_LAYER = "readout pixel"
 #: The readout widget of each viewer (`widget_of`): id(viewer) -> weak reference to it. Set by the
 #: widget itself, whoever made it (`window.dock_readout`, or napari's Plugins menu through npe2).
 _WIDGETS: dict[int, weakref.ref] = {}
@@ -149,8 +151,20 @@ class ReadoutWidget(QWidget):
             return None
         self.current = capture.pixel(row, col, illuminant=self.illuminant.currentText(), uncertainty=uncertainty,
                                      reference=self.reference)
+        if uncertainty:  # a click or `readout`, not the cursor passing by: marked on the image
+            self._mark(row, col)
         self._show_current()
         return self.current
+
+    def _mark(self, row: int, col: int) -> None:
+        layer = next((layer for layer in self.viewer.layers if layer.name == PIXEL_LAYER), None)
+        if layer is None:
+            active = self.viewer.layers.selection.active
+            self.viewer.add_points([[row, col]], name=PIXEL_LAYER, size=7, face_color="transparent",
+                                   border_color="red", border_width=0.25, ndim=2)
+            self.viewer.layers.selection.active = active  # a click keeps reading pixels out
+        else:
+            layer.data = np.array([[row, col]], float)
 
     def _show_current(self) -> None:
         r = self.current
@@ -326,4 +340,4 @@ class ReadoutWidget(QWidget):
         self.canvas.draw_idle()
 
 
-__all__ = ["REGIONS_LAYER", "ReadoutWidget", "capture_of", "pixel_at", "widget_of"]
+__all__ = ["PIXEL_LAYER", "REGIONS_LAYER", "ReadoutWidget", "capture_of", "pixel_at", "widget_of"]
