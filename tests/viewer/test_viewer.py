@@ -218,3 +218,29 @@ def test_screenshot_needs_no_display(corrected_workspace, tmp_path):
     assert "Traceback" not in done.stderr
     assert png.is_file()
     assert set(pathlib.Path("/tmp").glob(".X*-lock")) <= before
+
+
+def test_an_envi_output_and_an_out_folder_open(qtbot, corrected_workspace, expected, tmp_path):
+    """The reader takes the ENVI outputs and a whole OUT folder (each output set's layers)."""
+    import napari
+
+    from spherejax import cli
+    from spherejax.viewer import readout
+
+    raws = sorted(corrected_workspace["raw"].parent.glob("test-*.tif"))[:2]
+    out = tmp_path / "out"
+    assert cli.main(["-q", "correct", "-c", str(corrected_workspace["calibration"]), *map(str, raws), "-o", str(out),
+                     "--format", "envi"]) == 0
+    v = napari.Viewer(show=False)
+    try:
+        v.open(str(out / f"{raws[0].stem}.reflectance.hdr"), plugin="spherejax")
+        assert [layer.name for layer in v.layers][0] == f"{raws[0].stem} reflectance"
+        r = readout(v, (40, 50), uncertainty=False)
+        np.testing.assert_array_equal(r["reflectance"], expected["dataset"]["reflectance"].values[40, 50])
+        v.layers.clear()
+        v.open(str(out), plugin="spherejax")
+        assert sorted(layer.name for layer in v.layers if layer.name.endswith("quality")) == \
+            [f"{raw.stem} quality" for raw in raws]
+    finally:
+        v.layers.clear()
+        v.close()
