@@ -411,3 +411,17 @@ def assert_refused(status, err, *fragments):
     for fragment in fragments:
         assert fragment in lines[0], (fragment, lines[0])
 
+
+
+def corrected_oracle(files) -> dict:
+    """For `corrected_workspace`'s files: correct(..., noise=) of the raw cube with the
+    calibration's own noise model (the per-pixel oracle of the viewer's tests), and what it used:
+    {"result", "raw", "calibration", "noise"}."""
+    import spherejax as sj
+    from spherejax import io
+
+    calibration_file = io.open_calibration(files["calibration"])
+    calibration, noise = calibration_file.calibration(), calibration_file.noise_model
+    calibration_file.close()
+    raw = io.read_cube(files["raw"], expected_shape=(*calibration.image_shape, calibration.bands))
+    return {"result": sj.correct(raw, calibration, noise=noise), "raw": raw, "calibration": calibration, "noise": noise}

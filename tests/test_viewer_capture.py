@@ -15,7 +15,7 @@ from spherejax.measurement_files import RegionResult
 from spherejax.viewer import outputs
 from spherejax.viewer.capture import CorrectedCapture, Reference, quality_names
 
-from .helpers import assert_refused, colour_lab, listing, run_cli
+from .helpers import assert_refused, colour_lab, corrected_oracle, listing, run_cli
 
 PIXELS = [(0, 0), (5, 7), (20, 31), (-1, -1)]
 
@@ -29,12 +29,8 @@ def capture(corrected_workspace):
 @pytest.fixture(scope="module")
 def corrected(corrected_workspace):
     """correct() of the raw cube with the calibration's noise model: the per-pixel oracle."""
-    files = corrected_workspace
-    calibration_file = io.open_calibration(files["calibration"])
-    calibration, noise = calibration_file.calibration(), calibration_file.noise_model
-    calibration_file.close()
-    raw = io.read_cube(files["raw"], expected_shape=(*calibration.image_shape, calibration.bands))
-    return sj.correct(raw, calibration, noise=noise), raw, calibration, noise
+    oracle = corrected_oracle(corrected_workspace)
+    return oracle["result"], oracle["raw"], oracle["calibration"], oracle["noise"]
 
 
 def _pixel(capture, rc):

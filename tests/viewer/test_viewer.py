@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 import spherejax as sj
-from spherejax import io, measurement_files
+from spherejax import measurement_files
 from spherejax.io import corrected as corrected_module
 from spherejax.io.quality_png import PALETTE
 
-from ..helpers import listing, run_cli
+from ..helpers import corrected_oracle, listing, run_cli
 
 PIXELS = [(20, 31), (40, 50), (61, 83), (0, 0)]
 
@@ -35,13 +35,7 @@ def viewer(qtbot, corrected_workspace):
 
 @pytest.fixture(scope="module")
 def expected(corrected_workspace):
-    files = corrected_workspace
-    calibration_file = io.open_calibration(files["calibration"])
-    calibration, noise = calibration_file.calibration(), calibration_file.noise_model
-    calibration_file.close()
-    raw = io.read_cube(files["raw"], expected_shape=(*calibration.image_shape, calibration.bands))
-    return {"result": sj.correct(raw, calibration, noise=noise), "raw": raw, "calibration": calibration,
-            "noise": noise, "dataset": sj.open_corrected(files["output"])}
+    return {**corrected_oracle(corrected_workspace), "dataset": sj.open_corrected(corrected_workspace["output"])}
 
 
 def test_the_reader_opens_an_output_as_napari_opens_it(qtbot, corrected_workspace, monkeypatch):
