@@ -252,3 +252,20 @@ class TestViewRefusals:
         monkeypatch.setattr(view_command.importlib.util, "find_spec", lambda name, *a: object())
         status, _, err = run_cli(["view", str(corrected_workspace["output"])], capsys)
         assert_refused(status, err, "no display to open a window on", "--screenshot FILE.png")
+
+
+def test_the_cursor_reads_each_chunk_of_rows_once(corrected_workspace, monkeypatch):
+    """Pixel after pixel of the same rows: the file's chunk is read once, then kept."""
+    from spherejax.io import corrected
+
+    monkeypatch.setattr(corrected, "CHUNK_BYTES", 8 * 272 * 31 * 4)  # eight rows a chunk
+    calls = []
+    real = corrected._read_rows
+    monkeypatch.setattr(corrected, "_read_rows", lambda path, r0, r1, order: calls.append((path, r0)) or real(path, r0, r1, order))
+    expected = sj.open_corrected(corrected_workspace["output"])["reflectance"].values
+    capture = CorrectedCapture(corrected_workspace["output"])
+    calls.clear()
+    for row, col in [(9, 3), (10, 40), (15, 100), (9, 200)]:
+        r = capture.pixel(row, col, illuminant="A")  # no Lab file under A: reflectance only
+        np.testing.assert_array_equal(r["reflectance"], expected[row, col])
+    assert [r0 for path, r0 in calls if "reflectance" in path] == [8]

@@ -35,6 +35,8 @@ from ..io.hashing import sha256_file
 from ..measurement import Measurement, delta_e_and_u, measure, measure_reflectances
 from ..quality import Quality
 
+#: Chunks of rows (about 32 MB each: `io.corrected.CHUNK_BYTES`) a capture keeps for its readout.
+_CACHED_CHUNKS = 4
 #: The illuminants a readout can be asked for (`colorimetry.tristimulus_weights`).
 ILLUMINANTS = ("D65", "A", "F2")
 
@@ -111,6 +113,7 @@ class CorrectedCapture:
         self.stem = output_stem(self.path)
         self.preview_path = self.stem.with_name(self.stem.name + ".preview.png")
         self.calibration = self.noise = self.raw = self.instrument_id = None
+        self._chunks: dict[tuple[str, int], np.ndarray] = {}  # `_pixel_values`' cache
         self.observer = colorimetry.DEFAULT_OBSERVER
         self.calibration_path = None if calibration is None else pathlib.Path(calibration)
         self.raw_path = None if raw is None else pathlib.Path(raw)
@@ -204,9 +207,9 @@ class CorrectedCapture:
         """
         row, col = self._check_pixel(row, col)
         illuminant = illuminant or self.file_illuminant or "D65"
-        reflectance = np.asarray(self.dataset["reflectance"][row, col].values, np.float64)
+        reflectance = self._pixel_values("reflectance", row, col)
         if illuminant == self.file_illuminant and "lab" in self.dataset:
-            lab = np.asarray(self.dataset["lab"][row, col].values, np.float64)
+            lab = self._pixel_values("lab", row, col)
         else:
             lab = self._lab(reflectance, illuminant)
         quality = int(self.quality[row, col])
@@ -232,6 +235,22 @@ class CorrectedCapture:
             else:
                 readout["delta_e"] = readout["delta_e_u"] = float("nan")
         return readout
+
+    def _pixel_values(self, name: str, row: int, col: int) -> np.ndarray:
+        """One pixel of a variable, float64, through a cache of the last chunks of rows read:
+        the file is read a chunk of whole rows at a time (`open_corrected`), and the cursor
+        passing over an image asks for pixel after pixel of the same few chunks."""
+        data = self.dataset[name].data
+        bounds = np.cumsum((0, *data.chunks[0]))
+        block = int(np.searchsorted(bounds, row, side="right")) - 1
+        key = (name, block)
+        rows = self._chunks.pop(key, None)
+        if rows is None:
+            rows = np.asarray(data.blocks[block])
+            while len(self._chunks) >= _CACHED_CHUNKS:
+                self._chunks.pop(next(iter(self._chunks)))
+        self._chunks[key] = rows  # the most recently used last
+        return np.asarray(rows[row - bounds[block], col], np.float64)
 
     def _lab(self, reflectance: np.ndarray, illuminant: str) -> np.ndarray:
         if not np.all(np.isfinite(reflectance)):
