@@ -195,10 +195,18 @@ class ReadoutWidget(QWidget):
             self.show_pixel(*self._hover, uncertainty=False)
 
     def _clicked(self, viewer, event):
-        if event.type == "mouse_press" and getattr(viewer.layers.selection.active, "mode", "pan_zoom") in ("pan_zoom", None):
-            pixel = pixel_at(viewer, event.position)
-            if pixel is not None:
-                self.show_pixel(*pixel)
+        """napari's drag callback: a press and release without a move between them (a click,
+        not the start of a pan) in pan-zoom mode reads the pressed pixel out."""
+        if event.type != "mouse_press" or getattr(viewer.layers.selection.active, "mode", "pan_zoom") != "pan_zoom":
+            return
+        pixel = pixel_at(viewer, event.position)
+        yield
+        moved = False
+        while event.type == "mouse_move":
+            moved = True
+            yield
+        if pixel is not None and not moved:
+            self.show_pixel(*pixel)
 
     def _illuminant_changed(self, _name: str) -> None:
         if self.current is not None:

@@ -111,11 +111,22 @@ def test_readout_under_another_illuminant_and_a_click(viewer, expected, qtbot):
     np.testing.assert_allclose(r["lab"], lab_a, atol=1e-4)
     widget = widget_of(viewer)
     assert widget.illuminant.currentText() == "A"
-    # A click in pan-zoom mode reads the pixel under it out.
-    event = type("Event", (), {"type": "mouse_press", "position": (7, 40.4, 50.2)})()
+    # A click in pan-zoom mode (press, release) reads the pixel under it out; a drag (press,
+    # move, release: a pan) does not.
     widget.illuminant.setCurrentText("D65")
-    widget._clicked(viewer, event)
-    np.testing.assert_array_equal(widget.current["lab"], expected["dataset"]["lab"].values[40, 50])
+    for moves, shown in [(0, (40, 50)), (2, (40, 50)), (0, (12, 61))]:
+        position = (7, shown[0] + 0.4, shown[1] - 0.3) if moves == 0 else (7, 3.0, 3.0)
+        event = type("Event", (), {"type": "mouse_press", "position": position})()
+        drag = widget._clicked(viewer, event)
+        next(drag)
+        for _ in range(moves):
+            event.type = "mouse_move"
+            next(drag)
+        event.type = "mouse_release"
+        with pytest.raises(StopIteration):
+            next(drag)
+        assert (widget.current["row"], widget.current["col"]) == shown
+        np.testing.assert_array_equal(widget.current["lab"], expected["dataset"]["lab"].values[shown])
 
 
 def test_a_rectangle_and_a_polygon_are_measured_as_measure_does(viewer, expected, tmp_path):
