@@ -76,6 +76,9 @@ class ReadoutWidget(QWidget):
 
     def __init__(self, napari_viewer, parent=None):
         super().__init__(parent)
+        # napari hands a plugin's widget a proxy of the viewer (its public API only): the viewer
+        # itself is the one `widget_of` and `readout` are given.
+        napari_viewer = getattr(napari_viewer, "__wrapped__", napari_viewer)
         self.viewer = napari_viewer
         _WIDGETS[id(napari_viewer)] = weakref.ref(self)
         self.current: dict | None = None  # the last pixel's readout
@@ -247,8 +250,10 @@ class ReadoutWidget(QWidget):
 
     # -- regions ----------------------------------------------------------------------------
     def _regions_layer(self):
+        from napari.layers import Shapes
+
         for layer in self.viewer.layers:
-            if layer.name == REGIONS_LAYER and layer._type_string == "shapes":
+            if layer.name == REGIONS_LAYER and isinstance(layer, Shapes):
                 return layer
         return self.viewer.add_shapes(name=REGIONS_LAYER, ndim=2, face_color="transparent", edge_color="yellow",
                                       edge_width=2)

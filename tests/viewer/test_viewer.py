@@ -249,3 +249,23 @@ def test_an_envi_output_and_an_out_folder_open(qtbot, corrected_workspace, expec
     finally:
         v.layers.clear()
         v.close()
+
+
+def test_the_readout_docks_from_naparis_plugin_menu(qtbot, corrected_workspace, expected):
+    """The manifest's widget, as napari's Plugins menu docks it, is the one `readout` drives."""
+    import napari
+
+    from spherejax.viewer import readout
+    from spherejax.viewer.widget import ReadoutWidget, widget_of
+
+    v = napari.Viewer(show=False)
+    try:
+        v.open(str(corrected_workspace["output"]), plugin="spherejax")
+        _, widget = v.window.add_plugin_dock_widget("spherejax", "spherejax readout")
+        assert isinstance(widget, ReadoutWidget) and widget_of(v) is widget
+        r = readout(v, (61, 83))
+        np.testing.assert_array_equal(widget.axes.lines[0].get_ydata(), r["reflectance"])
+        np.testing.assert_array_equal(r["lab"], expected["dataset"]["lab"].values[61, 83])
+    finally:
+        v.layers.clear()
+        v.close()
