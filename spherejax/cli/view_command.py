@@ -105,7 +105,10 @@ def _run_until_closed_or_stopped() -> None:
     from qtpy.QtCore import QTimer
     from qtpy.QtWidgets import QApplication
 
+    from .. import console
+
     app = QApplication.instance()
+    console.log.debug("view: the window is open; closing it, Ctrl-C or SIGTERM ends the command")
     timer = QTimer()
     timer.timeout.connect(lambda: app.quit() if interrupt.requested() is not None else None)
     timer.start(200)

@@ -269,3 +269,34 @@ def test_the_readout_docks_from_naparis_plugin_menu(qtbot, corrected_workspace, 
     finally:
         v.layers.clear()
         v.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum, status", [(2, 130), (15, 143)])
+def test_a_window_stops_on_a_signal(corrected_workspace, signum, status):
+    """`spherejax view PATH` in a window (here Qt's offscreen platform on this session's X
+    server): SIGINT or SIGTERM while Qt's loop runs ends the command with 128 + the signal and
+    one line, as every command does."""
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    assert env.get("DISPLAY") and env.get("QT_QPA_PLATFORM") == "offscreen"  # tests/viewer/conftest.py
+    process = subprocess.Popen([sys.executable, "-m", "spherejax", "-v", "view", str(corrected_workspace["output"])],
+                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        seen = ""
+        while "the window is open" not in seen:
+            assert time.monotonic() < deadline and process.poll() is None, seen
+            seen += process.stderr.readline()
+        time.sleep(0.5)
+        process.send_signal(signum)
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == status, err
+    ours = [line for line in err.splitlines() if line.startswith("spherejax: ")]
+    assert ours == ["spherejax: interrupted; nothing half-written was left"] and "Traceback" not in err, err
