@@ -269,3 +269,35 @@ def test_the_cursor_reads_each_chunk_of_rows_once(corrected_workspace, monkeypat
         r = capture.pixel(row, col, illuminant="A")  # no Lab file under A: reflectance only
         np.testing.assert_array_equal(r["reflectance"], expected[row, col])
     assert [r0 for path, r0 in calls if "reflectance" in path] == [8]
+
+
+def test_a_preview_that_is_not_rgb_is_refused_naming_it(corrected_workspace, tmp_path):
+    """A grey PNG in the preview's place (its size right, so `open_corrected` takes the set):
+    refused in one line naming the file and what was expected."""
+    import shutil
+
+    stem = corrected_workspace["output"].name.removesuffix(".reflectance.exr")
+    for file in corrected_workspace["output"].parent.glob(stem + ".*"):
+        shutil.copy(file, tmp_path / file.name)
+    h, w = CorrectedCapture(tmp_path / f"{stem}.reflectance.exr").shape
+    (tmp_path / f"{stem}.preview.png").unlink()
+    io.write_png(tmp_path / f"{stem}.preview.png", np.zeros((h, w, 1), np.uint8), channel_names=["Y"])
+    capture = CorrectedCapture(tmp_path / f"{stem}.reflectance.exr")
+    with pytest.raises(io.SpherejaxFileError, match="with 1 channels") as refused:
+        capture.preview  # noqa: B018
+    assert f"{stem}.preview.png" in str(refused.value) and "expected an RGB preview PNG" in str(refused.value)
+
+
+def test_a_truncated_preview_is_refused_naming_it(corrected_workspace, tmp_path):
+    import shutil
+
+    stem = corrected_workspace["output"].name.removesuffix(".reflectance.exr")
+    for file in corrected_workspace["output"].parent.glob(stem + ".*"):
+        shutil.copy(file, tmp_path / file.name)
+    preview = tmp_path / f"{stem}.preview.png"
+    data = preview.read_bytes()
+    preview.write_bytes(data[: len(data) // 2])
+    with pytest.raises(io.SpherejaxFileError) as refused:
+        CorrectedCapture(tmp_path / f"{stem}.reflectance.exr").preview  # noqa: B018
+    message = str(refused.value)
+    assert message.startswith(str(preview)) and "\n" not in message and "expected" in message

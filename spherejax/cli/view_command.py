@@ -80,21 +80,10 @@ def cmd_view(args) -> int:
         with interrupt.stop_requests():
             written = outputs.write_screenshot(args.screenshot, png, inputs=_inputs(args))
     finally:
-        _close(viewer)
+        viewer.close()
     if not args.quiet:
         print(f"written: {written}")
     return 0
-
-
-def _close(viewer) -> None:
-    """Close the window and let go of its layers now, while the libraries are all there: the
-    layers' lazy arrays hold OpenImageIO objects, which nanobind reports as leaked (a screenful
-    on stderr) when they are still alive at the interpreter's exit."""
-    import gc
-
-    viewer.layers.clear()
-    viewer.close()
-    gc.collect()
 
 
 def _run_until_closed_or_stopped() -> None:

@@ -239,20 +239,19 @@ def read_preview(path, shape: tuple[int, int]) -> np.ndarray:
       SpherejaxFileError: not an 8-bit RGB PNG of that size, or damaged pixel data.
     """
     path = pathlib.Path(path)
-    spec, _ = _image_header(path)
-    if (spec.height, spec.width) != tuple(shape) or spec.nchannels < 3:
-        raise SpherejaxFileError(path, f"is {spec.height} x {spec.width} with {spec.nchannels} channels",
-                                 f"an RGB preview of the reflectance's {shape[0]} x {shape[1]}")
-    image = oiio.ImageInput.open(library_path(path, "an RGB preview PNG"))
+    expected = f"an RGB preview PNG of the reflectance's {shape[0]} x {shape[1]}"
+    image = oiio.ImageInput.open(library_path(path, expected))
     if image is None:
-        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), "an RGB preview PNG")
+        raise SpherejaxFileError(path, image_open_problem(path, oiio.geterror()), expected)
     try:
+        spec = image.spec()
+        if (spec.height, spec.width) != tuple(shape) or spec.nchannels < 3:
+            raise SpherejaxFileError(path, f"is {spec.height} x {spec.width} with {spec.nchannels} channels", expected)
         pixels = image.read_image(0, 0, 0, 3, oiio.UINT8)
-        problem = image.geterror() if pixels is None else None
+        if pixels is None:
+            raise SpherejaxFileError(path, f"cannot be read: {image.geterror()}", expected)
     finally:
         image.close()
-    if pixels is None:
-        raise SpherejaxFileError(path, f"cannot be read: {problem}", "an RGB preview PNG")
     return np.ascontiguousarray(np.asarray(pixels, np.uint8).reshape(spec.height, spec.width, 3))
 
 
