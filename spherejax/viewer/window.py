@@ -13,6 +13,7 @@ from .capture import CorrectedCapture
 from .layers import read_layers
 from .outputs import SCREENSHOT_SOFTWARE
 from .widget import ReadoutWidget, capture_of, widget_of
+
 #: The window's size for screenshots, pixels: the canvas beside the dock widget.
 SCREENSHOT_SIZE = (1400, 860)
 

@@ -306,3 +306,14 @@ def test_a_window_stops_on_a_signal(corrected_workspace, signum, status):
     assert process.returncode == status, err
     ours = [line for line in err.splitlines() if line.startswith("spherejax: ")]
     assert ours == ["spherejax: interrupted; nothing half-written was left"] and "Traceback" not in err, err
+
+
+def test_a_path_that_holds_no_output_is_refused(tmp_path, capsys):
+    """A folder with no output of correct in it, or a file that is not one: one line, exit 2,
+    nothing written."""
+    (tmp_path / "notes.txt").write_text("not an image\n")
+    for path in (tmp_path, tmp_path / "notes.txt"):
+        status, _, err = run_cli(["view", str(path), "--screenshot", str(tmp_path / "s.png")], capsys)
+        assert status == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"{path}: holds no output of spherejax correct" in err and "Traceback" not in err
+    assert listing(tmp_path) == ["notes.txt"]
