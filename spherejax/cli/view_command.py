@@ -36,6 +36,33 @@ def _inputs(args) -> dict:
             "the raw cube (--raw)": args.raw and pathlib.Path(args.raw)}
 
 
+def _check_x11_platform() -> None:
+    """Before a window on X11 (Qt's xcb platform, PyQt5's wheel): its plugin loads, or one line
+    says which system library is missing. Qt itself would abort the process (SIGABRT, a core
+    dump and a page of text) when the plugin cannot load: PyQt5's wheel bundles Qt but not
+    every xcb library (Debian 12 without a desktop lacks libxcb-icccm4, libxcb-keysyms1 and
+    libxcb-xinerama0)."""
+    import ctypes
+
+    if os.environ.get("QT_QPA_PLATFORM", "xcb") != "xcb" or not os.environ.get("DISPLAY"):
+        return
+    spec = importlib.util.find_spec("PyQt5")
+    if spec is None or not spec.submodule_search_locations:
+        return
+    plugin = pathlib.Path(spec.submodule_search_locations[0], "Qt5", "plugins", "platforms", "libqxcb.so")
+    if not plugin.is_file():
+        return
+    try:
+        ctypes.CDLL(str(plugin))
+    except OSError as error:
+        missing = str(error).split(":")[0].strip()
+        raise ValueError(
+            f"spherejax view: Qt's X11 platform cannot load: {missing} is missing (expected the xcb libraries "
+            "of a desktop; Debian/Ubuntu: apt-get install libxcb-icccm4 libxcb-keysyms1 libxcb-xinerama0 "
+            "libxcb-image0 libxcb-render-util0 libxkbcommon-x11-0), or use --screenshot FILE.png"
+        ) from None
+
+
 def cmd_view(args) -> int:
     from ..viewer import outputs
     from ..viewer.offscreen import use_offscreen
@@ -57,6 +84,8 @@ def cmd_view(args) -> int:
     elif not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ValueError("spherejax view: no display to open a window on ($DISPLAY is unset): run it on a "
                          "desktop, or render the window into a file with --screenshot FILE.png")
+    else:
+        _check_x11_platform()
 
     from ..viewer import window
 

@@ -317,3 +317,28 @@ def test_a_path_that_holds_no_output_is_refused(tmp_path, capsys):
         assert status == 2 and len(err.strip().splitlines()) == 1, err
         assert f"{path}: holds no output of spherejax correct" in err and "Traceback" not in err
     assert listing(tmp_path) == ["notes.txt"]
+
+
+def test_a_window_without_the_xcb_libraries_is_refused(corrected_workspace, capsys, monkeypatch):
+    """Qt's X11 platform plugin that cannot load (a machine without a desktop's xcb libraries)
+    is said in one line, before Qt would abort the process."""
+    import ctypes
+
+    from spherejax.cli import view_command
+
+    monkeypatch.delenv("QT_QPA_PLATFORM", raising=False)
+    monkeypatch.setenv("DISPLAY", os.environ.get("DISPLAY") or ":0")
+    real = ctypes.CDLL
+
+    def cdll(name, *args, **kwargs):
+        if str(name).endswith("libqxcb.so"):
+            raise OSError("libxcb-icccm.so.4: cannot open shared object file: No such file or directory")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(ctypes, "CDLL", cdll)
+    opened = []
+    monkeypatch.setattr(view_command, "_run_until_closed_or_stopped", lambda: opened.append(True))
+    status, _, err = run_cli(["view", str(corrected_workspace["output"])], capsys)
+    assert status == 2 and len(err.strip().splitlines()) == 1, err
+    assert "Qt's X11 platform cannot load: libxcb-icccm.so.4 is missing" in err and "apt-get install" in err
+    assert opened == []
