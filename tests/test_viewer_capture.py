@@ -243,7 +243,7 @@ class TestViewRefusals:
                             lambda name, *a: None if name == "napari" else real(name, *a))
         status, _, err = run_cli(["view", str(corrected_workspace["output"]), "--screenshot", str(tmp_path / "s.png")],
                                  capsys)
-        assert_refused(status, err, "needs the viewer extra", "pip install 'spherejax[viewer]'")
+        assert_refused(status, err, "the viewer extra is not installed", "pip install 'spherejax[viewer]'")
         assert listing(tmp_path) == []
 
     def test_no_display_for_a_window(self, corrected_workspace, capsys, monkeypatch):

@@ -12,8 +12,8 @@ from .. import interrupt
 from .shared import argument_text
 
 #: What is missing without the viewer extra, and how to get it.
-NEEDS_EXTRA = ("spherejax view: needs the viewer extra (napari and PyQt5 are not installed): "
-               "pip install 'spherejax[viewer]'")
+NEEDS_EXTRA = ("view: the viewer extra is not installed (napari and PyQt5; expected them installed: "
+               "pip install 'spherejax[viewer]')")
 
 
 def _pixel(value: str | None) -> tuple[int, int] | None:
@@ -57,7 +57,7 @@ def _check_x11_platform() -> None:
     except OSError as error:
         missing = str(error).split(":")[0].strip()
         raise ValueError(
-            f"spherejax view: Qt's X11 platform cannot load: {missing} is missing (expected the xcb libraries "
+            f"view: Qt's X11 platform cannot load: {missing} is missing (expected the xcb libraries "
             "of a desktop; Debian/Ubuntu: apt-get install libxcb-icccm4 libxcb-keysyms1 libxcb-xinerama0 "
             "libxcb-image0 libxcb-render-util0 libxkbcommon-x11-0), or use --screenshot FILE.png"
         ) from None
@@ -82,7 +82,7 @@ def cmd_view(args) -> int:
     if args.screenshot is not None:
         use_offscreen()  # before Qt is imported: the platform and binding are chosen then
     elif not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise ValueError("spherejax view: no display to open a window on ($DISPLAY is unset): run it on a "
+        raise ValueError("view: no display to open a window on ($DISPLAY is unset): run it on a "
                          "desktop, or render the window into a file with --screenshot FILE.png")
     else:
         _check_x11_platform()
