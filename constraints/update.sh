@@ -6,6 +6,6 @@
 # The package's own metadata keeps ranges; only these files pin (README "Install").
 set -euo pipefail
 cd "$(dirname "$0")/.."
-uv pip compile pyproject.toml --extra test --extra genicam --extra viewer --python-version 3.11 --resolution lowest-direct \
+uv pip compile pyproject.toml --extra test --extra genicam --extra viewer --extra viewer-test --python-version 3.11 --resolution lowest-direct \
   --constraint constraints/oldest-fixes.txt --no-header --quiet -o constraints/oldest.txt
-uv pip compile pyproject.toml --extra test --extra genicam --extra viewer --python-version 3.13 --no-header --quiet -o constraints/newest.txt
+uv pip compile pyproject.toml --extra test --extra genicam --extra viewer --extra viewer-test --python-version 3.13 --no-header --quiet -o constraints/newest.txt
