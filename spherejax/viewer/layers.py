@@ -56,12 +56,15 @@ def output_sets(path) -> list[pathlib.Path]:
 
 
 def napari_get_reader(path):
-    """npe2's reader hook: `read_layers` when `path` (or each of a list) names spherejax outputs,
-    else None (napari then tries its other readers)."""
+    """npe2's reader hook: a reader of the output sets `path` (or each of a list) names, else
+    None (napari then tries its other readers). The sets found here are the ones it reads (a
+    folder is searched once)."""
     paths = path if isinstance(path, (list, tuple)) else [path]
-    if not paths or not all(output_sets(p) for p in paths):
+    found = [output_sets(p) for p in paths]
+    if not paths or not all(found):
         return None
-    return read_layers
+    sets = [reflectance for each in found for reflectance in each]
+    return lambda _path: _layers_of(sets)
 
 
 def quality_colormap():
@@ -108,10 +111,13 @@ def read_layers(path, *, calibration=None, raw=None) -> list[tuple]:
     sets = [found for p in paths for found in output_sets(p)]
     if (calibration is not None or raw is not None) and len(sets) != 1:
         raise ValueError(f"{paths[0]}: holds {len(sets)} output sets; a calibration and raw cube go with one")
-    layers = []
-    for reflectance_file in sets:
-        layers.extend(capture_layers(CorrectedCapture(reflectance_file, calibration=calibration, raw=raw)))
-    return layers
+    return _layers_of(sets, calibration=calibration, raw=raw)
+
+
+def _layers_of(sets, *, calibration=None, raw=None) -> list[tuple]:
+    """`capture_layers` of each reflectance file in `sets`, in order."""
+    return [layer for reflectance_file in sets
+            for layer in capture_layers(CorrectedCapture(reflectance_file, calibration=calibration, raw=raw))]
 
 
 __all__ = ["METADATA_KEY", "capture_layers", "napari_get_reader", "output_sets", "quality_colormap",

@@ -17,6 +17,7 @@ Reference for ΔE00: L,a,b typed in, the clicked pixel, or the last region.
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import weakref
 
@@ -224,6 +225,7 @@ class ReadoutWidget(QWidget):
         if self.current is not None:
             self.show_pixel(self.current["row"], self.current["col"])
         if self.regions:
+            self.regions = [dataclasses.replace(r, **self._against_reference(r.measurement)) for r in self.regions]
             self._show_region()
 
     def _typed_reference(self) -> None:
@@ -258,6 +260,13 @@ class ReadoutWidget(QWidget):
         return self.viewer.add_shapes(name=REGIONS_LAYER, ndim=2, face_color="transparent", edge_color="yellow",
                                       edge_width=2)
 
+    def _against_reference(self, measured) -> dict:
+        """A region's delta_e and delta_e_u against the reference (None without one)."""
+        if self.reference is None:
+            return {"delta_e": None, "delta_e_u": None}
+        delta_e, u = measured.delta_e(self.reference.lab, self.reference.covariance)
+        return {"delta_e": delta_e, "delta_e_u": u}
+
     def measure_regions(self) -> list[RegionResult]:
         """Measure every shape of the regions layer (module docstring); shown and returned."""
         capture = capture_of(self.viewer)
@@ -271,10 +280,7 @@ class ReadoutWidget(QWidget):
                 rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
                 rect = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
                 measured = capture.region(mask, illuminant=self.illuminant.currentText())
-                delta_e = u = None
-                if self.reference is not None:
-                    delta_e, u = measured.delta_e(self.reference.lab, self.reference.covariance)
-                results.append(RegionResult(f"region {number}", rect, measured, delta_e, u))
+                results.append(RegionResult(f"region {number}", rect, measured, **self._against_reference(measured)))
         self.regions = results
         self._show_region()
         return results
@@ -298,9 +304,9 @@ class ReadoutWidget(QWidget):
         lab = ("{:.2f}, {:.2f}, {:.2f}".format(*m.lab) if u is None else
                "  ".join(f"{v:.2f} ± {COVERAGE_FACTOR * e:.2f}" for v, e in zip(m.lab, u)))
         text = f"{r.name}: {m.pixels} pixels ({m.excluded} flagged, left out), L*a*b* {lab} ({m.illuminant})"
-        if self.reference is not None:
-            delta_e, delta_u = m.delta_e(self.reference.lab, self.reference.covariance)
-            text += f", ΔE00 {delta_e:.2f}" + ("" if not np.isfinite(delta_u) else f" ± {COVERAGE_FACTOR * delta_u:.2f}")
+        if r.delta_e is not None:
+            u_text = "" if not np.isfinite(r.delta_e_u) else f" ± {COVERAGE_FACTOR * r.delta_e_u:.2f}"
+            text += f", ΔE00 {r.delta_e:.2f}{u_text}"
         self.region_text.setText(text)
         self._draw()
 
